@@ -38,6 +38,8 @@ DEFAULT_GENERATIONS = 80
 
 # A repaired individual lands this far inside the limits, so round-off never makes it infeasible.
 _REPAIR_MARGIN = 1.0 + 1e-9
+# SLSQP aims this far inside the limits, as its own constraint tolerance may leave it a hair outside.
+_POLISH_TARGET = 1.0 - 1e-8
 # The shortest interval allowed, for a segment where no joint moves far (h_lb would be ~0).
 H_MIN_S = 0.01
 # Share of the generations before the ends are polished and fed back.
@@ -118,7 +120,7 @@ def polish(
         key = x.tobytes()
         if key not in memo:
             pts = np.vstack([x, x + step * np.eye(n)]) * lb
-            g = 1.0 - limit_ratios(pts, path, limits, constraints)
+            g = _POLISH_TARGET - limit_ratios(pts, path, limits, constraints)
             fj = evaluate(pts, path, limits, constraints).f[:, 1] if objective == "jerk" else np.zeros(n + 1)
             memo.clear()
             memo[key] = (g, fj)
@@ -145,13 +147,13 @@ def polish(
         method="SLSQP",
         options={"maxiter": 60, "ftol": 1e-10},
     )
-    h = np.clip(res.x, 1.0, ub / lb) * lb
+    h = np.clip(res.x * lb, lb, ub)
     alpha = feasible_stretch(evaluate(h[None], path, limits, constraints).ratio)[0] * _REPAIR_MARGIN
     if alpha > 1.0:
-        h = h * alpha
-    if not np.all(np.isfinite(h)) or np.any(h > ub * (1 + 1e-12)):
-        return None
-    return h
+        # An interval at h_ub stays there: the optimum can lie on that bound.
+        h = np.minimum(h * alpha, ub)
+    ok = np.all(np.isfinite(h)) and evaluate(h[None], path, limits, constraints).ratio.max() <= 1.0
+    return h if ok else None
 
 
 def feasible_stretch(ratio: Array) -> Array:
@@ -367,8 +369,14 @@ ProgressFn = Callable[[int, int], None]
 def _polish_ends(problem: TrajectoryProblem, constraints: Constraints) -> list[Array]:
     """Polish the fastest and the smoothest point of the archive; they join the archive."""
     out = []
-    ends = {"time": problem.archive_h[0], "jerk": problem.archive_h[-1]}
-    for objective, h0 in ends.items():
+    # The fast end is multimodal in hull mode: start also from h_lb's shape stretched onto the limits.
+    lb_shape = problem.lb * boundary_stretch(problem.lb[None], problem.path, problem.limits, constraints)[0]
+    starts = [
+        ("time", problem.archive_h[0]),
+        ("time", np.minimum(lb_shape, problem.ub)),
+        ("jerk", problem.archive_h[-1]),
+    ]
+    for objective, h0 in starts:
         h = polish(h0, problem.path, problem.limits, constraints, (problem.lb, problem.ub), objective)
         if h is not None:
             problem._evaluate(h[None], {})
