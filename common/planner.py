@@ -81,6 +81,9 @@ def evaluate(h: Array, path: PathPlan, limits: JointLimits, constraints: Constra
     return Evaluation(f, maxima / limits.kinematic()[None])
 
 
+Evaluator = Callable[[Array, PathPlan, JointLimits, Constraints], Evaluation]
+
+
 def limit_ratios(h: Array, path: PathPlan, limits: JointLimits, constraints: Constraints) -> Array:
     """Every piece's limit ratio, (P, K): per knot span (exact) or per control point (hull).
 
@@ -177,7 +180,15 @@ def boundary_stretch(h: Array, path: PathPlan, limits: JointLimits, constraints:
 class TrajectoryProblem(Problem):
     """pymoo problem of one path; it keeps every feasible point it evaluates in a non-dominated archive."""
 
-    def __init__(self, path: PathPlan, limits: JointLimits, constraints: Constraints, kappa: float) -> None:
+    def __init__(
+        self,
+        path: PathPlan,
+        limits: JointLimits,
+        constraints: Constraints,
+        kappa: float,
+        evaluator: Evaluator | None = None,
+    ) -> None:
+        self.evaluator = evaluator or evaluate
         self.path = path
         self.limits = limits
         self.constraints = constraints
@@ -196,7 +207,7 @@ class TrajectoryProblem(Problem):
 
     def repair(self, h: Array) -> Array:
         """Stretch infeasible rows onto the limits; remember their F and G for ``_evaluate``."""
-        ev = evaluate(h, self.path, self.limits, self.constraints)
+        ev = self.evaluator(h, self.path, self.limits, self.constraints)
         alpha = feasible_stretch(ev.ratio) * _REPAIR_MARGIN
         alpha = np.where(alpha > 1.0, alpha, 1.0)
         h2 = h * alpha[:, None]
@@ -221,7 +232,7 @@ class TrajectoryProblem(Problem):
                 f[i], g[i] = hit
         if missing:
             hm = x[missing]
-            ev = evaluate(hm, self.path, self.limits, self.constraints)
+            ev = self.evaluator(hm, self.path, self.limits, self.constraints)
             f[missing] = ev.f
             g[missing] = self.constraint_values(hm, ev)
         self._cache.clear()
@@ -390,14 +401,17 @@ def plan_path(
     settings: PlannerSettings,
     progress: ProgressFn | None = None,
     track_hypervolume: tuple[Array, Array] | None = None,
+    evaluator: Evaluator | None = None,
 ) -> ParetoResult:
     """NSGA-II over h for one path, then ASF downsampling to N. Seeded: same inputs, same result.
 
     ``progress(gen, total)`` is called after each generation. ``track_hypervolume=(ideal, nadir)``
-    records the archive's hypervolume after each generation (for convergence studies).
+    records the archive's hypervolume after each generation (for convergence studies). ``evaluator``
+    replaces the batched evaluation of the generations (the benchmark's straightforward baseline); the
+    polishing of the ends always uses the batched functions.
     """
     generations = settings.generations or DEFAULT_GENERATIONS
-    problem = TrajectoryProblem(path, limits, settings.constraints, settings.kappa)
+    problem = TrajectoryProblem(path, limits, settings.constraints, settings.kappa, evaluator)
     rng = np.random.default_rng(settings.seed)
     x = initial_population(problem.lb, problem.ub, settings.population, rng)
     history: list[float] = []

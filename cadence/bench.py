@@ -1,0 +1,127 @@
+"""Benchmarks behind `cadence bench …`: each prints its figures and, where a baseline exists, the ratio
+to it measured in the same run (the machines are shared and noisy; absolute times do not compare)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from common.limits import JointLimits
+from common.naive import evaluate_naive
+from common.planner import (
+    TrajectoryProblem,
+    evaluate,
+    hypervolume,
+    plan_path,
+)
+from common.task import PathPlan, PlannerSettings, Task
+
+
+def longest_path(task: Task) -> PathPlan:
+    """Most waypoints; ties broken by the longest lower-bound time."""
+
+    def key(p: PathPlan) -> tuple[int, float]:
+        lb = np.max(np.abs(np.diff(p.waypoints, axis=0)) / task.limits.velocity, axis=1).sum()
+        return len(p.waypoints), float(lb)
+
+    return max(task.paths.values(), key=key)
+
+
+def ruckig_stop_at_every_waypoint(path: PathPlan, limits: JointLimits) -> float | None:
+    """Time of the same motion as jerk-limited time-optimal moves that stop at every waypoint (Ruckig).
+
+    None when the optional `ruckig` package is absent (`uv sync --extra bench`).
+    """
+    try:
+        from ruckig import InputParameter, Result, Ruckig, Trajectory
+    except ImportError:
+        return None
+    d = path.waypoints.shape[1]
+    otg = Ruckig(d)
+    total = 0.0
+    for a, b in zip(path.waypoints[:-1], path.waypoints[1:], strict=True):
+        inp = InputParameter(d)
+        inp.current_position = a.tolist()
+        inp.current_velocity = [0.0] * d
+        inp.current_acceleration = [0.0] * d
+        inp.target_position = b.tolist()
+        inp.target_velocity = [0.0] * d
+        inp.target_acceleration = [0.0] * d
+        inp.max_velocity = limits.velocity.tolist()
+        inp.max_acceleration = limits.acceleration.tolist()
+        inp.max_jerk = limits.jerk.tolist()
+        traj = Trajectory(d)
+        if otg.calculate(inp, traj) not in (Result.Working, Result.Finished):
+            raise RuntimeError("ruckig could not compute a segment")
+        total += traj.duration
+    return total
+
+
+def _best_time(fn, repeat: int) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+@dataclass(frozen=True, slots=True)
+class PlanBench:
+    path_id: str
+    n_waypoints: int
+    generations: int
+    population: int
+    plan_s: float
+    naive_plan_s: float
+    eval_ms: float
+    naive_eval_ms: float
+    hv: float
+    naive_hv: float
+    tf_exact: float
+    tf_hull: float
+    tf_ruckig: float | None
+
+    @property
+    def plan_ratio(self) -> float:
+        return self.naive_plan_s / self.plan_s
+
+    @property
+    def eval_ratio(self) -> float:
+        return self.naive_eval_ms / self.eval_ms
+
+
+def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBench:
+    """Planning time of the longest path against the straightforward evaluation, in the same run."""
+    path = longest_path(task)
+    exact = replace(settings, constraints="exact")
+    plan_s, fast = _best_time(lambda: plan_path(path, task.limits, exact), repeat)
+    naive_s, slow = _best_time(lambda: plan_path(path, task.limits, exact, evaluator=evaluate_naive), 1)
+    hull = plan_path(path, task.limits, replace(settings, constraints="hull"))
+
+    # One generation's evaluation, both ways, on the same population.
+    problem = TrajectoryProblem(path, task.limits, "exact", settings.kappa)
+    rng = np.random.default_rng(settings.seed)
+    pop = np.exp(rng.uniform(np.log(problem.lb), np.log(problem.ub), (settings.population, len(problem.lb))))
+    eval_s, _ = _best_time(lambda: evaluate(pop, path, task.limits, "exact"), 20)
+    naive_eval_s, _ = _best_time(lambda: evaluate_naive(pop, path, task.limits, "exact"), 3)
+
+    both = np.concatenate([fast.front, slow.front])
+    ideal, nadir = both.min(axis=0), both.max(axis=0)
+    return PlanBench(
+        path_id=path.id,
+        n_waypoints=len(path.waypoints),
+        generations=fast.generations,
+        population=settings.population,
+        plan_s=plan_s,
+        naive_plan_s=naive_s,
+        eval_ms=eval_s * 1e3,
+        naive_eval_ms=naive_eval_s * 1e3,
+        hv=hypervolume(fast.front, ideal, nadir),
+        naive_hv=hypervolume(slow.front, ideal, nadir),
+        tf_exact=fast.solutions[-1].t_f,
+        tf_hull=hull.solutions[-1].t_f,
+        tf_ruckig=ruckig_stop_at_every_waypoint(path, task.limits),
+    )

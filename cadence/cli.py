@@ -1,0 +1,231 @@
+"""`cadence`: the one console script (DESIGN §10). Every subcommand has --help; bad input exits 2 with
+one line naming the file and field; nothing is written when the input is bad."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from common.errors import InputError
+from common.task import Task, continuity_gaps, load_task
+
+EXAMPLE_TASK = Path(__file__).resolve().parents[1] / "deploy" / "tasks" / "box_filling.toml"
+
+out = Console()
+err = Console(stderr=True)
+
+
+def _positive_int(minimum: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from exc
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def _task_with_overrides(args: argparse.Namespace) -> Task:
+    task = load_task(args.task)
+    overrides = {
+        "seed": args.seed,
+        "n_solutions": args.n,
+        "population": args.pop,
+        "generations": args.generations,
+        "constraints": args.constraints,
+    }
+    settings = replace(task.planner, **{k: v for k, v in overrides.items() if v is not None})
+    return replace(task, planner=settings)
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    from cadence.plots import pareto_figure
+    from common.planner import plan_path
+    from common.storage import atomic_write
+
+    task = _task_with_overrides(args)
+    for gap in continuity_gaps(task):
+        err.print(f"[yellow]warning[/]: {task.source}: cycle: {gap} (the executor will refuse this cycle)")
+    s = task.planner
+    results = []
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err,
+        transient=False,
+    ) as progress:
+        for path in task.paths.values():
+            bar = progress.add_task(f"{path.id:<14} NSGA-II ({s.constraints})", total=None)
+            t0 = time.perf_counter()
+            result = plan_path(
+                path, task.limits, s, progress=lambda g, n, b=bar: progress.update(b, completed=g, total=n)
+            )
+            results.append((result, time.perf_counter() - t0))
+
+    # Everything is computed before anything is written: a failure leaves DIR as it was.
+    outdir = Path(args.out)
+    for result, _ in results:
+        atomic_write(outdir / f"{result.path.id}.json", json.dumps(result.to_json(), indent=1).encode())
+        if not args.no_plots:
+            atomic_write(outdir / f"{result.path.id}.png", pareto_figure(result))
+
+    table = Table(title=f"{task.name}: Pareto sets ({s.constraints} limits) → {outdir}")
+    for col in (
+        "path",
+        "W",
+        "front",
+        "N",
+        "t_f k=1 [s]",
+        f"t_f k={s.n_solutions} [s]",
+        "f_jerk k=1",
+        "time [s]",
+    ):
+        table.add_column(col, justify="right" if col != "path" else "left")
+    for result, secs in results:
+        sols = result.solutions
+        if len(sols) < s.n_solutions:
+            err.print(f"[yellow]warning[/]: path '{result.path.id}': only {len(sols)} distinct solutions")
+        table.add_row(
+            result.path.id,
+            str(len(result.path.waypoints)),
+            str(len(result.front)),
+            str(len(sols)),
+            f"{sols[0].t_f:.3f}",
+            f"{sols[-1].t_f:.3f}",
+            f"{sols[0].f_jerk:.4g}",
+            f"{secs:.2f}",
+        )
+    out.print(table)
+    return 0
+
+
+def cmd_bench_plan(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_plan
+
+    task = _task_with_overrides(args)
+    r = bench_plan(task, task.planner, repeat=args.repeat)
+    table = Table(
+        title=f"bench plan: {task.name}, path '{r.path_id}' (W = {r.n_waypoints}), "
+        f"pop {r.population}, {r.generations} generations"
+    )
+    table.add_column("figure")
+    table.add_column("Cadence", justify="right")
+    table.add_column("straightforward", justify="right")
+    table.add_column("ratio", justify="right")
+    table.add_row("full planning [s]", f"{r.plan_s:.3f}", f"{r.naive_plan_s:.3f}", f"{r.plan_ratio:.1f}×")
+    table.add_row(
+        "one generation's evaluation [ms]",
+        f"{r.eval_ms:.2f}",
+        f"{r.naive_eval_ms:.1f}",
+        f"{r.eval_ratio:.1f}×",
+    )
+    table.add_row(
+        "hypervolume (same normalisation)", f"{r.hv:.4f}", f"{r.naive_hv:.4f}", f"{r.hv / r.naive_hv:.4f}"
+    )
+    out.print(table)
+    limits = Table(title="fastest t_f of the same path")
+    limits.add_column("method")
+    limits.add_column("t_f [s]", justify="right")
+    limits.add_row("hull limits (paper's control-point bounds)", f"{r.tf_hull:.3f}")
+    limits.add_row("exact limits (Cadence default)", f"{r.tf_exact:.3f}")
+    ruckig = "ruckig not installed (uv sync --extra bench)" if r.tf_ruckig is None else f"{r.tf_ruckig:.3f}"
+    limits.add_row("Ruckig, stopping at every waypoint", ruckig)
+    out.print(limits)
+    out.print(
+        "straightforward = the same NSGA-II (population, generations, seed, repair) with one "
+        "make_interp_spline per individual and jerk² sampled at 1000 points; end polishing shared."
+    )
+    figures = {
+        "path_id": r.path_id,
+        "plan_s": r.plan_s,
+        "naive_plan_s": r.naive_plan_s,
+        "plan_ratio": r.plan_ratio,
+        "eval_ms": r.eval_ms,
+        "naive_eval_ms": r.naive_eval_ms,
+        "eval_ratio": r.eval_ratio,
+        "hv": r.hv,
+        "naive_hv": r.naive_hv,
+        "tf_hull": r.tf_hull,
+        "tf_exact": r.tf_exact,
+        "tf_ruckig": r.tf_ruckig,
+    }
+    print(json.dumps(figures))
+    return 0
+
+
+def _add_planner_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=int, help="NSGA-II seed (default: the task's, else 1)")
+    p.add_argument("--n", type=_positive_int(2), help="number of solutions N (default 15)")
+    p.add_argument("--pop", type=_positive_int(8), help="NSGA-II population (default 90)")
+    p.add_argument(
+        "--generations", type=_positive_int(1), help="NSGA-II generations (default: tuned, see README)"
+    )
+    p.add_argument(
+        "--constraints",
+        choices=("exact", "hull"),
+        help="limits on the curve itself (exact, default) or on the control points (hull, the paper's)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cadence",
+        description="Cadence: a cobot that keeps a pace its human co-worker can sustain.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    plan = sub.add_parser(
+        "plan",
+        help="compute the time/jerk Pareto set of every path of a task program",
+        description="For every path of TASK: NSGA-II over the time intervals, ASF downsampling to N "
+        "solutions; writes DIR/<path_id>.json and DIR/<path_id>.png.",
+    )
+    plan.add_argument("task", metavar="TASK.toml", help="task program (see deploy/tasks/box_filling.toml)")
+    plan.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+    plan.add_argument("--no-plots", action="store_true", help="write the JSON files only")
+    _add_planner_flags(plan)
+    plan.set_defaults(func=cmd_plan)
+
+    bench = sub.add_parser("bench", help="benchmarks that print their figures and ratios to baselines")
+    bench_sub = bench.add_subparsers(dest="bench", required=True, metavar="BENCH")
+    bp = bench_sub.add_parser(
+        "plan",
+        help="planning time vs the straightforward evaluation; hull vs exact vs Ruckig",
+        description="On the longest path of TASK: full planning time, the same NSGA-II generations "
+        "evaluated the straightforward way, both hypervolumes, and the fastest t_f under hull and exact "
+        "limits and as Ruckig stop-at-every-waypoint moves. The last line is the figures as JSON.",
+    )
+    bp.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    bp.add_argument("--repeat", type=_positive_int(1), default=3, help="timed repetitions (best is kept)")
+    _add_planner_flags(bp)
+    bp.set_defaults(func=cmd_bench_plan)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except InputError as exc:
+        err.print(f"cadence: error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 2
+    except KeyboardInterrupt:
+        err.print("cadence: interrupted")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
