@@ -1,0 +1,36 @@
+"""Shared fixtures. Paths the project has never seen come from ``random_path`` with a printed seed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.bspline import Boundary
+from common.task import PathPlan
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE_TASK = REPO / "deploy" / "tasks" / "box_filling.toml"
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def random_path(seed: int, n_waypoints: int = 6, boundary: bool = False) -> PathPlan:
+    """A UR16e-like path: waypoints within ±π, consecutive steps of up to ~70° per joint."""
+    rng = np.random.default_rng(seed)
+    wp = [rng.uniform(-1.5, 1.5, 6)]
+    for _ in range(n_waypoints - 1):
+        wp.append(np.clip(wp[-1] + rng.uniform(-1.2, 1.2, 6), -np.pi, np.pi))
+    wp = np.array(wp)
+    if boundary:
+        small = lambda s: rng.uniform(-s, s, 6)  # noqa: E731
+        b = Boundary(small(0.2), small(0.5), small(2.0), small(0.2), small(0.5), small(2.0))
+    else:
+        b = Boundary.at_rest(6)
+    print(f"random_path(seed={seed}, W={n_waypoints}, boundary={boundary})")
+    return PathPlan(f"random{seed}", wp, b)
+
+
+@pytest.fixture
+def example_task_path() -> Path:
+    return EXAMPLE_TASK

@@ -1,0 +1,66 @@
+"""The command line: `cadence plan` writes the JSON contract and a figure; every command has --help."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.task import load_task
+from common.validate import trajectory_problems
+from tests.test_task import GOOD
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "cadence", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.mark.parametrize("argv", [[], ["plan"], ["bench"], ["bench", "plan"]])
+def test_every_command_has_help(argv: list[str]) -> None:
+    proc = run_cli(*argv, "--help")
+    assert proc.returncode == 0
+    assert "usage: cadence" in proc.stdout
+
+
+def test_plan_writes_the_json_contract_and_a_png_per_path(tmp_path: Path) -> None:
+    task_file = tmp_path / "t.toml"
+    task_file.write_text(GOOD)
+    proc = run_cli(
+        "plan", str(task_file), "--out", str(tmp_path / "o"), "--generations", "15", "--n", "6", "--seed", "4"
+    )
+    assert proc.returncode == 0, proc.stderr
+    task = load_task(task_file)
+    for pid, path in task.paths.items():
+        data = json.loads((tmp_path / "o" / f"{pid}.json").read_text())
+        assert set(data) >= {
+            "path_id",
+            "unit",
+            "waypoints",
+            "limits",
+            "boundary",
+            "front",
+            "solutions",
+            "constraints",
+        }
+        assert data["path_id"] == pid and data["unit"] == "rad" and data["constraints"] == "exact"
+        np.testing.assert_allclose(data["waypoints"], path.waypoints)
+        assert set(data["boundary"]["start"]) == {"velocity", "acceleration", "jerk"}
+        sols = data["solutions"]
+        assert [s["k"] for s in sols] == list(range(1, 7))
+        assert all(len(s["h"]) == len(path.waypoints) + 1 for s in sols)
+        assert all(abs(s["t_f"] - sum(s["h"])) < 1e-12 for s in sols)
+        assert all(trajectory_problems(np.array(s["h"]), path, task.limits) == [] for s in sols)
+        png = (tmp_path / "o" / f"{pid}.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+
+
+def test_a_bad_flag_value_exits_2(tmp_path: Path) -> None:
+    proc = run_cli("plan", "x.toml", "--out", str(tmp_path), "--n", "1")
+    assert proc.returncode == 2
+    assert "--n" in proc.stderr
