@@ -229,10 +229,12 @@ def poly_eval(coeffs: Array, tau: Array) -> Array:
 
 def jerk_cost(h: Array, taylor: Array) -> Array:
     """f_jerk = Σ_j ∫ q_j'''² dt (paper eq. 7), exact with 3-node Gauss–Legendre per span: (P,)."""
-    jerk = poly_derivative(taylor, 3)  # (P, W+1, 3, D)
-    tau = h[:, :, None, None] * GL_NODES[None, None, :, None]  # (P, W+1, 3, 1)
-    vals = poly_eval(jerk[:, :, None, :, :], tau)  # (P, W+1, 3, D)
-    return np.einsum("psgd,g,ps->p", vals**2, GL_WEIGHTS, h)
+    j0, j1, j2 = 6.0 * taylor[:, :, 3, :], 24.0 * taylor[:, :, 4, :], 60.0 * taylor[:, :, 5, :]  # (P, S, D)
+    total = np.zeros(j0.shape)
+    for node, weight in zip(GL_NODES, GL_WEIGHTS, strict=True):
+        tau = (h * node)[:, :, None]
+        total += weight * ((j2 * tau + j1) * tau + j0) ** 2
+    return np.einsum("psd,ps->p", total, h)
 
 
 def time_cost(h: Array, n_joints: int) -> Array:
@@ -255,8 +257,8 @@ def _quadratic_roots(c0: Array, c1: Array, c2: Array, h: Array) -> tuple[Array, 
     return r1, r2
 
 
-_BISECT_STEPS = 12
-_NEWTON_STEPS = 3
+_BISECT_STEPS = 8
+_NEWTON_STEPS = 4
 
 
 def _cubic_root_in_bracket(c0: Array, c1: Array, c2: Array, c3: Array, a: Array, b: Array) -> Array:
@@ -326,13 +328,18 @@ def span_maxima(h: Array, taylor: Array, per_span: bool = False) -> Array:
     p = np.where(np.isnan(p), hh, p)
     q = np.where(np.isnan(q), hh, q)
     vmax = np.maximum(np.abs(a1), np.abs(vel(hh)))
-    f0, fp, fq = c0, acc(p), acc(q)
-    for lo, hi, flo, fhi in ((0.0 * hh, p, f0, fp), (p, q, fp, fq), (q, hh, fq, acc_h)):
-        idx = np.nonzero(((flo > 0) != (fhi > 0)) & (flo != 0) & (fhi != 0) & (hi > lo))[0]
-        if idx.size:
-            root = _cubic_root_in_bracket(c0[idx], c1[idx], c2[idx], c3[idx], lo[idx], hi[idx])
-            v_root = (((v4[idx] * root + v3[idx]) * root + v2[idx]) * root + v1[idx]) * root + a1[idx]
-            vmax[idx] = np.maximum(vmax[idx], np.abs(v_root))
+    # All bracketing pieces of all spans in one root-finding call: the arrays are short, so the cost is
+    # the number of numpy calls, not their length.
+    lo = np.concatenate([0.0 * hh, p, q])
+    hi = np.concatenate([p, q, hh])
+    flo = np.concatenate([c0, acc(p), acc(q)])
+    fhi = np.concatenate([flo[hh.size :], acc_h])
+    idx = np.nonzero(((flo > 0) != (fhi > 0)) & (flo != 0) & (fhi != 0) & (hi > lo))[0]
+    if idx.size:
+        e = idx % hh.size  # the (individual, span, joint) each piece belongs to
+        x = _cubic_root_in_bracket(c0[e], c1[e], c2[e], c3[e], lo[idx], hi[idx])
+        v_root = np.abs((((v4[e] * x + v3[e]) * x + v2[e]) * x + v1[e]) * x + a1[e])
+        np.maximum.at(vmax, e, v_root)
 
     out = np.stack([vmax.reshape(shape), amax.reshape(shape), jmax.reshape(shape)], axis=1)  # (P, 3, S, D)
     return out if per_span else out.max(axis=2)
