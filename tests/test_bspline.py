@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
-from scipy.interpolate import make_interp_spline
+from scipy.interpolate import BSpline, make_interp_spline
 
 from common import bspline as bs
+from common.task import PathPlan
 from tests.conftest import random_path
 
 
-def scipy_reference(h: np.ndarray, path) -> object:  # noqa: ANN001
+def scipy_reference(h: np.ndarray, path: PathPlan) -> BSpline:
     b = path.boundary
     return make_interp_spline(
         bs.waypoint_sites(h[None])[0],
@@ -71,7 +74,7 @@ def test_f_jerk_equals_a_dense_numerical_integral_to_1e6_relative() -> None:
         # Simpson on each knot span separately (the jerk is smooth inside a span, kinked at knots).
         s = bs.instants(row[None])[0]
         total = 0.0
-        for a, b in zip(s[:-1], s[1:], strict=True):
+        for a, b in itertools.pairwise(s):
             t = np.linspace(a, b, 2001)
             y = np.sum(ref(t, 3) ** 2, axis=1)
             total += (b - a) / 6000 * (y[0] + y[-1] + 4 * y[1:-1:2].sum() + 2 * y[2:-1:2].sum())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from pymoo.indicators.hv import HV
@@ -12,6 +14,7 @@ from common import bspline as bs
 from common.limits import UR16E
 from common.naive import evaluate_naive
 from common.planner import (
+    ParetoResult,
     downsample,
     evaluate,
     hypervolume,
@@ -19,7 +22,7 @@ from common.planner import (
     non_dominated,
     plan_path,
 )
-from common.task import PlannerSettings
+from common.task import PathPlan, PlannerSettings
 from common.validate import trajectory_problems
 from tests.conftest import random_path
 from tests.test_bspline import scipy_reference
@@ -74,7 +77,7 @@ def test_a_front_smaller_than_n_is_returned_whole_slowest_first() -> None:
     assert downsample(front, 15).tolist() == [2, 1, 0]
 
 
-def check_solutions(result, path, mode: str) -> None:  # noqa: ANN001
+def check_solutions(result: ParetoResult, path: PathPlan, mode: str) -> None:
     lim = UR16E.kinematic()
     sols = result.solutions
     assert len(sols) == 15
@@ -101,7 +104,7 @@ def check_solutions(result, path, mode: str) -> None:  # noqa: ANN001
         # f_jerk against an independent integral (dense Simpson per span on scipy's spline)
         knots_s = bs.instants(s.h[None])[0]
         total = 0.0
-        for a, bb in zip(knots_s[:-1], knots_s[1:], strict=True):
+        for a, bb in itertools.pairwise(knots_s):
             tt = np.linspace(a, bb, 1001)
             y = np.sum(ref(tt, 3) ** 2, axis=1)
             total += (bb - a) / 3000 * (y[0] + y[-1] + 4 * y[1:-1:2].sum() + 2 * y[2:-1:2].sum())
@@ -136,9 +139,9 @@ def test_front_hypervolume_is_at_least_99_percent_of_a_long_run(mode: str) -> No
     assert ratio >= 0.99
 
 
-def gradient_min_tf(path, mode: str, starts: int = 3) -> float:  # noqa: ANN001
+def gradient_min_tf(path: PathPlan, starts: int = 3) -> float:
     """An independent minimum of t_f: SLSQP on scipy splines, limits from dense sampling (5 kHz)."""
-    lb, ub = interval_bounds(path.waypoints, UR16E, 10.0)
+    lb, _ = interval_bounds(path.waypoints, UR16E, 10.0)
     lim = UR16E.kinematic()
 
     def cons(x: np.ndarray) -> np.ndarray:
@@ -171,7 +174,7 @@ def gradient_min_tf(path, mode: str, starts: int = 3) -> float:  # noqa: ANN001
 def test_the_fastest_exact_solution_is_within_3_percent_of_a_gradient_based_minimum() -> None:
     path = random_path(41, 6)
     result = plan_path(path, UR16E, PlannerSettings(constraints="exact", seed=1))
-    reference = gradient_min_tf(path, "exact")
+    reference = gradient_min_tf(path)
     print(f"planner {result.solutions[-1].t_f:.4f} s, gradient-based {reference:.4f} s")
     assert result.solutions[-1].t_f <= 1.03 * reference
 

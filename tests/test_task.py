@@ -108,7 +108,7 @@ def test_a_bad_task_file_names_the_file_the_path_and_the_field(
 
 
 def test_a_missing_file_is_an_input_error(tmp_path: Path) -> None:
-    with pytest.raises(TaskError, match="nope.toml"):
+    with pytest.raises(TaskError, match=r"nope\.toml"):
         load_task(tmp_path / "nope.toml")
 
 
