@@ -125,3 +125,40 @@ def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBe
         tf_hull=hull.solutions[-1].t_f,
         tf_ruckig=ruckig_stop_at_every_waypoint(path, task.limits),
     )
+
+
+@dataclass(frozen=True, slots=True)
+class Convergence:
+    """Hypervolume of default-setting runs after each checkpoint, as a share of a long run's."""
+
+    path_id: str
+    reference_generations: int
+    checkpoints: list[int]
+    shares: dict[int, list[float]]  # seed → share at each checkpoint (before the final polish)
+    final: dict[int, float]  # seed → share of the finished run (after polishing its ends)
+
+
+def convergence(
+    task: Task,
+    settings: PlannerSettings,
+    seeds: list[int],
+    reference_generations: int,
+    checkpoints: list[int],
+) -> Convergence:
+    """How the default number of generations was chosen (README, "Planner")."""
+    path = longest_path(task)
+    ref = plan_path(path, task.limits, replace(settings, generations=reference_generations, seed=10_000))
+    ideal, nadir = ref.front.min(axis=0), ref.front.max(axis=0)
+    hv_ref = hypervolume(ref.front, ideal, nadir)
+    shares, final = {}, {}
+    for seed in seeds:
+        run = plan_path(
+            path,
+            task.limits,
+            replace(settings, generations=max(checkpoints), seed=seed),
+            track_hypervolume=(ideal, nadir),
+        )
+        shares[seed] = [run.hypervolume_history[g - 1] / hv_ref for g in checkpoints]
+        default = plan_path(path, task.limits, replace(settings, seed=seed))
+        final[seed] = hypervolume(default.front, ideal, nadir) / hv_ref
+    return Convergence(path.id, reference_generations, checkpoints, shares, final)

@@ -166,6 +166,34 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_convergence(args: argparse.Namespace) -> int:
+    from cadence.bench import convergence
+    from common.planner import DEFAULT_GENERATIONS
+
+    task = _task_with_overrides(args)
+    checkpoints = [10, 20, 40, 60, 80, 120, 200]
+    seeds = list(range(1, args.seeds + 1))
+    with err.status(f"reference run: {args.reference} generations …"):
+        c = convergence(task, task.planner, seeds, args.reference, checkpoints)
+    table = Table(
+        title=f"hypervolume as a share of a {c.reference_generations}-generation run's, path '{c.path_id}' "
+        f"({task.planner.constraints} limits)"
+    )
+    table.add_column("seed")
+    for g in checkpoints:
+        table.add_column(f"gen {g}", justify="right")
+    table.add_column(
+        f"default ({task.planner.generations or DEFAULT_GENERATIONS}, polished)", justify="right"
+    )
+    for seed in seeds:
+        table.add_row(str(seed), *(f"{x:.4f}" for x in c.shares[seed]), f"{c.final[seed]:.4f}")
+    out.print(table)
+    print(
+        json.dumps({"path_id": c.path_id, "checkpoints": checkpoints, "shares": c.shares, "final": c.final})
+    )
+    return 0
+
+
 def _add_planner_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="NSGA-II seed (default: the task's, else 1)")
     p.add_argument("--n", type=_positive_int(2), help="number of solutions N (default 15)")
@@ -212,6 +240,18 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--repeat", type=_positive_int(1), default=3, help="timed repetitions (best is kept)")
     _add_planner_flags(bp)
     bp.set_defaults(func=cmd_bench_plan)
+    bc = bench_sub.add_parser(
+        "convergence",
+        help="hypervolume against generations, as a share of a long reference run's",
+        description="How the default number of NSGA-II generations was chosen: for the longest path of "
+        "TASK, the archive's hypervolume after each checkpoint for several seeds, as a share of a long "
+        "reference run's, under the reference front's normalisation.",
+    )
+    bc.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    bc.add_argument("--seeds", type=_positive_int(1), default=5, help="number of seeds (default 5)")
+    bc.add_argument("--reference", type=_positive_int(10), default=1500, help="reference generations (1500)")
+    _add_planner_flags(bc)
+    bc.set_defaults(func=cmd_bench_convergence)
     return parser
 
 

@@ -99,42 +99,47 @@ def basis_funs(t: Array, span: NDArray[np.intp], x: Array, p: int) -> Array:
     return np.moveaxis(out, 0, -1)
 
 
-def derivative_operators(t: Array) -> list[Array]:
-    """Matrices mapping control points to those of the 1st, 2nd, 3rd derivative spline (paper eq. 5).
+def _edge_derivative_rows(t: Array) -> tuple[list[Array], list[Array]]:
+    """Rows mapping the control points to q'(0), q''(0), q'''(0) and to q'(t_f), q''(t_f), q'''(t_f).
 
-    Level d (1-based) maps n-d+1 points to n-d: c_d[i] = (p-d+1)(c_{d-1}[i+1] - c_{d-1}[i]) /
-    (t[i+p+1] - t[i+d]). Returned cumulatively: ops[d-1] @ c = c_d, shape (P, n-d, n).
+    A clamped spline's d-th derivative at an end is the first/last control point of its derivative
+    spline, c_d[i] = (p-d+1)(c_{d-1}[i+1] - c_{d-1}[i]) / (t[i+p+1] - t[i+d]) (paper eq. 5); it depends
+    on the d+1 control points nearest that end, so only four rows are carried per end. Each (P, n).
     """
-    n = t.shape[1] - P_DEG - 1
-    ops: list[Array] = []
-    prev = np.broadcast_to(np.eye(n), (t.shape[0], n, n))
+    n_pop, m_knots = t.shape
+    n = m_knots - P_DEG - 1
+    eye = np.eye(n)
+    start = np.broadcast_to(eye[:4], (n_pop, 4, n))
+    end = np.broadcast_to(eye[n - 4 :], (n_pop, 4, n))
+    starts, ends = [], []
     for d in (1, 2, 3):
-        m = n - d
-        i = np.arange(m)
-        scale = (P_DEG - d + 1) / (t[:, i + P_DEG + 1] - t[:, i + d])  # (P, m)
-        diff = prev[:, 1:, :] - prev[:, :-1, :]
-        prev = diff * scale[:, :, None]
-        ops.append(prev)
-    return ops
+        i0 = np.arange(4 - d)
+        i1 = np.arange(n - 4, n - d)
+        s0 = (P_DEG - d + 1) / (t[:, i0 + P_DEG + 1] - t[:, i0 + d])
+        s1 = (P_DEG - d + 1) / (t[:, i1 + P_DEG + 1] - t[:, i1 + d])
+        start = (start[:, 1:, :] - start[:, :-1, :]) * s0[:, :, None]
+        end = (end[:, 1:, :] - end[:, :-1, :]) * s1[:, :, None]
+        starts.append(start[:, 0, :])
+        ends.append(end[:, -1, :])
+    return starts, ends
 
 
 def design_matrix(h: Array) -> Array:
     """A(h) of paper eq. (10), (P, n, n): W position rows and six boundary-derivative rows.
 
     Row order: q(s_0), q'(0), q''(0), q'''(0), q(s_2) … q(s_{W-1}), q'''(t_f), q''(t_f), q'(t_f), q(t_f).
-    The derivative rows are the first/last rows of the derivative operators: a clamped spline's
-    derivative at an end equals the first/last control point of the derivative spline.
+    The derivative rows come from ``_edge_derivative_rows``.
     """
     t = knots(h)
     n_pop, w1 = h.shape
     w = w1 - 1
     n = w + 6
     a = np.zeros((n_pop, n, n))
-    ops = derivative_operators(t)
+    starts, ends = _edge_derivative_rows(t)
     a[:, 0, 0] = 1.0
     for d in range(3):
-        a[:, 1 + d, :] = ops[d][:, 0, :]
-        a[:, n - 2 - d, :] = ops[d][:, -1, :]
+        a[:, 1 + d, :] = starts[d]
+        a[:, n - 2 - d, :] = ends[d]
     a[:, n - 1, n - 1] = 1.0
     if w > 2:
         interior = np.arange(2, w)  # waypoints 2 … W-1 at s_l, knot t[5+l], span 5+l
@@ -154,9 +159,8 @@ def rhs(waypoints: Array, boundary: Boundary) -> Array:
 
 def control_points(h: Array, waypoints: Array, boundary: Boundary) -> Array:
     """Solve A(h) Θ = B for every individual and every joint at once: (P, n, D)."""
-    a = design_matrix(h)
-    b = np.broadcast_to(rhs(waypoints, boundary), (h.shape[0], *rhs(waypoints, boundary).shape))
-    return np.linalg.solve(a, b)
+    b = rhs(waypoints, boundary)
+    return np.linalg.solve(design_matrix(h), np.broadcast_to(b, (h.shape[0], *b.shape)))
 
 
 def derivative_control_points(h: Array, c: Array) -> list[Array]:
@@ -265,22 +269,32 @@ def _cubic_root_in_bracket(c0: Array, c1: Array, c2: Array, c3: Array, a: Array,
     """The root of c0 + c1 τ + c2 τ² + c3 τ³ in [a, b], where it is monotone and changes sign.
 
     Bisection first (safe), then Newton clipped to the bracket (fast). The root is where |q'| is
-    stationary, so an error Δτ in it changes the maximum only by about |jerk|·Δτ²/2.
+    stationary, so an error Δτ in it changes the maximum only by about |jerk|·Δτ²/2. The cubic is
+    monotone on the bracket, so the sign at its left end never changes and the left end is all that
+    bisection has to move; the loops work in place, as their cost is the number of numpy calls.
     """
-    fa = ((c3 * a + c2) * a + c1) * a + c0
+    left_positive = (((c3 * a + c2) * a + c1) * a + c0) > 0
+    width = b - a
+    lo = a.copy()
+    mid = np.empty_like(a)
+    f = np.empty_like(a)
     for _ in range(_BISECT_STEPS):
-        mid = 0.5 * (a + b)
-        fm = ((c3 * mid + c2) * mid + c1) * mid + c0
-        left = (fm > 0) == (fa > 0)
-        a = np.where(left, mid, a)
-        fa = np.where(left, fm, fa)
-        b = np.where(left, b, mid)
-    x = 0.5 * (a + b)
+        width *= 0.5
+        np.add(lo, width, out=mid)
+        np.multiply(c3, mid, out=f)
+        f += c2
+        f *= mid
+        f += c1
+        f *= mid
+        f += c0
+        np.copyto(lo, mid, where=(f > 0) == left_positive)
+    hi = lo + width
+    x = lo + 0.5 * width
     for _ in range(_NEWTON_STEPS):
         f = ((c3 * x + c2) * x + c1) * x + c0
         df = (3.0 * c3 * x + 2.0 * c2) * x + c1
         with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.clip(np.where(df != 0, x - f / df, x), a, b)
+            x = np.clip(np.where(df != 0, x - f / df, x), lo, hi)
     return x
 
 
