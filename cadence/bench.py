@@ -4,9 +4,10 @@ to it measured in the same run (the machines are shared and noisy; absolute time
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
+from msgspec import structs
 
 from common.limits import JointLimits
 from common.naive import evaluate_naive
@@ -96,10 +97,10 @@ class PlanBench:
 def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBench:
     """Planning time of the longest path against the straightforward evaluation, in the same run."""
     path = longest_path(task)
-    exact = replace(settings, constraints="exact")
+    exact = structs.replace(settings, constraints="exact")
     plan_s, fast = _best_time(lambda: plan_path(path, task.limits, exact), repeat)
     naive_s, slow = _best_time(lambda: plan_path(path, task.limits, exact, evaluator=evaluate_naive), 1)
-    hull = plan_path(path, task.limits, replace(settings, constraints="hull"))
+    hull = plan_path(path, task.limits, structs.replace(settings, constraints="hull"))
 
     # One generation's evaluation, both ways, on the same population.
     problem = TrajectoryProblem(path, task.limits, "exact", settings.kappa)
@@ -147,7 +148,9 @@ def convergence(
 ) -> Convergence:
     """How the default number of generations was chosen (README, "Planner")."""
     path = longest_path(task)
-    ref = plan_path(path, task.limits, replace(settings, generations=reference_generations, seed=10_000))
+    ref = plan_path(
+        path, task.limits, structs.replace(settings, generations=reference_generations, seed=10_000)
+    )
     ideal, nadir = ref.front.min(axis=0), ref.front.max(axis=0)
     hv_ref = hypervolume(ref.front, ideal, nadir)
     shares, final = {}, {}
@@ -155,10 +158,10 @@ def convergence(
         run = plan_path(
             path,
             task.limits,
-            replace(settings, generations=max(checkpoints), seed=seed),
+            structs.replace(settings, generations=max(checkpoints), seed=seed),
             track_hypervolume=(ideal, nadir),
         )
         shares[seed] = [run.hypervolume_history[g - 1] / hv_ref for g in checkpoints]
-        default = plan_path(path, task.limits, replace(settings, seed=seed))
+        default = plan_path(path, task.limits, structs.replace(settings, seed=seed))
         final[seed] = hypervolume(default.front, ideal, nadir) / hv_ref
     return Convergence(path.id, reference_generations, checkpoints, shares, final)

@@ -10,6 +10,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from msgspec import structs
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -45,7 +46,7 @@ def _task_with_overrides(args: argparse.Namespace) -> Task:
         "generations": args.generations,
         "constraints": args.constraints,
     }
-    settings = replace(task.planner, **{k: v for k, v in overrides.items() if v is not None})
+    settings = structs.replace(task.planner, **{k: v for k, v in overrides.items() if v is not None})
     return replace(task, planner=settings)
 
 
@@ -194,7 +195,9 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_planner_flags(p: argparse.ArgumentParser) -> None:
+def _add_planner_flags(p: argparse.ArgumentParser, task_option: bool = False) -> None:
+    if task_option:
+        p.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
     p.add_argument("--seed", type=int, help="NSGA-II seed (default: the task's, else 1)")
     p.add_argument("--n", type=_positive_int(2), help="number of solutions N (default 15)")
     p.add_argument("--pop", type=_positive_int(8), help="NSGA-II population (default 90)")
@@ -236,9 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluated the straightforward way, both hypervolumes, and the fastest t_f under hull and exact "
         "limits and as Ruckig stop-at-every-waypoint moves. The last line is the figures as JSON.",
     )
-    bp.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
     bp.add_argument("--repeat", type=_positive_int(1), default=3, help="timed repetitions (best is kept)")
-    _add_planner_flags(bp)
+    _add_planner_flags(bp, task_option=True)
     bp.set_defaults(func=cmd_bench_plan)
     bc = bench_sub.add_parser(
         "convergence",
@@ -247,10 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
         "TASK, the archive's hypervolume after each checkpoint for several seeds, as a share of a long "
         "reference run's, under the reference front's normalisation.",
     )
-    bc.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
     bc.add_argument("--seeds", type=_positive_int(1), default=5, help="number of seeds (default 5)")
     bc.add_argument("--reference", type=_positive_int(10), default=1500, help="reference generations (1500)")
-    _add_planner_flags(bc)
+    _add_planner_flags(bc, task_option=True)
     bc.set_defaults(func=cmd_bench_convergence)
     return parser
 

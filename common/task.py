@@ -57,7 +57,10 @@ class _LimitsSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     jerk: list[float] | None = None
 
 
-class _PlannerSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+class PlannerSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """NSGA-II and downsampling settings (DESIGN §5), the task's [planner] table as it is decoded.
+    ``generations=None`` means the tuned default; change one with ``msgspec.structs.replace``."""
+
     constraints: Constraints = "exact"
     n_solutions: int = 15
     population: int = 90
@@ -82,23 +85,11 @@ class _TaskSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: _TaskMeta
     paths: list[_PathSpec]
     limits: _LimitsSpec | None = None
-    planner: _PlannerSpec = _PlannerSpec()
+    planner: PlannerSettings = PlannerSettings()
     cycle: list[_StepSpec] | None = None
 
 
 # ---- what the rest of Cadence uses ------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class PlannerSettings:
-    """NSGA-II and downsampling settings (DESIGN §5). ``generations=None`` means the tuned default."""
-
-    constraints: Constraints = "exact"
-    n_solutions: int = 15
-    population: int = 90
-    generations: int | None = None
-    seed: int = 1
-    kappa: float = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -234,7 +225,7 @@ def _path(file: str, spec: _PathSpec, limits: JointLimits) -> PathPlan:
     return PathPlan(pid, wp, Boundary(v0, a0, j0, v1, a1, j1), spec.description)
 
 
-def _planner(file: str, spec: _PlannerSpec) -> PlannerSettings:
+def _planner(file: str, spec: PlannerSettings) -> PlannerSettings:
     checks = [
         ("n_solutions", spec.n_solutions >= 2, "must be at least 2"),
         ("population", spec.population >= 8, "must be at least 8"),
@@ -244,7 +235,7 @@ def _planner(file: str, spec: _PlannerSpec) -> PlannerSettings:
     for name, ok, why in checks:
         if not ok:
             raise TaskError(file, f"planner.{name}", f"{why}, got {getattr(spec, name)}")
-    return PlannerSettings(**msgspec.structs.asdict(spec))
+    return spec
 
 
 def _cycle(file: str, steps: list[_StepSpec] | None, paths: dict[str, PathPlan]) -> list[Step]:

@@ -89,6 +89,8 @@ BAD = [
         "waypoints[2]",
     ),
     ("syntax", GOOD + "\n[[paths]\n", "", "(syntax)"),
+    ("unknown planner key", GOOD + "\n[planner]\npopsize = 30\n", "", "popsize"),
+    ("planner value", GOOD + "\n[planner]\nkappa = 0.5\n", "", "planner.kappa"),
     ("unknown path in the cycle", GOOD + '\n[[cycle]]\nmove = "p9"\n', "", "cycle[0].move"),
 ]
 
