@@ -3,7 +3,9 @@ adapter that meets them, with ``raise … from exc``, so callers catch these and
 
     CadenceError
     ├── InputError            bad input from a person: exit code 2, one line naming file and field
-    │   └── TaskError         a task program (TOML) that cannot be planned or run
+    │   ├── TaskError         a task program (TOML) that cannot be planned or run
+    │   └── ConfigError       a deployment config (TOML, CADENCE_* variables) with a bad key or value
+    ├── BusError              Zenoh failed (zenoh.ZError translated) or the bus is used after close
     └── TrajectoryRejected    a trajectory over a limit or off its path: it never reaches the robot
 """
 
@@ -28,6 +30,14 @@ class TaskError(InputError):
         self.reason = message
         where = f"path '{path_id}': " if path_id is not None else ""
         super().__init__(f"{file}: {where}{field}: {message}")
+
+
+class ConfigError(InputError):
+    """A service's configuration is invalid; the message names the file (or variable) and the key."""
+
+
+class BusError(CadenceError):
+    """The bus could not do what was asked; the reason says what Zenoh said."""
 
 
 class TrajectoryRejected(CadenceError):

@@ -1,0 +1,28 @@
+"""The wire contract: msgspec Structs, one module per topic family, and the topology. Nothing else."""
+
+from schemas.base import Message
+from schemas.decision import Selection
+from schemas.ecg import EcgChunk, RrIntervals
+from schemas.health import ServiceStatus
+from schemas.hrv import Beats, HrvWindow
+from schemas.operator import Calibration
+from schemas.pareto import ParetoSet, ParetoSolution, ParetoSolutionReply, PlanProgress
+from schemas.robot import CycleReport, RobotEvent, RobotState
+
+__all__ = [
+    "Beats",
+    "Calibration",
+    "CycleReport",
+    "EcgChunk",
+    "HrvWindow",
+    "Message",
+    "ParetoSet",
+    "ParetoSolution",
+    "ParetoSolutionReply",
+    "PlanProgress",
+    "RobotEvent",
+    "RobotState",
+    "RrIntervals",
+    "Selection",
+    "ServiceStatus",
+]

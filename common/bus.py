@@ -1,0 +1,261 @@
+"""Zenoh 1.x from asyncio: the one place Cadence touches the Zenoh API (DESIGN §3; STYLE "Zenoh 1.x").
+
+Zenoh has no asyncio API. Its callbacks run on Zenoh's own threads and only hand the sample to the event
+loop (``call_soon_threadsafe``, tolerant of a closed loop); decoding and handling happen in the loop.
+``get`` runs in a worker thread with a timeout; queryable handlers always drop the query (``with query``),
+or the querier would wait for its timeout; everything declared is undeclared before the session closes.
+A payload that does not decode is counted per key, logged at most once per key every 10 s, and dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from collections import Counter
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import msgspec
+import zenoh
+
+from common.errors import BusError
+from schemas.base import Message
+from schemas.topology import encode
+
+log = logging.getLogger("cadence.bus")
+
+_LOG_EVERY_S = 10.0
+
+
+class BusConfig(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """How a service joins the bus. ``config_file`` (JSON5, Zenoh's own format) is read first; the
+    other fields override it. Multicast scouting is off unless asked for: cells share networks."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = []
+    connect: list[str] = []
+    multicast_scouting: bool = False
+    lease_ms: int = 1000
+    config_file: str | None = None
+
+
+def zenoh_config(cfg: BusConfig) -> zenoh.Config:
+    try:
+        conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(cfg.mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+        if cfg.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+        if cfg.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))
+        # A killed peer's token vanishes at once; a frozen one only when its lease runs out (DESIGN §11).
+        conf.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
+    except zenoh.ZError as exc:
+        raise BusError(f"bad Zenoh configuration {cfg.config_file or ''}: {exc}") from exc
+    return conf
+
+
+def _call_soon(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: object) -> None:
+    """From a Zenoh thread into the loop; a closed loop (shutdown) drops the call (bleak's habit)."""
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:
+        pass
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """A query as the handler sees it: the concrete key and the selector's parameters."""
+
+    key: str
+    parameters: str
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    key: str
+    message: Message | None
+    error: str | None
+
+
+class QueryError(Exception):
+    """Raised by a queryable handler: its text goes back to the querier with ``reply_err``."""
+
+
+class Subscription:
+    """Decoded messages of one key expression, as an async iterator of (key, message).
+
+    The queue is bounded and drops the oldest sample when full (telemetry); ``maxsize=1`` keeps only the
+    latest (a selection is state, not an event: DESIGN §11).
+    """
+
+    def __init__(self, bus: Bus, key_expr: str, msg_type: type[Message], maxsize: int) -> None:
+        self._bus = bus
+        self._decoder = msgspec.msgpack.Decoder(msg_type)
+        self._queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(maxsize)
+        self.dropped = 0
+        loop = bus.loop
+        self._sub = bus.session.declare_subscriber(
+            key_expr, lambda s: _call_soon(loop, self._put, str(s.key_expr), s.payload.to_bytes())
+        )
+
+    def _put(self, key: str, payload: bytes) -> None:
+        if self._queue.full():
+            self._queue.get_nowait()
+            self.dropped += 1
+        self._queue.put_nowait((key, payload))
+
+    def __aiter__(self) -> AsyncIterator[tuple[str, Message]]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[tuple[str, Message]]:
+        while True:
+            key, payload = await self._queue.get()
+            msg = self._bus.decode(key, payload, self._decoder)
+            if msg is not None:
+                yield key, msg
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+class Bus:
+    """One Zenoh session used from one event loop; an async context manager (httpx's habit)."""
+
+    def __init__(self, session: zenoh.Session, loop: asyncio.AbstractEventLoop, cell: str) -> None:
+        self.session = session
+        self.loop = loop
+        self.cell = cell
+        self.decode_errors: Counter[str] = Counter()
+        self._last_log: dict[str, float] = {}
+        self._declared: list[Any] = []
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._closed = False
+
+    @classmethod
+    async def open(cls, cfg: BusConfig, cell: str) -> Bus:
+        conf = zenoh_config(cfg)
+        try:
+            session = await asyncio.to_thread(zenoh.open, conf)
+        except zenoh.ZError as exc:
+            raise BusError(f"cannot open a Zenoh session ({cfg.mode}): {exc}") from exc
+        return cls(session, asyncio.get_running_loop(), cell)
+
+    async def __aenter__(self) -> Bus:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def key(self, suffix: str) -> str:
+        return f"cadence/{self.cell}/{suffix}"
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise BusError("the bus is closed")
+
+    # --- decoding -----------------------------------------------------------------------------------
+
+    def decode(self, key: str, payload: bytes, decoder: msgspec.msgpack.Decoder) -> Any:
+        try:
+            return decoder.decode(payload)
+        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+            self.decode_errors[key] += 1
+            now = time.monotonic()
+            if now - self._last_log.get(key, -_LOG_EVERY_S) >= _LOG_EVERY_S:
+                self._last_log[key] = now
+                log.warning(
+                    "dropped a malformed message on %s: %s (%d so far)", key, exc, self.decode_errors[key]
+                )
+            return None
+
+    # --- topics -------------------------------------------------------------------------------------
+
+    def put(self, key: str, msg: Message, block: bool = False) -> None:
+        """Publish from the loop thread. ``block`` (congestion control BLOCK) only for low-rate control."""
+        self._check_open()
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.session.put(key, encode(msg), congestion_control=cc)
+
+    def put_raw(self, key: str, payload: bytes) -> None:
+        """Bytes as they are (tests and replay)."""
+        self._check_open()
+        self.session.put(key, payload)
+
+    def subscribe(self, key_expr: str, msg_type: type[Message], maxsize: int = 256) -> Subscription:
+        self._check_open()
+        sub = Subscription(self, key_expr, msg_type, maxsize)
+        self._declared.append(sub)
+        return sub
+
+    # --- queries ------------------------------------------------------------------------------------
+
+    def serve(self, key_expr: str, handler: Callable[[Request], Awaitable[Message]]) -> None:
+        """Answer queries on ``key_expr``: the handler returns a message or raises ``QueryError``."""
+        self._check_open()
+
+        def on_query(query: zenoh.Query) -> None:
+            _call_soon(self.loop, self._spawn, self._answer(handler, query))
+
+        self._declared.append(self.session.declare_queryable(key_expr, on_query))
+
+    def _spawn(self, coro: Awaitable[None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _answer(self, handler: Callable[[Request], Awaitable[Message]], query: zenoh.Query) -> None:
+        with query:  # dropping the query tells the querier that no more replies come
+            try:
+                msg = await handler(Request(str(query.key_expr), str(query.parameters)))
+                query.reply(query.key_expr, encode(msg))
+            except QueryError as exc:
+                query.reply_err(str(exc).encode())
+            except Exception:
+                log.exception("query handler failed on %s", query.key_expr)
+                query.reply_err(b"internal error")
+
+    async def get(self, selector: str, msg_type: type[Message], timeout: float = 2.0) -> list[Reply]:
+        """Query and decode every reply; an error reply keeps its text. Never blocks the loop."""
+        self._check_open()
+        decoder = msgspec.msgpack.Decoder(msg_type)
+
+        def run() -> list[Any]:
+            return list(self.session.get(selector, timeout=timeout))
+
+        try:
+            replies = await asyncio.to_thread(run)
+        except zenoh.ZError as exc:
+            raise BusError(f"query {selector} failed: {exc}") from exc
+        out = []
+        for r in replies:
+            if r.ok is not None:
+                key = str(r.ok.key_expr)
+                msg = self.decode(key, r.ok.payload.to_bytes(), decoder)
+                out.append(Reply(key, msg, None if msg is not None else "reply does not decode"))
+            else:
+                out.append(Reply(selector, None, r.err.payload.to_bytes().decode(errors="replace")))
+        return out
+
+    # --- presence -----------------------------------------------------------------------------------
+
+    def token(self, key: str) -> None:
+        self._check_open()
+        self._declared.append(self.session.liveliness().declare_token(key))
+
+    # --- shutdown -----------------------------------------------------------------------------------
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for d in reversed(self._declared):
+            d.undeclare()
+        self._declared.clear()
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await asyncio.to_thread(self.session.close)

@@ -1,0 +1,291 @@
+"""What every service shares (DESIGN §9, §10; uvicorn's server.py for the shutdown).
+
+- Configuration: one TOML file per deployment with a table per service, plus ``[cadence]`` (cell, data
+  folder) and ``[bus]``; every key can be overridden by ``CADENCE_<SECTION>_<KEY>`` (a TOML value, or a
+  bare string). Decoding is strict: an unknown or mistyped key stops the service at start with one line
+  naming the file (or variable) and the key, exit code 2.
+- Logging: human-readable on a terminal, JSON lines under systemd (``JOURNAL_STREAM`` set).
+- SIGTERM/SIGINT set the stop event; the service's main coroutine gets a bounded time to finish its
+  step, then is cancelled; the bus undeclares everything and closes; exit 0. A second signal exits at
+  once.
+- Presence and health: a liveliness token on ``health/<service>`` and a periodic ``ServiceStatus``.
+- systemd: READY=1 once running, WATCHDOG=1 at half of ``WATCHDOG_USEC`` from the event loop itself,
+  so a stalled loop stops pinging.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import time
+import tomllib
+from collections import Counter
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import msgspec
+
+from common.bus import Bus, BusConfig
+from common.errors import BusError, ConfigError, InputError
+from schemas.health import ServiceStatus
+
+log = logging.getLogger("cadence.service")
+
+T = TypeVar("T")
+
+DRAIN_S = 5.0
+
+
+class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    cell: str = "cell1"
+    data_dir: str = "~/.local/share/cadence"
+    log_format: Literal["auto", "text", "json"] = "auto"
+    status_period_s: float = 5.0
+
+    @property
+    def data_path(self) -> Path:
+        return Path(self.data_dir).expanduser()
+
+
+def read_config(path: str | None) -> dict[str, Any]:
+    if path is None:
+        return {}
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except OSError as exc:
+        raise ConfigError(f"{path}: (file): {exc.strerror or exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: (syntax): {exc}") from exc
+
+
+def _env_value(text: str) -> object:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def section(
+    raw: Mapping[str, Any],
+    name: str,
+    kind: type[T],
+    source: str = "<defaults>",
+    env: Mapping[str, str] | None = None,
+) -> T:
+    """One table of the config, overridden by ``CADENCE_<NAME>_<KEY>`` variables, decoded strictly."""
+    env = os.environ if env is None else env
+    table = dict(raw.get(name, {}))
+    prefix = f"CADENCE_{name.upper()}_"
+    from_env = {}
+    for var, text in env.items():
+        if var.startswith(prefix):
+            k = var[len(prefix) :].lower()
+            table[k] = _env_value(text)
+            from_env[k] = var
+    try:
+        return msgspec.convert(table, kind, strict=False)
+    except msgspec.ValidationError as exc:
+        text = str(exc)
+        where = text.rsplit(" - at `$.", 1)
+        keyname = where[1].rstrip("`") if len(where) == 2 else ""
+        origin = from_env.get(keyname.split(".")[0].split("[")[0], source)
+        raise ConfigError(f"{origin}: [{name}] {keyname or '(table)'}: {where[0]}") from exc
+
+
+@dataclass
+class ServiceContext:
+    """What a service's main coroutine gets: the bus, its settings, a stop event and its counters."""
+
+    name: str
+    bus: Bus
+    common: CommonSettings
+    settings: Any
+    stop: asyncio.Event
+    counters: Counter[str] = field(default_factory=Counter)
+    state: str = "starting"
+    started: float = field(default_factory=time.monotonic)
+
+    def status(self, seq: int) -> ServiceStatus:
+        counters = dict(self.counters)
+        counters["decode_errors"] = sum(self.bus.decode_errors.values())
+        return ServiceStatus(
+            t_ns=time.time_ns(),
+            seq=seq,
+            service=self.name,
+            state=self.state,
+            uptime_s=time.monotonic() - self.started,
+            counters=counters,
+        )
+
+
+# --- systemd --------------------------------------------------------------------------------------
+
+
+def sd_notify(message: str, env: Mapping[str, str] | None = None) -> bool:
+    """Send one datagram to systemd's notification socket; False when not under systemd."""
+    env = os.environ if env is None else env
+    addr = env.get("NOTIFY_SOCKET")
+    if not addr:
+        return False
+    if addr.startswith("@"):
+        addr = "\0" + addr[1:]  # abstract namespace
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        s.connect(addr)
+        s.sendall(message.encode())
+    return True
+
+
+def watchdog_period_s(env: Mapping[str, str] | None = None) -> float | None:
+    env = os.environ if env is None else env
+    usec = env.get("WATCHDOG_USEC")
+    if not usec:
+        return None
+    pid = env.get("WATCHDOG_PID")
+    if pid and int(pid) != os.getpid():
+        return None
+    return int(usec) / 2e6
+
+
+# --- logging --------------------------------------------------------------------------------------
+
+
+class _JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        out = {
+            "t": record.created,
+            "level": record.levelname,
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out)
+
+
+def setup_logging(fmt: str) -> None:
+    use_json = fmt == "json" or (fmt == "auto" and "JOURNAL_STREAM" in os.environ and not sys.stderr.isatty())
+    handler = logging.StreamHandler()
+    handler.setFormatter(
+        _JsonFormatter()
+        if use_json
+        else logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    )
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(os.environ.get("CADENCE_LOG_LEVEL", "INFO"))
+
+
+# --- running a service ----------------------------------------------------------------------------
+
+
+async def _periodic(ctx: ServiceContext) -> None:
+    key = ctx.bus.key(f"health/{ctx.name}")
+    seq = 0
+    wd = watchdog_period_s()
+    next_status = 0.0
+    while True:
+        now = time.monotonic()
+        if now >= next_status:
+            ctx.bus.put(key, ctx.status(seq))
+            seq += 1
+            next_status = now + ctx.common.status_period_s
+        if wd is not None:
+            sd_notify("WATCHDOG=1")
+        await asyncio.sleep(min(ctx.common.status_period_s, wd or ctx.common.status_period_s))
+
+
+async def serve(
+    name: str,
+    main: Callable[[ServiceContext], Awaitable[None]],
+    common: CommonSettings,
+    bus_cfg: BusConfig,
+    settings: Any,
+    stop: asyncio.Event | None = None,
+    install_signals: bool = True,
+) -> None:
+    """Run ``main`` until it returns or the stop event is set, then shut down in order."""
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    if install_signals:
+        signals_seen = 0
+
+        def on_signal() -> None:
+            nonlocal signals_seen
+            signals_seen += 1
+            if signals_seen > 1:
+                log.warning("second signal: exiting now")
+                os._exit(1)
+            log.info("stopping %s", name)
+            stop.set()
+
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, on_signal)
+    async with await Bus.open(bus_cfg, common.cell) as bus:
+        ctx = ServiceContext(name, bus, common, settings, stop)
+        bus.token(bus.key(f"health/{name}"))
+        periodic = asyncio.create_task(_periodic(ctx))
+        work = asyncio.create_task(main(ctx))
+        ctx.state = "running"
+        sd_notify("READY=1")
+        stopper = asyncio.create_task(stop.wait())
+        await asyncio.wait({work, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        ctx.state = "stopping"
+        stop.set()
+        sd_notify("STOPPING=1")
+        try:
+            await asyncio.wait_for(asyncio.shield(work), DRAIN_S)
+        except TimeoutError:
+            log.warning("%s did not finish within %.0f s; cancelling", name, DRAIN_S)
+            work.cancel()
+        for task in (periodic, stopper, work):
+            task.cancel()
+        results = await asyncio.gather(periodic, stopper, work, return_exceptions=True)
+        if isinstance(results[2], BaseException) and not isinstance(results[2], asyncio.CancelledError):
+            raise results[2]
+
+
+def service_main(
+    name: str,
+    settings_type: type[Any],
+    main: Callable[[ServiceContext], Awaitable[None]],
+    argv: list[str] | None = None,
+    prepare: Callable[[Any, CommonSettings], None] | None = None,
+) -> int:
+    """``python -m services.<name>`` and ``cadence run <name>``: parse, configure, serve; exit code."""
+    parser = argparse.ArgumentParser(prog=f"cadence run {name}", description=f"Run the {name} service.")
+    parser.add_argument(
+        "--config", metavar="FILE.toml", help="deployment config (default: built-in defaults)"
+    )
+    parser.add_argument("--data-dir", help="data folder (default ~/.local/share/cadence or CADENCE_DATA_DIR)")
+    parser.add_argument("--cell", help="robot cell name (key prefix cadence/<cell>/…)")
+    args = parser.parse_args(argv)
+    try:
+        raw = read_config(args.config)
+        source = args.config or "<defaults>"
+        common = section(raw, "cadence", CommonSettings, source)
+        if args.data_dir or os.environ.get("CADENCE_DATA_DIR"):
+            common = msgspec.structs.replace(common, data_dir=args.data_dir or os.environ["CADENCE_DATA_DIR"])
+        if args.cell:
+            common = msgspec.structs.replace(common, cell=args.cell)
+        bus_cfg = section(raw, "bus", BusConfig, source)
+        settings = section(raw, name, settings_type, source)
+        setup_logging(common.log_format)
+        if prepare is not None:
+            prepare(settings, common)  # checks that need no bus (task files, data folder)
+        asyncio.run(serve(name, main, common, bus_cfg, settings))
+    except InputError as exc:
+        print(f"cadence {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except BusError as exc:
+        print(f"cadence {name}: bus error: {exc}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,15 @@
+"""The operator: calibration (``operator/calibration``) and the signals the task waits for."""
+
+from __future__ import annotations
+
+from schemas.base import Message, PositiveFloat
+
+
+class Calibration(Message, frozen=True, tag="operator.calibration.v1"):
+    """Resting mean RR and its spread for one subject (paper §III-B); stress values derive from them."""
+
+    subject: str
+    rr_rest_s: PositiveFloat
+    sigma_rest_s: PositiveFloat = 0.14
+    rr_stress_offset_s: PositiveFloat = 0.08
+    sigma_stress_s: PositiveFloat = 0.08
