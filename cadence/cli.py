@@ -15,7 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from common.errors import InputError
+from common.errors import BusError, InputError
 from common.task import Task, continuity_gaps, load_task
 
 EXAMPLE_TASK = Path(__file__).resolve().parents[1] / "deploy" / "tasks" / "box_filling.toml"
@@ -195,6 +195,73 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
     return 0
 
 
+SERVICES = {"pareto_store": "services.pareto_store.__main__"}
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import importlib
+
+    module = importlib.import_module(SERVICES[args.service])
+    return int(module.run(args.args))
+
+
+def _bus_config(args: argparse.Namespace, mode: str):
+    from common.bus import BusConfig
+
+    return BusConfig(
+        mode=mode,
+        connect=args.connect or [],
+        listen=getattr(args, "listen", None) or [],
+        config_file=args.zenoh_config,
+    )
+
+
+def cmd_get(args: argparse.Namespace) -> int:
+    import asyncio
+
+    import msgspec
+
+    from common.bus import Bus
+    from schemas.topology import AnyMessage
+
+    async def go() -> int:
+        async with await Bus.open(
+            _bus_config(args, "peer" if not args.connect else "client"), "cell1"
+        ) as bus:
+            replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
+        ok = 0
+        for r in replies:
+            if r.message is not None:
+                ok += 1
+                print(msgspec.json.encode(r.message).decode())
+            else:
+                err.print(f"{r.key}: error: {r.error}", markup=False, highlight=False)
+        if not replies:
+            err.print(f"no reply for {args.key} within {args.timeout} s", markup=False)
+        return 0 if ok else 1
+
+    return asyncio.run(go())
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
+    from common.bus import Bus
+
+    async def go() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        async with await Bus.open(_bus_config(args, "router"), "cell1"):
+            err.print(f"Zenoh router listening on {', '.join(args.listen)}")
+            await stop.wait()
+
+    asyncio.run(go())
+    return 0
+
+
 def _add_planner_flags(p: argparse.ArgumentParser, task_option: bool = False) -> None:
     if task_option:
         p.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
@@ -253,16 +320,42 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--reference", type=_positive_int(10), default=1500, help="reference generations (1500)")
     _add_planner_flags(bc, task_option=True)
     bc.set_defaults(func=cmd_bench_convergence)
+    run = sub.add_parser("run", help="run one service (production: one systemd unit each)")
+    run.add_argument("service", choices=sorted(SERVICES))
+    run.add_argument(
+        "args", nargs=argparse.REMAINDER, help="the service's options (--config, --data-dir, --cell)"
+    )
+    run.set_defaults(func=cmd_run)
+
+    get = sub.add_parser("get", help="query a key (e.g. cadence/cell1/pareto/b1_to_b2) and print JSON")
+    get.add_argument("key", help="key expression or selector")
+    get.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    get.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
+    get.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    get.set_defaults(func=cmd_get)
+
+    router = sub.add_parser("router", help="run a Zenoh router (no zenohd binary needed)")
+    router.add_argument(
+        "--listen", action="append", default=None, metavar="ENDPOINT", help="default tcp/0.0.0.0:7447"
+    )
+    router.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers")
+    router.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    router.set_defaults(func=cmd_router)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "router" and not args.listen:
+        args.listen = ["tcp/0.0.0.0:7447"]
     try:
         return int(args.func(args))
     except InputError as exc:
         err.print(f"cadence: error: {exc}", markup=False, highlight=False, soft_wrap=True)
         return 2
+    except BusError as exc:
+        err.print(f"cadence: bus error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 1
     except KeyboardInterrupt:
         err.print("cadence: interrupted")
         return 130

@@ -10,6 +10,7 @@ A payload that does not decode is counted per key, logged at most once per key e
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import time
@@ -60,10 +61,8 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
 
 def _call_soon(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: object) -> None:
     """From a Zenoh thread into the loop; a closed loop (shutdown) drops the call (bleak's habit)."""
-    try:
+    with contextlib.suppress(RuntimeError):
         loop.call_soon_threadsafe(fn, *args)
-    except RuntimeError:
-        pass
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,7 +94,7 @@ class Subscription:
     def __init__(self, bus: Bus, key_expr: str, msg_type: type[Message], maxsize: int) -> None:
         self._bus = bus
         self._decoder = msgspec.msgpack.Decoder(msg_type)
-        self._queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(maxsize)
+        self._queue: asyncio.Queue[tuple[str, Message]] = asyncio.Queue(maxsize)
         self.dropped = 0
         loop = bus.loop
         self._sub = bus.session.declare_subscriber(
@@ -103,20 +102,21 @@ class Subscription:
         )
 
     def _put(self, key: str, payload: bytes) -> None:
+        """On the loop thread: decode at arrival, so bad input is counted whether or not anyone reads."""
+        msg = self._bus.decode(key, payload, self._decoder)
+        if msg is None:
+            return
         if self._queue.full():
             self._queue.get_nowait()
             self.dropped += 1
-        self._queue.put_nowait((key, payload))
+        self._queue.put_nowait((key, msg))
 
     def __aiter__(self) -> AsyncIterator[tuple[str, Message]]:
         return self._iterate()
 
     async def _iterate(self) -> AsyncIterator[tuple[str, Message]]:
         while True:
-            key, payload = await self._queue.get()
-            msg = self._bus.decode(key, payload, self._decoder)
-            if msg is not None:
-                yield key, msg
+            yield await self._queue.get()
 
     def undeclare(self) -> None:
         self._sub.undeclare()

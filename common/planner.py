@@ -456,3 +456,33 @@ def plan_path(
         n_evaluated=problem.n_evaluated,
         hypervolume_history=history,
     )
+
+
+# Bump when the planner's output for the same inputs changes, so stored sets are recomputed.
+PLANNER_VERSION = 1
+
+
+def content_hash(path: PathPlan, limits: JointLimits, settings: PlannerSettings) -> str:
+    """Names a set by everything it was planned from: waypoints, limits, boundary conditions, settings.
+
+    A changed task program never matches a stored set, so the store never serves a stale one.
+    """
+    import hashlib
+    import json
+
+    b = path.boundary
+    doc = {
+        "version": PLANNER_VERSION,
+        "waypoints": path.waypoints.tolist(),
+        "limits": limits.as_dict(),
+        "boundary": [v.tolist() for v in (b.v0, b.a0, b.j0, b.v1, b.a1, b.j1)],
+        "settings": {
+            "constraints": settings.constraints,
+            "n_solutions": settings.n_solutions,
+            "population": settings.population,
+            "generations": settings.generations or DEFAULT_GENERATIONS,
+            "seed": settings.seed,
+            "kappa": settings.kappa,
+        },
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:32]

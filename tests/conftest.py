@@ -34,3 +34,17 @@ def random_path(seed: int, n_waypoints: int = 6, boundary: bool = False) -> Path
 @pytest.fixture
 def example_task_path() -> Path:
     return EXAMPLE_TASK
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def endpoint() -> str:
+    """A loopback endpoint for one test's sessions (multicast scouting stays off)."""
+    return f"tcp/127.0.0.1:{free_port()}"

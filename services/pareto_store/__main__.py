@@ -1,0 +1,165 @@
+"""pareto_store: plans the task program's paths (in a process pool, so queries stay answered), keeps
+the sets in SQLite, and answers ``pareto/<path_id>`` and ``pareto/<path_id>/<k>`` (DESIGN §1, §3)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import msgspec
+
+from common.bus import QueryError, Request
+from common.planner import content_hash, plan_path
+from common.service import CommonSettings, ServiceContext, service_main
+from common.task import PathPlan, PlannerSettings, Task, load_task
+from schemas.pareto import Boundary, Limits, ParetoSet, ParetoSolution, ParetoSolutionReply, PlanProgress
+from services.pareto_store.store import SetStore
+
+log = logging.getLogger("cadence.pareto_store")
+NAME = "pareto_store"
+EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_filling.toml"
+
+
+class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    task: str = str(EXAMPLE_TASK)
+    workers: int = 1
+
+
+def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str) -> ParetoSet:
+    """Runs in a worker process: plan one path and return it as the wire message."""
+    r = plan_path(path, task.limits, settings)
+    b = path.boundary
+    return ParetoSet(
+        t_ns=time.time_ns(),
+        seq=0,
+        path_id=path.id,
+        content_hash=digest,
+        constraints=settings.constraints,
+        waypoints=path.waypoints.tolist(),
+        limits=Limits(**task.limits.as_dict()),
+        start=Boundary(velocity=b.v0.tolist(), acceleration=b.a0.tolist(), jerk=b.j0.tolist()),
+        end=Boundary(velocity=b.v1.tolist(), acceleration=b.a1.tolist(), jerk=b.j1.tolist()),
+        front=r.front.tolist(),
+        solutions=[
+            ParetoSolution(k=s.k, h=s.h.tolist(), t_f=s.t_f, f_time=s.f_time, f_jerk=s.f_jerk)
+            for s in r.solutions
+        ],
+    )
+
+
+def answer(
+    sets: dict[str, ParetoSet], task: Task, cell: str, req: Request, seq: int
+) -> ParetoSet | ParetoSolutionReply:
+    """The reply to a query on ``cadence/<cell>/pareto/…``: a set, one solution, or a QueryError."""
+    rest = req.key.split(f"cadence/{cell}/pareto/", 1)[-1].split("/")
+    path_id = rest[0]
+    if path_id not in task.paths:
+        raise QueryError(f"unknown path '{path_id}'; this task has {', '.join(task.paths)}")
+    if path_id not in sets:
+        raise QueryError(f"path '{path_id}' is being computed; subscribe to pareto/progress")
+    s = sets[path_id]
+    if len(rest) == 1:
+        return s
+    try:
+        k = int(rest[1])
+    except ValueError:
+        raise QueryError(f"k must be an integer, got {rest[1]!r}") from None
+    if not 1 <= k <= len(s.solutions) or len(rest) > 2:
+        raise QueryError(
+            f"path '{path_id}' has solutions k = 1 … {len(s.solutions)}, not {'/'.join(rest[1:])}"
+        )
+    return ParetoSolutionReply(
+        t_ns=s.t_ns,
+        seq=seq,
+        path_id=path_id,
+        content_hash=s.content_hash,
+        n=len(s.solutions),
+        solution=s.solutions[k - 1],
+    )
+
+
+async def main(ctx: ServiceContext) -> None:
+    settings: Settings = ctx.settings
+    task = load_task(settings.task)
+    store = await asyncio.to_thread(SetStore, ctx.common.data_path / "pareto.sqlite")
+    sets: dict[str, ParetoSet] = {}
+    digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
+    for pid, digest in digests.items():
+        stored = await asyncio.to_thread(store.load, pid, digest)
+        if stored is not None:
+            sets[pid] = stored
+    seq = 0
+    progress_key = ctx.bus.key("pareto/progress")
+
+    def progress(pid: str, state: str, message: str = "") -> None:
+        nonlocal seq
+        done = sum(1 for p in task.paths if p in sets)
+        ctx.bus.put(
+            progress_key,
+            PlanProgress(
+                t_ns=time.time_ns(),
+                seq=seq,
+                path_id=pid,
+                state=state,
+                done_paths=done,
+                total_paths=len(task.paths),
+                message=message,
+            ),
+        )
+        seq += 1
+
+    async def handler(req: Request) -> ParetoSet | ParetoSolutionReply:
+        nonlocal seq
+        ctx.counters["queries"] += 1
+        seq += 1
+        return answer(sets, task, ctx.common.cell, req, seq)
+
+    ctx.bus.serve(ctx.bus.key("pareto/**"), handler)
+    for pid in sets:
+        progress(pid, "stored")
+    missing = [pid for pid in task.paths if pid not in sets]
+    pool = ProcessPoolExecutor(max_workers=settings.workers, mp_context=multiprocessing.get_context("spawn"))
+    loop = asyncio.get_running_loop()
+    try:
+        for pid in missing:
+            progress(pid, "running")
+            ctx.state = f"planning {pid}"
+            try:
+                msg = await loop.run_in_executor(
+                    pool, plan_job, task.paths[pid], task, task.planner, digests[pid]
+                )
+            except Exception as exc:  # a path that cannot be planned must not stop the others
+                log.exception("planning %s failed", pid)
+                ctx.counters["plan_failures"] += 1
+                progress(pid, "failed", str(exc))
+                continue
+            await asyncio.to_thread(store.save, msg)
+            sets[pid] = msg
+            ctx.counters["computed"] += 1
+            progress(pid, "done")
+            if ctx.stop.is_set():
+                break
+        ctx.state = "serving"
+        await ctx.stop.wait()
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in list(getattr(pool, "_processes", {}).values()):  # a plan in flight is abandoned
+            proc.terminate()
+        store.close()
+
+
+def prepare(settings: Settings, common: CommonSettings) -> None:
+    load_task(settings.task)  # a bad task file stops the service at start: one line, exit 2
+
+
+def run(argv: list[str] | None = None) -> int:
+    return service_main(NAME, Settings, main, argv, prepare)
+
+
+if __name__ == "__main__":
+    sys.exit(run())

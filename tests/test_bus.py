@@ -1,0 +1,169 @@
+"""The bus with real Zenoh sessions on loopback (multicast scouting off), waiting on events only."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from common.bus import Bus, BusConfig, QueryError, Request
+from schemas import Selection, ServiceStatus
+from schemas.topology import TOPICS
+from tests.conftest import free_port
+
+pytestmark = pytest.mark.asyncio
+
+SEL = Selection(t_ns=5, seq=1, k=8, n=15, delta=0, reason="initial")
+
+
+async def pair(endpoint: str) -> tuple[Bus, Bus]:
+    a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    b = await Bus.open(BusConfig(connect=[endpoint]), "cell1")
+    return a, b
+
+
+async def until(pred, timeout: float = 5.0, every: float = 0.05) -> None:
+    """Wait for a condition with a deadline (the condition is what we wait on, never a fixed sleep)."""
+    async with asyncio.timeout(timeout):
+        while not pred():
+            await asyncio.sleep(every)
+
+
+async def test_a_published_message_arrives_decoded(endpoint: str) -> None:
+    a, b = await pair(endpoint)
+    async with a, b:
+        sub = b.subscribe(b.key("decision/selection"), Selection)
+        it = aiter(sub)
+        received = asyncio.ensure_future(anext(it))
+        # the subscriber's declaration reaches the publisher asynchronously: publish until it arrives
+        async with asyncio.timeout(5):
+            while not received.done():
+                a.put(a.key("decision/selection"), SEL, block=True)
+                await asyncio.wait({received}, timeout=0.05)
+        key, msg = received.result()
+        assert key == "cadence/cell1/decision/selection" and msg == SEL
+
+
+async def test_malformed_payloads_on_every_key_are_counted_and_dropped(endpoint: str) -> None:
+    a, b = await pair(endpoint)
+    async with a, b:
+        topics = [t for t in TOPICS if t.pattern == "topic"]
+        keys = [b.key(t.suffix.replace("*", "x")) for t in topics]
+        subs = [b.subscribe(k, t.message) for k, t in zip(keys, topics, strict=True)]
+        good = asyncio.ensure_future(anext(aiter(subs[keys.index(b.key("decision/selection"))])))
+        rng = os.urandom
+
+        def counted() -> bool:
+            return all(b.decode_errors[k] > 0 for k in keys)
+
+        async with asyncio.timeout(10):
+            while not counted():
+                for k in keys:
+                    a.put_raw(k, rng(37))
+                await asyncio.sleep(0.05)
+        # the subscriber still works after the garbage
+        async with asyncio.timeout(5):
+            while not good.done():
+                a.put(a.key("decision/selection"), SEL)
+                await asyncio.wait({good}, timeout=0.05)
+        assert good.result()[1] == SEL
+
+
+async def test_a_queryable_answers_and_an_error_reply_says_why(endpoint: str) -> None:
+    a, b = await pair(endpoint)
+    async with a, b:
+
+        async def handler(req: Request) -> Selection:
+            if req.key.endswith("/bad"):
+                raise QueryError("no such thing")
+            return SEL
+
+        a.serve(a.key("decision/**"), handler)
+        async with asyncio.timeout(5):
+            while not (replies := await b.get(b.key("decision/selection"), Selection, timeout=1.0)):
+                pass
+        assert replies[0].message == SEL
+        bad = await b.get(b.key("decision/bad"), Selection, timeout=2.0)
+        assert bad[0].message is None and bad[0].error == "no such thing"
+
+
+async def test_a_closed_bus_refuses_use(endpoint: str) -> None:
+    a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    await a.close()
+    with pytest.raises(Exception, match="closed"):
+        a.put(a.key("x"), SEL)
+
+
+async def test_two_sessions_meet_through_cadence_router() -> None:
+    port = free_port()
+    router = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert "listening" in router.stderr.readline()
+        ep = f"tcp/127.0.0.1:{port}"
+        a = await Bus.open(BusConfig(mode="client", connect=[ep]), "cell1")
+        b = await Bus.open(BusConfig(mode="client", connect=[ep]), "cell1")
+        async with a, b:
+            it = aiter(b.subscribe(b.key("health/x"), ServiceStatus))
+            received = asyncio.ensure_future(anext(it))
+            status = ServiceStatus(t_ns=1, seq=0, service="x", state="ok", uptime_s=1.0, counters={})
+            async with asyncio.timeout(5):
+                while not received.done():
+                    a.put(a.key("health/x"), status)
+                    await asyncio.wait({received}, timeout=0.05)
+            assert received.result()[1] == status
+    finally:
+        router.send_signal(signal.SIGTERM)
+        assert router.wait(timeout=10) == 0
+
+
+async def test_zenoh_cli_prints_cadence_messages_as_json(endpoint: str) -> None:
+    """The `zenoh` command of zenoh-cli loads Cadence's decoder from its entry point."""
+    a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    zenoh_cli = os.path.join(os.path.dirname(sys.executable), "zenoh")
+    proc = subprocess.Popen(
+        [
+            zenoh_cli,
+            "--connect",
+            endpoint,
+            "--cfg",
+            "scouting/multicast/enabled:false",
+            "subscribe",
+            "-k",
+            "cadence/**",
+            "--decoder",
+            "cadence",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lines: list[str] = []
+    seen = threading.Event()
+
+    def read() -> None:
+        for line in proc.stdout:
+            lines.append(line)
+            if "decision.selection.v1" in line:
+                seen.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    try:
+        async with a:
+            async with asyncio.timeout(20):
+                while not seen.is_set():
+                    a.put(a.key("decision/selection"), SEL)
+                    await asyncio.sleep(0.1)
+        line = next(x for x in lines if "decision.selection.v1" in x)
+        assert '"k":8' in line and '"reason":"initial"' in line
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
