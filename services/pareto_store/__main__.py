@@ -147,8 +147,10 @@ async def main(ctx: ServiceContext) -> None:
         ctx.state = "serving"
         await ctx.stop.wait()
     finally:
+        # A plan still in flight is abandoned: its worker is ended, not waited for.
+        workers = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
-        for proc in list(getattr(pool, "_processes", {}).values()):  # a plan in flight is abandoned
+        for proc in workers:
             proc.terminate()
         store.close()
 

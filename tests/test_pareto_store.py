@@ -1,0 +1,160 @@
+"""The Pareto store, started in-process and as a process, queried over real Zenoh on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from common.bus import Bus, BusConfig
+from common.service import CommonSettings, serve
+from schemas import ParetoSet, ParetoSolutionReply, ServiceStatus
+from schemas.topology import AnyMessage
+from services.pareto_store.__main__ import Settings, main
+
+pytestmark = pytest.mark.asyncio
+
+TASK = """
+[task]
+name = "tiny"
+[planner]
+population = 16
+generations = 6
+n_solutions = 5
+[[paths]]
+id = "a"
+unit = "deg"
+waypoints = [[0, -90, 90, -90, -90, 0], [30, -80, 100, -100, -90, 20], [45, -70, 95, -110, -90, 40]]
+[[paths]]
+id = "b"
+unit = "deg"
+waypoints = [[45, -70, 95, -110, -90, 40], [0, -90, 90, -90, -90, 0]]
+"""
+
+
+class Store:
+    """The store service running in this event loop, as `cadence run pareto_store` would run it."""
+
+    def __init__(self, task: Path, data: Path, endpoint: str) -> None:
+        self.stop = asyncio.Event()
+        common = CommonSettings(data_dir=str(data), status_period_s=0.1)
+        self.task = asyncio.ensure_future(
+            serve(
+                "pareto_store",
+                main,
+                common,
+                BusConfig(connect=[endpoint]),
+                Settings(task=str(task)),
+                stop=self.stop,
+                install_signals=False,
+            )
+        )
+
+    async def close(self) -> None:
+        self.stop.set()
+        await asyncio.wait_for(self.task, 15)
+
+
+async def serving(sub) -> ServiceStatus:
+    """The store's periodic status once it has planned everything it lacked (no race: it repeats)."""
+    async with asyncio.timeout(60):
+        async for _, status in sub:
+            if status.state == "serving":
+                return status
+    raise AssertionError("unreachable")
+
+
+@pytest.fixture
+def task_file(tmp_path: Path) -> Path:
+    p = tmp_path / "tiny.toml"
+    p.write_text(TASK)
+    return p
+
+
+async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_stale_sets(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    client = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    async with client:
+        health = client.key("health/pareto_store")
+        store = Store(task_file, tmp_path / "data", endpoint)
+        status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
+        assert status.counters.get("computed") == 2
+
+        set_a = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
+        assert set_a.path_id == "a" and len(set_a.solutions) == 5 and set_a.constraints == "exact"
+        one = (await client.get(client.key("pareto/a/5"), ParetoSolutionReply))[0].message
+        assert one.solution == set_a.solutions[4] and one.n == 5
+        unknown = (await client.get(client.key("pareto/zzz"), AnyMessage))[0]
+        assert unknown.message is None and "unknown path 'zzz'" in unknown.error
+        bad_k = (await client.get(client.key("pareto/a/6"), AnyMessage))[0]
+        assert "k = 1 … 5" in bad_k.error
+        await store.close()
+
+        # restart: the same sets, from SQLite, nothing recomputed
+        store = Store(task_file, tmp_path / "data", endpoint)
+        status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
+        assert status.counters.get("computed", 0) == 0
+        again = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
+        assert again.solutions == set_a.solutions and again.content_hash == set_a.content_hash
+        await store.close()
+
+        # a changed task program: path a is planned again, b is still valid
+        task_file.write_text(TASK.replace("[30, -80, 100, -100, -90, 20]", "[25, -80, 100, -100, -90, 20]"))
+        store = Store(task_file, tmp_path / "data", endpoint)
+        status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
+        assert status.counters.get("computed") == 1
+        new_a = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
+        assert new_a.content_hash != set_a.content_hash
+        assert new_a.waypoints[1][0] == pytest.approx(25 * 3.141592653589793 / 180)
+        await store.close()
+
+
+def run_store(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.pareto_store", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+async def test_a_malformed_config_stops_the_store_at_start_naming_file_and_field(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[pareto_store]\nworkers = 'many'\n")
+    proc = run_store("--config", str(cfg))
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0
+    assert str(cfg) in proc.stderr and "workers" in proc.stderr
+
+
+async def test_a_bad_task_file_stops_the_store_at_start(tmp_path: Path) -> None:
+    task = tmp_path / "t.toml"
+    task.write_text(TASK.replace('unit = "deg"', 'unit = "grad"', 1))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[pareto_store]\ntask = '{task}'\n")
+    proc = run_store("--config", str(cfg))
+    assert proc.returncode == 2
+    assert str(task) in proc.stderr and "path 'a'" in proc.stderr and "unit" in proc.stderr
+
+
+async def test_sigterm_stops_the_store_process_with_exit_0(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        f"[cadence]\ndata_dir = '{tmp_path / 'd'}'\nstatus_period_s = 0.1\n"
+        f"[bus]\nconnect = ['{endpoint}']\n[pareto_store]\ntask = '{task_file}'\n"
+    )
+    client = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    async with client:
+        sub = aiter(client.subscribe(client.key("health/pareto_store"), ServiceStatus, maxsize=1))
+        proc = subprocess.Popen([sys.executable, "-m", "services.pareto_store", "--config", str(cfg)])
+        try:
+            async with asyncio.timeout(60):
+                await anext(sub)  # it is up and publishing its status
+            proc.send_signal(signal.SIGTERM)
+            assert await asyncio.to_thread(proc.wait, 20) == 0
+        finally:
+            proc.kill()
