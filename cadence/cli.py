@@ -195,6 +195,24 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_store(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.bench import StoreBench, bench_store
+
+    r = asyncio.run(bench_store(args.task, args.queries))
+    p = StoreBench.pct
+    table = Table(title="pareto_store query latency on loopback (store as a process)")
+    for col in ("queries", "n", "p50 [ms]", "p99 [ms]", "p99.9 [ms]", "max [ms]"):
+        table.add_column(col, justify="right" if col != "queries" else "left")
+    for name, v in (("stored set", r.stored_ms), ("while planning", r.during_planning_ms)):
+        table.add_row(
+            name, str(len(v)), f"{p(v, 50):.2f}", f"{p(v, 99):.2f}", f"{p(v, 99.9):.2f}", f"{max(v):.2f}"
+        )
+    out.print(table)
+    return 0
+
+
 SERVICES = {"pareto_store": "services.pareto_store.__main__"}
 
 
@@ -320,6 +338,16 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--reference", type=_positive_int(10), default=1500, help="reference generations (1500)")
     _add_planner_flags(bc, task_option=True)
     bc.set_defaults(func=cmd_bench_convergence)
+    bs = bench_sub.add_parser(
+        "store",
+        help="query latency of the Pareto store on loopback, stored and while planning",
+        description="Starts pareto_store as a process on a fresh data folder, queries it while it plans "
+        "TASK's paths and then for a stored set; prints the latency percentiles.",
+    )
+    bs.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    bs.add_argument("--queries", type=_positive_int(1), default=500, help="queries of the stored set")
+    bs.set_defaults(func=cmd_bench_store)
+
     run = sub.add_parser("run", help="run one service (production: one systemd unit each)")
     run.add_argument("service", choices=sorted(SERVICES))
     run.add_argument(

@@ -14,10 +14,11 @@ from pathlib import Path
 import msgspec
 
 from common.bus import QueryError, Request
-from common.planner import content_hash, plan_path
+from common.planner import content_hash
 from common.service import CommonSettings, ServiceContext, service_main
-from common.task import PathPlan, PlannerSettings, Task, load_task
-from schemas.pareto import Boundary, Limits, ParetoSet, ParetoSolution, ParetoSolutionReply, PlanProgress
+from common.task import Task, load_task
+from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress
+from services.pareto_store.jobs import lower_priority, plan_job
 from services.pareto_store.store import SetStore
 
 log = logging.getLogger("cadence.pareto_store")
@@ -28,28 +29,6 @@ EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_f
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: str = str(EXAMPLE_TASK)
     workers: int = 1
-
-
-def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str) -> ParetoSet:
-    """Runs in a worker process: plan one path and return it as the wire message."""
-    r = plan_path(path, task.limits, settings)
-    b = path.boundary
-    return ParetoSet(
-        t_ns=time.time_ns(),
-        seq=0,
-        path_id=path.id,
-        content_hash=digest,
-        constraints=settings.constraints,
-        waypoints=path.waypoints.tolist(),
-        limits=Limits(**task.limits.as_dict()),
-        start=Boundary(velocity=b.v0.tolist(), acceleration=b.a0.tolist(), jerk=b.j0.tolist()),
-        end=Boundary(velocity=b.v1.tolist(), acceleration=b.a1.tolist(), jerk=b.j1.tolist()),
-        front=r.front.tolist(),
-        solutions=[
-            ParetoSolution(k=s.k, h=s.h.tolist(), t_f=s.t_f, f_time=s.f_time, f_jerk=s.f_jerk)
-            for s in r.solutions
-        ],
-    )
 
 
 def answer(
@@ -123,7 +102,11 @@ async def main(ctx: ServiceContext) -> None:
     for pid in sets:
         progress(pid, "stored")
     missing = [pid for pid in task.paths if pid not in sets]
-    pool = ProcessPoolExecutor(max_workers=settings.workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = ProcessPoolExecutor(
+        max_workers=settings.workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=lower_priority,
+    )
     loop = asyncio.get_running_loop()
     try:
         for pid in missing:

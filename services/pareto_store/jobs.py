@@ -1,0 +1,38 @@
+"""The work the store's process pool does. A module of its own, not __main__, so that spawned workers
+can import it whether the service was started as `python -m services.pareto_store` or in-process."""
+
+from __future__ import annotations
+
+import os
+import time
+
+from common.planner import plan_path
+from common.task import PathPlan, PlannerSettings, Task
+from schemas.pareto import Boundary, Limits, ParetoSet, ParetoSolution
+
+
+def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str) -> ParetoSet:
+    """Runs in a worker process: plan one path and return it as the wire message."""
+    r = plan_path(path, task.limits, settings)
+    b = path.boundary
+    return ParetoSet(
+        t_ns=time.time_ns(),
+        seq=0,
+        path_id=path.id,
+        content_hash=digest,
+        constraints=settings.constraints,
+        waypoints=path.waypoints.tolist(),
+        limits=Limits(**task.limits.as_dict()),
+        start=Boundary(velocity=b.v0.tolist(), acceleration=b.a0.tolist(), jerk=b.j0.tolist()),
+        end=Boundary(velocity=b.v1.tolist(), acceleration=b.a1.tolist(), jerk=b.j1.tolist()),
+        front=r.front.tolist(),
+        solutions=[
+            ParetoSolution(k=s.k, h=s.h.tolist(), t_f=s.t_f, f_time=s.f_time, f_jerk=s.f_jerk)
+            for s in r.solutions
+        ],
+    )
+
+
+def lower_priority() -> None:
+    """Worker initializer: planning is background work; queries and the service's loop come first."""
+    os.nice(10)
