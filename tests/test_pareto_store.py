@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import signal
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import pytest
 from common.bus import Bus, BusConfig
 from common.service import CommonSettings, serve
 from schemas import ParetoSet, ParetoSolutionReply, ServiceStatus
-from schemas.topology import AnyMessage
+from schemas.topology import TOPICS, AnyMessage
 from services.pareto_store.__main__ import Settings, main
 
 pytestmark = pytest.mark.asyncio
@@ -93,6 +94,17 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
         assert unknown.message is None and "unknown path 'zzz'" in unknown.error
         bad_k = (await client.get(client.key("pareto/a/6"), AnyMessage))[0]
         assert "k = 1 … 5" in bad_k.error
+
+        # random bytes on every key of the topology while the store runs: counted, and it still answers
+        keys = [client.key(t.suffix.replace("*", "a")) for t in TOPICS]
+        for k, t in zip(keys, TOPICS, strict=True):
+            client.subscribe(k, t.message)
+        async with asyncio.timeout(10):
+            while not all(client.decode_errors[k] for k in keys):
+                for k in keys:
+                    client.put_raw(k, os.urandom(41))
+                await asyncio.sleep(0.02)
+        assert (await client.get(client.key("pareto/a"), ParetoSet))[0].message == set_a
         await store.close()
 
         # restart: the same sets, from SQLite, nothing recomputed

@@ -15,7 +15,8 @@ def test_bench_store_query_latency() -> None:
     stored, during = r.stored_ms, r.during_planning_ms
     print(
         f"\nstored set ({len(stored)} queries): p50 {p(stored, 50):.2f} ms, p99 {p(stored, 99):.2f} ms\n"
-        f"while planning ({len(during)} queries): p50 {p(during, 50):.2f} ms, p99.9 {p(during, 99.9):.2f} ms, "
+        f"while planning ({len(during)} queries): p50 {p(during, 50):.2f} ms, "
+        f"p99.9 {p(during, 99.9):.2f} ms, "
         f"max {max(during, default=float('nan')):.2f} ms"
     )
     assert len(r.stored_ms) == 200 and len(r.during_planning_ms) > 10
