@@ -1,0 +1,54 @@
+"""What every service shares: strict config with environment overrides, and systemd notification."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import pytest
+
+from common.bus import BusConfig
+from common.errors import ConfigError
+from common.service import CommonSettings, read_config, sd_notify, section, watchdog_period_s
+
+
+def test_environment_variables_override_the_file(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[bus]\nmode = "client"\nconnect = ["tcp/10.0.0.1:7447"]\n[cadence]\ncell = "cellA"\n')
+    raw = read_config(str(cfg))
+    env = {"CADENCE_BUS_CONNECT": '["tcp/127.0.0.1:7447"]', "CADENCE_CADENCE_STATUS_PERIOD_S": "0.5"}
+    bus = section(raw, "bus", BusConfig, str(cfg), env)
+    common = section(raw, "cadence", CommonSettings, str(cfg), env)
+    assert bus.mode == "client" and bus.connect == ["tcp/127.0.0.1:7447"]
+    assert common.cell == "cellA" and common.status_period_s == 0.5
+
+
+def test_an_unknown_key_names_the_file_and_the_key(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"c\.toml: \[bus\] .*listen_on"):
+        section({"bus": {"listen_on": []}}, "bus", BusConfig, "c.toml", {})
+
+
+def test_a_bad_environment_value_names_the_variable() -> None:
+    with pytest.raises(ConfigError, match="CADENCE_BUS_LEASE_MS: \\[bus\\] lease_ms"):
+        section({}, "bus", BusConfig, "c.toml", {"CADENCE_BUS_LEASE_MS": "soon"})
+
+
+def test_a_missing_config_file_is_a_config_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"nope\.toml"):
+        read_config(str(tmp_path / "nope.toml"))
+
+
+def test_sd_notify_sends_a_datagram_to_the_notify_socket(tmp_path: Path) -> None:
+    path = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(path)
+        server.settimeout(5)
+        assert sd_notify("READY=1", {"NOTIFY_SOCKET": path})
+        assert server.recv(64) == b"READY=1"
+    assert not sd_notify("READY=1", {})
+
+
+def test_the_watchdog_pings_at_half_its_period() -> None:
+    assert watchdog_period_s({"WATCHDOG_USEC": "4000000"}) == 2.0
+    assert watchdog_period_s({}) is None
+    assert watchdog_period_s({"WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"}) is None
