@@ -191,6 +191,27 @@ class Bus:
         self._declared.append(sub)
         return sub
 
+    def handle(
+        self,
+        key_expr: str,
+        msg_type: type[Message],
+        handler: Callable[[str, Any], Awaitable[None]],
+        maxsize: int = 256,
+    ) -> Subscription:
+        """Subscribe with a handler coroutine, run for each message in order in a task the bus owns.
+        A handler that raises is logged and the next message is handled: bad input never stops a service."""
+        sub = self.subscribe(key_expr, msg_type, maxsize)
+
+        async def pump() -> None:
+            async for key, msg in sub:
+                try:
+                    await handler(key, msg)
+                except Exception:
+                    log.exception("handler for %s failed", key)
+
+        self._spawn(pump())
+        return sub
+
     # --- queries ------------------------------------------------------------------------------------
 
     def serve(self, key_expr: str, handler: Callable[[Request], Awaitable[Message]]) -> None:

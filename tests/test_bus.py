@@ -12,6 +12,7 @@ import threading
 import pytest
 
 from common.bus import Bus, BusConfig, QueryError, Request
+from common.errors import BusError
 from schemas import Selection, ServiceStatus
 from schemas.topology import TOPICS
 from tests.conftest import free_port
@@ -167,3 +168,55 @@ async def test_zenoh_cli_prints_cadence_messages_as_json(endpoint: str) -> None:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+async def test_a_handler_coroutine_gets_messages_in_order_and_survives_its_own_errors(endpoint: str) -> None:
+    a, b = await pair(endpoint)
+    async with a, b:
+        got: list[int] = []
+        done = asyncio.Event()
+
+        async def handler(key: str, msg: Selection) -> None:
+            if msg.seq == 2:
+                raise ValueError("a bug in the handler")
+            got.append(msg.seq)
+            if msg.seq == 3:
+                done.set()
+
+        b.handle(b.key("decision/selection"), Selection, handler)
+        # wait until the subscription is known to the publisher: the first message handled
+        async with asyncio.timeout(5):
+            while not got:
+                a.put(
+                    a.key("decision/selection"), Selection(t_ns=0, seq=0, k=8, n=15, delta=0, reason="hold")
+                )
+                await asyncio.sleep(0.05)
+        got.clear()
+        for seq in (1, 2, 3):
+            a.put(
+                a.key("decision/selection"),
+                Selection(t_ns=seq, seq=seq, k=8, n=15, delta=0, reason="hold"),
+                block=True,
+            )
+        await asyncio.wait_for(done.wait(), 5)
+        assert got[-2:] == [1, 3]
+
+
+async def test_a_session_opens_from_a_json5_zenoh_config_file(tmp_path, endpoint: str) -> None:
+    conf = tmp_path / "peer.json5"
+    conf.write_text(
+        "{\n  // a Zenoh config file\n  mode: 'peer',\n  listen: { endpoints: ['" + endpoint + "'] },\n}\n"
+    )
+    a = await Bus.open(BusConfig(config_file=str(conf)), "cell1")
+    b = await Bus.open(BusConfig(connect=[endpoint]), "cell1")
+    async with a, b:
+        a.serve(a.key("decision/selection"), lambda req: asyncio.sleep(0, SEL))
+        async with asyncio.timeout(5):
+            while not (replies := await b.get(b.key("decision/selection"), Selection, timeout=1.0)):
+                pass
+        assert replies[0].message == SEL
+
+
+async def test_a_missing_zenoh_config_file_is_a_bus_error(tmp_path) -> None:
+    with pytest.raises(BusError, match="bad Zenoh configuration"):
+        await Bus.open(BusConfig(config_file=str(tmp_path / "none.json5")), "cell1")
