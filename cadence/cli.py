@@ -213,6 +213,35 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_decide(args: argparse.Namespace) -> int:
+    from common.decision import Params, State, dec, step
+
+    try:
+        params = Params.of(args.rr_rest, args.n, args.sigma_r, args.rr_s_offset, args.sigma_s)
+    except (ValueError, ArithmeticError) as exc:
+        raise InputError(f"decide: {exc}") from exc
+    values = []
+    for lineno, line in enumerate(sys.stdin, start=1):
+        text = line.strip()
+        if not text:
+            continue
+        try:
+            value = dec(text)
+            ok = value.is_finite() and value > 0
+        except ArithmeticError:
+            ok = False
+        if not ok:
+            raise InputError(f"<stdin>:{lineno}: expected a positive number of seconds, got {text!r}")
+        values.append(value)
+    state = State.initial(params)
+    lines = []
+    for value in values:
+        state = step(params, state, value).state
+        lines.append(str(state.k))
+    sys.stdout.write("".join(f"{x}\n" for x in lines))
+    return 0
+
+
 SERVICES = {"pareto_store": "services.pareto_store.__main__"}
 
 
@@ -347,6 +376,21 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
     bs.add_argument("--queries", type=_positive_int(1), default=500, help="queries of the stored set")
     bs.set_defaults(func=cmd_bench_store)
+
+    decide = sub.add_parser(
+        "decide",
+        help="the decision rule (paper Alg. 1) on mean RR values read from standard input",
+        description="Reads one mean RR per line (seconds) from standard input and prints the selected k "
+        "after each window, one per line. RR_s = RR_r - offset. Exact on decimal values.",
+    )
+    decide.add_argument(
+        "--rr-rest", required=True, type=str, metavar="S", help="RR_r: the resting mean RR [s]"
+    )
+    decide.add_argument("--n", type=_positive_int(1), default=15, help="number of solutions N (default 15)")
+    decide.add_argument("--sigma-r", type=str, default="0.14", metavar="S", help="σ_r [s] (default 0.14)")
+    decide.add_argument("--rr-s-offset", type=str, default="0.08", metavar="S", help="RR_r − RR_s [s] (0.08)")
+    decide.add_argument("--sigma-s", type=str, default="0.08", metavar="S", help="σ_s [s] (default 0.08)")
+    decide.set_defaults(func=cmd_decide)
 
     run = sub.add_parser("run", help="run one service (production: one systemd unit each)")
     run.add_argument("service", choices=sorted(SERVICES))

@@ -1,0 +1,121 @@
+"""The paper's Alg. 1 as a pure step function (paper §II-C, §III-B; DESIGN §7).
+
+Exactness: thresholds and steps are decimal numbers (Δ_rs = 0.02 s, Δ_sr = 0.01 s), and a mean RR of
+0.80 s that drops by 0.04 s must move k by exactly one step. In binary floating point 0.76 - 0.80 is
+-0.04000000000000004 and floor((ΔRR + 0.02) / 0.02) would give -2. So every value is taken as the
+decimal it was written as (the shortest repr of the float that carries it) and the arithmetic is done in
+``decimal.Decimal``, where these subtractions and divisions are exact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from decimal import ROUND_CEILING, ROUND_FLOOR, ROUND_HALF_UP, Decimal
+from typing import Literal
+
+Reason = Literal["initial", "stress", "rest", "cumulative", "hold", "low-quality"]
+
+
+def dec(x: float | str | Decimal) -> Decimal:
+    """The decimal value a number was written as: 0.1 → Decimal('0.1'), not 0.1000000000000000055…"""
+    if isinstance(x, Decimal):
+        return x
+    if isinstance(x, float):
+        if not math.isfinite(x):
+            raise ValueError(f"not a finite number: {x}")
+        return Decimal(repr(x))
+    return Decimal(x)
+
+
+@dataclass(frozen=True, slots=True)
+class Params:
+    """Per subject (DESIGN §7): RR_r from calibration; the rest default as in the paper."""
+
+    rr_rest: Decimal
+    n: int = 15
+    sigma_rest: Decimal = Decimal("0.14")
+    rr_stress_offset: Decimal = Decimal("0.08")
+    sigma_stress: Decimal = Decimal("0.08")
+    d_rs: Decimal = Decimal("0.02")  # rest → stress threshold and step
+    d_sr: Decimal = Decimal("0.01")  # stress → rest step
+
+    @classmethod
+    def of(
+        cls,
+        rr_rest: float | str,
+        n: int = 15,
+        sigma_rest: float | str = "0.14",
+        rr_stress_offset: float | str = "0.08",
+        sigma_stress: float | str = "0.08",
+    ) -> Params:
+        if n < 1:
+            raise ValueError(f"n must be at least 1, got {n}")
+        p = cls(dec(rr_rest), n, dec(sigma_rest), dec(rr_stress_offset), dec(sigma_stress))
+        if p.rr_rest <= 0 or p.sigma_rest <= 0 or p.sigma_stress <= 0 or p.rr_stress_offset <= 0:
+            raise ValueError("RR_r, σ_r, σ_s and the RR_s offset must be positive")
+        return p
+
+    @property
+    def rr_stress(self) -> Decimal:
+        return self.rr_rest - self.rr_stress_offset
+
+    @property
+    def rr_stress_max(self) -> Decimal:
+        """RR_s^max = RR_s − σ_s: below it, stress accumulates (branch 3)."""
+        return self.rr_stress - self.sigma_stress
+
+    @property
+    def k0(self) -> int:
+        """N − round(σ_r / Δ_rs): 15 − 7 = 8 with the defaults, as in the paper (half rounds up)."""
+        steps = (self.sigma_rest / self.d_rs).to_integral_value(rounding=ROUND_HALF_UP)
+        return clamp(self.n - int(steps), 1, self.n)
+
+
+@dataclass(frozen=True, slots=True)
+class State:
+    k: int
+    rr_prev: Decimal  # RR_{i-1}
+
+    @classmethod
+    def initial(cls, p: Params) -> State:
+        return cls(p.k0, p.rr_rest)
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    state: State
+    delta: int
+    reason: Reason
+
+
+def clamp(k: int, lo: int, hi: int) -> int:
+    return max(lo, min(hi, k))
+
+
+def step(p: Params, s: State, rr: float | str | Decimal | None, good_quality: bool = True) -> Step:
+    """One window of Alg. 1. A low-quality window (or none: no clean beat) holds k and leaves RR_{i-1}."""
+    if rr is None or not good_quality:
+        return Step(s, 0, "low-quality")
+    rr_i = dec(rr)
+    d_rr = rr_i - s.rr_prev
+    if d_rr < -p.d_rs and rr_i < p.rr_rest:
+        # eq. (6): floor, exact on decimal values; ΔRR_r measured from the lower of RR_r and RR_{i-1}
+        d_rr_r = rr_i - min(p.rr_rest, s.rr_prev)
+        delta = int(((d_rr_r + p.d_rs) / p.d_rs).to_integral_value(rounding=ROUND_FLOOR))
+        reason: Reason = "stress"
+    elif d_rr > 0 and rr_i >= p.rr_stress:
+        # eq. (7): ceil, exact on decimal values; ΔRR_s measured from the higher of RR_s and RR_{i-1}
+        d_rr_s = rr_i - max(p.rr_stress, s.rr_prev)
+        delta = int((d_rr_s / p.d_sr).to_integral_value(rounding=ROUND_CEILING))
+        reason = "rest"
+    elif rr_i < p.rr_stress_max:
+        delta, reason = -1, "cumulative"
+    else:
+        delta, reason = 0, "hold"
+    return Step(State(clamp(s.k + delta, 1, p.n), rr_i), delta, reason)
+
+
+def k_for_path(k: int, n_path: int) -> int:
+    """The selection for a path whose set has n_path solutions (sets may differ in size)."""
+    return clamp(k, 1, n_path)

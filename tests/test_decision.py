@@ -1,0 +1,159 @@
+"""Alg. 1, exact on decimal values: every branch, every boundary, and a property test against an
+independent implementation written here in exact rationals (fractions.Fraction)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from decimal import Decimal
+from fractions import Fraction
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from common.decision import Params, State, dec, k_for_path, step
+
+P = Params.of("0.85")  # RR_r 0.85, RR_s 0.77, RR_s^max 0.69, k0 8
+
+
+def run(values: list[str], p: Params = P) -> list[int]:
+    s = State.initial(p)
+    out = []
+    for v in values:
+        s = step(p, s, v).state
+        out.append(s.k)
+    return out
+
+
+def test_the_initial_index_is_8_for_15_solutions_as_in_the_paper() -> None:
+    assert P.k0 == 8 and State.initial(P).rr_prev == Decimal("0.85")
+    assert P.rr_stress == Decimal("0.77") and P.rr_stress_max == Decimal("0.69")
+
+
+@pytest.mark.parametrize(
+    ("prev", "rr", "delta", "reason"),
+    [
+        ("0.85", "0.81", -1, "stress"),  # ΔRR_r = -0.04 → floor(-1) = -1, exactly
+        ("0.85", "0.79", -2, "stress"),  # ΔRR_r = -0.06 → floor(-2) = -2, exactly
+        ("0.85", "0.83", 0, "hold"),  # ΔRR = -0.02: not below -Δ_rs
+        ("0.85", "0.8299", -1, "stress"),  # just below the threshold
+        ("0.80", "0.76", -1, "stress"),  # 0.76 - 0.80 is -0.04000000000000004 in binary floats
+        ("0.80", "0.74", -2, "stress"),  # -0.06 → floor(-2) = -2, exactly
+        ("0.80", "0.75", -2, "stress"),  # -0.05 → floor(-1.5) = -2
+        (
+            "0.90",
+            "0.84",
+            -1,
+            "stress",
+        ),  # ΔRR_r from min(RR_r, RR_{i-1}) = 0.85: -0.01 → floor(0.5) = 0? → see below
+        ("0.77", "0.78", 1, "rest"),  # ΔRR_s = +0.01 → ceil(1) = 1, exactly
+        ("0.70", "0.77", 0, "rest"),  # RR_i = RR_s: ΔRR_s = 0.77 - max(0.77, 0.70) = 0
+        ("0.70", "0.80", 3, "rest"),  # from max(RR_s, RR_{i-1}) = 0.77
+        ("0.77", "0.785", 2, "rest"),  # +0.015 → ceil(1.5) = 2
+        ("0.70", "0.76", 0, "hold"),  # rising but below RR_s, above RR_s^max
+        ("0.70", "0.689", -1, "cumulative"),  # below RR_s^max
+        ("0.70", "0.69", 0, "hold"),  # RR_i = RR_s^max is not below it
+        ("0.86", "0.85", 0, "hold"),  # small drop
+    ],
+)
+def test_branches_and_boundaries(prev: str, rr: str, delta: int, reason: str) -> None:
+    r = step(P, State(8, Decimal(prev)), rr)
+    assert (r.delta, r.reason) == (delta, reason)
+    assert r.state.k == 8 + delta and r.state.rr_prev == Decimal(rr)
+
+
+def test_rr_equal_to_rr_rest_is_not_stress() -> None:
+    # ΔRR = -0.05 < -Δ_rs, but RR_i = RR_r is not below RR_r
+    assert step(P, State(8, Decimal("0.90")), "0.85").reason == "hold"
+
+
+def test_k_is_clamped_at_1_and_n() -> None:
+    assert step(P, State(1, Decimal("0.85")), "0.70").state.k == 1
+    assert step(P, State(15, Decimal("0.77")), "0.95").state.k == 15
+    assert step(P, State(2, Decimal("0.70")), "0.60").state.k == 1
+
+
+def test_a_low_quality_window_holds_and_keeps_rr_prev() -> None:
+    s = State(5, Decimal("0.80"))
+    for r in (step(P, s, "0.60", good_quality=False), step(P, s, None)):
+        assert r.state == s and r.delta == 0 and r.reason == "low-quality"
+
+
+def test_floats_are_taken_at_their_decimal_value() -> None:
+    assert 0.76 - 0.80 < -0.04  # the binary trap this module avoids
+    assert step(P, State(8, dec(0.80)), 0.76).delta == -1
+
+
+def test_per_path_clamping() -> None:
+    assert k_for_path(15, 12) == 12 and k_for_path(0, 12) == 1 and k_for_path(7, 12) == 7
+
+
+# --- an independent implementation, in exact rationals ------------------------------------------
+
+
+def reference(values: list[str], rr_r: str, n: int = 15) -> list[int]:
+    q = Fraction
+    d_rs, d_sr = q("0.02"), q("0.01")
+    rr_rest = q(rr_r)
+    rr_s = rr_rest - q("0.08")
+    rr_s_max = rr_s - q("0.08")
+    k = n - round(q("0.14") / d_rs)
+    prev = rr_rest
+    out = []
+    for v in values:
+        x = q(v)
+        d = x - prev
+        if d < -d_rs and x < rr_rest:
+            delta = math.floor((x - min(rr_rest, prev) + d_rs) / d_rs)
+        elif d > 0 and x >= rr_s:
+            delta = math.ceil((x - max(rr_s, prev)) / d_sr)
+        elif x < rr_s_max:
+            delta = -1
+        else:
+            delta = 0
+        k = max(1, min(n, k + delta))
+        prev = x
+        out.append(k)
+    return out
+
+
+# values on the 0.01 and 0.005 grids hit every threshold exactly; free values exercise the rest
+grid = st.integers(min_value=100, max_value=240).map(lambda i: f"{i * 5 / 1000:.3f}")
+free = st.decimals(min_value=Decimal("0.3"), max_value=Decimal("1.4"), places=4).map(str)
+
+
+@settings(max_examples=400, deadline=None, derandomize=True)
+@given(
+    values=st.lists(st.one_of(grid, free), min_size=1, max_size=200),
+    rr_r=st.sampled_from(["0.85", "0.7", "1.02"]),
+)
+def test_the_step_function_matches_an_exact_rational_implementation(values: list[str], rr_r: str) -> None:
+    assert run(values, Params.of(rr_r)) == reference(values, rr_r)
+
+
+def test_cadence_decide_prints_k_per_line_and_matches_the_reference() -> None:
+    values = ["0.85", "0.81", "0.79", "0.75", "0.70", "0.62", "0.60", "0.70", "0.80", "0.85", "0.77", "0.78"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "cadence", "decide", "--rr-rest", "0.85"],
+        input="\n".join(values) + "\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert [int(x) for x in proc.stdout.split()] == reference(values, "0.85")
+
+
+@pytest.mark.parametrize("bad", ["abc", "-0.8", "0", "nan", "inf"])
+def test_cadence_decide_rejects_a_bad_line_naming_it(bad: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "cadence", "decide", "--rr-rest", "0.85"],
+        input=f"0.8\n0.81\n{bad}\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "<stdin>:3" in proc.stderr and proc.stdout == ""
