@@ -42,12 +42,8 @@ def test_the_initial_index_is_8_for_15_solutions_as_in_the_paper() -> None:
         ("0.80", "0.76", -1, "stress"),  # 0.76 - 0.80 is -0.04000000000000004 in binary floats
         ("0.80", "0.74", -2, "stress"),  # -0.06 → floor(-2) = -2, exactly
         ("0.80", "0.75", -2, "stress"),  # -0.05 → floor(-1.5) = -2
-        (
-            "0.90",
-            "0.84",
-            -1,
-            "stress",
-        ),  # ΔRR_r from min(RR_r, RR_{i-1}) = 0.85: -0.01 → floor(0.5) = 0? → see below
+        # ΔRR = -0.06, but ΔRR_r = 0.84 - min(RR_r, RR_{i-1}) = -0.01 → floor(0.5) = 0
+        ("0.90", "0.84", 0, "stress"),
         ("0.77", "0.78", 1, "rest"),  # ΔRR_s = +0.01 → ceil(1) = 1, exactly
         ("0.70", "0.77", 0, "rest"),  # RR_i = RR_s: ΔRR_s = 0.77 - max(0.77, 0.70) = 0
         ("0.70", "0.80", 3, "rest"),  # from max(RR_s, RR_{i-1}) = 0.77
