@@ -242,7 +242,10 @@ def cmd_decide(args: argparse.Namespace) -> int:
     return 0
 
 
-SERVICES = {"pareto_store": "services.pareto_store.__main__"}
+SERVICES = {
+    "decision_maker": "services.decision_maker.__main__",
+    "pareto_store": "services.pareto_store.__main__",
+}
 
 
 def cmd_run(args: argparse.Namespace) -> int:

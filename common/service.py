@@ -232,9 +232,9 @@ async def serve(
     async with await Bus.open(bus_cfg, common.cell) as bus:
         ctx = ServiceContext(name, bus, common, settings, stop)
         bus.token(bus.key(f"health/{name}"))
+        ctx.state = "running"  # before main starts, so that main's own word on its state stands
         periodic = asyncio.create_task(_periodic(ctx))
         work = asyncio.create_task(main(ctx))
-        ctx.state = "running"
         sd_notify("READY=1")
         stopper = asyncio.create_task(stop.wait())
         await asyncio.wait({work, stopper}, return_when=asyncio.FIRST_COMPLETED)

@@ -1,0 +1,142 @@
+"""The decision maker as a service on real Zenoh: answers every window, holds without calibration, and
+goes on after a restart exactly where an uninterrupted run would be."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import random
+from pathlib import Path
+
+import pytest
+
+from common.bus import Bus, BusConfig
+from common.decision import Params, State, step
+from common.service import CommonSettings, serve
+from schemas import Calibration, HrvWindow, Selection
+from schemas.topology import AnyMessage
+from services.decision_maker.__main__ import Settings, main
+
+pytestmark = pytest.mark.asyncio
+S = 1_000_000_000
+
+
+class Service:
+    def __init__(self, data: Path, endpoint: str, settings: Settings) -> None:
+        self.stop = asyncio.Event()
+        common = CommonSettings(data_dir=str(data), status_period_s=0.1)
+        self.task = asyncio.ensure_future(
+            serve(
+                "decision_maker",
+                main,
+                common,
+                BusConfig(connect=[endpoint]),
+                settings,
+                stop=self.stop,
+                install_signals=False,
+            )
+        )
+
+    async def close(self) -> None:
+        self.stop.set()
+        await asyncio.wait_for(self.task, 10)
+
+
+def window(i: int, rr: float | None, quality: str = "good") -> HrvWindow:
+    return HrvWindow(
+        t_ns=(i + 1) * 30 * S,
+        seq=i,
+        start_ns=i * 30 * S,
+        end_ns=(i + 1) * 30 * S,
+        mean_rr_s=rr,
+        n_beats=37,
+        excluded_fraction=0.0,
+        quality=quality,
+    )
+
+
+async def answer(bus: Bus, sub, w: HrvWindow) -> Selection:
+    """Publish a window and wait for the selection that answers it (republishes are skipped)."""
+    bus.put(bus.key("hrv/window"), w, block=True)
+    async with asyncio.timeout(10):
+        async for _, sel in sub:
+            if sel.window_end_ns == w.end_ns:
+                return sel
+    raise AssertionError("unreachable")
+
+
+async def first_selection(sub) -> Selection:
+    async with asyncio.timeout(10):
+        _, sel = await anext(sub)
+    return sel
+
+
+def sequence(seed: int, n: int) -> list[HrvWindow]:
+    rng = random.Random(seed)
+    rr, out = 0.85, []
+    for i in range(n):
+        rr = min(1.2, max(0.5, rr + rng.choice([-0.06, -0.04, -0.03, -0.01, 0.0, 0.01, 0.02, 0.05])))
+        quality = "low" if rng.random() < 0.1 else "good"
+        out.append(window(i, round(rr, 3), quality))
+    return out
+
+
+def expected(windows: list[HrvWindow], rr_r: float) -> list[int]:
+    p, s, out = Params.of(rr_r), None, []
+    s = State.initial(p)
+    for w in windows:
+        s = step(p, s, w.mean_rr_s, w.quality == "good").state
+        out.append(s.k)
+    return out
+
+
+async def test_a_restart_mid_sequence_gives_the_same_k_sequence(tmp_path: Path, endpoint: str) -> None:
+    windows = sequence(7, 40)
+    settings = Settings(rr_rest_s=0.85, republish_s=0.2)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        svc = Service(tmp_path, endpoint, settings)
+        first = await first_selection(sub)
+        assert (first.k, first.reason) == (8, "initial")
+        got = [(await answer(bus, sub, w)).k for w in windows[:17]]
+        await svc.close()
+
+        svc = Service(tmp_path, endpoint, settings)
+        resumed = await first_selection(sub)
+        assert resumed.k == got[-1]
+        # a window answered before the restart is not stepped again
+        bus.put(bus.key("hrv/window"), windows[16], block=True)
+        got += [(await answer(bus, sub, w)).k for w in windows[17:]]
+        await svc.close()
+    assert got == expected(windows, 0.85)
+    assert len(set(got)) > 3, "the sequence should move k"
+
+
+async def test_without_calibration_it_publishes_nothing_until_one_arrives(
+    tmp_path: Path, endpoint: str
+) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        health = aiter(bus.subscribe(bus.key("health/decision_maker"), AnyMessage, maxsize=1))
+        svc = Service(tmp_path, endpoint, Settings(republish_s=0.1))
+        async with asyncio.timeout(10):
+            async for _, status in health:
+                if status.state == "waiting for calibration":
+                    break
+        async with asyncio.timeout(10):
+            while not (replies := await bus.get(bus.key("decision/selection"), Selection, timeout=1.0)):
+                pass
+        assert replies[0].message is None and "no calibration" in replies[0].error
+        cal = Calibration(t_ns=1, seq=0, subject="s01", rr_rest_s=0.9)
+        async with asyncio.timeout(10):
+            sel = None
+            while sel is None:
+                bus.put(bus.key("operator/calibration"), cal, block=True)
+                with contextlib.suppress(TimeoutError):
+                    sel = await asyncio.wait_for(first_selection(sub), 0.3)
+        assert (sel.k, sel.reason) == (8, "initial")
+        low = await answer(bus, sub, window(0, 0.5, quality="low"))
+        assert (low.k, low.delta, low.reason) == (8, 0, "low-quality")
+        drop = await answer(bus, sub, window(1, 0.86))  # ΔRR = -0.04 from RR_r = 0.90: one step
+        assert (drop.k, drop.delta, drop.reason) == (7, -1, "stress")
+        await svc.close()

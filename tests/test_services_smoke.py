@@ -1,0 +1,38 @@
+"""Every service's `__main__` as a process: it comes up, reports its status, and exits 0 on SIGTERM."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cadence.cli import SERVICES
+from common.bus import Bus, BusConfig
+from schemas import ServiceStatus
+
+pytestmark = pytest.mark.asyncio
+
+
+@pytest.mark.parametrize("name", sorted(SERVICES))
+async def test_the_service_starts_reports_and_stops_on_sigterm(
+    name: str, tmp_path: Path, endpoint: str
+) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        f"[cadence]\ndata_dir = '{tmp_path}'\nstatus_period_s = 0.1\n[bus]\nconnect = ['{endpoint}']\n"
+    )
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        health = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
+        proc = subprocess.Popen([sys.executable, "-m", f"services.{name}", "--config", str(cfg)])
+        try:
+            async with asyncio.timeout(30):
+                _, status = await anext(health)
+            assert status.service == name
+            proc.send_signal(signal.SIGTERM)
+            assert await asyncio.to_thread(proc.wait, 20) == 0
+        finally:
+            proc.kill()
