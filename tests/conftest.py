@@ -48,3 +48,34 @@ def free_port() -> int:
 def endpoint() -> str:
     """A loopback endpoint for one test's sessions (multicast scouting stays off)."""
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+class InProcessService:
+    """A service running in this test's event loop exactly as `cadence run <name>` runs it (its real
+    ``main``, real Zenoh, data on disk), connecting to the test's listening endpoint; dora's MockNode."""
+
+    def __init__(self, name: str, main, settings: object, data: Path, endpoint: str) -> None:
+        import asyncio
+
+        from common.bus import BusConfig
+        from common.service import CommonSettings, serve
+
+        self.stop = asyncio.Event()
+        common = CommonSettings(data_dir=str(data), status_period_s=0.1)
+        self.task = asyncio.ensure_future(
+            serve(
+                name,
+                main,
+                common,
+                BusConfig(connect=[endpoint]),
+                settings,
+                stop=self.stop,
+                install_signals=False,
+            )
+        )
+
+    async def close(self) -> None:
+        import asyncio
+
+        self.stop.set()
+        await asyncio.wait_for(self.task, 15)

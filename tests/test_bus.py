@@ -28,13 +28,6 @@ async def pair(endpoint: str) -> tuple[Bus, Bus]:
     return a, b
 
 
-async def until(pred, timeout: float = 5.0, every: float = 0.05) -> None:
-    """Wait for a condition with a deadline (the condition is what we wait on, never a fixed sleep)."""
-    async with asyncio.timeout(timeout):
-        while not pred():
-            await asyncio.sleep(every)
-
-
 async def test_a_published_message_arrives_decoded(endpoint: str) -> None:
     a, b = await pair(endpoint)
     async with a, b:

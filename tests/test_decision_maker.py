@@ -12,34 +12,17 @@ import pytest
 
 from common.bus import Bus, BusConfig
 from common.decision import Params, State, step
-from common.service import CommonSettings, serve
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main
+from tests.conftest import InProcessService
 
 pytestmark = pytest.mark.asyncio
 S = 1_000_000_000
 
 
-class Service:
-    def __init__(self, data: Path, endpoint: str, settings: Settings) -> None:
-        self.stop = asyncio.Event()
-        common = CommonSettings(data_dir=str(data), status_period_s=0.1)
-        self.task = asyncio.ensure_future(
-            serve(
-                "decision_maker",
-                main,
-                common,
-                BusConfig(connect=[endpoint]),
-                settings,
-                stop=self.stop,
-                install_signals=False,
-            )
-        )
-
-    async def close(self) -> None:
-        self.stop.set()
-        await asyncio.wait_for(self.task, 10)
+def start_decider(data: Path, endpoint: str, settings: Settings) -> InProcessService:
+    return InProcessService("decision_maker", main, settings, data, endpoint)
 
 
 def window(i: int, rr: float | None, quality: str = "good") -> HrvWindow:
@@ -95,13 +78,13 @@ async def test_a_restart_mid_sequence_gives_the_same_k_sequence(tmp_path: Path, 
     settings = Settings(rr_rest_s=0.85, republish_s=0.2)
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
-        svc = Service(tmp_path, endpoint, settings)
+        svc = start_decider(tmp_path, endpoint, settings)
         first = await first_selection(sub)
         assert (first.k, first.reason) == (8, "initial")
         got = [(await answer(bus, sub, w)).k for w in windows[:17]]
         await svc.close()
 
-        svc = Service(tmp_path, endpoint, settings)
+        svc = start_decider(tmp_path, endpoint, settings)
         resumed = await first_selection(sub)
         assert resumed.k == got[-1]
         # a window answered before the restart is not stepped again
@@ -118,7 +101,7 @@ async def test_without_calibration_it_publishes_nothing_until_one_arrives(
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         health = aiter(bus.subscribe(bus.key("health/decision_maker"), AnyMessage, maxsize=1))
-        svc = Service(tmp_path, endpoint, Settings(republish_s=0.1))
+        svc = start_decider(tmp_path, endpoint, Settings(republish_s=0.1))
         async with asyncio.timeout(10):
             async for _, status in health:
                 if status.state == "waiting for calibration":

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from common.bus import Bus, BusConfig
-from common.service import CommonSettings, serve
 from schemas import ParetoSet, ParetoSolutionReply, ServiceStatus
 from schemas.topology import TOPICS, AnyMessage
 from services.pareto_store.__main__ import Settings, main
+from tests.conftest import InProcessService
 
 pytestmark = pytest.mark.asyncio
 
@@ -37,27 +37,8 @@ waypoints = [[45, -70, 95, -110, -90, 40], [0, -90, 90, -90, -90, 0]]
 """
 
 
-class Store:
-    """The store service running in this event loop, as `cadence run pareto_store` would run it."""
-
-    def __init__(self, task: Path, data: Path, endpoint: str) -> None:
-        self.stop = asyncio.Event()
-        common = CommonSettings(data_dir=str(data), status_period_s=0.1)
-        self.task = asyncio.ensure_future(
-            serve(
-                "pareto_store",
-                main,
-                common,
-                BusConfig(connect=[endpoint]),
-                Settings(task=str(task)),
-                stop=self.stop,
-                install_signals=False,
-            )
-        )
-
-    async def close(self) -> None:
-        self.stop.set()
-        await asyncio.wait_for(self.task, 15)
+def start_store(task: Path, data: Path, endpoint: str) -> InProcessService:
+    return InProcessService("pareto_store", main, Settings(task=str(task)), data, endpoint)
 
 
 async def serving(sub) -> ServiceStatus:
@@ -82,7 +63,7 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
     client = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
     async with client:
         health = client.key("health/pareto_store")
-        store = Store(task_file, tmp_path / "data", endpoint)
+        store = start_store(task_file, tmp_path / "data", endpoint)
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed") == 2
 
@@ -108,7 +89,7 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
         await store.close()
 
         # restart: the same sets, from SQLite, nothing recomputed
-        store = Store(task_file, tmp_path / "data", endpoint)
+        store = start_store(task_file, tmp_path / "data", endpoint)
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed", 0) == 0
         again = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
@@ -117,7 +98,7 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
 
         # a changed task program: path a is planned again, b is still valid
         task_file.write_text(TASK.replace("[30, -80, 100, -100, -90, 20]", "[25, -80, 100, -100, -90, 20]"))
-        store = Store(task_file, tmp_path / "data", endpoint)
+        store = start_store(task_file, tmp_path / "data", endpoint)
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed") == 1
         new_a = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
