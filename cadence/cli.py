@@ -15,7 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from common.errors import BusError, InputError
+from common.errors import BusError, CadenceError, InputError
 from common.task import Task, continuity_gaps, load_task
 
 EXAMPLE_TASK = Path(__file__).resolve().parents[1] / "deploy" / "tasks" / "box_filling.toml"
@@ -430,6 +430,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except BusError as exc:
         err.print(f"cadence: bus error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 1
+    except CadenceError as exc:
+        err.print(f"cadence: error: {exc}", markup=False, highlight=False, soft_wrap=True)
         return 1
     except KeyboardInterrupt:
         err.print("cadence: interrupted")

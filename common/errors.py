@@ -6,6 +6,7 @@ adapter that meets them, with ``raise … from exc``, so callers catch these and
     │   ├── TaskError         a task program (TOML) that cannot be planned or run
     │   └── ConfigError       a deployment config (TOML, CADENCE_* variables) with a bad key or value
     ├── BusError              Zenoh failed (zenoh.ZError translated) or the bus is used after close
+    ├── PlanningError         a path has no feasible trajectory within its bounds (raise κ or the limits)
     └── TrajectoryRejected    a trajectory over a limit or off its path: it never reaches the robot
 """
 
@@ -38,6 +39,10 @@ class ConfigError(InputError):
 
 class BusError(CadenceError):
     """The bus could not do what was asked; the reason says what Zenoh said."""
+
+
+class PlanningError(CadenceError):
+    """The planner found nothing feasible; the message names the path and what to change."""
 
 
 class TrajectoryRejected(CadenceError):

@@ -14,6 +14,8 @@ objectives following without another evaluation. NSGA-II then spends its generat
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -26,6 +28,7 @@ from pymoo.decomposition.asf import ASF
 from scipy.optimize import minimize
 
 from common import bspline as bs
+from common.errors import PlanningError
 from common.limits import JointLimits
 from common.task import Constraints, PathPlan, PlannerSettings
 
@@ -435,7 +438,10 @@ def plan_path(
             if progress is not None:
                 progress(gen, generations)
         if len(problem.archive_f) == 0:
-            raise RuntimeError(f"path '{path.id}': no feasible trajectory found")
+            raise PlanningError(
+                f"path '{path.id}': no trajectory within the limits is slower than κ·h_lb "
+                f"(κ = {settings.kappa}); raise planner.kappa or the limits"
+            )
         polished = _polish_ends(problem, settings.constraints)
         x = algorithm.pop.get("X")
         x[: len(polished)] = polished
@@ -467,9 +473,6 @@ def content_hash(path: PathPlan, limits: JointLimits, settings: PlannerSettings)
 
     A changed task program never matches a stored set, so the store never serves a stale one.
     """
-    import hashlib
-    import json
-
     b = path.boundary
     doc = {
         "version": PLANNER_VERSION,

@@ -64,3 +64,14 @@ def test_a_bad_flag_value_exits_2(tmp_path: Path) -> None:
     proc = run_cli("plan", "x.toml", "--out", str(tmp_path), "--n", "1")
     assert proc.returncode == 2
     assert "--n" in proc.stderr
+
+
+def test_an_unplannable_path_is_one_line_naming_it(tmp_path: Path) -> None:
+    # κ barely above 1 leaves no room for the acceleration limits: nothing feasible exists
+    task = tmp_path / "t.toml"
+    task.write_text(GOOD + "\n[planner]\nkappa = 1.01\ngenerations = 3\n")
+    proc = run_cli("plan", str(task), "--out", str(tmp_path / "o"))
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert "path 'p1'" in lines[-1] and "kappa" in lines[-1]
+    assert not (tmp_path / "o").exists()
