@@ -102,20 +102,15 @@ async def main(ctx: ServiceContext) -> None:
     for pid in sets:
         progress(pid, "stored")
     missing = [pid for pid in task.paths if pid not in sets]
-    pool = ProcessPoolExecutor(
-        max_workers=settings.workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=lower_priority,
-    )
-    loop = asyncio.get_running_loop()
+    pool = ProcessPoolExecutor(max_workers=settings.workers, mp_context=multiprocessing.get_context("spawn"))
     try:
         for pid in missing:
             progress(pid, "running")
             ctx.state = f"planning {pid}"
             try:
-                msg = await loop.run_in_executor(
-                    pool, plan_job, task.paths[pid], task, task.planner, digests[pid]
-                )
+                future = pool.submit(plan_job, task.paths[pid], task, task.planner, digests[pid])
+                lower_priority(pool)
+                msg = await asyncio.wrap_future(future)
             except Exception as exc:  # a path that cannot be planned must not stop the others
                 log.exception("planning %s failed", pid)
                 ctx.counters["plan_failures"] += 1

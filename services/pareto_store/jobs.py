@@ -3,12 +3,16 @@ can import it whether the service was started as `python -m services.pareto_stor
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 from common.planner import plan_path
 from common.task import PathPlan, PlannerSettings, Task
 from schemas.pareto import Boundary, Limits, ParetoSet, ParetoSolution
+
+_NICE = 10
 
 
 def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str) -> ParetoSet:
@@ -33,6 +37,9 @@ def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str)
     )
 
 
-def lower_priority() -> None:
-    """Worker initializer: planning is background work; queries and the service's loop come first."""
-    os.nice(10)
+def lower_priority(pool: ProcessPoolExecutor) -> None:
+    """Planning is background work: the service's loop and its queries come first. The parent renices
+    the workers as soon as they exist, so even their start-up (the imports) runs at low priority."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, proc.pid, _NICE)
