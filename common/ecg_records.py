@@ -1,0 +1,79 @@
+"""Reading ECG recordings for replay and offline checks: WFDB records (with their reference beat
+annotations) and CSV files (time, µV), resampled to the strap's rate. A broken file is an InputError
+naming it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import resample_poly
+
+from common.errors import InputError
+
+# WFDB annotation symbols that mark beats (not rhythm, noise or comment annotations).
+BEAT_SYMBOLS = frozenset("NLRBAaJSVrFejnE/fQ?")
+
+
+@dataclass(frozen=True, slots=True)
+class Recording:
+    fs: float
+    uv: NDArray[np.float64]  # one lead, µV
+    beats_s: NDArray[np.float64] | None  # reference beat times, if annotated
+
+
+def resample(x: NDArray[np.float64], fs_in: float, fs_out: float) -> NDArray[np.float64]:
+    if fs_in == fs_out:
+        return x
+    ratio = Fraction(fs_out / fs_in).limit_denominator(1000)
+    return resample_poly(x, ratio.numerator, ratio.denominator)
+
+
+def read_record(path: str, fs: float | None = None, lead: int = 0) -> Recording:
+    """A WFDB record path without extension, or a CSV of (time [s], µV); resampled to ``fs`` if given."""
+    p = Path(path)
+    if p.suffix.lower() == ".csv":
+        rec = _read_csv(p)
+    elif p.with_suffix(".hea").exists():
+        rec = _read_wfdb(p, lead)
+    else:
+        raise InputError(f"{path}: not a CSV file and no WFDB header {p.with_suffix('.hea').name} beside it")
+    if fs is None or fs == rec.fs:
+        return rec
+    return Recording(fs, resample(rec.uv, rec.fs, fs), rec.beats_s)
+
+
+def _read_wfdb(p: Path, lead: int) -> Recording:
+    import wfdb
+
+    try:
+        r = wfdb.rdrecord(str(p), channels=[lead])
+    except Exception as exc:  # wfdb raises many kinds; all mean the same to a user
+        raise InputError(f"{p}: cannot read the WFDB record: {exc}") from exc
+    units = (r.units or ["mV"])[0].lower()
+    scale = 1000.0 if units == "mv" else 1.0
+    uv = np.nan_to_num(r.p_signal[:, 0]) * scale
+    beats = None
+    if p.with_suffix(".atr").exists():
+        try:
+            a = wfdb.rdann(str(p), "atr")
+        except Exception as exc:
+            raise InputError(f"{p}.atr: cannot read the annotations: {exc}") from exc
+        beats = np.array([s for s, sym in zip(a.sample, a.symbol, strict=True) if sym in BEAT_SYMBOLS]) / r.fs
+    return Recording(float(r.fs), uv, beats)
+
+
+def _read_csv(p: Path) -> Recording:
+    try:
+        data = np.loadtxt(p, delimiter=",", ndmin=2, comments="#")
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{p}: cannot read as CSV of (time s, µV): {exc}") from exc
+    if data.shape[1] < 2 or len(data) < 3:
+        raise InputError(f"{p}: expected at least 3 rows of (time s, µV)")
+    dt = np.diff(data[:, 0])
+    if np.any(dt <= 0):
+        raise InputError(f"{p}: row {int(np.argmax(dt <= 0)) + 2}: time does not increase")
+    return Recording(float(1.0 / np.median(dt)), data[:, 1].astype(float), None)
