@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -213,6 +214,40 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record_peaks(args: argparse.Namespace):
+    from common.ecg_records import read_record
+    from common.rpeaks import detect
+
+    rec = read_record(args.record, fs=args.fs)
+    return rec, detect(rec.uv, rec.fs, chunk=round(rec.fs)) / rec.fs
+
+
+def cmd_hrv_peaks(args: argparse.Namespace) -> int:
+    rec, peaks = _record_peaks(args)
+    print(json.dumps({"fs": rec.fs, "peaks_s": [round(float(t), 6) for t in peaks]}))
+    return 0
+
+
+def cmd_hrv_windows(args: argparse.Namespace) -> int:
+    from common.hrv import intervals, windows
+
+    rec, peaks = _record_peaks(args)
+    for w in windows(intervals(peaks), args.window, end_s=len(rec.uv) / rec.fs):
+        print(
+            json.dumps(
+                {
+                    "start_s": w.start_s,
+                    "end_s": w.end_s,
+                    "mean_rr_s": w.mean_rr_s,
+                    "n_beats": w.n_beats,
+                    "excluded": w.excluded,
+                    "quality": w.quality,
+                }
+            )
+        )
+    return 0
+
+
 def cmd_decide(args: argparse.Namespace) -> int:
     from common.decision import Params, State, dec, step
 
@@ -380,6 +415,21 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--queries", type=_positive_int(1), default=500, help="queries of the stored set")
     bs.set_defaults(func=cmd_bench_store)
 
+    hrv = sub.add_parser("hrv", help="offline heart-rate tools on a recording")
+    hrv_sub = hrv.add_subparsers(dest="hrv", required=True, metavar="TOOL")
+    for name, func, what in (
+        ("peaks", cmd_hrv_peaks, 'one JSON object {"fs", "peaks_s"}: R-peak times from the record start'),
+        ("windows", cmd_hrv_windows, "one JSON line per tumbling window: mean RR, beats, excluded, quality"),
+    ):
+        p = hrv_sub.add_parser(name, help=what, description=f"Prints {what}.")
+        p.add_argument(
+            "record", metavar="RECORD", help="WFDB record path without extension, or a CSV (s, µV)"
+        )
+        p.add_argument("--fs", type=float, default=None, help="resample to this rate first (130: as the H10)")
+        if name == "windows":
+            p.add_argument("--window", type=float, default=30.0, help="window length [s] (default 30)")
+        p.set_defaults(func=func)
+
     decide = sub.add_parser(
         "decide",
         help="the decision rule (paper Alg. 1) on mean RR values read from standard input",
@@ -437,6 +487,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         err.print("cadence: interrupted")
         return 130
+    except BrokenPipeError:  # `cadence hrv peaks … | head`: the reader has had enough
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

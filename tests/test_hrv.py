@@ -1,0 +1,98 @@
+"""RR cleaning and windows: against the annotations of the shared records, and across a data gap."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from common.ecg_records import read_record
+from common.hrv import classify, intervals, windows
+from common.rpeaks import detect
+from tests.test_rpeaks import ECG, RECORDS, needs_data
+
+
+def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
+    rr = np.full(30, 0.8)
+    rr[5] = 1.6  # a missed beat
+    rr[12], rr[13] = 0.3, 0.5  # an extra beat splits one interval
+    rr[20], rr[21] = 0.55, 1.05  # a premature beat and its compensatory pause
+    kinds = classify(rr)
+    assert kinds[5] == "missed" and kinds[12] == "extra" and kinds[20] == "ectopic" and kinds[21] == "ectopic"
+    assert sum(k != "ok" for k in kinds) == 5
+
+
+@needs_data
+def test_window_mean_rr_error_against_the_annotations() -> None:
+    errors = []
+    for name in RECORDS:
+        rec = read_record(str(ECG / name), fs=130.0)
+        end = len(rec.uv) / 130.0
+        ours = windows(intervals(detect(rec.uv, 130.0) / 130.0), 30.0, end_s=end)
+        ref = windows(intervals(rec.beats_s), 30.0, end_s=end)
+        errors += [
+            abs(a.mean_rr_s - b.mean_rr_s)
+            for a, b in zip(ours, ref, strict=True)
+            if a.quality == "good" and b.mean_rr_s is not None
+        ]
+    errors_ms = np.array(errors) * 1000
+    print(
+        f"{len(errors_ms)} good windows: median {np.median(errors_ms):.2f} ms, p95 {np.percentile(errors_ms, 95):.2f} ms"
+    )
+    assert np.median(errors_ms) <= 2.0
+    assert np.percentile(errors_ms, 95) <= 5.0
+
+
+@needs_data
+def test_a_10_s_dropout_forms_no_interval_across_it_and_flags_its_window() -> None:
+    rec = read_record(str(ECG / "100"), fs=130.0)
+    x = rec.uv[: 130 * 120]
+    gap = (45.0, 55.0)
+    before, after = x[: int(gap[0] * 130)], x[int(gap[1] * 130) :]
+    # the gateway reports the gap; the analyser starts its detector afresh after it
+    peaks = np.concatenate([detect(before, 130.0) / 130.0, gap[1] + detect(after, 130.0) / 130.0])
+    iv = intervals(peaks, gaps_s=[gap])
+    assert not np.any((iv.t_s - iv.rr_s < gap[1]) & (iv.t_s > gap[0])), "an interval spans the gap"
+    ws = {w.start_s: w for w in windows(iv, 30.0, end_s=120.0, gaps_s=[gap])}
+    assert ws[30.0].quality == "low"  # a third of it is missing
+    assert ws[30.0].mean_rr_s is not None  # still computed from what is there, for the record
+    assert ws[0.0].quality == "good" and ws[90.0].quality == "good"
+
+
+@needs_data
+@pytest.mark.parametrize("tool", ["peaks", "windows"])
+def test_cadence_hrv_prints_json(tool: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "cadence", "hrv", tool, str(ECG / "103"), "--fs", "130"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(line) for line in proc.stdout.splitlines()]
+    if tool == "peaks":
+        assert lines[0]["fs"] == 130.0 and len(lines[0]["peaks_s"]) > 2000
+    else:
+        assert len(lines) == 60 and {
+            "start_s",
+            "end_s",
+            "mean_rr_s",
+            "n_beats",
+            "excluded",
+            "quality",
+        } <= set(lines[0])
+
+
+def test_a_broken_recording_is_one_line_and_exit_2(tmp_path) -> None:
+    bad = tmp_path / "x.csv"
+    bad.write_text("0,1\n0.1,2\n0.05,3\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "cadence", "hrv", "peaks", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and "x.csv: row 3: time does not increase" in proc.stderr
