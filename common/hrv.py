@@ -9,6 +9,7 @@ that spans a gap in the data is never formed.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -108,7 +109,7 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
     idx = np.nonzero(sel)[0]
     pairs = [
         (iv.rr_s[a], iv.rr_s[b])
-        for a, b in zip(idx[:-1], idx[1:], strict=True)
+        for a, b in itertools.pairwise(idx)
         if b == a + 1 and not iv.excluded[a] and not iv.excluded[b]
     ]
     rmssd = float(np.sqrt(np.mean([(b - a) ** 2 for a, b in pairs]))) if pairs else None
@@ -125,7 +126,7 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
 
 
 def windows(
-    iv: Intervals, length_s: float = 30.0, start_s: float = 0.0, end_s: float | None = None
+    iv: Intervals, length_s: float = 30.0, start_s: float = 0.0, end_s: float | None = None, gaps_s: Gaps = ()
 ) -> list[Window]:
     """Tumbling windows of ``length_s`` from ``start_s``; the last one ends at or before ``end_s``."""
     end = end_s if end_s is not None else (float(iv.t_s[-1]) if iv.t_s.size else start_s)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,7 +41,8 @@ def test_window_mean_rr_error_against_the_annotations() -> None:
         ]
     errors_ms = np.array(errors) * 1000
     print(
-        f"{len(errors_ms)} good windows: median {np.median(errors_ms):.2f} ms, p95 {np.percentile(errors_ms, 95):.2f} ms"
+        f"{len(errors_ms)} good windows: median {np.median(errors_ms):.2f} ms, "
+        f"p95 {np.percentile(errors_ms, 95):.2f} ms"
     )
     assert np.median(errors_ms) <= 2.0
     assert np.percentile(errors_ms, 95) <= 5.0
