@@ -1,0 +1,120 @@
+"""Pure parsing of the Polar H10's GATT payloads (DESIGN §6), tested from bytes; no BLE here.
+
+- Heart Rate Measurement (service 0x180D, characteristic 0x2A37): flags, heart rate (uint8 or uint16),
+  optional energy expended, optional RR intervals in 1/1024 s.
+- Polar Measurement Data (PMD) service: control-point requests and responses, and ECG data frames
+  (measurement type 0, a uint64 timestamp in ns of the last sample, frame type 0: int24 µV samples at
+  130 Hz).
+
+A truncated or garbled payload raises ``FrameError``; the gateway counts it and skips the frame.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+HR_SERVICE = "0000180d-0000-1000-8000-00805f9b34fb"
+HR_MEASUREMENT = "00002a37-0000-1000-8000-00805f9b34fb"
+PMD_SERVICE = "fb005c80-02e7-f387-1cad-8acd2d8df0c8"
+PMD_CONTROL = "fb005c81-02e7-f387-1cad-8acd2d8df0c8"
+PMD_DATA = "fb005c82-02e7-f387-1cad-8acd2d8df0c8"
+
+PMD_ECG = 0x00
+ECG_FS_HZ = 130
+_OP_GET_SETTINGS, _OP_START, _OP_STOP = 0x01, 0x02, 0x03
+_SETTING_SAMPLE_RATE, _SETTING_RESOLUTION = 0x00, 0x01
+
+
+class FrameError(ValueError):
+    """A payload that is not what its characteristic carries (too short, unknown type, bad length)."""
+
+
+@dataclass(frozen=True, slots=True)
+class HeartRate:
+    bpm: int
+    contact: bool | None  # None: the sensor does not report contact
+    energy_kj: int | None
+    rr_s: list[float]
+
+
+def parse_heart_rate(data: bytes) -> HeartRate:
+    if len(data) < 2:
+        raise FrameError(f"heart rate measurement of {len(data)} bytes")
+    flags = data[0]
+    i = 1
+    if flags & 0x01:
+        if len(data) < 3:
+            raise FrameError("uint16 heart rate truncated")
+        bpm = struct.unpack_from("<H", data, i)[0]
+        i += 2
+    else:
+        bpm = data[i]
+        i += 1
+    contact = bool(flags & 0x02) if flags & 0x04 else None
+    energy = None
+    if flags & 0x08:
+        if len(data) < i + 2:
+            raise FrameError("energy expended truncated")
+        energy = struct.unpack_from("<H", data, i)[0]
+        i += 2
+    rr: list[float] = []
+    if flags & 0x10:
+        rest = data[i:]
+        if len(rest) % 2:
+            raise FrameError("RR intervals truncated")
+        rr = [v / 1024.0 for (v,) in struct.iter_unpack("<H", rest)]
+    return HeartRate(bpm, contact, energy, rr)
+
+
+def ecg_start_request() -> bytes:
+    """Control-point request: start ECG at 130 Hz, 14-bit resolution (the H10's only ECG setting)."""
+    return (
+        bytes([_OP_START, PMD_ECG, _SETTING_SAMPLE_RATE, 0x01])
+        + struct.pack("<H", ECG_FS_HZ)
+        + bytes([_SETTING_RESOLUTION, 0x01])
+        + struct.pack("<H", 14)
+    )
+
+
+def ecg_stop_request() -> bytes:
+    return bytes([_OP_STOP, PMD_ECG])
+
+
+@dataclass(frozen=True, slots=True)
+class ControlResponse:
+    op: int
+    measurement: int
+    status: int  # 0 = success
+
+    @property
+    def ok(self) -> bool:
+        return self.status == 0
+
+
+def parse_control_response(data: bytes) -> ControlResponse:
+    """Responses start with 0xF0, then the op code, the measurement type and the status."""
+    if len(data) < 4 or data[0] != 0xF0:
+        raise FrameError(f"not a PMD control-point response: {data[:4].hex()}")
+    return ControlResponse(data[1], data[2], data[3])
+
+
+@dataclass(frozen=True, slots=True)
+class EcgFrame:
+    timestamp_ns: int  # sensor clock, time of the last sample
+    samples_uv: list[int]
+
+
+def parse_ecg_frame(data: bytes) -> EcgFrame:
+    if len(data) < 10:
+        raise FrameError(f"PMD frame of {len(data)} bytes")
+    if data[0] != PMD_ECG:
+        raise FrameError(f"PMD measurement type {data[0]} is not ECG")
+    ts = struct.unpack_from("<Q", data, 1)[0]
+    if data[9] != 0x00:
+        raise FrameError(f"ECG frame type {data[9]} is not supported (expected 0: raw int24)")
+    body = data[10:]
+    if len(body) % 3 or not body:
+        raise FrameError(f"ECG payload of {len(body)} bytes is not a whole number of int24 samples")
+    samples = [int.from_bytes(body[k : k + 3], "little", signed=True) for k in range(0, len(body), 3)]
+    return EcgFrame(ts, samples)
