@@ -239,3 +239,111 @@ def load_task_file(path: str) -> Task:
     from common.task import load_task
 
     return load_task(path)
+
+
+@dataclass(frozen=True, slots=True)
+class DetectorScore:
+    name: str
+    tp: int
+    fp: int
+    fn: int
+    seconds: float  # processing time, all records
+    signal_s: float  # duration of all records
+
+    @property
+    def f1(self) -> float:
+        return 2 * self.tp / (2 * self.tp + self.fp + self.fn)
+
+    @property
+    def se(self) -> float:
+        return self.tp / (self.tp + self.fn)
+
+    @property
+    def ppv(self) -> float:
+        return self.tp / (self.tp + self.fp)
+
+    @property
+    def realtime(self) -> float:
+        return self.signal_s / self.seconds
+
+
+def _established_detectors(fs: float) -> dict[str, object]:
+    """Established detectors, where the optional packages are installed (`uv sync --extra bench`)."""
+    out: dict[str, object] = {}
+    try:
+        import neurokit2 as nk
+
+        for method in ("neurokit", "pantompkins1985", "hamilton2002", "elgendi2010"):
+            out[f"neurokit2:{method}"] = lambda x, m=method: nk.ecg_peaks(x, sampling_rate=fs, method=m)[1][
+                "ECG_R_Peaks"
+            ]
+    except ImportError:
+        pass
+    try:
+        from ecgdetectors import Detectors
+
+        d = Detectors(fs)
+        for method in ("pan_tompkins_detector", "hamilton_detector", "two_average_detector", "swt_detector"):
+            out[f"py-ecg-detectors:{method.removesuffix('_detector')}"] = getattr(d, method)
+    except ImportError:
+        pass
+    return out
+
+
+def bench_hrv(
+    data_dir: str, fs: float = 130.0, chunk: int = 13
+) -> tuple[list[DetectorScore], dict[str, float]]:
+    """Every annotated record of ``data_dir`` at ``fs``: each detector's Se, PPV, F1 and speed; for
+    Cadence also the publication latency (data time from the peak to the end of the chunk that released
+    it; chunks of 13 samples, 0.1 s) and the window mean-RR error."""
+    from pathlib import Path
+
+    from common.ecg_records import read_record
+    from common.hrv import intervals, match_beats, windows
+    from common.rpeaks import RPeakDetector
+
+    records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
+    others = _established_detectors(fs)
+    totals = {name: np.zeros(4) for name in ["cadence", *others]}
+    latency: list[float] = []
+    errors: list[float] = []
+    signal_s = 0.0
+    for path in records:
+        rec = read_record(str(path), fs=fs)
+        signal_s += len(rec.uv) / fs
+        t0 = time.perf_counter()
+        det, peaks = RPeakDetector(fs), []
+        for i in range(0, len(rec.uv), chunk):
+            new = det.feed(rec.uv[i : i + chunk])
+            latency += [(min(i + chunk, len(rec.uv)) - p) / fs for p in new]
+            peaks += new
+        peaks += det.flush()
+        elapsed = time.perf_counter() - t0
+        found = np.array(sorted(peaks)) / fs
+        totals["cadence"] += (*match_beats(rec.beats_s, found), elapsed)
+        end = len(rec.uv) / fs
+        ours = windows(intervals(found), 30.0, end_s=end)
+        ref = windows(intervals(rec.beats_s), 30.0, end_s=end)
+        errors += [
+            abs(a.mean_rr_s - b.mean_rr_s)
+            for a, b in zip(ours, ref, strict=True)
+            if a.quality == "good" and b.mean_rr_s is not None
+        ]
+        for name, fn in others.items():
+            t0 = time.perf_counter()
+            idx = np.asarray(fn(rec.uv), dtype=float)  # type: ignore[operator]
+            elapsed = time.perf_counter() - t0
+            totals[name] += (*match_beats(rec.beats_s, np.sort(idx) / fs), elapsed)
+    scores = [
+        DetectorScore(n, int(t[0]), int(t[1]), int(t[2]), float(t[3]), signal_s) for n, t in totals.items()
+    ]
+    extra = {
+        "records": float(len(records)),
+        "latency_max_s": max(latency),
+        "latency_p99_s": float(np.percentile(latency, 99)),
+        "latency_over_0_5_s": float(np.mean(np.array(latency) > 0.5)),
+        "window_err_median_ms": float(np.median(errors) * 1e3),
+        "window_err_p95_ms": float(np.percentile(errors, 95) * 1e3),
+        "good_windows": float(len(errors)),
+    }
+    return scores, extra

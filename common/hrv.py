@@ -136,3 +136,24 @@ def windows(
         out.append(window_stats(t, t + length_s, iv, gaps_s))
         t += length_s
     return out
+
+
+def match_beats(
+    ref_s: NDArray[np.float64], found_s: NDArray[np.float64], tol_s: float = 0.15
+) -> tuple[int, int, int]:
+    """(TP, FP, FN): detected beats matched one-to-one to reference beats within ``tol_s`` (the usual
+    150 ms of ANSI/AAMI EC57), each reference taking the nearest unused detection."""
+    found_s = np.asarray(found_s, dtype=float)
+    used = np.zeros(len(found_s), dtype=bool)
+    tp = 0
+    idx = np.searchsorted(found_s, ref_s)
+    for k, t in enumerate(ref_s):
+        cands = [
+            c
+            for c in (idx[k] - 1, idx[k])
+            if 0 <= c < len(found_s) and not used[c] and abs(found_s[c] - t) <= tol_s
+        ]
+        if cands:
+            used[min(cands, key=lambda c: abs(found_s[c] - t))] = True
+            tp += 1
+    return tp, len(found_s) - tp, len(ref_s) - tp

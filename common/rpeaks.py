@@ -24,7 +24,7 @@ BAND_HZ = (5.0, 18.0)
 MWI_S = 0.15
 REFRACTORY_S = 0.2
 T_WAVE_S = 0.36
-LOOKAHEAD_S = 0.25  # a maximum is final once this much later data has been seen
+LOOKAHEAD_S = 0.21  # a maximum is final once the refractory span after it (0.2 s) has been seen
 LEARN_S = 2.0
 SEARCHBACK_FACTOR = 1.66
 

@@ -6,29 +6,13 @@ import numpy as np
 import pytest
 
 from common.ecg_records import read_record
+from common.hrv import match_beats
 from common.rpeaks import detect
 from tests.conftest import SHARED_DATA
 
 ECG = SHARED_DATA / "ecg"
 RECORDS = ["100", "101", "103", "105", "106", "119", "201", "208"]
 needs_data = pytest.mark.skipif(not ECG.exists(), reason=f"the shared recordings are not at {ECG}")
-
-
-def match(ref: np.ndarray, found: np.ndarray, tol: float = 0.15) -> tuple[int, int, int]:
-    """(TP, FP, FN) with one-to-one matching within ``tol`` seconds."""
-    used = np.zeros(len(found), bool)
-    tp = 0
-    idx = np.searchsorted(found, ref)
-    for k, t in enumerate(ref):
-        cands = [
-            c
-            for c in (idx[k] - 1, idx[k])
-            if 0 <= c < len(found) and not used[c] and abs(found[c] - t) <= tol
-        ]
-        if cands:
-            used[min(cands, key=lambda c: abs(found[c] - t))] = True
-            tp += 1
-    return tp, len(found) - tp, len(ref) - tp
 
 
 @needs_data
@@ -44,7 +28,7 @@ def test_f1_at_130_hz_over_the_shared_records_is_at_least_99_percent() -> None:
     total = np.zeros(3, int)
     for name in RECORDS:
         rec = read_record(str(ECG / name), fs=130.0)
-        tp, fp, fn = match(rec.beats_s, detect(rec.uv, 130.0, chunk=73) / 130.0)
+        tp, fp, fn = match_beats(rec.beats_s, detect(rec.uv, 130.0, chunk=73) / 130.0)
         print(
             f"{name}: Se {tp / (tp + fn):.4f} PPV {tp / (tp + fp):.4f} F1 {2 * tp / (2 * tp + fp + fn):.4f}"
         )
