@@ -17,7 +17,7 @@ from common.planner import (
     hypervolume,
     plan_path,
 )
-from common.task import PathPlan, PlannerSettings, Task
+from common.task import PathPlan, PlannerSettings, Task, load_task
 
 
 def longest_path(task: Task) -> PathPlan:
@@ -193,7 +193,7 @@ async def bench_store(task_path: str, queries: int = 200) -> StoreBench:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-    task = load_task_file(task_path)
+    task = load_task(task_path)
     first = next(iter(task.paths))
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Path(tmp) / "c.toml"
@@ -233,12 +233,6 @@ async def bench_store(task_path: str, queries: int = 200) -> StoreBench:
                 proc.terminate()
                 proc.wait(timeout=20)
     return StoreBench(during, stored)
-
-
-def load_task_file(path: str) -> Task:
-    from common.task import load_task
-
-    return load_task(path)
 
 
 @dataclass(frozen=True, slots=True)
