@@ -258,8 +258,6 @@ def cmd_decide(args: argparse.Namespace) -> int:
     values = []
     for lineno, line in enumerate(sys.stdin, start=1):
         text = line.strip()
-        if not text:
-            continue
         try:
             value = dec(text)
             ok = value.is_finite() and value > 0

@@ -142,7 +142,7 @@ def test_cadence_decide_prints_k_per_line_and_matches_the_reference() -> None:
     assert [int(x) for x in proc.stdout.split()] == reference(values, "0.85")
 
 
-@pytest.mark.parametrize("bad", ["abc", "-0.8", "0", "nan", "inf"])
+@pytest.mark.parametrize("bad", ["abc", "-0.8", "0", "nan", "inf", "", "0.8 0.9"])
 def test_cadence_decide_rejects_a_bad_line_naming_it(bad: str) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "cadence", "decide", "--rr-rest", "0.85"],
