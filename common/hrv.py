@@ -55,28 +55,26 @@ def intervals(peaks_s: NDArray[np.float64], gaps_s: Gaps = ()) -> Intervals:
 
 
 def classify(rr: NDArray[np.float64]) -> list[Kind]:
-    kinds: list[Kind] = []
-    for i, x in enumerate(rr):
-        if not MIN_RR_S <= x <= MAX_RR_S:
-            kinds.append("implausible")
-            continue
-        lo, hi = max(0, i - NEIGHBOURS), min(len(rr), i + NEIGHBOURS + 1)
-        neigh = np.concatenate([rr[lo:i], rr[i + 1 : hi]])
-        neigh = neigh[(neigh >= MIN_RR_S) & (neigh <= MAX_RR_S)]
-        if neigh.size < 2:
-            kinds.append("ok")
-            continue
-        med = float(np.median(neigh))
-        dev = x / med - 1.0
-        if abs(dev) <= TOLERANCE:
-            kinds.append("ok")
-        elif 1.6 <= x / med <= 2.4:
-            kinds.append("missed")
-        elif x / med <= 0.6:
-            kinds.append("extra")
-        else:
-            kinds.append("ectopic")
-    return kinds
+    return [classify_one(rr, i) for i in range(len(rr))]
+
+
+def classify_one(rr: NDArray[np.float64] | list[float], i: int) -> Kind:
+    """Interval i against the median of up to NEIGHBOURS plausible intervals on each side."""
+    x = rr[i]
+    if not MIN_RR_S <= x <= MAX_RR_S:
+        return "implausible"
+    lo, hi = max(0, i - NEIGHBOURS), min(len(rr), i + NEIGHBOURS + 1)
+    neigh = np.array([v for j, v in enumerate(rr[lo:hi], start=lo) if j != i and MIN_RR_S <= v <= MAX_RR_S])
+    if neigh.size < 2:
+        return "ok"
+    ratio = x / float(np.median(neigh))
+    if abs(ratio - 1.0) <= TOLERANCE:
+        return "ok"
+    if 1.6 <= ratio <= 2.4:
+        return "missed"
+    if ratio <= 0.6:
+        return "extra"
+    return "ectopic"
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,3 +155,103 @@ def match_beats(
             used[min(cands, key=lambda c: abs(found_s[c] - t))] = True
             tp += 1
     return tp, len(found_s) - tp, len(ref_s) - tp
+
+
+class HrvStream:
+    """The online form of ``intervals`` + ``windows``, on data time: what the HRV analyser runs.
+
+    Fed chunks of samples with the data time of their first sample, it returns the beats and the windows
+    that are final. A gap (flagged, or a jump in data time) ends a segment: the detector starts afresh
+    and no interval spans the gap. An interval is classified once its NEIGHBOURS following intervals exist
+    (or its segment ended), exactly as ``classify`` does offline, so a record streamed in chunks gives the
+    windows that ``windows(intervals(detect(...)))`` gives for it whole.
+    """
+
+    def __init__(self, fs: float, window_s: float = 30.0, detector_factory=None) -> None:
+        from common.rpeaks import RPeakDetector
+
+        self.fs = fs
+        self.window_s = window_s
+        self._factory = detector_factory or (lambda: RPeakDetector(fs))
+        self._det = None
+        self._seg_t0 = 0.0  # data time of the segment's first sample, s
+        self._seg_n = 0
+        self._next_t: float | None = None  # expected data time of the next sample
+        self._seg_peaks: list[float] = []
+        self._seg_rr: list[float] = []
+        self._seg_t: list[float] = []
+        self._classified = 0  # of the segment's intervals
+        self._done_t: list[float] = []
+        self._done_rr: list[float] = []
+        self._done_kind: list[Kind] = []
+        self.gaps: list[tuple[float, float]] = []
+        self._win_start: float | None = None
+        self._now = 0.0
+
+    def feed(
+        self, t0_s: float, samples: NDArray[np.float64], gap: bool = False
+    ) -> tuple[list[float], list[Window]]:
+        """Returns (new peak times, windows now final)."""
+        samples = np.asarray(samples, dtype=float)
+        if self._win_start is None:
+            self._win_start = t0_s
+        jumped = self._next_t is not None and abs(t0_s - self._next_t) > 1.5 / self.fs
+        peaks: list[float] = []
+        if self._det is None or gap or jumped:
+            if self._det is not None:
+                peaks += self._end_segment()
+                self.gaps.append((self._next_t, t0_s))
+            self._det, self._seg_t0, self._seg_n = self._factory(), t0_s, 0
+        found = self._det.feed(samples)
+        self._seg_n += samples.size
+        self._next_t = t0_s + samples.size / self.fs
+        self._now = self._next_t
+        peaks += self._add_peaks(found)
+        self._classify(final=False)
+        return peaks, self._close_windows(final=False)
+
+    def flush(self) -> tuple[list[float], list[Window]]:
+        peaks = self._end_segment() if self._det is not None else []
+        self._det = None
+        return peaks, self._close_windows(final=True)
+
+    def _end_segment(self) -> list[float]:
+        peaks = self._add_peaks(self._det.flush())
+        self._classify(final=True)
+        self._seg_peaks, self._seg_rr, self._seg_t, self._classified = [], [], [], 0
+        return peaks
+
+    def _add_peaks(self, idx: list[int]) -> list[float]:
+        times = [self._seg_t0 + i / self.fs for i in sorted(idx)]
+        for t in times:
+            if self._seg_peaks:
+                self._seg_rr.append(t - self._seg_peaks[-1])
+                self._seg_t.append(t)
+            self._seg_peaks.append(t)
+        return times
+
+    def _classify(self, final: bool) -> None:
+        upto = len(self._seg_rr) if final else len(self._seg_rr) - NEIGHBOURS
+        for i in range(self._classified, max(self._classified, upto)):
+            self._done_t.append(self._seg_t[i])
+            self._done_rr.append(self._seg_rr[i])
+            self._done_kind.append(classify_one(self._seg_rr, i))
+        self._classified = max(self._classified, upto)
+
+    def _close_windows(self, final: bool) -> list[Window]:
+        out: list[Window] = []
+        assert self._win_start is not None
+        # intervals not yet classified end at or after this time; a window must end before it
+        pending_from = self._seg_t[self._classified] if self._classified < len(self._seg_t) else float("inf")
+        while self._win_start + self.window_s <= self._now + 1e-9:
+            end = self._win_start + self.window_s
+            if not final and pending_from < end:
+                break
+            iv = Intervals(np.array(self._done_t), np.array(self._done_rr), list(self._done_kind))
+            out.append(window_stats(self._win_start, end, iv, self.gaps))
+            self._win_start = end
+        if out:  # what closed windows used is no longer needed: the stream runs for hours
+            keep = next((i for i, t in enumerate(self._done_t) if t >= self._win_start), len(self._done_t))
+            del self._done_t[:keep], self._done_rr[:keep], self._done_kind[:keep]
+            self.gaps = [g for g in self.gaps if g[1] > self._win_start]
+        return out

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from common.ecg_records import read_record
-from common.hrv import classify, intervals, windows
+from common.hrv import HrvStream, classify, intervals, windows
 from common.rpeaks import detect
 from tests.test_rpeaks import ECG, RECORDS, needs_data
 
@@ -97,3 +97,33 @@ def test_a_broken_recording_is_one_line_and_exit_2(tmp_path) -> None:
         timeout=60,
     )
     assert proc.returncode == 2 and "x.csv: row 3: time does not increase" in proc.stderr
+
+
+@needs_data
+@pytest.mark.parametrize("chunk", [73, 130 * 5])
+def test_the_stream_gives_the_offline_windows_in_chunks(chunk: int) -> None:
+    rec = read_record(str(ECG / "208"), fs=130.0)
+    x = rec.uv[: 130 * 600]
+    offline = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
+    stream, online = HrvStream(130.0), []
+    for i in range(0, len(x), chunk):
+        online += stream.feed(i / 130.0, x[i : i + chunk])[1]
+    online += stream.flush()[1]
+    assert online == offline
+
+
+@needs_data
+def test_the_stream_breaks_at_a_gap_and_flags_its_window() -> None:
+    rec = read_record(str(ECG / "100"), fs=130.0)
+    x = rec.uv[: 130 * 120]
+    stream, online = HrvStream(130.0), []
+    for i in range(0, len(x), 73):
+        t = i / 130.0
+        if 45.0 <= t < 55.0:
+            continue  # ten seconds never arrive
+        online += stream.feed(t, x[i : i + 73], gap=False)[1]  # the jump in data time is the gap
+    online += stream.flush()[1]
+    by_start = {w.start_s: w for w in online}
+    assert by_start[30.0].quality == "low"
+    assert by_start[0.0].quality == "good" and by_start[90.0].quality == "good"
+    assert len(stream.gaps) <= 1
