@@ -187,6 +187,7 @@ class HrvStream:
         self.gaps: list[tuple[float, float]] = []
         self._win_start: float | None = None
         self._now = 0.0
+        self.segments = 0  # counts the detector's fresh starts (the first, and one after each gap)
 
     def feed(
         self, t0_s: float, samples: NDArray[np.float64], gap: bool = False
@@ -202,6 +203,7 @@ class HrvStream:
                 peaks += self._end_segment()
                 self.gaps.append((self._next_t, t0_s))
             self._det, self._seg_t0, self._seg_n = self._factory(), t0_s, 0
+            self.segments += 1
         found = self._det.feed(samples)
         self._seg_n += samples.size
         self._next_t = t0_s + samples.size / self.fs

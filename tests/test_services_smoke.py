@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cadence.cli import SERVICES
@@ -22,9 +23,13 @@ async def test_the_service_starts_reports_and_stops_on_sigterm(
     name: str, tmp_path: Path, endpoint: str
 ) -> None:
     cfg = tmp_path / "c.toml"
-    cfg.write_text(
-        f"[cadence]\ndata_dir = '{tmp_path}'\nstatus_period_s = 0.1\n[bus]\nconnect = ['{endpoint}']\n"
-    )
+    text = f"[cadence]\ndata_dir = '{tmp_path}'\nstatus_period_s = 0.1\n[bus]\nconnect = ['{endpoint}']\n"
+    if name == "ecg_gateway":  # a replay of a small synthetic recording (time s, µV)
+        csv = tmp_path / "ecg.csv"
+        t = np.arange(0, 60, 1 / 130)
+        np.savetxt(csv, np.c_[t, 1000 * np.exp(-(((t % 0.8) - 0.4) ** 2) / 2e-4)], delimiter=",")
+        text += f"[ecg_gateway]\nrecord = '{csv}'\n"
+    cfg.write_text(text)
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         health = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
         proc = subprocess.Popen([sys.executable, "-m", f"services.{name}", "--config", str(cfg)])

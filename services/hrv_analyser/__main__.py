@@ -1,0 +1,93 @@
+"""hrv_analyser: ``ecg/samples`` → R peaks, cleaned RR, windows → ``hrv/beats``, ``hrv/window``
+(DESIGN §1, §4, §6). All on data time: a replay at any speed gives the same windows as live."""
+
+from __future__ import annotations
+
+import sys
+
+import msgspec
+
+from common.hrv import MAX_RR_S, MIN_RR_S, HrvStream, Window
+from common.service import ServiceContext, service_main
+from schemas.ecg import EcgChunk
+from schemas.hrv import Beats, HrvWindow
+
+NAME = "hrv_analyser"
+
+
+class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    window_s: float = 30.0
+
+
+async def main(ctx: ServiceContext) -> None:
+    settings: Settings = ctx.settings
+    bus = ctx.bus
+    beats_key, window_key = bus.key("hrv/beats"), bus.key("hrv/window")
+    stream: HrvStream | None = None
+    origin_ns = 0
+    last_peak: float | None = None
+    seq = {"beats": 0, "window": 0}
+
+    def ns(t_s: float) -> int:
+        return origin_ns + round(t_s * 1e9)
+
+    def publish(peaks: list[float], wins: list[Window]) -> None:
+        nonlocal last_peak
+        if peaks:
+            # the RR ending at each peak; 0 for the first peak of a segment (none spans a gap)
+            rr = [
+                p - q if q is not None else 0.0 for p, q in zip(peaks, [last_peak, *peaks[:-1]], strict=True)
+            ]
+            last_peak = peaks[-1]
+            bus.put(
+                beats_key,
+                Beats(
+                    t_ns=ns(peaks[-1]),
+                    seq=seq["beats"],
+                    peak_t_ns=[ns(p) for p in peaks],
+                    rr_s=rr,
+                    excluded=[not MIN_RR_S <= r <= MAX_RR_S for r in rr],
+                ),
+            )
+            seq["beats"] += 1
+            ctx.counters["beats"] += len(peaks)
+        for w in wins:
+            bus.put(
+                window_key,
+                HrvWindow(
+                    t_ns=ns(w.end_s),
+                    seq=seq["window"],
+                    start_ns=ns(w.start_s),
+                    end_ns=ns(w.end_s),
+                    mean_rr_s=w.mean_rr_s,
+                    n_beats=w.n_beats,
+                    excluded_fraction=w.excluded,
+                    quality=w.quality,
+                    rmssd_s=w.rmssd_s,
+                    sdnn_s=w.sdnn_s,
+                ),
+                block=True,
+            )
+            seq["window"] += 1
+            ctx.counters["windows"] += 1
+
+    async def on_chunk(_: str, chunk: EcgChunk) -> None:
+        nonlocal stream, origin_ns, last_peak
+        if stream is None or chunk.fs_hz != stream.fs:
+            stream, origin_ns = HrvStream(chunk.fs_hz, settings.window_s), chunk.t_ns
+        segments = stream.segments
+        peaks, wins = stream.feed((chunk.t_ns - origin_ns) / 1e9, chunk.samples_uv, chunk.gap)
+        if stream.segments != segments:
+            last_peak = None
+        publish(peaks, wins)
+
+    bus.handle(bus.key("ecg/samples"), EcgChunk, on_chunk, maxsize=10_000)
+    await ctx.stop.wait()
+
+
+def run(argv: list[str] | None = None) -> int:
+    return service_main(NAME, Settings, main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(run())

@@ -1,0 +1,89 @@
+"""The ECG chain over real Zenoh: a replayed recording → ecg_gateway → hrv_analyser → decision_maker.
+The windows equal the offline ones for the same recording, and the selections equal Alg. 1 on them."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.bus import Bus, BusConfig
+from common.decision import Params, State, step
+from common.ecg_records import read_record
+from common.hrv import intervals, windows
+from common.rpeaks import detect
+from schemas import HrvWindow, Selection, ServiceStatus
+from services.decision_maker.__main__ import Settings as DecisionSettings
+from services.decision_maker.__main__ import main as decision_main
+from services.ecg_gateway.__main__ import Settings as GatewaySettings
+from services.ecg_gateway.__main__ import main as gateway_main
+from services.hrv_analyser.__main__ import Settings as AnalyserSettings
+from services.hrv_analyser.__main__ import main as analyser_main
+from tests.conftest import InProcessService
+from tests.test_rpeaks import ECG, needs_data
+
+pytestmark = pytest.mark.asyncio
+START_NS = 1_800_000_000_000_000_000
+
+
+@needs_data
+async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) -> None:
+    rec = read_record(str(ECG / "100"))
+    n = int(125 * rec.fs)
+    csv = tmp_path / "cut.csv"
+    np.savetxt(csv, np.c_[np.arange(n) / rec.fs, rec.uv[:n]], delimiter=",", fmt="%.6f")
+    x = read_record(str(csv), fs=130.0).uv
+    expected = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
+        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        decider = InProcessService(
+            "decision_maker",
+            decision_main,
+            DecisionSettings(rr_rest_s=0.85, republish_s=60),
+            tmp_path / "d",
+            endpoint,
+        )
+        analyser = InProcessService(
+            "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
+        )
+        async with asyncio.timeout(10):
+            await anext(sels)  # the decision maker is up (its initial selection)
+        # the analyser is up once its status is seen
+        health = aiter(bus.subscribe(bus.key("health/hrv_analyser"), ServiceStatus, maxsize=1))
+        async with asyncio.timeout(10):
+            await anext(health)
+        gateway = InProcessService(
+            "ecg_gateway",
+            gateway_main,
+            GatewaySettings(record=str(csv), speed=40.0, start_ns=START_NS),
+            tmp_path / "g",
+            endpoint,
+        )
+        got_windows, got_k = [], []
+        async with asyncio.timeout(30):
+            while len(got_windows) < len(expected) - 1:  # the last window closes only at flush
+                _, w = await anext(wins)
+                got_windows.append(w)
+                while True:
+                    _, sel = await anext(sels)
+                    if sel.window_end_ns == w.end_ns:
+                        got_k.append(sel.k)
+                        break
+        for svc in (gateway, analyser, decider):
+            await svc.close()
+
+    assert len(got_windows) == len(expected) - 1 == 3
+    for w, e in zip(got_windows, expected, strict=False):
+        assert (w.start_ns - START_NS, w.end_ns - START_NS) == (round(e.start_s * 1e9), round(e.end_s * 1e9))
+        assert w.mean_rr_s == pytest.approx(e.mean_rr_s, abs=1e-9) and w.quality == e.quality
+        assert w.n_beats == e.n_beats
+    p, s, ks = Params.of(0.85), None, []
+    s = State.initial(p)
+    for e in expected[: len(got_k)]:
+        s = step(p, s, e.mean_rr_s, e.quality == "good").state
+        ks.append(s.k)
+    assert got_k == ks
