@@ -321,6 +321,99 @@ def cmd_bench_hrv(args: argparse.Namespace) -> int:
     return 0
 
 
+async def calibrate(
+    bus,
+    minutes: float,
+    subject: str,
+    data_dir: Path,
+    measured_sigma: bool,
+    progress=None,
+) -> tuple[object, object]:
+    """Collect `minutes` of data time of resting windows from the bus; store and publish the calibration."""
+    import time
+
+    import msgspec
+
+    from common.hrv import Window, resting_level
+    from common.storage import atomic_write
+    from schemas import Calibration, HrvWindow
+
+    wins: list[Window] = []
+    first = None
+    async for _, w in bus.subscribe(bus.key("hrv/window"), HrvWindow, maxsize=1000):
+        first = w.start_ns if first is None else first
+        wins.append(
+            Window(
+                (w.start_ns - first) / 1e9,
+                (w.end_ns - first) / 1e9,
+                w.mean_rr_s,
+                w.n_beats,
+                w.excluded_fraction,
+                w.quality,
+                w.rmssd_s,
+                w.sdnn_s,
+            )
+        )
+        covered = (w.end_ns - first) / 60e9
+        if progress is not None:
+            progress(min(covered, minutes), minutes)
+        if covered >= minutes - 1e-9:
+            break
+    try:
+        level = resting_level(wins)
+    except ValueError as exc:
+        raise InputError(f"calibrate: {exc}") from exc
+    cal = Calibration(
+        t_ns=time.time_ns(),
+        seq=0,
+        subject=subject,
+        rr_rest_s=round(level.rr_rest_s, 6),
+        **({"sigma_rest_s": round(level.sigma_s, 6)} if measured_sigma and level.sigma_s > 0 else {}),
+    )
+    atomic_write(data_dir / "calibration.json", msgspec.json.encode(cal))
+    bus.put(bus.key("operator/calibration"), cal, block=True)
+    return cal, level
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from common.bus import Bus, BusConfig
+    from common.service import CommonSettings, read_config, section
+
+    raw = read_config(args.config)
+    common = section(raw, "cadence", CommonSettings, args.config or "<defaults>")
+    bus_cfg = section(raw, "bus", BusConfig, args.config or "<defaults>")
+    data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or common.data_path).expanduser()
+    cell = args.cell or common.cell
+
+    async def go() -> tuple[object, object]:
+        async with await Bus.open(bus_cfg, cell) as bus:
+            with Progress(
+                TextColumn("resting windows"),
+                BarColumn(),
+                TextColumn("{task.completed:.1f}/{task.total:.1f} min"),
+                console=err,
+            ) as prog:
+                bar = prog.add_task("", total=args.minutes)
+                return await calibrate(
+                    bus,
+                    args.minutes,
+                    args.subject,
+                    data_dir,
+                    args.measured_sigma,
+                    lambda done, total: prog.update(bar, completed=done),
+                )
+
+    cal, level = asyncio.run(go())
+    out.print(
+        f"subject {cal.subject}: RR_r = {cal.rr_rest_s:.3f} s over {level.good}/{level.total} good windows; "
+        f"σ_r = {cal.sigma_rest_s:.3f} s ({'measured' if args.measured_sigma else 'the paper default'}); "
+        f"stored in {data_dir / 'calibration.json'} and published on operator/calibration"
+    )
+    return 0
+
+
 SERVICES = {
     "decision_maker": "services.decision_maker.__main__",
     "ecg_gateway": "services.ecg_gateway.__main__",
@@ -475,6 +568,25 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "windows":
             p.add_argument("--window", type=float, default=30.0, help="window length [s] (default 30)")
         p.set_defaults(func=func)
+
+    cal = sub.add_parser(
+        "calibrate",
+        help="record resting windows, compute RR_r, store and publish the subject's calibration",
+        description="Listens to hrv/window for MINUTES of data time (the ECG gateway and HRV analyser must "
+        "run), averages the good windows' mean RR into RR_r, writes DATA_DIR/calibration.json and publishes "
+        "it on operator/calibration.",
+    )
+    cal.add_argument("--minutes", type=float, default=5.0, help="resting time to record (default 5)")
+    cal.add_argument("--subject", default="subject", help="who is calibrated")
+    cal.add_argument(
+        "--measured-sigma",
+        action="store_true",
+        help="use the measured RR spread as σ_r instead of the paper's 0.14 s (moves the initial k)",
+    )
+    cal.add_argument("--config", metavar="FILE.toml", help="deployment config ([cadence], [bus])")
+    cal.add_argument("--data-dir", help="data folder (default from the config or CADENCE_DATA_DIR)")
+    cal.add_argument("--cell", help="robot cell name")
+    cal.set_defaults(func=cmd_calibrate)
 
     decide = sub.add_parser(
         "decide",

@@ -257,3 +257,25 @@ class HrvStream:
             del self._done_t[:keep], self._done_rr[:keep], self._done_kind[:keep]
             self.gaps = [g for g in self.gaps if g[1] > self._win_start]
         return out
+
+
+@dataclass(frozen=True, slots=True)
+class RestingLevel:
+    rr_rest_s: float  # mean of the good windows' mean RR
+    sigma_s: float  # spread of RR at rest: the mean of the good windows' SDNN
+    good: int
+    total: int
+
+
+def resting_level(wins: list[Window], min_good_share: float = 0.6) -> RestingLevel:
+    """RR_r for the decision rule from a calibration's windows; ValueError when too few are good."""
+    good = [w for w in wins if w.quality == "good" and w.mean_rr_s is not None]
+    if not wins or len(good) < min_good_share * len(wins):
+        raise ValueError(f"only {len(good)} of {len(wins)} windows are of good quality; check the strap")
+    sdnn = [w.sdnn_s for w in good if w.sdnn_s is not None]
+    return RestingLevel(
+        float(np.mean([w.mean_rr_s for w in good])),
+        float(np.mean(sdnn)) if sdnn else 0.0,
+        len(good),
+        len(wins),
+    )

@@ -87,3 +87,51 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
         s = step(p, s, e.mean_rr_s, e.quality == "good").state
         ks.append(s.k)
     assert got_k == ks
+
+
+@needs_data
+async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
+    tmp_path: Path, endpoint: str
+) -> None:
+    import msgspec
+
+    from cadence.cli import calibrate
+    from schemas import Calibration
+
+    rec = read_record(str(ECG / "103"))
+    n = int(100 * rec.fs)
+    csv = tmp_path / "rest.csv"
+    np.savetxt(csv, np.c_[np.arange(n) / rec.fs, rec.uv[:n]], delimiter=",", fmt="%.6f")
+    x = read_record(str(csv), fs=130.0).uv
+    offline = [
+        w
+        for w in windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)[:2]
+        if w.quality == "good"
+    ]
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        published = aiter(bus.subscribe(bus.key("operator/calibration"), Calibration))
+        analyser = InProcessService(
+            "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
+        )
+        health = aiter(bus.subscribe(bus.key("health/hrv_analyser"), ServiceStatus, maxsize=1))
+        async with asyncio.timeout(10):
+            await anext(health)
+        task = asyncio.ensure_future(calibrate(bus, 1.0, "s07", tmp_path, measured_sigma=False))
+        gateway = InProcessService(
+            "ecg_gateway",
+            gateway_main,
+            GatewaySettings(record=str(csv), speed=40.0, start_ns=START_NS),
+            tmp_path / "g",
+            endpoint,
+        )
+        async with asyncio.timeout(30):
+            cal, level = await task
+            _, sent = await anext(published)
+        for svc in (gateway, analyser):
+            await svc.close()
+    assert level.good == len(offline) == 2
+    assert cal.rr_rest_s == pytest.approx(np.mean([w.mean_rr_s for w in offline]), abs=1e-6)
+    assert cal.sigma_rest_s == 0.14 and cal.subject == "s07"
+    assert sent == cal
+    assert msgspec.json.decode((tmp_path / "calibration.json").read_bytes(), type=Calibration) == cal
