@@ -1,5 +1,5 @@
-"""ecg_gateway: an ECG source → ``ecg/samples`` (DESIGN §1, §6). Sources: ``replay`` now; ``polar`` and
-``twin`` behind the same interface next."""
+"""ecg_gateway: an ECG source → ``ecg/samples`` and ``ecg/rr`` (DESIGN §1, §6). Sources behind one
+interface: ``polar`` (the H10 over BLE) and ``replay`` (a recording); the operator twin comes next."""
 
 from __future__ import annotations
 
@@ -11,19 +11,24 @@ import msgspec
 from common.errors import ConfigError
 from common.service import CommonSettings, ServiceContext, service_main
 from schemas.ecg import EcgChunk
+from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource
 
 NAME = "ecg_gateway"
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    source: Literal["replay"] = "replay"
+    source: Literal["replay", "polar"] = "replay"
+    strap: str = "Polar H10"  # polar: MAC address or (part of) the advertised name
+    gap_timeout_s: float = 5.0  # polar: reconnect after this long without an ECG frame
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
     speed: float = 1.0  # replay: × real time; 0 = as fast as possible
     start_ns: int | None = None  # replay: data time of the first sample (default: now)
 
 
 def make_source(settings: Settings) -> EcgSource:
+    if settings.source == "polar":
+        return PolarSource(bleak_connector(settings.strap), settings.gap_timeout_s)
     if settings.record is None:
         raise ConfigError(f"[{NAME}] record: the replay source needs a record (WFDB path or CSV)")
     return ReplaySource(settings.record, settings.speed, settings.start_ns)
@@ -32,22 +37,25 @@ def make_source(settings: Settings) -> EcgSource:
 async def main(ctx: ServiceContext) -> None:
     source = make_source(ctx.settings)
     key = ctx.bus.key("ecg/samples")
-    seq = 0
+    rr_key = ctx.bus.key("ecg/rr")
+    seq = rr_seq = 0
     async for chunk in source.chunks():
-        ctx.bus.put(
-            key,
-            EcgChunk(
-                t_ns=chunk.t_ns,
-                seq=seq,
-                fs_hz=FS_HZ,
-                samples_uv=chunk.samples_uv,
-                gap=chunk.gap,
-                source=source.name,
-            ),
-            block=True,
+        if isinstance(chunk, RrChunk):
+            ctx.bus.put(rr_key, RrIntervals(t_ns=chunk.t_ns, seq=rr_seq, rr_s=chunk.rr_s, source=source.name))
+            rr_seq += 1
+            continue
+        ecg = EcgChunk(
+            t_ns=chunk.t_ns,
+            seq=seq,
+            fs_hz=FS_HZ,
+            samples_uv=chunk.samples_uv,
+            gap=chunk.gap,
+            source=source.name,
         )
+        ctx.bus.put(key, ecg, block=True)
         seq += 1
         ctx.counters["chunks"] = seq
+        ctx.counters["gaps"] += int(chunk.gap)
         if ctx.stop.is_set():
             break
     ctx.state = "source ended"

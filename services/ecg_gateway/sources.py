@@ -28,11 +28,19 @@ class Chunk:
     gap: bool = False
 
 
+@dataclass(frozen=True, slots=True)
+class RrChunk:
+    """RR intervals as the device reports them (the H10's heart-rate notifications)."""
+
+    t_ns: int
+    rr_s: list[float]
+
+
 class EcgSource(abc.ABC):
     name: str
 
     @abc.abstractmethod
-    def chunks(self) -> AsyncIterator[Chunk]: ...
+    def chunks(self) -> AsyncIterator[Chunk | RrChunk]: ...
 
 
 class ReplaySource(EcgSource):

@@ -1,0 +1,76 @@
+"""The Polar H10 source through its whole BLE path, against a fake strap that speaks real PMD bytes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.ecg_gateway.fake_h10 import FakeH10
+from services.ecg_gateway.polar import PolarSource, StrapError
+from services.ecg_gateway.sources import CHUNK, Chunk, RrChunk
+
+pytestmark = pytest.mark.asyncio
+START = 1_800_000_000_000_000_000
+UV = (np.sin(np.arange(CHUNK * 200) / 7.0) * 900).round()
+
+
+def connector(*plans: dict, fail_first: int = 0):
+    """A connector that hands out one fake connection per plan, after ``fail_first`` failures."""
+    calls = {"n": 0}
+
+    async def connect(on_disconnect):
+        calls["n"] += 1
+        if calls["n"] <= fail_first:
+            raise StrapError("no strap in range")
+        plan = plans[min(calls["n"] - fail_first - 1, len(plans) - 1)]
+        return FakeH10(UV, START, on_disconnect, **plan)
+
+    return connect
+
+
+async def take(source: PolarSource, n: int) -> tuple[list[Chunk], list[RrChunk]]:
+    chunks, rr = [], []
+    async for c in source.chunks():
+        (chunks if isinstance(c, Chunk) else rr).append(c)
+        if len(chunks) == n:
+            break
+    return chunks, rr
+
+
+def frame_of(c: Chunk) -> int:
+    return round((c.t_ns - START) * 130 / 1e9) // CHUNK
+
+
+async def test_frames_become_chunks_on_data_time_with_device_rr() -> None:
+    chunks, rr = await take(PolarSource(connector({})), 40)
+    assert [frame_of(c) for c in chunks] == list(range(40))
+    assert chunks[5].samples_uv == UV[5 * CHUNK : 6 * CHUNK].astype(int).tolist()
+    assert not any(c.gap for c in chunks)
+    assert rr and rr[0].rr_s == [820 / 1024]
+
+
+async def test_garbled_frames_are_counted_and_skipped() -> None:
+    source = PolarSource(connector({"garbage_every": 5}))
+    chunks, _ = await take(source, 30)
+    assert [frame_of(c) for c in chunks] == list(range(30)) and source.bad_frames >= 5
+
+
+async def test_a_dropped_link_reconnects_and_reports_the_gap() -> None:
+    source = PolarSource(connector({"drop_after": 20}, {"start": 30}))
+    chunks, _ = await take(source, 40)
+    frames = [frame_of(c) for c in chunks]
+    assert frames[:20] == list(range(20)) and frames[20] == 30
+    assert chunks[20].gap and not any(c.gap for i, c in enumerate(chunks) if i != 20)
+    assert source.reconnects == 1
+
+
+async def test_a_silent_link_is_caught_by_the_data_gap_watchdog() -> None:
+    source = PolarSource(connector({"silent_after": 10}, {"start": 12}), gap_timeout_s=0.2)
+    chunks, _ = await take(source, 15)
+    assert frame_of(chunks[10]) == 12 and chunks[10].gap and source.reconnects == 1
+
+
+async def test_a_strap_out_of_range_is_retried_with_back_off() -> None:
+    source = PolarSource(connector({}, fail_first=2), backoff_s=(0.01, 0.02))
+    chunks, _ = await take(source, 5)
+    assert [frame_of(c) for c in chunks] == [0, 1, 2, 3, 4] and not chunks[0].gap
