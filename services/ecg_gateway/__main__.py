@@ -10,9 +10,9 @@ import msgspec
 
 from common.errors import ConfigError
 from common.service import CommonSettings, ServiceContext, service_main
-from schemas.ecg import EcgChunk
+from schemas.ecg import EcgChunk, RrIntervals
 from services.ecg_gateway.polar import PolarSource, bleak_connector
-from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource
+from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
 
 NAME = "ecg_gateway"
 
