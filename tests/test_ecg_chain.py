@@ -28,13 +28,19 @@ pytestmark = pytest.mark.asyncio
 START_NS = 1_800_000_000_000_000_000
 
 
+def record_cut(tmp_path: Path, name: str, seconds: float) -> tuple[Path, np.ndarray]:
+    """The first seconds of a shared record as a CSV (what the gateway replays), and those seconds
+    resampled to 130 Hz (what the offline reference analyses)."""
+    rec = read_record(str(ECG / name))
+    n = int(seconds * rec.fs)
+    csv = tmp_path / f"{name}.csv"
+    np.savetxt(csv, np.c_[np.arange(n) / rec.fs, rec.uv[:n]], delimiter=",", fmt="%.6f")
+    return csv, read_record(str(csv), fs=130.0).uv
+
+
 @needs_data
 async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) -> None:
-    rec = read_record(str(ECG / "100"))
-    n = int(125 * rec.fs)
-    csv = tmp_path / "cut.csv"
-    np.savetxt(csv, np.c_[np.arange(n) / rec.fs, rec.uv[:n]], delimiter=",", fmt="%.6f")
-    x = read_record(str(csv), fs=130.0).uv
+    csv, x = record_cut(tmp_path, "100", 125)
     expected = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
@@ -98,11 +104,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     from cadence.cli import calibrate
     from schemas import Calibration
 
-    rec = read_record(str(ECG / "103"))
-    n = int(100 * rec.fs)
-    csv = tmp_path / "rest.csv"
-    np.savetxt(csv, np.c_[np.arange(n) / rec.fs, rec.uv[:n]], delimiter=",", fmt="%.6f")
-    x = read_record(str(csv), fs=130.0).uv
+    csv, x = record_cut(tmp_path, "103", 100)
     offline = [
         w
         for w in windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)[:2]
