@@ -21,6 +21,7 @@ NEIGHBOURS = 5  # on each side, for the local median
 MIN_RR_S, MAX_RR_S = 0.25, 2.5  # physiological bounds (240 and 24 beats per minute)
 MAX_EXCLUDED = 0.2  # a window with more excluded intervals than this is low quality
 MIN_COVERAGE = 0.6  # clean intervals must cover this share of the window
+RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the notification time: a gap
 
 Kind = Literal["ok", "missed", "extra", "ectopic", "implausible"]
 Gaps = tuple[tuple[float, float], ...] | list[tuple[float, float]]  # (start, end) of missing data, s
@@ -187,6 +188,7 @@ class HrvStream:
         self.gaps: list[tuple[float, float]] = []
         self._win_start: float | None = None
         self._now = 0.0
+        self._rr_gap = False
         self.segments = 0  # counts the detector's fresh starts (the first, and one after each gap)
 
     def feed(
@@ -212,19 +214,50 @@ class HrvStream:
         self._classify(final=False)
         return peaks, self._close_windows(final=False)
 
+    def feed_rr(self, t_s: float, rr_s: list[float], gap: bool = False) -> tuple[list[float], list[Window]]:
+        """Device RR (a strap that sends no ECG) instead of samples; ``t_s`` is the notification time.
+
+        The device gives intervals, not beat times: the beats are placed by summing them from an anchor,
+        the notification time of a segment's first intervals. A flagged gap, or a summed clock that
+        strays from the notification time by more than ``RR_RESYNC_S`` (notifications were lost), starts
+        a new segment, so no interval is formed across missing beats. The same cleaning and windows as
+        for samples follow.
+        """
+        if self._win_start is None:
+            self._win_start = t_s - sum(rr_s)
+        gap, self._rr_gap = gap or self._rr_gap, bool(gap and not rr_s)  # a gap flagged with no RR yet
+        peaks: list[float] = []
+        last = self._seg_peaks[-1] if self._seg_peaks else None
+        strayed = last is not None and abs(last + sum(rr_s) - t_s) > RR_RESYNC_S
+        if rr_s and (gap or strayed or last is None):
+            if last is not None:
+                peaks += self._end_segment()
+                self.gaps.append((last, t_s - sum(rr_s)))
+            self.segments += 1
+            last = t_s - sum(rr_s)
+            peaks += self._add_times([last])
+        for rr in rr_s:
+            last += rr
+            peaks += self._add_times([last])
+        self._now = max(self._now, t_s, *peaks)
+        self._classify(final=False)
+        return peaks, self._close_windows(final=False)
+
     def flush(self) -> tuple[list[float], list[Window]]:
-        peaks = self._end_segment() if self._det is not None else []
+        peaks = self._end_segment() if self._det is not None or self._seg_peaks else []
         self._det = None
         return peaks, self._close_windows(final=True)
 
     def _end_segment(self) -> list[float]:
-        peaks = self._add_peaks(self._det.flush())
+        peaks = self._add_peaks(self._det.flush()) if self._det is not None else []
         self._classify(final=True)
         self._seg_peaks, self._seg_rr, self._seg_t, self._classified = [], [], [], 0
         return peaks
 
     def _add_peaks(self, idx: list[int]) -> list[float]:
-        times = [self._seg_t0 + i / self.fs for i in sorted(idx)]
+        return self._add_times([self._seg_t0 + i / self.fs for i in sorted(idx)])
+
+    def _add_times(self, times: list[float]) -> list[float]:
         for t in times:
             if self._seg_peaks:
                 self._seg_rr.append(t - self._seg_peaks[-1])

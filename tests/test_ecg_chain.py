@@ -137,3 +137,34 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     assert cal.sigma_rest_s == 0.14 and cal.subject == "s07"
     assert sent == cal
     assert msgspec.json.decode((tmp_path / "calibration.json").read_bytes(), type=Calibration) == cal
+
+
+@needs_data
+async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str) -> None:
+    from schemas import RrIntervals
+    from tests.test_hrv import device_rr
+
+    beats = read_record(str(ECG / "100"), fs=130.0).beats_s
+    beats = beats[beats < 100.0]
+    expected = windows(intervals(beats), 30.0, start_s=float(beats[0]), end_s=float(beats[-1]))
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
+        analyser = InProcessService(
+            "hrv_analyser", analyser_main, AnalyserSettings(input="rr"), tmp_path / "a", endpoint
+        )
+        health = aiter(bus.subscribe(bus.key("health/hrv_analyser"), ServiceStatus, maxsize=1))
+        async with asyncio.timeout(10):
+            await anext(health)
+        for i, (t, rr) in enumerate(device_rr(beats)):
+            msg = RrIntervals(t_ns=START_NS + round(t * 1e9), seq=i, rr_s=rr)
+            bus.put(bus.key("ecg/rr"), msg, block=True)
+        got = []
+        async with asyncio.timeout(10):
+            while len(got) < len(expected) - 1:  # the last window closes only when data time passes it
+                got.append((await anext(wins))[1])
+        await analyser.close()
+    for w, e in zip(got, expected, strict=False):
+        assert w.start_ns - START_NS == pytest.approx(e.start_s * 1e9, abs=2)
+        assert w.mean_rr_s == pytest.approx(e.mean_rr_s, abs=1e-9) and w.n_beats == e.n_beats
+        assert w.quality == e.quality == "good"

@@ -127,3 +127,49 @@ def test_the_stream_breaks_at_a_gap_and_flags_its_window() -> None:
     assert by_start[30.0].quality == "low"
     assert by_start[0.0].quality == "good" and by_start[90.0].quality == "good"
     assert len(stream.gaps) <= 1
+
+
+def device_rr(beats: np.ndarray, every_s: float = 1.0) -> list[tuple[float, list[float]]]:
+    """The strap's notifications for these beats: about once a second, the intervals ended since the last
+    one, sent at the time of the last beat (the H10's RR stream)."""
+    out: list[tuple[float, list[float]]] = []
+    j = 1
+    for k in range(2, len(beats) + 1):
+        if k == len(beats) or beats[k] - beats[j - 1] > every_s:
+            out.append((float(beats[k - 1]), np.diff(beats[j - 1 : k]).tolist()))
+            j = k
+    return out
+
+
+@needs_data
+def test_device_rr_gives_the_windows_of_the_same_beats() -> None:
+    beats = read_record(str(ECG / "208"), fs=130.0).beats_s
+    beats = beats[beats < 600.0]
+    offline = windows(intervals(beats), 30.0, start_s=float(beats[0]), end_s=float(beats[-1]))
+    stream, online = HrvStream(1024.0), []
+    for t, rr in device_rr(beats):
+        online += stream.feed_rr(t, rr)[1]
+    online += stream.flush()[1]
+    assert len(online) == len(offline) == 19
+    for a, b in zip(online, offline, strict=True):
+        assert (a.start_s, a.n_beats, a.quality) == pytest.approx((b.start_s, b.n_beats, b.quality))
+        assert a.mean_rr_s == pytest.approx(b.mean_rr_s, abs=1e-9)
+    assert {w.quality for w in online} >= {"good", "low"}  # record 208's ectopic runs are seen in RR too
+
+
+@needs_data
+def test_lost_rr_notifications_form_no_interval_across_them() -> None:
+    beats = read_record(str(ECG / "100"), fs=130.0).beats_s
+    beats = beats[beats < 120.0]
+    stream, online = HrvStream(1024.0), []
+    for t, rr in device_rr(beats):
+        if 45.0 <= t < 55.0:
+            continue  # ten seconds of notifications never arrive, and nothing flags it
+        online += stream.feed_rr(t, rr)[1]
+    online += stream.flush()[1]
+    assert stream.segments == 2 and len(stream.gaps) <= 1
+    first = float(beats[0])
+    by_start = {round(w.start_s - first): w for w in online}
+    # an interval across the lost stretch would be ~10 s long, implausible, and excluded
+    assert by_start[30].quality == "low" and by_start[30].excluded == 0.0
+    assert by_start[0].quality == "good" and by_start[60].quality == "good"

@@ -1,22 +1,28 @@
 """hrv_analyser: ``ecg/samples`` → R peaks, cleaned RR, windows → ``hrv/beats``, ``hrv/window``
-(DESIGN §1, §4, §6). All on data time: a replay at any speed gives the same windows as live."""
+(DESIGN §1, §4, §6). All on data time: a replay at any speed gives the same windows as live.
+
+``input = "rr"`` takes the device's RR intervals (``ecg/rr``) instead, for a source that sends no ECG;
+the H10's own RR leaves out premature beats, so samples are the default and the better input."""
 
 from __future__ import annotations
 
 import sys
+from typing import Literal
 
 import msgspec
 
 from common.hrv import MAX_RR_S, MIN_RR_S, HrvStream, Window
 from common.service import ServiceContext, service_main
-from schemas.ecg import EcgChunk
+from schemas.ecg import EcgChunk, RrIntervals
 from schemas.hrv import Beats, HrvWindow
 
 NAME = "hrv_analyser"
+RR_RESOLUTION_HZ = 1024.0  # device RR comes in 1/1024 s; no detector runs on this input
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     window_s: float = 30.0
+    input: Literal["samples", "rr"] = "samples"
 
 
 async def main(ctx: ServiceContext) -> None:
@@ -31,8 +37,10 @@ async def main(ctx: ServiceContext) -> None:
     def ns(t_s: float) -> int:
         return origin_ns + round(t_s * 1e9)
 
-    def publish(peaks: list[float], wins: list[Window]) -> None:
+    def publish(peaks: list[float], wins: list[Window], fresh: bool) -> None:
         nonlocal last_peak
+        if fresh:  # a new segment: no interval reaches back across its gap
+            last_peak = None
         if peaks:
             # the RR ending at each peak; 0 for the first peak of a segment (none spans a gap)
             rr = [
@@ -72,16 +80,25 @@ async def main(ctx: ServiceContext) -> None:
             ctx.counters["windows"] += 1
 
     async def on_chunk(_: str, chunk: EcgChunk) -> None:
-        nonlocal stream, origin_ns, last_peak
+        nonlocal stream, origin_ns
         if stream is None or chunk.fs_hz != stream.fs:
             stream, origin_ns = HrvStream(chunk.fs_hz, settings.window_s), chunk.t_ns
         segments = stream.segments
         peaks, wins = stream.feed((chunk.t_ns - origin_ns) / 1e9, chunk.samples_uv, chunk.gap)
-        if stream.segments != segments:
-            last_peak = None
-        publish(peaks, wins)
+        publish(peaks, wins, fresh=stream.segments != segments)
 
-    bus.handle(bus.key("ecg/samples"), EcgChunk, on_chunk, maxsize=10_000)
+    async def on_rr(_: str, msg: RrIntervals) -> None:
+        nonlocal stream, origin_ns
+        if stream is None:
+            stream, origin_ns = HrvStream(RR_RESOLUTION_HZ, settings.window_s), msg.t_ns
+        segments = stream.segments
+        peaks, wins = stream.feed_rr((msg.t_ns - origin_ns) / 1e9, msg.rr_s, msg.gap)
+        publish(peaks, wins, fresh=stream.segments != segments)
+
+    if settings.input == "rr":
+        bus.handle(bus.key("ecg/rr"), RrIntervals, on_rr, maxsize=10_000)
+    else:
+        bus.handle(bus.key("ecg/samples"), EcgChunk, on_chunk, maxsize=10_000)
     await ctx.stop.wait()
 
 
