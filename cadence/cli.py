@@ -418,6 +418,7 @@ SERVICES = {
     "decision_maker": "services.decision_maker.__main__",
     "ecg_gateway": "services.ecg_gateway.__main__",
     "hrv_analyser": "services.hrv_analyser.__main__",
+    "executor": "services.executor.__main__",
     "pareto_store": "services.pareto_store.__main__",
 }
 

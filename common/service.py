@@ -34,6 +34,7 @@ from typing import Any, Literal, TypeVar
 import msgspec
 
 from common.bus import Bus, BusConfig
+from common.clock import Clock
 from common.errors import BusError, ConfigError, InputError
 from schemas.health import ServiceStatus
 
@@ -49,10 +50,17 @@ class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     data_dir: str = "~/.local/share/cadence"
     log_format: Literal["auto", "text", "json"] = "auto"
     status_period_s: float = 5.0
+    # data time (common/clock.py): one epoch and speed for every process of a simulated run
+    speed: float = 1.0
+    epoch_ns: int | None = None
 
     @property
     def data_path(self) -> Path:
         return Path(self.data_dir).expanduser()
+
+    @property
+    def clock(self) -> Clock:
+        return Clock(self.speed, self.epoch_ns)
 
 
 def read_config(path: str | None) -> dict[str, Any]:

@@ -69,3 +69,17 @@ def check_trajectory(
     problems = trajectory_problems(h, path, limits, claimed_waypoints)
     if problems:
         raise TrajectoryRejected(path.id, problems)
+
+
+def validated_samples(
+    h: np.ndarray,
+    path: PathPlan,
+    limits: JointLimits,
+    claimed_waypoints: np.ndarray | None = None,
+    rate_hz: float = 500.0,
+) -> np.ndarray:
+    """What the executor servos: the checked trajectory as joint positions at ``rate_hz``, (m, D), the
+    first row the path's first waypoint and the last its last. Raises ``TrajectoryRejected``."""
+    check_trajectory(h, path, limits, claimed_waypoints)
+    _, q, _, _ = bs.sample(np.asarray(h, dtype=float), path.waypoints, path.boundary, rate_hz)
+    return q

@@ -13,3 +13,10 @@ class Calibration(Message, frozen=True, tag="operator.calibration.v1"):
     sigma_rest_s: PositiveFloat = 0.14
     rr_stress_offset_s: PositiveFloat = 0.08
     sigma_stress_s: PositiveFloat = 0.08
+
+
+class OperatorSignal(Message, frozen=True, tag="operator.signal.v1"):
+    """The operator (a button, a light curtain, the twin) says something the task waits for
+    (``wait_for`` in the task program): ``name`` is that step's name, e.g. ``part_a2``."""
+
+    name: str

@@ -1,0 +1,38 @@
+"""Data time for sources (DESIGN §4): services reason on data time only; the few that look at the wall
+clock (ECG sources, the executor's servo clock, the operator twin) read it through a ``Clock``, so that a
+simulation can run every service ``speed`` times faster than real time on one shared time base.
+
+All processes of one run share ``epoch_ns`` (a wall-clock instant) and ``speed``: data time is
+``epoch + (wall − epoch) · speed``, whoever computes it. Without an epoch data time is wall time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class Clock:
+    speed: float = 1.0
+    epoch_ns: int | None = None
+
+    def __post_init__(self) -> None:
+        if not self.speed > 0:
+            raise ValueError(f"speed must be positive, got {self.speed}")
+
+    def data_ns(self, wall_ns: int) -> int:
+        if self.epoch_ns is None:
+            return wall_ns
+        return self.epoch_ns + round((wall_ns - self.epoch_ns) * self.speed)
+
+    def now_ns(self) -> int:
+        return self.data_ns(time.time_ns())
+
+    def wall_s(self, data_s: float) -> float:
+        """How long a stretch of data time takes on the wall clock."""
+        return data_s / self.speed
+
+    async def sleep(self, data_s: float) -> None:
+        await asyncio.sleep(max(0.0, data_s) / self.speed)

@@ -1,0 +1,228 @@
+"""The executor's robots behind one interface (DESIGN §8): ``sim``, a simulated UR16e (common/arm.py),
+and ``ur_rtde``, a UR16e (or URSim, or the emulator) through the real ``ur-rtde`` client.
+
+``servo``, ``brake`` and ``settled`` run inside the servo loop; the rest runs outside it, in a worker
+thread of the service (they block: moveJ waits for the motion, connecting waits for the controller).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from common.arm import DT, SimArm, forward_kinematics, move_j_profile
+from common.errors import CadenceError
+from common.limits import UR16E, JointLimits
+
+Array = NDArray[np.float64]
+
+
+class RobotUnavailable(CadenceError):
+    """The robot (or its controller) cannot be reached; the message names where."""
+
+
+class Backend(Protocol):
+    name: str
+
+    def connect(self) -> None: ...
+    def close(self) -> None: ...
+    def actual_q(self) -> Array: ...
+    def actual_qd(self) -> Array: ...
+    def tcp_pose(self) -> Array: ...
+    def fault(self) -> str: ...  # "" while the arm may move; else why not (protective stop, lost link)
+    def reset_fault(self) -> None: ...
+    def prepare(self, q: Array) -> Sequence[object]: ...  # the targets in the form servo takes
+    def servo(self, target: object) -> bool: ...
+    def brake(self) -> bool: ...
+    def settled(self, target: object) -> bool: ...
+    def move_j(self, q: Array, speed: float, acceleration: float) -> bool: ...
+    def stop_move(self) -> None: ...  # from another thread: end a move_j now, decelerating
+    def set_gripper(self, on: bool) -> None: ...
+
+
+class SimBackend:
+    """The simulated UR16e. Its time is the servo loop's: one controller step per target sent, so at
+    ``speed`` X the arm moves X times faster than real time, exactly as far per step."""
+
+    name = "sim"
+
+    def __init__(
+        self,
+        q0: Array,
+        *,
+        lookahead: float = 0.1,
+        gain: float = 300.0,
+        stop_deceleration: float = 4.0,
+        settle_tol: float = 1e-4,
+        speed: float = 1.0,
+        limits: JointLimits = UR16E,
+        gripper_output: int = 0,
+    ) -> None:
+        self.arm = SimArm(q0, limits)
+        self.lookahead, self.gain = lookahead, gain
+        self.stop_deceleration, self.settle_tol = stop_deceleration, settle_tol
+        self.speed = speed
+        self.gripper_output = gripper_output
+        self._abort = False
+
+    def connect(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def actual_q(self) -> Array:
+        return self.arm.q.copy()
+
+    def actual_qd(self) -> Array:
+        return self.arm.qd.copy()
+
+    def tcp_pose(self) -> Array:
+        return forward_kinematics(self.arm.q.copy())
+
+    def fault(self) -> str:
+        return self.arm.fault
+
+    def reset_fault(self) -> None:
+        self.arm.unlock()
+
+    def prepare(self, q: Array) -> Sequence[object]:
+        return list(np.ascontiguousarray(q, dtype=float))  # row views: indexing allocates nothing
+
+    def servo(self, target: object) -> bool:
+        return self.arm.servo(target, self.lookahead, self.gain)  # type: ignore[arg-type]
+
+    def brake(self) -> bool:
+        return self.arm.brake(self.stop_deceleration)
+
+    def settled(self, target: object) -> bool:
+        return float(np.max(np.abs(np.asarray(target) - self.arm.q))) <= self.settle_tol
+
+    def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
+        for row in move_j_profile(self.arm.q, q, speed, acceleration):
+            if self._abort:
+                while not self.arm.brake(acceleration):
+                    time.sleep(DT / self.speed)
+                return False
+            if not self.arm.jump_to(row):
+                return False
+            time.sleep(DT / self.speed)
+        return True
+
+    def stop_move(self) -> None:
+        self._abort = True
+
+    def set_gripper(self, on: bool) -> None:
+        bit = 1 << self.gripper_output
+        self.arm.digital_out = (self.arm.digital_out | bit) if on else (self.arm.digital_out & ~bit)
+
+
+class UrRtdeBackend:
+    """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
+    every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
+    slow start-up move, a standard digital output for the gripper."""
+
+    name = "ur_rtde"
+
+    def __init__(
+        self,
+        host: str,
+        *,
+        lookahead: float = 0.1,
+        gain: float = 300.0,
+        stop_deceleration: float = 4.0,
+        settle_tol: float = 1e-3,
+        watchdog_hz: float = 10.0,
+        gripper_output: int = 0,
+    ) -> None:
+        if not 0.03 <= lookahead <= 0.2 or not 100 <= gain <= 2000:
+            raise ValueError(f"servoJ takes lookahead 0.03–0.2 s and gain 100–2000, got {lookahead}, {gain}")
+        self.host = host
+        self.lookahead, self.gain = lookahead, gain
+        self.stop_deceleration, self.settle_tol = stop_deceleration, settle_tol
+        self.watchdog_hz = watchdog_hz
+        self.gripper_output = gripper_output
+        self._c = self._r = self._io = None
+        self._lost = ""
+
+    def connect(self) -> None:
+        import rtde_control
+        import rtde_io
+        import rtde_receive
+
+        try:
+            self._r = rtde_receive.RTDEReceiveInterface(self.host, 500.0)
+            self._c = rtde_control.RTDEControlInterface(self.host, 500.0)
+            self._io = rtde_io.RTDEIOInterface(self.host)
+        except RuntimeError as exc:
+            self.close()
+            raise RobotUnavailable(f"UR controller at {self.host}: {exc}") from None
+        self._c.setWatchdog(self.watchdog_hz)
+        self._lost = ""
+
+    def close(self) -> None:
+        for iface in (self._c, self._io, self._r):
+            if iface is not None:
+                with contextlib.suppress(RuntimeError):
+                    iface.disconnect()
+        self._c = self._r = self._io = None
+
+    def actual_q(self) -> Array:
+        return np.array(self._r.getActualQ())
+
+    def actual_qd(self) -> Array:
+        return np.array(self._r.getActualQd())
+
+    def tcp_pose(self) -> Array:
+        return np.array(self._r.getActualTCPPose())
+
+    def fault(self) -> str:
+        if self._lost or self._c is None or not self._c.isConnected():
+            return self._lost or f"no connection to the controller at {self.host}"
+        if self._r.isProtectiveStopped():
+            return "protective stop"
+        if self._r.isEmergencyStopped():
+            return "emergency stop"
+        return ""
+
+    def reset_fault(self) -> None:
+        self.close()
+        self.connect()
+
+    def prepare(self, q: Array) -> Sequence[object]:
+        return np.asarray(q, dtype=float).tolist()
+
+    def servo(self, target: object) -> bool:
+        try:
+            ok = self._c.servoJ(target, 0.0, 0.0, DT, self.lookahead, self.gain)
+            self._c.kickWatchdog()
+        except RuntimeError:
+            self._lost = "connection to the controller lost during motion"
+            return False
+        return bool(ok)
+
+    def brake(self) -> bool:
+        try:
+            self._c.servoStop(self.stop_deceleration)
+        except RuntimeError:
+            self._lost = "connection to the controller lost while stopping"
+        return True  # the controller decelerates on its own
+
+    def settled(self, target: object) -> bool:
+        return float(np.max(np.abs(np.asarray(target) - self.actual_q()))) <= self.settle_tol
+
+    def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
+        return bool(self._c.moveJ(np.asarray(q, float).tolist(), speed, acceleration))
+
+    def stop_move(self) -> None:
+        if self._c is not None:
+            with contextlib.suppress(RuntimeError):
+                self._c.stopJ(self.stop_deceleration, False)
+
+    def set_gripper(self, on: bool) -> None:
+        self._io.setStandardDigitalOut(self.gripper_output, on)

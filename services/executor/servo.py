@@ -1,0 +1,217 @@
+"""The 500 Hz servo loop (DESIGN §8, §11): one thread of its own, pinned to a core, SCHED_FIFO when
+permitted, garbage collection frozen and off during motion, memory locked when permitted.
+
+Inside the loop there is no logging, no bus I/O and no container that grows: the targets are prepared
+before the motion starts, the per-tick timing goes into a preallocated ring, and the loop only indexes,
+waits and sends. Deadlines are absolute (tick i is due at t0 + i·period), so a late tick never shifts the
+ones after it: the thread sleeps until a few hundred µs before the deadline, then spins.
+
+Faster than real time (``speed`` > 1, sim only): a tick of 2 ms·steps/speed wall time sends ``steps``
+consecutive samples, so the arm still sees one 2 ms step per sample and the CPU is not spent spinning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import gc
+import math
+import os
+import queue
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from common.timing import TickSummary, summarise
+
+PERIOD_NS = 2_000_000  # 500 Hz: one e-Series controller step
+MCL_CURRENT, MCL_FUTURE = 1, 2
+PR_SET_TIMERSLACK = 29
+
+
+class ServoBackend(Protocol):
+    """What the loop needs of a backend; every call here runs inside the loop."""
+
+    def servo(self, target: object) -> bool: ...  # False: the arm refused (protective stop, lost link)
+    def brake(self) -> bool: ...  # one step of a decelerating stop; True once at rest
+    def settled(self, target: object) -> bool: ...
+
+
+Outcome = Literal["done", "stopped", "fault", "overruns"]
+
+
+@dataclass(frozen=True, slots=True)
+class MotionResult:
+    outcome: Outcome
+    samples_sent: int
+    ticks: int
+    overruns: int
+
+
+@dataclass(slots=True)
+class _Job:
+    targets: Sequence[object]
+    settle_ticks: int
+    future: Future[MotionResult]
+
+
+class ServoLoop:
+    def __init__(
+        self,
+        backend: ServoBackend,
+        *,
+        core: int | None = None,
+        fifo_priority: int = 80,
+        lock_memory: bool = True,
+        speed: float = 1.0,
+        spin_us: int = 400,
+        ring: int = 1 << 17,
+        overrun_limit: int = 5,
+    ) -> None:
+        if speed <= 1.0:
+            self.steps, self.period_ns = 1, round(PERIOD_NS / speed)
+        else:
+            self.steps = math.ceil(speed)
+            self.period_ns = round(PERIOD_NS * self.steps / speed)
+        self.backend = backend
+        self.core, self.fifo_priority, self.lock_memory = core, fifo_priority, lock_memory
+        self.spin_ns = spin_us * 1000
+        self.overrun_limit = overrun_limit
+        self.errors_ns = np.zeros(ring, dtype=np.int64)  # |late| per tick, ns: a ring
+        self.ticks = 0  # since the last reset
+        self.overruns = 0
+        self.index = -1  # the sample being sent: read by the state publisher, written only here
+        self.warnings: list[str] = []  # what the set-up could not get (FIFO, mlock), for the service to log
+        self._stop = False
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="servo", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+        self._ready.wait()
+
+    def run(self, targets: Sequence[object], settle_ticks: int = 0) -> Future[MotionResult]:
+        """Queue one motion: the targets, one per sample, then up to ``settle_ticks`` ticks holding the
+        last one until the backend says the arm has settled on it."""
+        fut: Future[MotionResult] = Future()
+        self._jobs.put(_Job(targets, settle_ticks, fut))
+        return fut
+
+    def request_stop(self) -> None:
+        """A decelerating stop of the current motion (SIGTERM, a shutdown); final: motions queued after
+        it only brake."""
+        self._stop = True
+
+    def close(self) -> None:
+        self._stop = True
+        self._jobs.put(None)
+        self._thread.join(timeout=5.0)
+
+    def reset_timing(self) -> None:
+        self.ticks = self.overruns = 0
+
+    def summary(self) -> TickSummary:
+        return summarise(self.errors_ns, self.ticks, self.overruns, self.period_ns)
+
+    # --- the thread -------------------------------------------------------------------------------
+
+    def _main(self) -> None:
+        self._setup()
+        self._ready.set()
+        while (job := self._jobs.get()) is not None:
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+            try:
+                result = self._servo(job.targets, job.settle_ticks)
+            except BaseException as exc:  # the future carries it to the service
+                job.future.set_exception(exc)
+            else:
+                job.future.set_result(result)
+            finally:
+                gc.enable()
+                gc.unfreeze()
+                self.index = -1
+
+    def _setup(self) -> None:
+        if self.core is not None:
+            try:
+                os.sched_setaffinity(0, {self.core})
+            except OSError as exc:
+                self.warnings.append(f"could not pin the servo thread to core {self.core}: {exc.strerror}")
+        if self.fifo_priority > 0:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+            except OSError as exc:
+                self.warnings.append(
+                    f"SCHED_FIFO not permitted ({exc.strerror}); the servo thread runs at normal priority. "
+                    "Grant LimitRTPRIO= in the unit."
+                )
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        with contextlib.suppress(AttributeError):
+            libc.prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)  # wake at the deadline, not 50 µs later
+        if self.lock_memory and libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+            self.warnings.append(
+                f"memory not locked ({os.strerror(ctypes.get_errno())}); grant LimitMEMLOCK= in the unit"
+            )
+
+    def _servo(self, targets: Sequence[object], settle_ticks: int) -> MotionResult:
+        backend, errors, ring = self.backend, self.errors_ns, self.errors_ns.size
+        period, spin, steps, limit = self.period_ns, self.spin_ns, self.steps, self.overrun_limit
+        clock, sleep = time.perf_counter_ns, time.sleep
+        n, last = len(targets), targets[-1]
+        sent = tick = run_of_overruns = overruns = 0
+        outcome: Outcome = "done"
+        braking = False  # a decelerating stop, paced like any motion
+        t0 = clock() + period
+        while True:
+            deadline = t0 + tick * period
+            ahead = deadline - clock() - spin
+            if ahead > 0:
+                sleep(ahead * 1e-9)
+            now = clock()
+            while now < deadline:
+                now = clock()
+            errors[(self.ticks + tick) % ring] = now - deadline
+            tick += 1
+            if self._stop and not braking:
+                braking, outcome = True, "stopped"
+            ok, at_rest = True, False
+            for _ in range(steps):
+                if braking:
+                    at_rest = backend.brake()
+                    if at_rest:
+                        break
+                elif sent < n:
+                    self.index = sent
+                    ok = backend.servo(targets[sent])
+                    sent += 1
+                else:
+                    ok = backend.servo(last)
+                    settle_ticks -= 1
+                if not ok:
+                    break
+            if not ok:
+                outcome = "fault"
+                break
+            if at_rest:
+                break
+            if clock() > deadline + period:
+                overruns += 1
+                run_of_overruns += 1
+                if run_of_overruns >= limit and not braking:
+                    braking, outcome = True, "overruns"
+            else:
+                run_of_overruns = 0
+            if not braking and sent >= n and (settle_ticks <= 0 or backend.settled(last)):
+                break
+        self.ticks += tick
+        self.overruns += overruns
+        return MotionResult(outcome, sent, tick, overruns)

@@ -1,0 +1,92 @@
+"""The servo loop (services/executor/servo.py) on the sim backend: outcomes, pacing, stops, overruns."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from common.task import load_task
+from common.validate import validated_samples
+from services.executor.backends import SimBackend
+from services.executor.servo import PERIOD_NS, ServoLoop
+from tests.conftest import EXAMPLE_TASK
+
+
+@pytest.fixture(scope="module")
+def samples() -> np.ndarray:
+    task = load_task(EXAMPLE_TASK)
+    path = task.paths["b2_to_a2"]
+    return validated_samples(np.full(len(path.waypoints) + 1, 0.4), path, task.limits)
+
+
+class Scripted(SimBackend):
+    """The sim arm, with something happening at a given step: a test's hook into the loop."""
+
+    def __init__(self, q0: np.ndarray, at: int, what, **kw) -> None:
+        super().__init__(q0, **kw)
+        self.at, self.what, self.calls = at, what, 0
+
+    def servo(self, target: object) -> bool:
+        self.calls += 1
+        if self.calls >= self.at:
+            ok = self.what(self)
+            if ok is not None:
+                return ok
+        return super().servo(target)
+
+
+def run(backend: SimBackend, q: np.ndarray, speed: float = 1.0, **kw):
+    loop = ServoLoop(backend, core=None, fifo_priority=0, lock_memory=False, speed=speed, **kw)
+    loop.start()
+    try:
+        return loop, loop.run(backend.prepare(q), settle_ticks=250).result(timeout=60)
+    finally:
+        loop.close()
+
+
+def test_a_motion_is_sent_sample_by_sample_and_the_arm_settles_on_its_end(samples: np.ndarray) -> None:
+    sim = SimBackend(samples[0])
+    loop, r = run(sim, samples)
+    assert r.outcome == "done" and r.samples_sent == len(samples)
+    assert len(samples) <= r.ticks <= len(samples) + 250
+    assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4 and not sim.fault()
+    s = loop.summary()
+    assert s.ticks == r.ticks and s.period_us == PERIOD_NS // 1000 and s.p50_err_us <= s.max_err_us
+
+
+def test_faster_than_real_time_sends_several_samples_per_tick(samples: np.ndarray) -> None:
+    sim = SimBackend(samples[0], speed=10.0)
+    _, r = run(sim, samples, speed=10.0)
+    assert r.outcome == "done" and r.samples_sent == len(samples)
+    assert r.ticks <= len(samples) / 10 + 26
+    assert sim.arm.steps >= len(samples)  # the arm still took one 2 ms step per sample
+
+
+def test_a_stop_request_brakes_to_rest_before_the_end(samples: np.ndarray) -> None:
+    loop_ref: list[ServoLoop] = []
+    sim = Scripted(samples[0], len(samples) // 2, lambda b: loop_ref[0].request_stop(), speed=20.0)
+    loop = ServoLoop(sim, core=None, fifo_priority=0, lock_memory=False, speed=20.0)
+    loop_ref.append(loop)
+    loop.start()
+    r = loop.run(sim.prepare(samples), 250).result(timeout=60)
+    loop.close()
+    assert r.outcome == "stopped" and r.samples_sent < len(samples)
+    assert np.all(sim.arm.qd == 0.0) and np.max(np.abs(sim.arm.q - samples[-1])) > 0.01
+
+
+def test_a_run_of_overruns_stops_the_robot(samples: np.ndarray) -> None:
+    def stall(b: SimBackend) -> None:
+        time.sleep(0.005)  # 2.5 periods
+
+    sim = Scripted(samples[0], 100, stall)
+    _, r = run(sim, samples, overrun_limit=4)
+    assert r.outcome == "overruns" and r.overruns >= 4 and r.samples_sent < len(samples)
+    assert np.all(sim.arm.qd == 0.0)
+
+
+def test_a_refusing_arm_ends_the_motion_as_a_fault(samples: np.ndarray) -> None:
+    sim = Scripted(samples[0], 50, lambda b: b.arm.protect("light curtain"), speed=20.0)
+    _, r = run(sim, samples, speed=20.0)
+    assert r.outcome == "fault" and r.samples_sent == 50 and sim.fault() == "light curtain"
