@@ -404,6 +404,7 @@ async def main(ctx: ServiceContext) -> None:
     stopper = asyncio.create_task(_stop_motion_on(ctx.stop, loop, backend))
     try:
         await ex.ask_selection()
+        await ex.sets.fetch_missing(settings.query_timeout_s)
         ex.event("started", f"task '{task.name}', {len(task.paths)} paths, k = {ex.current_k()}")
         await ex.run()
         ctx.state = "cycles done" if not ctx.stop.is_set() else "stopped"

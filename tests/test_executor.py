@@ -1,0 +1,261 @@
+"""The executor over real Zenoh with the real store (in-process, on loopback) and the sim backend."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from common.bus import Bus, BusConfig
+from common.service import CommonSettings, serve
+from common.task import load_task
+from schemas import CycleReport, OperatorSignal, ParetoSet, RobotEvent, RobotState, Selection, ServiceStatus
+from schemas.topology import encode
+from services.executor.__main__ import Settings
+from services.executor.__main__ import main as executor_main
+from services.pareto_store.__main__ import Settings as StoreSettings
+from services.pareto_store.__main__ import main as store_main
+
+pytestmark = pytest.mark.asyncio
+
+TASK = """
+[task]
+name = "shuttle"
+[planner]
+population = 16
+generations = 6
+n_solutions = 5
+[[paths]]
+id = "there"
+unit = "deg"
+waypoints = [[0, -90, 90, -90, -90, 0], [30, -80, 100, -100, -90, 20], [45, -70, 95, -110, -90, 40]]
+[[paths]]
+id = "back"
+unit = "deg"
+waypoints = [[45, -70, 95, -110, -90, 40], [20, -85, 92, -95, -90, 10], [0, -90, 90, -90, -90, 0]]
+[[cycle]]
+gripper = "on"
+[[cycle]]
+move = "there"
+[[cycle]]
+wait_for = "part"
+[[cycle]]
+gripper = "off"
+[[cycle]]
+wait = 0.2
+[[cycle]]
+move = "back"
+"""
+SPEED = 8.0
+
+
+@pytest.fixture
+def task_file(tmp_path: Path) -> Path:
+    p = tmp_path / "shuttle.toml"
+    p.write_text(TASK)
+    return p
+
+
+class Running:
+    """A service in this event loop with the common settings a test needs (speed, data folder)."""
+
+    def __init__(
+        self, main, name: str, settings: object, data: Path, endpoint: str, speed: float = 1.0
+    ) -> None:
+        self.stop = asyncio.Event()
+        common = CommonSettings(data_dir=str(data), status_period_s=0.1, speed=speed)
+        self.task = asyncio.ensure_future(
+            serve(
+                name,
+                main,
+                common,
+                BusConfig(connect=[endpoint]),
+                settings,
+                stop=self.stop,
+                install_signals=False,
+            )
+        )
+
+    async def close(self) -> None:
+        self.stop.set()
+        await asyncio.wait_for(self.task, 15)
+
+
+async def store_serving(bus: Bus, task: Path, data: Path, endpoint: str) -> Running:
+    health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
+    store = Running(store_main, "pareto_store", StoreSettings(task=str(task)), data, endpoint)
+    async with asyncio.timeout(60):
+        async for _, status in health:
+            if status.state == "serving":
+                return store
+    raise AssertionError("unreachable")
+
+
+async def next_of(sub, pred=lambda m: True, timeout: float = 30.0):
+    async with asyncio.timeout(timeout):
+        async for _, msg in sub:
+            if pred(msg):
+                return msg
+    raise AssertionError("unreachable")
+
+
+async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_path_start(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
+        ex = Running(
+            executor_main,
+            "executor",
+            Settings(task=str(task_file), fifo_priority=0, initial_k=2, cycles=3),
+            tmp_path / "ex",
+            endpoint,
+            speed=SPEED,
+        )
+        assert (await next_of(events, lambda e: e.kind == "started")).message.endswith("k = 2")
+        reports = []
+        for c in range(3):
+            # the robot waits at "there" for the operator's part
+            await next_of(states, lambda s: s.mode == "waiting")
+            if c == 1:
+                bus.put(
+                    bus.key("decision/selection"),
+                    Selection(t_ns=1, seq=0, k=5, n=5, delta=3, reason="rest", window_end_ns=1),
+                    block=True,
+                )
+            bus.put(bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=c, name="part"), block=True)
+            reports.append(await next_of(cycles))
+        await asyncio.wait_for(ex.task, 15)  # three cycles, then it ends by itself
+        await store.close()
+
+    assert [r.cycle for r in reports] == [0, 1, 2]
+    # the selection arrived while the robot waited after "there": it took effect at "back", not before
+    assert [r.k_per_path for r in reports] == [
+        {"there": 2, "back": 2},
+        {"there": 2, "back": 5},
+        {"there": 5, "back": 5},
+    ]
+    assert reports[2].cycle_time_s < reports[0].cycle_time_s  # k = 5 is the fastest of the set
+    cached = sorted(p.name for p in (tmp_path / "ex" / "executor").iterdir())
+    assert cached == ["back.msgpack", "there.msgpack"]
+
+
+async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused_without_moving(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    task = load_task(task_file)
+    cache = tmp_path / "ex" / "executor"
+    cache.mkdir(parents=True)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        sets = {pid: (await bus.get(bus.key(f"pareto/{pid}"), ParetoSet))[0].message for pid in task.paths}
+        await store.close()  # the store is down from here on
+        for pid, s in sets.items():
+            (cache / f"{pid}.msgpack").write_bytes(encode(s))
+
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = Settings(
+            task=str(task_file), fifo_priority=0, cycles=1, wait_for_signals=False, initial_k=3
+        )
+        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint, speed=SPEED)
+        report = await next_of(cycles)
+        await asyncio.wait_for(ex.task, 15)
+        assert report.k_per_path == {"there": 3, "back": 3}
+
+        # a cached set whose hash is right but whose h is not: twice as fast as planned
+        there = sets["there"]
+        bad = msgspec.structs.replace(
+            there.solutions[2], h=[x / 2 for x in there.solutions[2].h], t_f=there.solutions[2].t_f / 2
+        )
+        tampered = msgspec.structs.replace(there, solutions=[*there.solutions[:2], bad, *there.solutions[3:]])
+        (cache / "there.msgpack").write_bytes(encode(tampered))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint, speed=SPEED)
+        refused = await next_of(events, lambda e: e.kind == "refused")
+        state = await next_of(states, lambda s: s.mode == "refused")
+        await ex.close()
+    assert refused.path_id == "there" and "k = 3" in refused.message and "over its limit" in refused.message
+    np.testing.assert_allclose(state.q, task.paths["there"].waypoints[0], atol=1e-12)  # it never moved
+    assert state.qd == [0.0] * 6
+
+
+@pytest.mark.parametrize("policy", ["refuse", "move"])
+async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
+    policy: str, task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = Settings(
+            task=str(task_file),
+            fifo_priority=0,
+            cycles=1,
+            wait_for_signals=False,
+            sim_start_deg=[10, -90, 90, -90, -90, 0],
+            start_policy=policy,
+        )
+        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint, speed=SPEED)
+        first = await next_of(events, lambda e: e.path_id == "there")
+        if policy == "refuse":
+            assert first.kind == "refused" and "0.1745 rad from the start of 'there'" in first.message
+            await ex.close()
+        else:
+            assert first.kind == "info" and "moving there slowly" in first.message
+            assert (await next_of(cycles)).k_per_path == {"there": 5, "back": 5}  # initial_k 8, clamped to N
+            await asyncio.wait_for(ex.task, 15)
+        await store.close()
+
+
+async def test_sigterm_during_motion_stops_decelerating_and_exits_0(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    """As systemd stops it: a process, SIGTERM while a path runs, a decelerating stop, exit 0."""
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        env = {
+            **os.environ,
+            "CADENCE_BUS_CONNECT": f"['{endpoint}']",
+            "CADENCE_EXECUTOR_TASK": str(task_file),
+            "CADENCE_EXECUTOR_WAIT_FOR_SIGNALS": "false",
+            "CADENCE_EXECUTOR_FIFO_PRIORITY": "0",
+            "CADENCE_DATA_DIR": str(tmp_path / "ex"),
+        }
+        proc = subprocess.Popen([sys.executable, "-m", "services.executor"], env=env)
+        try:
+            await next_of(states, lambda s: s.mode == "moving" and s.path_id == "back", timeout=60)
+            proc.send_signal(signal.SIGTERM)
+            got = await next_of(events, lambda e: e.kind == "info" and "stopped" in e.message)
+            rc = await asyncio.to_thread(proc.wait, 20)
+        finally:
+            proc.kill()
+        await store.close()
+    assert rc == 0
+    assert got.path_id == "back" and "decelerating stop" in got.message
+
+
+async def test_a_bad_task_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(TASK.replace('id = "back"', 'id = "back"\nspeed = 3'))
+    r = await asyncio.to_thread(
+        subprocess.run,
+        [sys.executable, "-m", "services.executor"],
+        env={**os.environ, "CADENCE_EXECUTOR_TASK": str(bad)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.toml" in r.stderr and "speed" in r.stderr
