@@ -214,6 +214,35 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_executor(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_executor
+    from services.executor.backends import RobotUnavailable
+
+    if not args.json:
+        out.print(f"[dim]servo loop on the {args.backend} backend for {args.seconds:g} s …[/dim]")
+    try:
+        r = bench_executor(args.backend, args.seconds, args.host, args.core, args.fifo_priority, args.task)
+    except RobotUnavailable as exc:
+        print(f"cadence bench executor: {exc}", file=sys.stderr)
+        return 1
+    if not args.json:
+        for w in r.warnings:
+            out.print(f"[yellow]warning:[/yellow] {w}")
+        t = r.timing
+        table = Table(title=f"servo loop, {r.backend} backend, {t['ticks']} ticks ({r.motions} motions)")
+        for col in ("period", "p50", "p99", "p99.9", "max", "overruns", "prepare"):
+            table.add_column(col, justify="right")
+        table.add_row(
+            f"{t['period_us']} µs",
+            *(f"{t[k]:.1f} µs" for k in ("p50_err_us", "p99_err_us", "p999_err_us", "max_err_us")),
+            str(t["overruns"]),
+            f"{r.prepare_ms:.2f} ms",
+        )
+        out.print(table)
+    print(json.dumps(r.as_json()))
+    return 0
+
+
 def _record_peaks(args: argparse.Namespace):
     from common.ecg_records import read_record
     from common.rpeaks import detect
@@ -554,6 +583,23 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
     bs.add_argument("--queries", type=_positive_int(1), default=500, help="queries of the stored set")
     bs.set_defaults(func=cmd_bench_store)
+
+    be = bench_sub.add_parser(
+        "executor",
+        help="tick timing of the 500 Hz servo loop, and the time to prepare a path's samples",
+        description="Runs the executor's servo loop (pinned, SCHED_FIFO when permitted) on a backend for "
+        "SECONDS, servoing the longest path of TASK forward and back while the state is read at 50 Hz, and "
+        "prints the tick error percentiles (|tick time - deadline|), the overruns and prepare_ms (h to "
+        "validated 500 Hz samples for the slowest trajectory of that path). The last line is JSON.",
+    )
+    be.add_argument("--backend", choices=("sim", "ur_rtde"), default="sim")
+    be.add_argument("--seconds", type=float, default=20.0, help="how long to servo (default 20)")
+    be.add_argument("--host", default="127.0.0.1", help="ur_rtde: the controller's address")
+    be.add_argument("--core", type=int, default=None, help="core for the servo thread (default: the last)")
+    be.add_argument("--fifo-priority", type=int, default=80, help="SCHED_FIFO priority; 0 for none")
+    be.add_argument("--task", default=None, metavar="TASK.toml", help="default: box_filling")
+    be.add_argument("--json", action="store_true", help="print only the JSON line")
+    be.set_defaults(func=cmd_bench_executor)
 
     hrv = sub.add_parser("hrv", help="offline heart-rate tools on a recording")
     hrv_sub = hrv.add_subparsers(dest="hrv", required=True, metavar="TOOL")

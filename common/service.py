@@ -275,6 +275,9 @@ def service_main(
     )
     parser.add_argument("--data-dir", help="data folder (default ~/.local/share/cadence or CADENCE_DATA_DIR)")
     parser.add_argument("--cell", help="robot cell name (key prefix cadence/<cell>/…)")
+    parser.add_argument(
+        "--speed", type=float, help="simulation: data time runs this many times faster than the wall clock"
+    )
     args = parser.parse_args(argv)
     try:
         raw = read_config(args.config)
@@ -284,6 +287,10 @@ def service_main(
             common = msgspec.structs.replace(common, data_dir=args.data_dir or os.environ["CADENCE_DATA_DIR"])
         if args.cell:
             common = msgspec.structs.replace(common, cell=args.cell)
+        if args.speed is not None:
+            if not args.speed > 0:
+                raise ConfigError(f"--speed: must be positive, got {args.speed}")
+            common = msgspec.structs.replace(common, speed=args.speed)
         bus_cfg = section(raw, "bus", BusConfig, source)
         settings = section(raw, name, settings_type, source)
         setup_logging(common.log_format)

@@ -40,7 +40,6 @@ log = logging.getLogger("cadence.executor")
 NAME = "executor"
 EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_filling.toml"
 RATE_HZ = 1.0 / DT
-GIL_SWITCH_S = 2e-4  # other threads hand the GIL to a waking servo thread within this
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -396,7 +395,6 @@ async def main(ctx: ServiceContext) -> None:
                 return
             delay = min(delay * 2, 30.0)
     ex.event("connected", f"{backend.name} backend ready")
-    sys.setswitchinterval(GIL_SWITCH_S)
     loop.start()
     for w in loop.warnings:
         log.warning("%s", w)

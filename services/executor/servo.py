@@ -4,7 +4,9 @@ permitted, garbage collection frozen and off during motion, memory locked when p
 Inside the loop there is no logging, no bus I/O and no container that grows: the targets are prepared
 before the motion starts, the per-tick timing goes into a preallocated ring, and the loop only indexes,
 waits and sends. Deadlines are absolute (tick i is due at t0 + i·period), so a late tick never shifts the
-ones after it: the thread sleeps until a few hundred µs before the deadline, then spins.
+ones after it: the thread sleeps until a few hundred µs before the deadline, then spins. The spin holds
+the GIL, and Python's default switch interval (5 ms) is longer than the spin, so no other thread takes the
+GIL from it before the deadline; a shorter interval was measured to make the tail worse, not better.
 
 Faster than real time (``speed`` > 1, sim only): a tick of 2 ms·steps/speed wall time sends ``steps``
 consecutive samples, so the arm still sees one 2 ms step per sample and the CPU is not spent spinning.
