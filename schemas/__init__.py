@@ -5,7 +5,7 @@ from schemas.decision import Selection
 from schemas.ecg import EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
 from schemas.hrv import Beats, HrvWindow
-from schemas.operator import Calibration, OperatorSignal
+from schemas.operator import Calibration, OperatorError, OperatorSignal
 from schemas.pareto import ParetoSet, ParetoSolution, ParetoSolutionReply, PlanProgress
 from schemas.robot import CycleReport, RobotEvent, RobotState
 
@@ -16,6 +16,7 @@ __all__ = [
     "EcgChunk",
     "HrvWindow",
     "Message",
+    "OperatorError",
     "OperatorSignal",
     "ParetoSet",
     "ParetoSolution",

@@ -1,4 +1,5 @@
-"""The operator: calibration (``operator/calibration``) and the signals the task waits for."""
+"""The operator: calibration (``operator/calibration``), the signals the task waits for
+(``operator/signal``) and the operator's errors (``operator/error``, for the error rate ε)."""
 
 from __future__ import annotations
 
@@ -20,3 +21,11 @@ class OperatorSignal(Message, frozen=True, tag="operator.signal.v1"):
     (``wait_for`` in the task program): ``name`` is that step's name, e.g. ``part_a2``."""
 
     name: str
+
+
+class OperatorError(Message, frozen=True, tag="operator.error.v1"):
+    """An error the operator made (a quality check, a button, the twin); ``cycle`` is the robot's cycle
+    it happened in, when known."""
+
+    cycle: int | None = None
+    description: str = ""

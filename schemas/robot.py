@@ -15,6 +15,7 @@ class RobotState(Message, frozen=True, tag="robot.state.v1"):
     path_id: str | None = None
     k: int | None = None
     mode: str = "idle"
+    waiting_for: str | None = None  # the operator signal a ``wait_for`` step waits for
 
 
 class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):

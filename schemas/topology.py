@@ -15,7 +15,7 @@ from schemas.decision import Selection
 from schemas.ecg import EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
 from schemas.hrv import Beats, HrvWindow
-from schemas.operator import Calibration, OperatorSignal
+from schemas.operator import Calibration, OperatorError, OperatorSignal
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress
 from schemas.robot import CycleReport, RobotEvent, RobotState
 
@@ -42,6 +42,7 @@ TOPICS: tuple[Topic, ...] = (
     Topic("hrv/window", HrvWindow, "hrv_analyser", "topic", "block"),
     Topic("operator/calibration", Calibration, "calibrate", "topic", "reliable"),
     Topic("operator/signal", OperatorSignal, "operator", "topic", "reliable"),
+    Topic("operator/error", OperatorError, "operator", "topic", "reliable"),
     Topic("decision/selection", Selection, "decision_maker", "topic", "block"),
     Topic("pareto/progress", PlanProgress, "pareto_store", "topic", "drop"),
     Topic("pareto/*", ParetoSet, "pareto_store", "query", "reliable"),
@@ -60,6 +61,7 @@ AnyMessage = (
     | HrvWindow
     | Calibration
     | OperatorSignal
+    | OperatorError
     | Selection
     | PlanProgress
     | ParetoSet

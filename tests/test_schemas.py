@@ -11,6 +11,8 @@ from schemas import (
     CycleReport,
     EcgChunk,
     HrvWindow,
+    OperatorError,
+    OperatorSignal,
     ParetoSet,
     ParetoSolution,
     ParetoSolutionReply,
@@ -61,6 +63,8 @@ SAMPLES = [
     CycleReport(t_ns=1, seq=10, cycle=3, cycle_time_s=21.5, k_per_path={"p": 3}),
     RobotEvent(t_ns=1, seq=11, kind="refused", message="over a limit", path_id="p"),
     ServiceStatus(t_ns=1, seq=12, service="x", state="running", uptime_s=3.0, counters={"decode_errors": 0}),
+    OperatorSignal(t_ns=1, seq=13, name="part_a2"),
+    OperatorError(t_ns=1, seq=14, cycle=3, description="wrong part"),
 ]
 
 

@@ -148,6 +148,7 @@ class Executor:
         self.path_id: str | None = None
         self.k: int | None = None
         self.mode = "idle"
+        self.waiting_for: str | None = None
         self.seq = Counter[str]()
         self._last_event: tuple[str, str] | None = None
 
@@ -202,6 +203,7 @@ class Executor:
                     path_id=self.path_id,
                     k=self.k,
                     mode=self.mode,
+                    waiting_for=self.waiting_for,
                 ),
             )
             await asyncio.sleep(period)
@@ -345,9 +347,11 @@ class Executor:
                     await _first(self.clock.sleep(step.wait), self.ctx.stop.wait())
                 elif step.wait_for is not None and self.settings.wait_for_signals:
                     self.mode, self.ctx.state = "waiting", f"waiting for '{step.wait_for}'"
-                    if not await self.signals.wait(step.wait_for, self.ctx.stop):
+                    self.waiting_for = step.wait_for
+                    ok = await self.signals.wait(step.wait_for, self.ctx.stop)
+                    self.mode, self.waiting_for = "idle", None
+                    if not ok:
                         return
-                    self.mode = "idle"
             end = self.clock.now_ns()
             self.bus.put(
                 self.bus.key("robot/cycle"),

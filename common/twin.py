@@ -1,0 +1,168 @@
+"""The operator twin: a simulated co-worker whose heart answers the robot's pace (closed-loop issue).
+
+A simulation model for demos and tests, not a claim about real people. Every parameter is in
+``TwinParams`` and the model is seeded, so a run is reproducible.
+
+- Exposure u: what the operator sees of the robot, from its joint velocities on data time: the mean
+  joint-speed norm over the last ``window_s`` (idle time counts as zero) in units of ``pace_ref_rad_s``,
+  plus ``accel_weight`` times the mean joint-acceleration norm in units of ``accel_ref_rad_s2``
+  (abrupt motion is more demanding than smooth motion at the same speed).
+- Stress S in [0, 1] follows S* = clip((u − tolerance) / span, 0, 1), the personal tolerance, with time
+  constant ``tau_up_s`` while rising and ``tau_down_s`` while easing. Fatigue F grows slowly with
+  exposure and never eases within a shift.
+- Mean RR = rr_rest − rr_range · S − fatigue_rr · F. Each interval adds respiratory sinus arrhythmia
+  (a sine at the breathing rate) and AR(1) noise.
+- ECG at 130 Hz: per beat a sum of Gaussians for P, Q, R, S and T (ECGSYN-like; the waves' offsets
+  scale with √RR, as the QT interval does), plus baseline wander and white noise, in µV, so that the
+  real R-peak detector has to find the beats.
+- Errors: per cycle, probability error_base + error_pace · max(0, u − tolerance) + error_stress · S.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+# (offset at RR = 1 s [s], amplitude [µV], width [s]) of P, Q, R, S, T
+WAVES = np.array(
+    [
+        (-0.20, 120.0, 0.025),
+        (-0.035, -110.0, 0.010),
+        (0.0, 1100.0, 0.011),
+        (0.035, -260.0, 0.012),
+        (0.28, 280.0, 0.055),
+    ]
+)
+REACH_S = 0.6  # a beat's waves are negligible further than this from its R peak
+
+
+class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    seed: int = 1
+    rr_rest_s: float = 0.85
+    rr_range_s: float = 0.16
+    fatigue_rr_s: float = 0.02
+    window_s: float = 20.0
+    pace_ref_rad_s: float = 1.0
+    accel_ref_rad_s2: float = 2.0
+    accel_weight: float = 0.5
+    tolerance: float = 0.35
+    span: float = 0.25
+    tau_up_s: float = 40.0
+    tau_down_s: float = 60.0
+    fatigue_per_hour: float = 0.1
+    resp_hz: float = 0.25
+    rsa_s: float = 0.025
+    rr_noise_s: float = 0.012
+    rr_noise_memory: float = 0.6  # AR(1) coefficient
+    ecg_noise_uv: float = 12.0
+    wander_uv: float = 60.0
+    wander_hz: float = 0.3
+    error_base: float = 0.02
+    error_pace: float = 0.15
+    error_stress: float = 0.25
+    handling_s: float = 1.2  # the operator's time to put a part once the robot waits for it
+
+
+class Operator:
+    """The twin's state on data time (seconds from its start)."""
+
+    def __init__(self, p: TwinParams, fs: float = 130.0) -> None:
+        self.p, self.fs = p, fs
+        self.rng = np.random.default_rng(p.seed)
+        self.stress = 0.0
+        self.fatigue = 0.0
+        self.t = 0.0  # data time up to which the state is integrated
+        self._obs: deque[tuple[float, float, float]] = deque()  # (t, speed, accel)
+        self._last_qd: tuple[float, NDArray[np.float64]] | None = None
+        self._noise = 0.0
+        self.beats: list[float] = [0.3]  # R-peak times, s
+        self._resp_phase = self.rng.uniform(0, 2 * math.pi)
+        self._wander_phase = self.rng.uniform(0, 2 * math.pi)
+
+    # --- what the operator sees ---------------------------------------------------------------------
+
+    def observe(self, t: float, qd: NDArray[np.float64]) -> None:
+        """One robot state (joint velocities) at data time t."""
+        accel = 0.0
+        if self._last_qd is not None and t > self._last_qd[0]:
+            accel = float(np.linalg.norm(qd - self._last_qd[1])) / (t - self._last_qd[0])
+        self._last_qd = (t, np.asarray(qd, dtype=float))
+        self._obs.append((t, float(np.linalg.norm(qd)), accel))
+
+    def exposure(self, t: float) -> float:
+        """u at time t: time-weighted means over the last window (a zero-order hold between states)."""
+        p = self.p
+        while len(self._obs) > 1 and self._obs[1][0] <= t - p.window_s:
+            self._obs.popleft()
+        if not self._obs:
+            return 0.0
+        lo = t - p.window_s
+        speed = accel = 0.0
+        obs = list(self._obs)
+        for (t0, s0, a0), nxt in zip(obs, [*obs[1:], (t, 0.0, 0.0)], strict=True):
+            dt = max(0.0, min(nxt[0], t) - max(t0, lo))
+            speed += s0 * dt
+            accel += a0 * dt
+        return (speed / p.pace_ref_rad_s + p.accel_weight * accel / p.accel_ref_rad_s2) / p.window_s
+
+    def advance(self, t: float) -> None:
+        """Integrate stress and fatigue up to data time t."""
+        p = self.p
+        dt = t - self.t
+        if dt <= 0:
+            return
+        u = self.exposure(t)
+        target = min(1.0, max(0.0, (u - p.tolerance) / p.span))
+        tau = p.tau_up_s if target > self.stress else p.tau_down_s
+        self.stress += (target - self.stress) * (1.0 - math.exp(-dt / tau))
+        self.fatigue += dt / 3600.0 * p.fatigue_per_hour * u
+        self.t = t
+
+    def mean_rr(self) -> float:
+        p = self.p
+        return p.rr_rest_s - p.rr_range_s * self.stress - p.fatigue_rr_s * self.fatigue
+
+    def error_probability(self) -> float:
+        p = self.p
+        u = self.exposure(self.t)
+        return min(
+            1.0, p.error_base + p.error_pace * max(0.0, u - p.tolerance) + p.error_stress * self.stress
+        )
+
+    def makes_error(self) -> bool:
+        return bool(self.rng.random() < self.error_probability())
+
+    def handling_time(self) -> float:
+        return self.p.handling_s * (1.0 + 0.5 * self.stress) * float(self.rng.lognormal(0.0, 0.2))
+
+    # --- the heart ----------------------------------------------------------------------------------
+
+    def _next_rr(self, t: float) -> float:
+        p = self.p
+        self._noise = p.rr_noise_memory * self._noise + math.sqrt(1 - p.rr_noise_memory**2) * float(
+            self.rng.normal(0.0, p.rr_noise_s)
+        )
+        rsa = p.rsa_s * math.sin(2 * math.pi * p.resp_hz * t + self._resp_phase)
+        return min(1.6, max(0.35, self.mean_rr() + rsa + self._noise))
+
+    def ecg(self, t0: float, n: int) -> NDArray[np.float64]:
+        """n samples at fs from data time t0, in µV; beats are laid down as the state is then."""
+        t = t0 + np.arange(n) / self.fs
+        self.advance(t0)
+        while self.beats[-1] < t[-1] + REACH_S:
+            self.beats.append(self.beats[-1] + self._next_rr(self.beats[-1]))
+        p = self.p
+        x = p.wander_uv * np.sin(2 * math.pi * p.wander_hz * t + self._wander_phase)
+        x += self.rng.normal(0.0, p.ecg_noise_uv, n)
+        beats = np.array([b for b in self.beats if t[0] - REACH_S <= b <= t[-1] + REACH_S])
+        if beats.size:
+            rr = np.sqrt(np.clip(np.diff(beats, prepend=beats[0] - self.mean_rr()), 0.35, 1.6))
+            for offset, amp, width in WAVES:
+                centre = beats + offset * rr
+                x += (amp * np.exp(-0.5 * ((t[:, None] - centre[None, :]) / width) ** 2)).sum(axis=1)
+        del self.beats[: max(0, len(self.beats) - 64)]  # bounded: a shift is hours long
+        return x
