@@ -1,5 +1,5 @@
 """ecg_gateway: an ECG source → ``ecg/samples`` and ``ecg/rr`` (DESIGN §1, §6). Sources behind one
-interface: ``polar`` (the H10 over BLE) and ``replay`` (a recording); the operator twin comes next."""
+interface: ``polar`` (the H10 over BLE), ``replay`` (a recording) and ``twin`` (the simulated operator)."""
 
 from __future__ import annotations
 
@@ -8,25 +8,31 @@ from typing import Literal
 
 import msgspec
 
+from common.clock import Clock
 from common.errors import ConfigError
 from common.service import CommonSettings, ServiceContext, service_main
+from common.twin import TwinParams
 from schemas.ecg import EcgChunk, RrIntervals
 from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
+from services.ecg_gateway.twin import TwinSource
 
 NAME = "ecg_gateway"
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    source: Literal["replay", "polar"] = "replay"
+    source: Literal["replay", "polar", "twin"] = "replay"
     strap: str = "Polar H10"  # polar: MAC address or (part of) the advertised name
     gap_timeout_s: float = 5.0  # polar: reconnect after this long without an ECG frame
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
     speed: float = 1.0  # replay: × real time; 0 = as fast as possible
     start_ns: int | None = None  # replay: data time of the first sample (default: now)
+    twin: TwinParams = TwinParams()  # twin: the simulated operator's parameters (common/twin.py)
 
 
-def make_source(settings: Settings) -> EcgSource:
+def make_source(settings: Settings, clock: Clock) -> EcgSource:
+    if settings.source == "twin":
+        return TwinSource(settings.twin, clock)
     if settings.source == "polar":
         return PolarSource(bleak_connector(settings.strap), settings.gap_timeout_s)
     if settings.record is None:
@@ -35,7 +41,9 @@ def make_source(settings: Settings) -> EcgSource:
 
 
 async def main(ctx: ServiceContext) -> None:
-    source = make_source(ctx.settings)
+    source = make_source(ctx.settings, ctx.common.clock)
+    if isinstance(source, TwinSource):
+        source.connect(ctx.bus)
     key = ctx.bus.key("ecg/samples")
     rr_key = ctx.bus.key("ecg/rr")
     seq = rr_seq = 0
@@ -62,7 +70,7 @@ async def main(ctx: ServiceContext) -> None:
 
 
 def prepare(settings: Settings, common: CommonSettings) -> None:
-    make_source(settings)  # a missing or broken record stops the service at start
+    make_source(settings, common.clock)  # a missing or broken record stops the service at start
 
 
 def run(argv: list[str] | None = None) -> int:

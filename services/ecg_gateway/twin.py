@@ -1,0 +1,93 @@
+"""The ``twin`` source: the simulated operator of common/twin.py, wired to the bus.
+
+It watches the robot (``robot/state``: joint velocities, what the robot waits for; ``robot/cycle``), and
+produces what a real worker would: an ECG at 130 Hz for the gateway to publish, the parts the task
+waits for (``operator/signal``, after a handling time), and errors (``operator/error``). Data time comes
+from the shared clock, so the twin runs at the demo's speed with every other service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+
+import numpy as np
+
+from common.bus import Bus
+from common.clock import Clock
+from common.twin import Operator, TwinParams
+from schemas.operator import OperatorError, OperatorSignal
+from schemas.robot import CycleReport, RobotState
+from services.ecg_gateway.sources import CHUNK, FS_HZ, Chunk, EcgSource
+
+log = logging.getLogger("cadence.ecg_gateway")
+
+
+class TwinSource(EcgSource):
+    name = "twin"
+
+    def __init__(self, params: TwinParams, clock: Clock) -> None:
+        self.operator = Operator(params, FS_HZ)
+        self.clock = clock
+        self.bus: Bus | None = None
+        self.origin_ns = clock.now_ns()
+        self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
+        self.waiting_for: str | None = None
+        self.seq = {"signal": 0, "error": 0}
+
+    def connect(self, bus: Bus) -> None:
+        self.bus = bus
+        bus.handle(bus.key("robot/state"), RobotState, self.on_state, maxsize=1000)
+        bus.handle(bus.key("robot/cycle"), CycleReport, self.on_cycle)
+
+    def _t(self, t_ns: int) -> float:
+        return (t_ns - self.origin_ns) / 1e9
+
+    async def on_state(self, _: str, state: RobotState) -> None:
+        t = self._t(state.t_ns)
+        self.operator.observe(t, np.array(state.qd))
+        if state.waiting_for is not None and state.waiting_for != self.waiting_for:
+            self.pending.append((t + self.operator.handling_time(), state.waiting_for))
+        self.waiting_for = state.waiting_for
+
+    async def on_cycle(self, _: str, report: CycleReport) -> None:
+        if self.bus is not None and self.operator.makes_error():
+            self.bus.put(
+                self.bus.key("operator/error"),
+                OperatorError(
+                    t_ns=report.t_ns,
+                    seq=self.seq["error"],
+                    cycle=report.cycle,
+                    description=f"simulated (stress {self.operator.stress:.2f})",
+                ),
+                block=True,
+            )
+            self.seq["error"] += 1
+
+    def _signals_due(self, t: float) -> None:
+        due = [p for p in self.pending if p[0] <= t]
+        if not due or self.bus is None:
+            return
+        self.pending = [p for p in self.pending if p[0] > t]
+        for when, name in due:
+            self.bus.put(
+                self.bus.key("operator/signal"),
+                OperatorSignal(t_ns=self.origin_ns + round(when * 1e9), seq=self.seq["signal"], name=name),
+                block=True,
+            )
+            self.seq["signal"] += 1
+
+    async def chunks(self) -> AsyncIterator[Chunk]:
+        i = 0
+        while True:
+            t0 = i / FS_HZ
+            due_ns = self.origin_ns + round(
+                (i + CHUNK) * 1e9 / FS_HZ
+            )  # a chunk exists once its last sample does
+            ahead = (due_ns - self.clock.now_ns()) / 1e9
+            await asyncio.sleep(max(0.0, self.clock.wall_s(ahead)))
+            x = self.operator.ecg(t0, CHUNK)
+            yield Chunk(self.origin_ns + round(t0 * 1e9), np.rint(x).astype(int).tolist())
+            self._signals_due(t0 + CHUNK / FS_HZ)
+            i += CHUNK

@@ -1,0 +1,64 @@
+"""The operator twin (common/twin.py): its ECG is detectable, its heart answers the robot's pace."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.hrv import HrvStream, match_beats
+from common.twin import Operator, TwinParams
+
+FS = 130.0
+CHUNK = 73
+
+
+def run(op: Operator, seconds: float, qd_norm: float = 0.0, t_start: float = 0.0) -> tuple[np.ndarray, list]:
+    """Stream the twin's ECG through the real HRV stream while it watches a robot moving at qd_norm."""
+    stream, wins, x_all = HrvStream(FS), [], []
+    beats: set[float] = set()
+    n0 = round(t_start * FS)
+    for i in range(n0, n0 + round(seconds * FS), CHUNK):
+        t = i / FS
+        op.observe(t, np.full(6, qd_norm / np.sqrt(6)))
+        x = op.ecg(t, CHUNK)
+        beats.update(op.beats)
+        x_all.append(x)
+        wins += stream.feed(t, x)[1]
+    wins += stream.flush()[1]
+    return np.array(sorted(b for b in beats if t_start + 1 < b < t_start + seconds - 1)), wins
+
+
+def test_the_real_detector_finds_the_twins_beats() -> None:
+    from common.rpeaks import detect
+
+    op, xs, beats = Operator(TwinParams(seed=3)), [], set()
+    for i in range(0, round(300 * FS), CHUNK):
+        xs.append(op.ecg(i / FS, CHUNK))
+        beats.update(op.beats)  # it keeps only its last 64
+    truth = np.array(sorted(b for b in beats if 1 < b < 299))
+    found = detect(np.concatenate(xs), FS, chunk=CHUNK) / FS
+    tp, fp, fn = match_beats(truth, found[(found > 1 - 0.1) & (found < 299 + 0.1)])
+    assert fn == 0 and fp == 0 and tp == len(truth) > 300
+
+
+def test_a_fast_robot_lowers_mean_rr_and_relief_raises_it_again() -> None:
+    p = TwinParams(seed=1)
+    op = Operator(p)
+    _, rest = run(op, 120)
+    _, fast = run(op, 300, qd_norm=2.0, t_start=120)
+    _, relief = run(op, 400, qd_norm=0.0, t_start=420)
+    good = [w.mean_rr_s for w in rest if w.quality == "good"]
+    assert abs(np.mean(good) - p.rr_rest_s) < 0.02  # at rest the windows see the resting level
+    assert fast[-1].mean_rr_s < np.mean(good) - 0.1  # stressed: RR fell by more than 100 ms
+    assert relief[-1].mean_rr_s > fast[-1].mean_rr_s + 0.08  # eased again
+    assert all(w.quality == "good" for w in rest + fast + relief)
+
+
+def test_errors_are_likelier_under_stress_and_the_twin_is_seeded() -> None:
+    calm, stressed = Operator(TwinParams()), Operator(TwinParams())
+    for t in np.arange(0, 200, 0.1):
+        stressed.observe(t, np.full(6, 1.0))
+        stressed.advance(t)
+    assert stressed.error_probability() > calm.error_probability() + 0.2
+    a, b, c = Operator(TwinParams(seed=5)), Operator(TwinParams(seed=5)), Operator(TwinParams(seed=6))
+    assert np.array_equal(a.ecg(0.0, 1000), b.ecg(0.0, 1000))
+    assert not np.array_equal(a.ecg(0.0, 1000), c.ecg(0.0, 1000))
