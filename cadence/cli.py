@@ -243,6 +243,60 @@ def cmd_bench_executor(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_demo(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.demo import DemoOptions, run_demo
+
+    kills = []
+    for spec in args.kill:
+        name, _, at = spec.partition("@")
+        if name not in SERVICES or not at:
+            raise InputError(
+                f"--kill {spec}: expected SERVICE@SECONDS with SERVICE one of {', '.join(SERVICES)}"
+            )
+        kills.append((name, float(at)))
+    opts = DemoOptions(
+        duration_s=args.duration,
+        speed=args.speed,
+        out=Path(args.out),
+        seed=args.seed,
+        task=Path(args.task),
+        kill=tuple(kills),
+        live=not args.no_live,
+    )
+    t0 = time.monotonic()
+    summary = asyncio.run(run_demo(opts, out))
+    wall = time.monotonic() - t0
+    table = Table(title=f"cadence demo: {args.duration:g} s of data time in {wall:.0f} s")
+    for col in (
+        "cycles",
+        "φ [cycles/min]",
+        "errors",
+        "ε [errors/cycle]",
+        "windows",
+        "k steps ↓ / ↑",
+        "restarts",
+    ):
+        table.add_column(col, justify="right")
+    table.add_row(
+        str(summary["cycles"]),
+        f"{summary['productivity_per_min']:.2f}",
+        str(summary["errors"]),
+        f"{summary['error_rate']:.3f}",
+        str(len(summary["windows"])),
+        f"{summary['k_steps_down']} / {summary['k_steps_up']}",
+        ", ".join(f"{k} {v}" for k, v in summary["restarts"].items() if v) or "none",
+    )
+    out.print(table)
+    out.print(f"written: {args.out}/summary.json, rr_k.png, cycles.png; service logs in {args.out}/logs")
+    bad = {n: c for n, c in summary["exit_codes"].items() if c != 0}
+    if bad:
+        err.print(f"services that did not exit cleanly: {bad}")
+        return 1
+    return 0
+
+
 def _record_peaks(args: argparse.Namespace):
     from common.ecg_records import read_record
     from common.rpeaks import detect
@@ -600,6 +654,30 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--task", default=None, metavar="TASK.toml", help="default: box_filling")
     be.add_argument("--json", action="store_true", help="print only the JSON line")
     be.set_defaults(func=cmd_bench_executor)
+
+    demo = sub.add_parser(
+        "demo",
+        help="the whole closed loop on this machine: operator twin, every service, simulated UR16e",
+        description="Opens a Zenoh router on loopback, plans the task if its sets are not stored, starts "
+        "every service as its own process (ECG gateway with the operator twin, HRV analyser, Pareto store, "
+        "decision maker, executor with the simulated UR16e), restarts any that dies, shows a live view, "
+        "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time) "
+        "and DIR/cycles.png (joint positions of the first and last cycle).",
+    )
+    demo.add_argument("--duration", type=float, default=600.0, help="data time to run, s (default 600)")
+    demo.add_argument("--speed", type=float, default=8.0, help="data time per wall time (default 8)")
+    demo.add_argument("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
+    demo.add_argument("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
+    demo.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    demo.add_argument(
+        "--kill",
+        action="append",
+        default=[],
+        metavar="SERVICE@S",
+        help="SIGKILL a service at data time S (repeatable): shows the supervisor restarting it",
+    )
+    demo.add_argument("--no-live", action="store_true", help="no live view (for logs and CI)")
+    demo.set_defaults(func=cmd_demo)
 
     hrv = sub.add_parser("hrv", help="offline heart-rate tools on a recording")
     hrv_sub = hrv.add_subparsers(dest="hrv", required=True, metavar="TOOL")

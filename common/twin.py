@@ -49,9 +49,9 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     pace_ref_rad_s: float = 1.0
     accel_ref_rad_s2: float = 2.0
     accel_weight: float = 0.5
-    tolerance: float = 1.0
-    span: float = 0.4
-    tau_up_s: float = 40.0
+    tolerance: float = 0.8
+    span: float = 0.3
+    tau_up_s: float = 30.0
     tau_down_s: float = 60.0
     fatigue_per_hour: float = 0.1
     resp_hz: float = 0.25

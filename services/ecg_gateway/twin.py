@@ -90,4 +90,14 @@ class TwinSource(EcgSource):
             x = self.operator.ecg(t0, CHUNK)
             yield Chunk(self.origin_ns + round(t0 * 1e9), np.rint(x).astype(int).tolist())
             self._signals_due(t0 + CHUNK / FS_HZ)
+            if i % (CHUNK * 54) == 0:  # about every 30 s of data time
+                op = self.operator
+                log.info(
+                    "twin at %.0f s: exposure %.2f, stress %.2f, mean RR %.3f s, fatigue %.3f",
+                    t0,
+                    op.exposure(op.t),
+                    op.stress,
+                    op.mean_rr(),
+                    op.fatigue,
+                )
             i += CHUNK

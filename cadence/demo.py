@@ -1,0 +1,322 @@
+"""`cadence demo`: the whole closed loop on one machine, no robot and no strap (closed-loop issue).
+
+A Zenoh router on loopback (this process), then every service as its own process, configured the way
+systemd would configure it (environment variables over built-in defaults) and supervised the way systemd
+would supervise it (a service that dies is restarted). The ECG gateway runs the operator twin, the
+executor the simulated UR16e; all of them share one data clock running ``speed`` times faster than the
+wall clock. This process only watches the bus: the live view, ``summary.json`` and the figures come
+from what the services publish.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import os
+import signal
+import socket
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+
+from common.bus import Bus, BusConfig
+from common.clock import Clock
+from common.storage import atomic_write
+from common.task import Task, load_task
+from common.twin import TwinParams
+from schemas import (
+    CycleReport,
+    HrvWindow,
+    OperatorError,
+    ParetoSet,
+    PlanProgress,
+    RobotEvent,
+    Selection,
+    ServiceStatus,
+)
+
+ORDER = ("pareto_store", "decision_maker", "hrv_analyser", "ecg_gateway", "executor")
+RESTART_DELAY_S = 0.5
+STOP_TIMEOUT_S = 15.0
+
+
+@dataclass(frozen=True, slots=True)
+class DemoOptions:
+    duration_s: float = 600.0  # data time
+    speed: float = 8.0
+    out: Path = Path("demo-out")
+    seed: int = 1
+    task: Path = Path(__file__).resolve().parents[1] / "deploy" / "tasks" / "box_filling.toml"
+    kill: tuple[tuple[str, float], ...] = ()  # (service, data time s): SIGKILL it then
+    live: bool = True
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class Supervised:
+    """One service process, restarted when it dies (systemd's Restart=always, RestartSec=0.5)."""
+
+    name: str
+    env: dict[str, str]
+    log: Path
+    proc: asyncio.subprocess.Process | None = None
+    restarts: int = 0
+    exit_code: int | None = None  # at the end: after SIGTERM
+    started: asyncio.Event = field(default_factory=asyncio.Event)
+
+    async def supervise(self, stopping: asyncio.Event, on_restart) -> None:
+        with self.log.open("ab") as log:
+            while True:
+                self.proc = await asyncio.create_subprocess_exec(
+                    sys.executable, "-m", f"services.{self.name}", env=self.env, stdout=log, stderr=log
+                )
+                self.started.set()
+                rc = await self.proc.wait()
+                if stopping.is_set():
+                    self.exit_code = rc
+                    return
+                self.restarts += 1
+                on_restart(self.name, rc)
+                await asyncio.sleep(RESTART_DELAY_S)
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.returncode is None:
+            self.proc.send_signal(signal.SIGKILL)
+
+    async def stop(self) -> None:
+        if self.proc is None or self.proc.returncode is not None:
+            return
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            await asyncio.wait_for(self.proc.wait(), STOP_TIMEOUT_S)
+        except TimeoutError:
+            self.proc.kill()
+
+
+@dataclass
+class Observed:
+    """What the demo saw on the bus, on data time (seconds from the epoch)."""
+
+    epoch_ns: int
+    windows: list[dict] = field(default_factory=list)
+    selections: list[dict] = field(default_factory=list)
+    cycles: list[CycleReport] = field(default_factory=list)
+    errors: int = 0
+    events: list[dict] = field(default_factory=list)
+
+    def t(self, t_ns: int) -> float:
+        return round((t_ns - self.epoch_ns) / 1e9, 3)
+
+    def on_window(self, w: HrvWindow) -> None:
+        self.windows.append({"end_s": self.t(w.end_ns), "mean_rr_s": w.mean_rr_s, "quality": w.quality})
+
+    def on_selection(self, s: Selection) -> None:
+        last = self.selections[-1] if self.selections else None
+        key = self.t(s.window_end_ns) if s.window_end_ns else None
+        if last is not None and (last["window_end_s"], last["k"]) == (key, s.k):
+            return  # the periodic republication of the same decision
+        self.selections.append(
+            {
+                "t_s": max(0.0, self.t(s.t_ns)),
+                "k": s.k,
+                "delta": s.delta,
+                "reason": s.reason,
+                "window_end_s": key,
+            }
+        )
+
+    def on_event(self, source: str, kind: str, message: str, t_ns: int) -> None:
+        self.events.append({"t_s": self.t(t_ns), "source": source, "kind": kind, "message": message})
+
+    def k_steps(self) -> tuple[int, int]:
+        ks = [s["k"] for s in self.selections]
+        down = sum(1 for a, b in itertools.pairwise(ks) if b < a)
+        up = sum(1 for a, b in itertools.pairwise(ks) if b > a)
+        return down, up
+
+
+def service_env(name: str, opts: DemoOptions, endpoint: str, data: Path, epoch_ns: int) -> dict[str, str]:
+    """What a systemd unit's EnvironmentFile would hold for this service in the demo."""
+    env = {
+        **os.environ,
+        "CADENCE_BUS_CONNECT": f"['{endpoint}']",
+        "CADENCE_DATA_DIR": str(data),
+        "CADENCE_CADENCE_SPEED": repr(opts.speed),
+        "CADENCE_CADENCE_EPOCH_NS": str(epoch_ns),
+        "CADENCE_CADENCE_STATUS_PERIOD_S": "1.0",
+        "CADENCE_CADENCE_LOG_FORMAT": "text",
+    }
+    task = str(opts.task)
+    if name == "pareto_store":
+        env["CADENCE_PARETO_STORE_TASK"] = task
+    elif name == "decision_maker":
+        env["CADENCE_DECISION_MAKER_RR_REST_S"] = repr(TwinParams().rr_rest_s)
+    elif name == "ecg_gateway":
+        env["CADENCE_ECG_GATEWAY_SOURCE"] = "twin"
+        env["CADENCE_ECG_GATEWAY_TWIN"] = f"{{ seed = {opts.seed} }}"
+    elif name == "executor":
+        env["CADENCE_EXECUTOR_TASK"] = task
+        env["CADENCE_EXECUTOR_BACKEND"] = "sim"
+    return env
+
+
+def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, Supervised]) -> Group:
+    t = Table(title=f"cadence demo — data time {now_s:6.0f} / {opts.duration_s:.0f} s at {opts.speed:g}×")
+    for col in ("mean RR (last window)", "k", "cycles", "last cycle", "errors", "restarts"):
+        t.add_column(col, justify="right")
+    w = obs.windows[-1] if obs.windows else None
+    rr = f"{w['mean_rr_s']:.3f} s ({w['quality']})" if w and w["mean_rr_s"] else "—"
+    k = str(obs.selections[-1]["k"]) if obs.selections else "—"
+    last = f"{obs.cycles[-1].cycle_time_s:.1f} s" if obs.cycles else "—"
+    restarts = ", ".join(f"{n} {p.restarts}" for n, p in procs.items() if p.restarts) or "none"
+    t.add_row(rr, k, str(len(obs.cycles)), last, str(obs.errors), restarts)
+    ev = Table(show_header=False, box=None)
+    for e in obs.events[-5:]:
+        ev.add_row(f"{e['t_s']:7.1f} s", e["source"], e["kind"], e["message"][:90])
+    return Group(t, ev)
+
+
+async def run_demo(opts: DemoOptions, console: Console) -> dict:
+    task = load_task(opts.task)
+    opts.out.mkdir(parents=True, exist_ok=True)
+    data, logs = opts.out / "data", opts.out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    for stale in ("decision_state.json", "calibration.json"):  # a demo starts from a rested operator
+        (data / stale).unlink(missing_ok=True)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stopping = asyncio.Event()
+    procs: dict[str, Supervised] = {}
+    tasks: list[asyncio.Task] = []
+    obs = Observed(epoch_ns=time.time_ns())
+
+    def on_restart(name: str, rc: int) -> None:
+        obs.on_event(
+            "demo", "restart", f"{name} exited with {rc}; restarted", Clock(opts.speed, obs.epoch_ns).now_ns()
+        )
+
+    def start(name: str, epoch_ns: int) -> None:
+        p = Supervised(name, service_env(name, opts, endpoint, data, epoch_ns), logs / f"{name}.log")
+        procs[name] = p
+        tasks.append(asyncio.create_task(p.supervise(stopping, on_restart)))
+
+    async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), "cell1") as bus:
+        # 1. the store first: it plans what it lacks, before the operator's clock starts
+        health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
+        with console.status("planning the task's Pareto sets (once; they are stored) …") as status:
+
+            def on_progress(pr: PlanProgress) -> None:
+                status.update(
+                    f"Pareto sets: {pr.done_paths}/{pr.total_paths} ready ('{pr.path_id}' {pr.state})"
+                )
+
+            bus.handle(bus.key("pareto/progress"), PlanProgress, _call(on_progress))
+            start("pareto_store", obs.epoch_ns)
+            async with asyncio.timeout(600):
+                while (await anext(health))[1].state != "serving":
+                    pass
+        # 2. the clock starts; everyone else joins
+        clock = Clock(opts.speed, time.time_ns())
+        obs.epoch_ns = clock.epoch_ns
+        bus.handle(bus.key("hrv/window"), HrvWindow, _call(obs.on_window))
+        bus.handle(bus.key("decision/selection"), Selection, _call(obs.on_selection))
+        bus.handle(bus.key("robot/cycle"), CycleReport, _call(obs.cycles.append))
+        bus.handle(
+            bus.key("robot/event"),
+            RobotEvent,
+            _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns)),
+        )
+
+        def on_error(e: OperatorError) -> None:
+            obs.errors += 1
+
+        bus.handle(bus.key("operator/error"), OperatorError, _call(on_error))
+        for name in ORDER[1:]:
+            start(name, clock.epoch_ns)
+        kills = sorted(opts.kill, key=lambda k: k[1])
+        end_ns = clock.epoch_ns + round(opts.duration_s * 1e9)
+        live = Live(console=console, refresh_per_second=4, transient=False) if opts.live else None
+        try:
+            if live is not None:
+                live.start()
+            while (now := clock.now_ns()) < end_ns:
+                now_s = (now - clock.epoch_ns) / 1e9
+                while kills and kills[0][1] <= now_s:
+                    name, _ = kills.pop(0)
+                    obs.on_event("demo", "kill", f"SIGKILL {name}", now)
+                    procs[name].kill()
+                if live is not None:
+                    live.update(live_view(obs, opts, now_s, procs))
+                await asyncio.sleep(0.1)
+        finally:
+            if live is not None:
+                live.stop()
+        # 3. the sets the executor used, for the figures, while the store still answers
+        sets = {}
+        for pid in task.paths:
+            replies = await bus.get(bus.key(f"pareto/{pid}"), ParetoSet, 5.0)
+            if replies and replies[0].message is not None:
+                sets[pid] = replies[0].message
+        # 4. stop: the robot first, the store last, each with SIGTERM; exit codes are checked
+        stopping.set()
+        for name in reversed(list(procs)):
+            await procs[name].stop()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    down, up = obs.k_steps()
+    minutes = opts.duration_s / 60.0
+    cycles = len(obs.cycles)
+    summary = {
+        "duration_s": opts.duration_s,
+        "speed": opts.speed,
+        "cycles": cycles,
+        "productivity_per_min": round(cycles / minutes, 3),
+        "errors": obs.errors,
+        "error_rate": round(obs.errors / cycles, 4) if cycles else 0.0,
+        "windows": obs.windows,
+        "selections": [{k: v for k, v in s.items() if k != "window_end_s"} for s in obs.selections],
+        "k_steps_down": down,
+        "k_steps_up": up,
+        "restarts": {n: p.restarts for n, p in procs.items()},
+        "exit_codes": {n: p.exit_code for n, p in procs.items()},
+        "cycle_times_s": [round(c.cycle_time_s, 3) for c in obs.cycles],
+        "cycle_ends_s": [obs.t(c.t_ns) for c in obs.cycles],
+        "events": obs.events,
+    }
+    atomic_write(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
+    write_figures(opts.out, obs, task, sets)
+    return summary
+
+
+def _call(fn):
+    async def handler(_: str, msg) -> None:
+        fn(msg)
+
+    return handler
+
+
+def write_figures(out: Path, obs: Observed, task: Task, sets: dict[str, ParetoSet]) -> None:
+    from cadence.plots import cycle_figure, rr_k_figure
+
+    atomic_write(out / "rr_k.png", rr_k_figure(obs.windows, obs.selections, TwinParams().rr_rest_s))
+    if obs.cycles and sets:
+        first, last = obs.cycles[0], obs.cycles[-1]
+        curves = {}
+        for label, rep in ((f"cycle {first.cycle + 1}", first), (f"cycle {last.cycle + 1}", last)):
+            curves[label] = [
+                (pid, k, np.array(sets[pid].solutions[k - 1].h), task.paths[pid])
+                for pid, k in rep.k_per_path.items()
+                if pid in sets
+            ]
+        atomic_write(out / "cycles.png", cycle_figure(curves))

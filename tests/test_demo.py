@@ -1,0 +1,66 @@
+"""The closed loop with every service as its own process (`cadence demo`), fast: a fast robot stresses
+the operator twin, k goes down; relief brings it up again. Killing the HRV analyser and the decision
+maker mid-run: the executor keeps cycling, the supervisor restarts them, the run completes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+KILL_HRV, KILL_DECISION = 150.0, 260.0
+
+
+def test_closed_loop_with_kills(tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cadence",
+            "demo",
+            "--duration",
+            "420",
+            "--speed",
+            "16",
+            "--out",
+            str(out),
+            "--no-live",
+            "--kill",
+            f"hrv_analyser@{KILL_HRV}",
+            "--kill",
+            f"decision_maker@{KILL_DECISION}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads((out / "summary.json").read_text())
+
+    # stress from the fast initial pace lowers k; relief raises it again
+    sel = s["selections"]
+    assert sel[0]["reason"] == "initial"
+    first_down = next(i for i, x in enumerate(sel) if x["delta"] < 0)
+    assert sel[first_down]["reason"] == "stress" and sel[first_down]["k"] < sel[0]["k"]
+    assert any(x["delta"] > 0 and x["reason"] == "rest" for x in sel[first_down + 1 :])
+    assert s["k_steps_down"] >= 1 and s["k_steps_up"] >= 1
+
+    # both killed services came back, and nothing else needed to
+    assert s["restarts"] == {
+        "pareto_store": 0,
+        "decision_maker": 1,
+        "hrv_analyser": 1,
+        "ecg_gateway": 0,
+        "executor": 0,
+    }
+    assert all(code == 0 for code in s["exit_codes"].values())  # every service stopped cleanly on SIGTERM
+    ends = s["cycle_ends_s"]
+    for kill in (KILL_HRV, KILL_DECISION):  # the robot went on cycling while each was down and restarting
+        assert any(kill < t < kill + 30 for t in ends)
+    assert any(w["end_s"] > KILL_HRV + 40 for w in s["windows"])  # the restarted analyser windows again
+    assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
+    assert s["cycles"] >= 5 and len(ends) == s["cycles"]
+    for fig in ("rr_k.png", "cycles.png"):
+        assert (out / fig).read_bytes()[:4] == b"\x89PNG"
