@@ -503,6 +503,7 @@ SERVICES = {
     "hrv_analyser": "services.hrv_analyser.__main__",
     "executor": "services.executor.__main__",
     "pareto_store": "services.pareto_store.__main__",
+    "ur_emulator": "services.ur_emulator.__main__",
 }
 
 

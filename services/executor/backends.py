@@ -149,6 +149,7 @@ class UrRtdeBackend:
         self.gripper_output = gripper_output
         self._c = self._r = self._io = None
         self._lost = ""
+        self._watchdog = False
 
     def connect(self) -> None:
         import rtde_control
@@ -162,8 +163,8 @@ class UrRtdeBackend:
         except RuntimeError as exc:
             self.close()
             raise RobotUnavailable(f"UR controller at {self.host}: {exc}") from None
-        self._c.setWatchdog(self.watchdog_hz)
         self._lost = ""
+        self._watchdog = False
 
     def close(self) -> None:
         for iface in (self._c, self._io, self._r):
@@ -188,6 +189,8 @@ class UrRtdeBackend:
             return "protective stop"
         if self._r.isEmergencyStopped():
             return "emergency stop"
+        if not self._c.isProgramRunning():
+            return "the control script stopped on the controller (its watchdog, or a stop there)"
         return ""
 
     def reset_fault(self) -> None:
@@ -195,6 +198,11 @@ class UrRtdeBackend:
         self.connect()
 
     def prepare(self, q: Array) -> Sequence[object]:
+        """Also arms the controller's watchdog: from here on the servo loop kicks it every tick, and the
+        controller stops the program if the kicks stop (the executor stalled or died)."""
+        if not self._watchdog:
+            self._c.setWatchdog(self.watchdog_hz)
+            self._watchdog = True
         return np.asarray(q, dtype=float).tolist()
 
     def servo(self, target: object) -> bool:
@@ -217,6 +225,9 @@ class UrRtdeBackend:
         return float(np.max(np.abs(np.asarray(target) - self.actual_q()))) <= self.settle_tol
 
     def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
+        if self._watchdog:  # nothing kicks it during a blocking moveJ
+            self._c.setWatchdog(0.0)
+            self._watchdog = False
         return bool(self._c.moveJ(np.asarray(q, float).tolist(), speed, acceleration))
 
     def stop_move(self) -> None:

@@ -1,0 +1,73 @@
+"""ur_emulator: a UR e-Series controller on the wire, for the real ur-rtde client without a robot
+(tests, and trying the executor's ur_rtde backend): ``cadence run ur_emulator --host 127.0.0.2``.
+
+It prints ``ready <host>`` once its three ports listen, and, with ``--verbose``, what the client asked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+
+import numpy as np
+
+from common.storage import atomic_write
+from services.ur_emulator.controller import Controller
+from services.ur_emulator.server import Emulator
+
+
+def run(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="cadence run ur_emulator",
+        description="Emulate a UR16e controller (RTDE 30004, dashboard 29999, script 30003) on HOST.",
+    )
+    parser.add_argument(
+        "--host", default="127.0.0.2", help="loopback address to listen on (default 127.0.0.2)"
+    )
+    parser.add_argument(
+        "--q0-deg",
+        type=float,
+        nargs=6,
+        default=[0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
+        help="the arm's start pose",
+    )
+    parser.add_argument("--verbose", action="store_true", help="log the recipes the client asks for")
+    parser.add_argument(
+        "--recipes-out", metavar="FILE.json", help="write every recipe the clients set up (the contract test)"
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    controller = Controller(np.radians(args.q0_deg))
+    emulator = Emulator(controller, args.host)
+    try:
+        emulator.start()
+    except OSError as exc:
+        print(f"cadence ur_emulator: cannot listen on {args.host}: {exc.strerror}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"ready {args.host}", flush=True)
+    seen_log = recipes_written = recipes_logged = 0
+    while not stop.wait(0.2):
+        with controller.lock:
+            new, seen_log = controller.log[seen_log:], len(controller.log)
+        for line in new:
+            print(line, flush=True)
+        if args.recipes_out and len(emulator.recipes_seen) != recipes_written:
+            recipes_written = len(emulator.recipes_seen)
+            atomic_write(args.recipes_out, json.dumps(emulator.recipes_seen, indent=0).encode())
+        if args.verbose:
+            for kind, names in emulator.recipes_seen[recipes_logged:]:
+                logging.info("%s %s", kind, ",".join(names))
+            recipes_logged = len(emulator.recipes_seen)
+    emulator.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run())
