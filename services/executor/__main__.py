@@ -308,6 +308,7 @@ class Executor:
             targets = self.backend.prepare(q)
             settle = round(self.settings.settle_s * RATE_HZ)
             result: MotionResult = await asyncio.wrap_future(self.loop.run(targets, settle))
+            await asyncio.to_thread(self.backend.motion_ended)
             self.mode = "idle"
             self.ctx.counters["paths"] += 1
             self.ctx.counters["overruns"] = self.loop.overruns

@@ -41,6 +41,7 @@ class Backend(Protocol):
     def brake(self) -> bool: ...
     def settled(self, target: object) -> bool: ...
     def move_j(self, q: Array, speed: float, acceleration: float) -> bool: ...
+    def motion_ended(self) -> None: ...  # after a servo motion, whatever its outcome
     def stop_move(self) -> None: ...  # from another thread: end a move_j now, decelerating
     def set_gripper(self, on: bool) -> None: ...
 
@@ -114,6 +115,9 @@ class SimBackend:
             time.sleep(DT / self.speed)
         return True
 
+    def motion_ended(self) -> None:
+        pass
+
     def stop_move(self) -> None:
         self._abort = True
 
@@ -125,7 +129,7 @@ class SimBackend:
 class UrRtdeBackend:
     """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
     every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
-    slow start-up move, a standard digital output for the gripper."""
+    slow start-up move, a standard digital output for the gripper (see ``set_gripper``)."""
 
     name = "ur_rtde"
 
@@ -147,19 +151,17 @@ class UrRtdeBackend:
         self.stop_deceleration, self.settle_tol = stop_deceleration, settle_tol
         self.watchdog_hz = watchdog_hz
         self.gripper_output = gripper_output
-        self._c = self._r = self._io = None
+        self._c = self._r = None
         self._lost = ""
         self._watchdog = False
 
     def connect(self) -> None:
         import rtde_control
-        import rtde_io
         import rtde_receive
 
         try:
             self._r = rtde_receive.RTDEReceiveInterface(self.host, 500.0)
             self._c = rtde_control.RTDEControlInterface(self.host, 500.0)
-            self._io = rtde_io.RTDEIOInterface(self.host)
         except RuntimeError as exc:
             self.close()
             raise RobotUnavailable(f"UR controller at {self.host}: {exc}") from None
@@ -167,11 +169,11 @@ class UrRtdeBackend:
         self._watchdog = False
 
     def close(self) -> None:
-        for iface in (self._c, self._io, self._r):
+        for iface in (self._c, self._r):
             if iface is not None:
                 with contextlib.suppress(RuntimeError):
                     iface.disconnect()
-        self._c = self._r = self._io = None
+        self._c = self._r = None
 
     def actual_q(self) -> Array:
         return np.array(self._r.getActualQ())
@@ -224,10 +226,16 @@ class UrRtdeBackend:
     def settled(self, target: object) -> bool:
         return float(np.max(np.abs(np.asarray(target) - self.actual_q()))) <= self.settle_tol
 
+    def motion_ended(self) -> None:
+        """Disarms the watchdog: between motions (gripper, waits, moveJ) nothing kicks it, and the robot
+        is at rest. ``prepare`` arms it again before the next motion."""
+        if self._watchdog and not self._lost:
+            with contextlib.suppress(RuntimeError):
+                self._c.setWatchdog(0.0)
+        self._watchdog = False
+
     def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
-        if self._watchdog:  # nothing kicks it during a blocking moveJ
-            self._c.setWatchdog(0.0)
-            self._watchdog = False
+        self.motion_ended()  # nothing kicks the watchdog during a blocking moveJ
         return bool(self._c.moveJ(np.asarray(q, float).tolist(), speed, acceleration))
 
     def stop_move(self) -> None:
@@ -236,4 +244,17 @@ class UrRtdeBackend:
                 self._c.stopJ(self.stop_deceleration, False)
 
     def set_gripper(self, on: bool) -> None:
-        self._io.setStandardDigitalOut(self.gripper_output, on)
+        """Through an IO interface opened for this call only: ur-rtde 1.6.5's RTDEIOInterface ends the
+        whole process (an uncaught exception in its reader thread) when the controller's connection
+        drops while it is open. The receive and control interfaces survive that, so only they stay
+        connected."""
+        import rtde_io
+
+        try:
+            io = rtde_io.RTDEIOInterface(self.host)
+        except RuntimeError as exc:
+            raise RobotUnavailable(f"UR controller at {self.host} (IO interface): {exc}") from None
+        try:
+            io.setStandardDigitalOut(self.gripper_output, on)
+        finally:
+            io.disconnect()

@@ -7,7 +7,6 @@ It prints ``ready <host>`` once its three ports listen, and, with ``--verbose``,
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import signal
 import sys
@@ -15,7 +14,6 @@ import threading
 
 import numpy as np
 
-from common.storage import atomic_write
 from services.ur_emulator.controller import Controller
 from services.ur_emulator.server import Emulator
 
@@ -42,7 +40,7 @@ def run(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
     controller = Controller(np.radians(args.q0_deg))
-    emulator = Emulator(controller, args.host)
+    emulator = Emulator(controller, args.host, args.recipes_out)
     try:
         emulator.start()
     except OSError as exc:
@@ -52,15 +50,12 @@ def run(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     print(f"ready {args.host}", flush=True)
-    seen_log = recipes_written = recipes_logged = 0
+    seen_log = recipes_logged = 0
     while not stop.wait(0.2):
         with controller.lock:
             new, seen_log = controller.log[seen_log:], len(controller.log)
         for line in new:
             print(line, flush=True)
-        if args.recipes_out and len(emulator.recipes_seen) != recipes_written:
-            recipes_written = len(emulator.recipes_seen)
-            atomic_write(args.recipes_out, json.dumps(emulator.recipes_seen, indent=0).encode())
         if args.verbose:
             for kind, names in emulator.recipes_seen[recipes_logged:]:
                 logging.info("%s %s", kind, ",".join(names))

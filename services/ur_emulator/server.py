@@ -7,6 +7,7 @@ GIL while they wait for data, so an emulator in the client's process would deadl
 
 from __future__ import annotations
 
+import json
 import logging
 import socket
 import struct
@@ -15,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 
 from common import rtde
+from common.storage import atomic_write
 from services.ur_emulator.controller import Controller
 
 log = logging.getLogger("cadence.ur_emulator")
@@ -45,8 +47,8 @@ class RtdeConnection:
 
 
 class Emulator:
-    def __init__(self, controller: Controller, host: str) -> None:
-        self.controller, self.host = controller, host
+    def __init__(self, controller: Controller, host: str, recipes_out: str | None = None) -> None:
+        self.controller, self.host, self.recipes_out = controller, host, recipes_out
         self.connections: list[RtdeConnection] = []
         self.recipes_seen: list[tuple[str, list[str]]] = []  # ('O' | 'I', names), for the contract test
         self._stop = threading.Event()
@@ -125,7 +127,7 @@ class Emulator:
             (freq,) = struct.unpack_from(">d", payload)
             names = [n for n in payload[8:].decode().split(",") if n]
             types = [rtde.type_of(n) for n in names]
-            self.recipes_seen.append(("O", names))
+            self._seen("O", names)
             conn.output_id = len(conn.inputs) + 1 if conn.outputs is None else conn.output_id
             conn.outputs = Recipe(names, types, rtde.recipe_struct(types))
             conn.control = "output_int_register_0" in names and "actual_q" not in names
@@ -134,7 +136,7 @@ class Emulator:
         if kind == rtde.I:
             names = [n for n in payload.decode().split(",") if n]
             types = [rtde.type_of(n) for n in names]
-            self.recipes_seen.append(("I", names))
+            self._seen("I", names)
             rid = len(conn.inputs) + 1
             conn.inputs[rid] = Recipe(names, types, rtde.recipe_struct(types))
             return rtde.frame(rtde.I, bytes([rid]) + ",".join(types).encode())
@@ -154,6 +156,12 @@ class Emulator:
             )
             return None
         return None
+
+    def _seen(self, kind: str, names: list[str]) -> None:
+        """Recorded before the reply goes out, so a client that has connected has been recorded."""
+        self.recipes_seen.append((kind, names))
+        if self.recipes_out is not None:
+            atomic_write(self.recipes_out, json.dumps(self.recipes_seen).encode())
 
     def _ticks(self) -> None:
         tick, start = 0, time.monotonic()

@@ -1,0 +1,258 @@
+"""The executor's ur_rtde backend through the real ur-rtde 1.6.5 client, against the UR controller
+emulator (services/ur_emulator) run as its own process on a free loopback address."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import random
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.task import load_task
+from common.validate import validated_samples
+from services.executor.backends import UrRtdeBackend
+from services.executor.servo import ServoLoop
+from tests.conftest import EXAMPLE_TASK
+
+EXPECTED_JSON = (
+    '{"period_us": 0, "ticks": 0, "p50_err_us": 0, "p99_err_us": 0, "p999_err_us": 0, "max_err_us": 0, '
+    '"overruns": 0, "prepare_ms": 0}'
+)
+CONTRACT = Path(__file__).parent / "data" / "ur_rtde_1.6.5_recipes.json"
+
+
+def free_loopback() -> str:
+    """A 127.x address on which the emulator's three ports are free (parallel runs, leftovers)."""
+    for _ in range(50):
+        host = f"127.0.{random.randint(1, 254)}.{random.randint(2, 254)}"
+        try:
+            for port in (30004, 29999, 30003):
+                with socket.socket() as s:
+                    s.bind((host, port))
+            return host
+        except OSError:
+            continue
+    raise RuntimeError("no free loopback address for the emulator")
+
+
+class EmulatorProcess:
+    def __init__(self, host: str, recipes: Path | None = None, q0_deg: list[float] | None = None) -> None:
+        self.host = host
+        cmd = [sys.executable, "-m", "services.ur_emulator", "--host", host]
+        if recipes is not None:
+            cmd += ["--recipes-out", str(recipes)]
+        if q0_deg is not None:
+            cmd += ["--q0-deg", *map(str, q0_deg)]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        ready = threading.Event()
+
+        def read() -> None:
+            for line in self.proc.stdout:
+                self.lines.append(line.rstrip())
+                if line.startswith("ready"):
+                    ready.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        if not ready.wait(20):
+            self.proc.kill()
+            raise RuntimeError(f"the emulator did not start: {self.lines}")
+
+    def wait_for_line(self, text: str, timeout: float = 10.0) -> str:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for line in self.lines:
+                if text in line:
+                    return line
+            time.sleep(0.02)  # polling the reader thread's list; bounded by the timeout
+        raise AssertionError(f"no line with {text!r} in {self.lines}")
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
+        self.proc.send_signal(sig)
+        return self.proc.wait(10)
+
+
+@pytest.fixture
+def emulator(tmp_path: Path) -> Iterator[EmulatorProcess]:
+    emu = EmulatorProcess(free_loopback(), recipes=tmp_path / "recipes.json")
+    yield emu
+    if emu.proc.poll() is None:
+        emu.stop()
+
+
+@pytest.fixture
+def backend(emulator: EmulatorProcess) -> Iterator[UrRtdeBackend]:
+    b = UrRtdeBackend(emulator.host)
+    b.connect()
+    yield b
+    b.close()
+
+
+def test_the_recipes_the_pinned_client_sends_are_the_recorded_ones(
+    emulator: EmulatorProcess, backend: UrRtdeBackend, tmp_path: Path
+) -> None:
+    backend.set_gripper(True)  # the IO interface's recipe too
+    sent = json.loads((tmp_path / "recipes.json").read_text())  # receive, control, then IO interface
+    if not CONTRACT.exists():  # first run: record (commit the file; from then on it is the contract)
+        CONTRACT.write_text(json.dumps(sent, indent=1) + "\n")
+    assert sent == json.loads(CONTRACT.read_text()), (
+        "ur-rtde's recipes changed: check the emulator, then re-record"
+    )
+    assert len([r for r in sent if r[0] == "I"]) >= 23
+
+
+def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtdeBackend) -> None:
+    task = load_task(EXAMPLE_TASK)
+    path = task.paths["b2_to_a2"]
+    q = validated_samples(np.full(len(path.waypoints) + 1, 0.45), path, task.limits)
+    assert backend.move_j(q[0], 1.0, 2.0)
+    assert float(np.max(np.abs(backend.actual_q() - q[0]))) < 1e-6
+    lags: list[float] = []
+    loop = ServoLoop(backend, core=None, fifo_priority=0, lock_memory=False)
+    loop.start()
+    fut = loop.run(backend.prepare(q), settle_ticks=500)
+    while not fut.done():  # the commanded sample against the arm's, as a state publisher would see them
+        i = loop.index
+        if i >= 0:
+            lags.append(float(np.max(np.abs(backend.actual_q() - q[i]))))
+        time.sleep(0.01)
+    r = fut.result()
+    loop.close()
+    print(
+        f"\ntracking error: median {np.median(lags):.4f} rad, max {max(lags):.4f} rad over {len(lags)} reads"
+    )
+    assert r.outcome == "done" and r.samples_sent == len(q)
+    assert max(lags) < 0.1 and np.median(lags) < 0.05  # servoJ-like lag at lookahead 0.1 s, gain 300
+    assert float(np.max(np.abs(backend.actual_q() - q[-1]))) < 1e-3 and backend.fault() == ""
+    s = loop.summary()
+    print(f"servo ticks {s.ticks}, p99.9 error {s.p999_err_us} µs, overruns {s.overruns}")
+
+
+def test_a_jump_is_a_protective_stop_the_client_sees(backend: UrRtdeBackend) -> None:
+    target = backend.prepare((backend.actual_q() + 0.5)[None, :])[0]
+    for _ in range(5):
+        backend.servo(target)
+        time.sleep(0.002)
+    end = time.monotonic() + 5
+    while backend.fault() != "protective stop" and time.monotonic() < end:
+        time.sleep(0.01)
+    assert backend.fault() == "protective stop"
+
+
+def test_the_watchdog_stops_the_program_when_the_executor_stalls(
+    emulator: EmulatorProcess, backend: UrRtdeBackend
+) -> None:
+    q = backend.actual_q()
+    targets = backend.prepare(q[None, :] + np.linspace(0, 0.01, 50)[:, None])  # arms the watchdog (10 Hz)
+    for x in targets:
+        assert backend.servo(x)
+        time.sleep(0.002)
+    # … and then the executor stalls: no kick
+    assert "watchdog" in emulator.wait_for_line("watchdog", timeout=5)
+    assert "control script stopped" in backend.fault()
+    backend.reset_fault()  # reconnects, uploads the script again
+    assert backend.fault() == ""
+
+
+def test_bench_executor_on_the_ur_rtde_backend_gives_the_same_json(emulator: EmulatorProcess) -> None:
+    args = ["--backend", "ur_rtde", "--host", emulator.host, "--seconds", "3", "--fifo-priority", "0"]
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "bench", "executor", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    print("\n" + r.stdout)
+    figures = json.loads(r.stdout.strip().splitlines()[-1])
+    assert set(figures) == set(json.loads(EXPECTED_JSON))
+    assert figures["ticks"] >= 1500
+
+
+FIRST_WAYPOINT_DEG = ["-62", "-78", "112", "-124", "-90", "28"]  # box_filling's b1_to_b2 starts here
+
+
+@pytest.mark.asyncio
+async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_real_client(
+    tmp_path: Path, endpoint: str
+) -> None:
+    from common.bus import Bus, BusConfig
+    from schemas import CycleReport, RobotEvent
+    from services.executor.__main__ import Settings
+    from services.executor.__main__ import main as executor_main
+    from tests.test_executor import Running, next_of, store_serving
+
+    emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
+    try:
+        async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+            store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint)
+            cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+            events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+            settings = Settings(
+                backend="ur_rtde",
+                host=emu.host,
+                fifo_priority=0,
+                cycles=1,
+                wait_for_signals=False,
+                initial_k=15,
+            )
+            ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint)
+            assert (await next_of(events, lambda e: e.kind == "connected", timeout=30)).message.startswith(
+                "ur_rtde"
+            )
+            report = await next_of(cycles, timeout=90)
+            await asyncio.wait_for(ex.task, 20)
+            await store.close()
+    finally:
+        emu.stop()
+    assert report.k_per_path == {p: 15 for p in load_task(EXAMPLE_TASK).paths}
+    assert any("script uploaded" in line for line in emu.lines)
+    assert not any("protective stop" in line or "watchdog" in line for line in emu.lines)
+
+
+@pytest.mark.asyncio
+async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executor_reconnects(
+    tmp_path: Path, endpoint: str
+) -> None:
+    from common.bus import Bus, BusConfig
+    from schemas import CycleReport, RobotEvent, RobotState
+    from services.executor.__main__ import Settings
+    from services.executor.__main__ import main as executor_main
+    from tests.test_executor import Running, next_of, store_serving
+
+    host = free_loopback()
+    emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = Settings(
+            backend="ur_rtde", host=host, fifo_priority=0, wait_for_signals=False, initial_k=15
+        )
+        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint)
+        try:
+            await next_of(states, lambda s: s.mode == "moving" and s.path_id == "b1_to_b2", timeout=60)
+            emu.stop(signal.SIGKILL)  # the controller is gone mid-motion
+            stop = await next_of(events, lambda e: e.kind == "protective_stop", timeout=20)
+            down = await next_of(events, lambda e: e.kind == "disconnected", timeout=20)
+            emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])  # it is back
+            back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
+            report = await next_of(cycles, timeout=90)  # and the robot works again
+        finally:
+            await ex.close()
+            await store.close()
+            emu.stop()
+    assert stop.path_id == "b1_to_b2" and "lost" in stop.message
+    assert host in down.message and host in back.message
+    assert report.cycle == 0 and set(report.k_per_path) == set(load_task(EXAMPLE_TASK).paths)
