@@ -204,7 +204,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 fifo_priority=0,
                 cycles=1,
                 wait_for_signals=False,
-                initial_k=15,
+                initial_k=8,
             )
             ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint)
             assert (await next_of(events, lambda e: e.kind == "connected", timeout=30)).message.startswith(
@@ -215,7 +215,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
             await store.close()
     finally:
         emu.stop()
-    assert report.k_per_path == {p: 15 for p in load_task(EXAMPLE_TASK).paths}
+    assert report.k_per_path == {p: 8 for p in load_task(EXAMPLE_TASK).paths}
     assert any("script uploaded" in line for line in emu.lines)
     assert not any("protective stop" in line or "watchdog" in line for line in emu.lines)
 
@@ -237,9 +237,7 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = Settings(
-            backend="ur_rtde", host=host, fifo_priority=0, wait_for_signals=False, initial_k=15
-        )
+        settings = Settings(backend="ur_rtde", host=host, fifo_priority=0, wait_for_signals=False)
         ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint)
         try:
             await next_of(states, lambda s: s.mode == "moving" and s.path_id == "b1_to_b2", timeout=60)
