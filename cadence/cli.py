@@ -240,6 +240,9 @@ def cmd_bench_executor(args: argparse.Namespace) -> int:
         )
         out.print(table)
     print(json.dumps(r.as_json()))
+    if r.aborted:
+        print(f"cadence bench executor: {r.aborted}", file=sys.stderr)
+        return 1
     return 0
 
 
