@@ -4,6 +4,7 @@ one line naming the file and field; nothing is written when the input is bad."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -560,6 +561,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     import signal
 
     from common.bus import Bus
+    from common.service import sd_notify, watchdog_period_s
 
     async def go() -> None:
         stop = asyncio.Event()
@@ -567,8 +569,14 @@ def cmd_router(args: argparse.Namespace) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
         async with await Bus.open(_bus_config(args, "router"), "cell1"):
-            err.print(f"Zenoh router listening on {', '.join(args.listen)}")
-            await stop.wait()
+            err.print(f"Zenoh router listening on {', '.join(args.listen or ['its config file'])}")
+            sd_notify("READY=1")  # under systemd (Type=notify); a no-op elsewhere
+            period = watchdog_period_s()
+            while not stop.is_set():
+                if period is not None:
+                    sd_notify("WATCHDOG=1")
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), period or 3600.0)
 
     asyncio.run(go())
     return 0

@@ -111,6 +111,11 @@ class Subscription:
             self.dropped += 1
         self._queue.put_nowait((key, msg))
 
+    @property
+    def pending(self) -> int:
+        """Messages received and not yet read."""
+        return self._queue.qsize()
+
     def __aiter__(self) -> AsyncIterator[tuple[str, Message]]:
         return self._iterate()
 
