@@ -301,6 +301,47 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_record(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
+    from cadence.recording import record
+    from common.bus import Bus
+
+    async def go() -> int:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        if args.duration is not None:
+            loop.call_later(args.duration, stop.set)
+        async with await Bus.open(_bus_config(args, "peer"), args.cell) as bus:
+            keys = args.keys or [bus.key("**")]
+            err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
+            rec = await record(bus, Path(args.output), keys, stop, json=args.json)
+        err.print(f"{rec.count} messages written to {args.output}")
+        return 0
+
+    return asyncio.run(go())
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.recording import replay
+    from common.bus import Bus
+
+    async def go() -> int:
+        async with await Bus.open(_bus_config(args, "peer"), "cell1") as bus:
+            if args.wait is not None:
+                await asyncio.sleep(args.wait)  # let subscribers on other hosts discover this session
+            n = await replay(bus, Path(args.recording), args.speed, args.keys)
+        err.print(f"{n} messages replayed from {args.recording}")
+        return 0
+
+    return asyncio.run(go())
+
+
 def _record_peaks(args: argparse.Namespace):
     from common.ecg_records import read_record
     from common.rpeaks import detect
@@ -666,6 +707,37 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--task", default=None, metavar="TASK.toml", help="default: box_filling")
     be.add_argument("--json", action="store_true", help="print only the JSON line")
     be.set_defaults(func=cmd_bench_executor)
+
+    rec = sub.add_parser(
+        "record",
+        help="record bus traffic into an MCAP file",
+        description="Records every message under the key expressions (default cadence/<cell>/**) into "
+        "FILE.mcap, one channel per key with the message type's JSON schema. Stops on Ctrl-C, SIGTERM or "
+        "after --duration; the file is complete in every case.",
+    )
+    rec.add_argument("keys", nargs="*", metavar="KEYEXPR", help="key expressions (default cadence/<cell>/**)")
+    rec.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
+    rec.add_argument("--duration", type=float, help="stop after this many seconds")
+    rec.add_argument(
+        "--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack"
+    )
+    rec.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    rec.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    rec.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    rec.set_defaults(func=cmd_record)
+    rep = sub.add_parser(
+        "replay",
+        help="republish a recording with its original data time",
+        description="Republishes the recorded payloads on their keys, paced by the recorded arrival times "
+        "divided by --speed. Services work on data time, so they give what they gave live.",
+    )
+    rep.add_argument("recording", metavar="FILE.mcap")
+    rep.add_argument("--speed", type=float, default=1.0, help="× the recorded pace; 0 as fast as possible")
+    rep.add_argument("--keys", nargs="+", metavar="KEYEXPR", help="replay only these key expressions")
+    rep.add_argument("--wait", type=float, help="seconds to wait after joining the bus before replaying")
+    rep.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    rep.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    rep.set_defaults(func=cmd_replay)
 
     demo = sub.add_parser(
         "demo",

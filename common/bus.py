@@ -127,6 +127,16 @@ class Subscription:
         self._sub.undeclare()
 
 
+class RawSubscription:
+    def __init__(self, sub: Any) -> None:
+        self._sub: Any = sub
+
+    def undeclare(self) -> None:
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
+
+
 class Bus:
     """One Zenoh session used from one event loop; an async context manager (httpx's habit)."""
 
@@ -185,10 +195,23 @@ class Bus:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.session.put(key, encode(msg), congestion_control=cc)
 
-    def put_raw(self, key: str, payload: bytes) -> None:
+    def put_raw(self, key: str, payload: bytes, block: bool = False) -> None:
         """Bytes as they are (tests and replay)."""
         self._check_open()
-        self.session.put(key, payload)
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.session.put(key, payload, congestion_control=cc)
+
+    def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> RawSubscription:
+        """Payloads as they travel, undecoded (recording): ``callback(key, bytes)`` on the loop thread."""
+        self._check_open()
+        loop = self.loop
+        sub = RawSubscription(
+            self.session.declare_subscriber(
+                key_expr, lambda s: _call_soon(loop, callback, str(s.key_expr), s.payload.to_bytes())
+            )
+        )
+        self._declared.append(sub)
+        return sub
 
     def subscribe(self, key_expr: str, msg_type: type[Message], maxsize: int = 256) -> Subscription:
         self._check_open()

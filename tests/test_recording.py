@@ -1,0 +1,139 @@
+"""`cadence record` / `cadence replay`: MCAP files that MCAP tools read, and replay exactness: replaying only
+``ecg/samples`` into a fresh HRV analyser and decision maker gives exactly the recorded windows and
+selections, at 1× and at 10× the recorded pace."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+from pathlib import Path
+
+import msgspec
+import pytest
+from mcap.reader import make_reader
+
+from cadence.recording import read, record, replay
+from common.bus import Bus, BusConfig
+from schemas import HrvWindow, Selection, ServiceStatus
+from services.decision_maker.__main__ import Settings as DecisionSettings
+from services.decision_maker.__main__ import main as decision_main
+from services.ecg_gateway.__main__ import Settings as GatewaySettings
+from services.ecg_gateway.__main__ import main as gateway_main
+from services.hrv_analyser.__main__ import Settings as AnalyserSettings
+from services.hrv_analyser.__main__ import main as analyser_main
+from tests.conftest import InProcessService
+from tests.test_ecg_chain import START_NS, record_cut
+from tests.test_rpeaks import needs_data
+
+WINDOWS = 2
+
+
+def content(msg: msgspec.Struct) -> dict:
+    """A message without its sender's sequence number (a restarted sender counts afresh)."""
+    return {k: v for k, v in msgspec.structs.asdict(msg).items() if k != "seq"}
+
+
+async def chain(bus: Bus, tmp: Path, endpoint: str) -> tuple[InProcessService, InProcessService]:
+    """A fresh analyser and decision maker, both up (their status seen)."""
+    decider = InProcessService(
+        "decision_maker",
+        decision_main,
+        DecisionSettings(rr_rest_s=0.85, republish_s=600),
+        tmp / "d",
+        endpoint,
+    )
+    analyser = InProcessService("hrv_analyser", analyser_main, AnalyserSettings(), tmp / "a", endpoint)
+    for name in ("decision_maker", "hrv_analyser"):
+        health = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
+        async with asyncio.timeout(10):
+            await anext(health)
+    return decider, analyser
+
+
+async def outputs(wins, sels) -> tuple[list[dict], list[dict]]:
+    """The first WINDOWS windows and the selection answering each."""
+    got_w, got_s = [], []
+    async with asyncio.timeout(60):
+        while len(got_w) < WINDOWS:
+            got_w.append((await anext(wins))[1])
+        while len(got_s) < WINDOWS:
+            _, s = await anext(sels)
+            if s.window_end_ns in {w.end_ns for w in got_w}:
+                got_s.append(s)
+    return [content(w) for w in got_w], [content(s) for s in got_s]
+
+
+@needs_data
+@pytest.mark.asyncio
+async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
+    tmp_path: Path, endpoint: str
+) -> None:
+    csv, _ = record_cut(tmp_path, "100", 70)
+    mcap = tmp_path / "live.mcap"
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        stop = asyncio.Event()
+        recording = asyncio.ensure_future(record(bus, mcap, [bus.key("**")], stop))
+        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
+        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        services = await chain(bus, tmp_path / "live", endpoint)
+        gateway = InProcessService(
+            "ecg_gateway",
+            gateway_main,
+            GatewaySettings(record=str(csv), speed=40.0, start_ns=START_NS),
+            tmp_path / "g",
+            endpoint,
+        )
+        live = await outputs(wins, sels)
+        for svc in (gateway, *services):
+            await svc.close()
+        stop.set()
+        rec = await recording
+
+        replayed = {}
+        for speed in (1.0, 10.0):
+            wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
+            sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+            services = await chain(bus, tmp_path / f"x{speed}", endpoint)
+            sent = await replay(bus, mcap, speed, keys=[bus.key("ecg/samples")])
+            replayed[speed] = await outputs(wins, sels)
+            for svc in services:
+                await svc.close()
+    assert rec.count > sent > 0 and rec.undecodable == 0
+    # what the file itself holds is what the services said live
+    in_file = [
+        msgspec.msgpack.decode(m.data, type=HrvWindow) for m in read(mcap, ["cadence/cell1/hrv/window"])
+    ]
+    assert [content(w) for w in in_file[:WINDOWS]] == live[0]
+    assert replayed[1.0] == live and replayed[10.0] == live
+    assert all(w["quality"] == "good" for w in live[0])
+
+
+def test_a_recording_opens_in_mcap_tools_with_schemas_and_a_broken_one_is_one_line(tmp_path: Path) -> None:
+    from cadence.recording import Recorder
+    from schemas.topology import encode
+
+    path = tmp_path / "r.mcap"
+    rec = Recorder(path)
+    sel = Selection(t_ns=5, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=0)
+    rec.write("cadence/cell1/decision/selection", encode(sel))
+    rec.write("cadence/cell1/decision/selection", b"\xc1 not msgpack")  # kept, counted
+    rec.close()
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        (schema,) = summary.schemas.values()
+        assert schema.name == "decision.selection.v1" and schema.encoding == "jsonschema"
+        assert b'"k"' in schema.data
+        messages = list(reader.iter_messages())
+    assert [m.publish_time for _, _, m in messages] == [5, 0] and rec.undecodable == 1
+
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(path.read_bytes()[:40])
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "replay", str(broken), "--speed", "0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "broken.mcap" in r.stderr, r.stderr
