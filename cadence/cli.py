@@ -342,6 +342,35 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from cadence.report import from_demo, from_mcap, write_report
+
+    src = Path(args.source)
+    if src.is_dir():
+        run = from_demo(src)
+    elif src.suffix == ".mcap" or src.is_file():
+        run = from_mcap(src, Path(args.sets) if args.sets else None)
+    else:
+        raise InputError(f"{src}: neither a demo folder nor an MCAP recording")
+    written = write_report(run, Path(args.out), args.rr_rest)
+    table = Table(title=f"cadence report: {src}")
+    for col in ("cycles", "φ [cycles/min]", "errors", "ε [errors/cycle]", "windows", "selections"):
+        table.add_column(col, justify="right")
+    table.add_row(
+        str(len(run.cycles)),
+        f"{run.productivity_per_min:.2f}",
+        str(run.errors),
+        f"{run.error_rate:.3f}",
+        str(len(run.windows)),
+        str(len(run.selections)),
+    )
+    out.print(table)
+    if not run.sets:
+        err.print("no Pareto sets in the source: pass --sets <data>/executor for the front and cycle figures")
+    out.print(f"written to {args.out}: {', '.join(written)}")
+    return 0
+
+
 def _record_peaks(args: argparse.Namespace):
     from common.ecg_records import read_record
     from common.rpeaks import detect
@@ -738,6 +767,22 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     rep.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     rep.set_defaults(func=cmd_replay)
+
+    report = sub.add_parser(
+        "report",
+        help="figures and an index.html (φ, ε, cycle times, events) from a recording or a demo folder",
+        description="Reads an MCAP recording or a `cadence demo` folder and writes to DIR: rr_k.png (mean RR "
+        "per window and the selected k, like the paper's Fig. 6), pareto.png (each path's front, its N "
+        "solutions and the k actually used), cycles.png (q, q̇, q̈ and jerk of the first and last cycle) "
+        "and index.html with the production rate φ, the error rate ε, cycle times and events.",
+    )
+    report.add_argument("source", metavar="FILE.mcap|DEMO_DIR")
+    report.add_argument("--out", required=True, metavar="DIR")
+    report.add_argument(
+        "--sets", metavar="FOLDER", help="Pareto sets cached by an executor (<data>/executor)"
+    )
+    report.add_argument("--rr-rest", type=float, help="the operator's resting mean RR for the figure, s")
+    report.set_defaults(func=cmd_report)
 
     demo = sub.add_parser(
         "demo",

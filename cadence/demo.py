@@ -21,7 +21,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
@@ -292,6 +291,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "exit_codes": {n: p.exit_code for n, p in procs.items()},
         "cycle_times_s": [round(c.cycle_time_s, 3) for c in obs.cycles],
         "cycle_ends_s": [obs.t(c.t_ns) for c in obs.cycles],
+        "cycle_k": [dict(c.k_per_path) for c in obs.cycles],
         "events": obs.events,
     }
     atomic_write(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
@@ -307,16 +307,9 @@ def _call(fn):
 
 
 def write_figures(out: Path, obs: Observed, task: Task, sets: dict[str, ParetoSet]) -> None:
-    from cadence.plots import cycle_figure, rr_k_figure
+    """The report of the run (cadence/report.py) into the demo's own folder."""
+    from cadence.report import from_demo, write_report
 
-    atomic_write(out / "rr_k.png", rr_k_figure(obs.windows, obs.selections, TwinParams().rr_rest_s))
-    if obs.cycles and sets:
-        first, last = obs.cycles[0], obs.cycles[-1]
-        curves = {}
-        for label, rep in ((f"cycle {first.cycle + 1}", first), (f"cycle {last.cycle + 1}", last)):
-            curves[label] = [
-                (pid, k, np.array(sets[pid].solutions[k - 1].h), task.paths[pid])
-                for pid, k in rep.k_per_path.items()
-                if pid in sets
-            ]
-        atomic_write(out / "cycles.png", cycle_figure(curves))
+    run = from_demo(out)
+    run.sets.update(sets)
+    write_report(run, out, TwinParams().rr_rest_s)

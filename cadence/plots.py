@@ -99,31 +99,76 @@ def rr_k_figure(windows: list[dict], selections: list[dict], rr_rest_s: float) -
     return _png(fig)
 
 
-def cycle_figure(cycles: dict[str, list]) -> bytes:
-    """Joint positions of whole cycles, path after path at the k each path ran with (motion only;
-    the waits between paths are left out)."""
+def _boundary(s) -> bs.Boundary:
+    """A ParetoSet's boundary conditions as the spline code takes them."""
+    a = [np.array(x, dtype=float) for x in (s.start.velocity, s.start.acceleration, s.start.jerk)]
+    b = [np.array(x, dtype=float) for x in (s.end.velocity, s.end.acceleration, s.end.jerk)]
+    return bs.Boundary(*a, *b)
+
+
+def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
+    """q, q̇, q̈ and jerk of whole cycles, path after path at the k each ran with (motion only; the
+    waits between paths are left out). ``cycles``: [{"k": {path: k}, …}], one column each."""
+    labels = ("q [deg]", "q̇ [deg/s]", "q̈ [deg/s²]", "jerk [deg/s³]")
     fig, axes = plt.subplots(
-        len(cycles), 1, figsize=(11, 3.2 * len(cycles)), constrained_layout=True, squeeze=False
+        4, len(cycles), figsize=(6.5 * len(cycles), 10), constrained_layout=True, squeeze=False
     )
-    for ax, (label, paths) in zip(axes[:, 0], cycles.items(), strict=True):
+    for col, cycle in enumerate(cycles):
         t0 = 0.0
-        for i, (pid, k, h, path) in enumerate(paths):
-            t, q, _, _ = bs.sample(h, path.waypoints, path.boundary, 100.0)
-            for j in range(q.shape[1]):
-                ax.plot(
-                    t0 + t, np.degrees(q[:, j]), c=f"C{j}", lw=1.2, label=JOINT_NAMES[j] if i == 0 else None
-                )
-            ax.axvline(t0, c="0.85", lw=0.8)
-            ax.text(
+        for i, (pid, k) in enumerate(cycle["k"].items()):
+            s = sets[pid]
+            h = np.array(s.solutions[k - 1].h)
+            t = np.linspace(0.0, float(h.sum()), max(50, int(h.sum() * 100)))
+            curves = bs.evaluate_dense(h, np.array(s.waypoints), _boundary(s), t)
+            for row in range(4):
+                ax = axes[row, col]
+                for j in range(curves.shape[2]):
+                    label = JOINT_NAMES[j] if i == 0 and row == 0 else None
+                    ax.plot(t0 + t, np.degrees(curves[row][:, j]), c=f"C{j}", lw=1.0, label=label)
+                ax.axvline(t0, c="0.85", lw=0.8)
+            top = axes[0, col]
+            top.text(
                 t0 + t[-1] / 2,
                 1.01,
                 f"{pid}\nk={k}",
-                transform=ax.get_xaxis_transform(),
+                transform=top.get_xaxis_transform(),
                 ha="center",
-                fontsize=7,
+                fontsize=6,
             )
-            t0 += t[-1]
-        ax.set_ylabel(f"{label}\nq [deg]")
-    axes[-1, 0].set_xlabel("motion time [s]")
-    axes[0, 0].legend(ncol=6, fontsize=8, loc="lower right")
+            t0 += float(t[-1])
+        axes[0, col].set_title(cycle.get("label", f"cycle {col + 1}"), pad=22)
+        axes[3, col].set_xlabel("motion time [s]")
+    for row in range(4):
+        axes[row, 0].set_ylabel(labels[row])
+    axes[0, 0].legend(ncol=3, fontsize=7, loc="lower right")
+    return _png(fig)
+
+
+def front_usage_figure(sets: dict, used: dict[str, dict[int, int]]) -> bytes:
+    """Each path's Pareto front (normalised) with its N solutions, and how often each k was used."""
+    n = len(sets)
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(4.5 * cols, 3.8 * rows), constrained_layout=True, squeeze=False
+    )
+    for ax, (pid, s) in zip(axes.flat, sets.items(), strict=False):
+        f = np.array(s.front)
+        ideal, nadir = f.min(axis=0), f.max(axis=0)
+        scale = np.where(nadir > ideal, nadir - ideal, 1.0)
+        z = (f - ideal) / scale
+        chosen = (np.array([[x.f_time, x.f_jerk] for x in s.solutions]) - ideal) / scale
+        ax.scatter(z[:, 0], z[:, 1], s=8, c="0.7", label="front")
+        ax.scatter(chosen[:, 0], chosen[:, 1], s=22, c="tab:blue", label=f"N = {len(chosen)}")
+        counts = used.get(pid, {})
+        for k, c in counts.items():
+            x, y = chosen[k - 1]
+            ax.scatter([x], [y], s=40 + 25 * c, facecolors="none", edgecolors="tab:red", lw=1.5)
+            ax.annotate(f"k={k} ×{c}", (x, y), textcoords="offset points", xytext=(6, 4), fontsize=7)
+        ax.set_title(pid, fontsize=9)
+        ax.set_xlabel("time (normalised)")
+        ax.set_ylabel("jerk (normalised)")
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=7)
     return _png(fig)

@@ -1,0 +1,213 @@
+"""`cadence report`: figures and an index.html from a recording (MCAP) or a demo folder (paper §III-C, §IV).
+
+Both sources become one ``Run``: the windows, the selections, the cycles (time, k per path), the
+operator's errors and the robot's events, on data time from the run's first message. The production
+rate φ is cycles per minute and the error rate ε errors per cycle, as in the paper.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from common.errors import InputError
+from common.storage import atomic_write
+from schemas import (
+    CycleReport,
+    EcgChunk,
+    HrvWindow,
+    OperatorError,
+    ParetoSet,
+    RobotEvent,
+    RobotState,
+    Selection,
+)
+from schemas.topology import decode_any
+
+
+@dataclass
+class Run:
+    source: str
+    duration_s: float
+    windows: list[dict] = field(default_factory=list)
+    selections: list[dict] = field(default_factory=list)
+    cycles: list[dict] = field(default_factory=list)  # {"end_s", "cycle_time_s", "k": {path: k}}
+    errors: int = 0
+    events: list[dict] = field(default_factory=list)
+    sets: dict[str, ParetoSet] = field(default_factory=dict)
+
+    @property
+    def productivity_per_min(self) -> float:
+        return len(self.cycles) / (self.duration_s / 60.0) if self.duration_s > 0 else 0.0
+
+    @property
+    def error_rate(self) -> float:
+        return self.errors / len(self.cycles) if self.cycles else 0.0
+
+
+def load_sets(folder: Path) -> dict[str, ParetoSet]:
+    """The Pareto sets an executor cached (``<data>/executor/*.msgpack``)."""
+    decoder = msgspec.msgpack.Decoder(ParetoSet)
+    out = {}
+    for f in sorted(folder.glob("*.msgpack")):
+        try:
+            s = decoder.decode(f.read_bytes())
+        except msgspec.DecodeError:
+            continue
+        out[s.path_id] = s
+    return out
+
+
+def from_demo(folder: Path) -> Run:
+    try:
+        s = json.loads((folder / "summary.json").read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{folder}/summary.json: {exc}") from None
+    cycles = [
+        {"end_s": e, "cycle_time_s": t, "k": k}
+        for e, t, k in zip(
+            s["cycle_ends_s"],
+            s["cycle_times_s"],
+            s.get("cycle_k", [{}] * len(s["cycle_ends_s"])),
+            strict=True,
+        )
+    ]
+    return Run(
+        str(folder),
+        s["duration_s"],
+        s["windows"],
+        s["selections"],
+        cycles,
+        s["errors"],
+        s["events"],
+        load_sets(folder / "data" / "executor"),
+    )
+
+
+def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
+    from cadence.recording import read
+
+    msgs = []
+    for m in read(path):
+        if m.encoding != "msgpack":
+            continue
+        try:
+            msgs.append(decode_any(m.data))
+        except msgspec.DecodeError:
+            continue
+    # the run's data time: what the cell did (not plan times, not health's wall clock)
+    run_types = (HrvWindow, Selection, CycleReport, OperatorError, RobotEvent, EcgChunk, RobotState)
+    data_times = [m.t_ns for m in msgs if isinstance(m, run_types) and m.t_ns > 0]
+    data_times += [m.start_ns for m in msgs if isinstance(m, HrvWindow)]
+    if not data_times:
+        raise InputError(f"{path}: no Cadence messages in this recording")
+    t0 = min(data_times)
+
+    def t(ns: int) -> float:
+        return round((ns - t0) / 1e9, 3)
+
+    run = Run(str(path), (max(data_times) - t0) / 1e9)
+    for m in msgs:
+        if isinstance(m, HrvWindow):
+            run.windows.append({"end_s": t(m.end_ns), "mean_rr_s": m.mean_rr_s, "quality": m.quality})
+        elif isinstance(m, Selection):
+            last = run.selections[-1] if run.selections else None
+            if last is None or (last["k"], last.get("window_end_ns")) != (m.k, m.window_end_ns):
+                run.selections.append(
+                    {
+                        "t_s": max(0.0, t(m.t_ns)),
+                        "k": m.k,
+                        "delta": m.delta,
+                        "reason": m.reason,
+                        "window_end_ns": m.window_end_ns,
+                    }
+                )
+        elif isinstance(m, CycleReport):
+            run.cycles.append({"end_s": t(m.t_ns), "cycle_time_s": m.cycle_time_s, "k": dict(m.k_per_path)})
+        elif isinstance(m, OperatorError):
+            run.errors += 1
+        elif isinstance(m, RobotEvent):
+            run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message})
+        elif isinstance(m, ParetoSet):
+            run.sets[m.path_id] = m
+    if sets_folder is not None:
+        run.sets.update(load_sets(sets_folder))
+    return run
+
+
+def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[str]:
+    """The figures and index.html; returns the names of the files written."""
+    from cadence.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    good = [w["mean_rr_s"] for w in run.windows if w["mean_rr_s"] is not None and w["quality"] == "good"]
+    rest = rr_rest_s if rr_rest_s is not None else (float(np.max(good)) if good else 0.85)
+    atomic_write(out / "rr_k.png", rr_k_figure(run.windows, run.selections, rest))
+    written.append("rr_k.png")
+    if run.sets:
+        used: dict[str, dict[int, int]] = {}
+        for c in run.cycles:
+            for pid, k in c["k"].items():
+                used.setdefault(pid, {}).setdefault(k, 0)
+                used[pid][k] += 1
+        atomic_write(out / "pareto.png", front_usage_figure(run.sets, used))
+        written.append("pareto.png")
+        with_k = [c for c in run.cycles if c["k"] and all(p in run.sets for p in c["k"])]
+        if with_k:
+            pick = [with_k[0], with_k[-1]] if len(with_k) > 1 else with_k[:1]
+            atomic_write(out / "cycles.png", cycle_kinematics_figure(run.sets, pick))
+            written.append("cycles.png")
+    atomic_write(out / "index.html", _html(run, written).encode())
+    written.append("index.html")
+    return written
+
+
+def _html(run: Run, figures: list[str]) -> str:
+    times = [c["cycle_time_s"] for c in run.cycles]
+    rows = [
+        ("source", html.escape(run.source)),
+        ("duration (data time)", f"{run.duration_s:.0f} s"),
+        ("cycles", str(len(run.cycles))),
+        ("φ, production rate", f"{run.productivity_per_min:.2f} cycles/min"),
+        ("errors", str(run.errors)),
+        ("ε, error rate", f"{run.error_rate:.3f} errors/cycle"),
+        (
+            "cycle time γ",
+            f"mean {np.mean(times):.2f} s, min {min(times):.2f} s, max {max(times):.2f} s" if times else "—",
+        ),
+        ("windows", f"{len(run.windows)} ({sum(w['quality'] == 'good' for w in run.windows)} good)"),
+        ("selections", " → ".join(str(s["k"]) for s in run.selections) or "—"),
+    ]
+    table = "\n".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
+    cycle_rows = "\n".join(
+        f"<tr><td>{i + 1}</td><td>{c['end_s']:.1f}</td><td>{c['cycle_time_s']:.2f}</td>"
+        f"<td>{html.escape(', '.join(f'{p} {k}' for p, k in c['k'].items()))}</td></tr>"
+        for i, c in enumerate(run.cycles)
+    )
+    event_rows = "\n".join(
+        f"<tr><td>{e['t_s']:.1f}</td><td>{html.escape(e['source'])}</td><td>{html.escape(e['kind'])}</td>"
+        f"<td>{html.escape(e['message'])}</td></tr>"
+        for e in run.events
+    )
+    imgs = "\n".join(f'<figure><img src="{f}" alt="{f}"></figure>' for f in figures if f.endswith(".png"))
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>Cadence report</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}} img{{max-width:100%}}
+table{{border-collapse:collapse;margin:1em 0}}
+td,th{{border:1px solid #ccc;padding:4px 8px;text-align:left}}</style>
+</head><body>
+<h1>Cadence report</h1>
+<table>{table}</table>
+{imgs}
+<h2>Cycles</h2>
+<table><tr><th>#</th><th>end [s]</th><th>γ [s]</th><th>k per path</th></tr>{cycle_rows}</table>
+<h2>Events</h2>
+<table><tr><th>t [s]</th><th>source</th><th>kind</th><th>message</th></tr>{event_rows}</table>
+</body></html>
+"""
