@@ -371,6 +371,71 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_study(args: argparse.Namespace) -> int:
+    from cadence.plots import study_figure
+    from common.planner import plan_path
+    from common.storage import atomic_write
+    from common.study import CONDITIONS, METRICS, NAMES, compare, motions, simulate, subjects
+
+    task = load_task(args.task)
+    cohort = subjects(args.subjects, args.seed)
+    outcomes = []
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=err
+    ) as progress:
+        plan = progress.add_task("planning the Pareto sets", total=len(task.paths))
+        sols = {}
+        for pid, path in task.paths.items():
+            sols[pid] = [s.h for s in plan_path(path, task.limits, task.planner).solutions]
+            progress.advance(plan)
+        moves = motions(task, sols)
+        n_per_path = {pid: len(v) for pid, v in sols.items()}
+        runs = progress.add_task("simulating subjects × conditions", total=len(cohort) * len(CONDITIONS))
+        for sub in cohort:
+            for c in CONDITIONS:
+                outcomes.append(simulate(task, moves, n_per_path, sub, c, args.minutes))
+                progress.advance(runs)
+    result = compare(outcomes)
+    table = Table(
+        title=f"SIMULATED study: {len(cohort)} operator twins × {args.minutes:g} min (like Table I)"
+    )
+    for col in ("condition", "φ [cycles/min]", "ε [errors/cycle]", "mean RR / rest"):
+        table.add_column(col, justify="right" if col != "condition" else "left")
+    for c in CONDITIONS:
+        ms = result["means_sd"][c]
+        table.add_row(f"({c}) {NAMES[c]}", *(f"{ms[m][0]:.3f} ± {ms[m][1]:.3f}" for m in METRICS))
+    out.print(table)
+    tests = Table(title="Wilcoxon signed-rank, paired by subject (simulated): p (median difference)")
+    tests.add_column("pair")
+    for col in ("φ", "ε", "mean RR / rest"):
+        tests.add_column(col, justify="right")
+    for pair, row in result["wilcoxon"].items():
+        tests.add_row(pair, *(f"{row[m]['p']:.2g} ({row[m]['median_difference']:+.3f})" for m in METRICS))
+    out.print(tests)
+    dest = Path(args.out)
+    dest.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "simulated": True,
+        "subjects": len(cohort),
+        "minutes": args.minutes,
+        "seed": args.seed,
+        "conditions": NAMES,
+        **result,
+        "per_subject": [
+            {"subject": o.subject, "condition": o.condition, "cycles": o.cycles, "errors": o.errors,
+             **{m: getattr(o, m) for m in METRICS}}
+            for o in outcomes
+        ],
+    }  # fmt: skip
+    atomic_write(dest / "study.json", json.dumps(doc, indent=1).encode())
+    values = {
+        c: {m: [getattr(o, m) for o in outcomes if o.condition == c] for m in METRICS} for c in CONDITIONS
+    }
+    atomic_write(dest / "study.png", study_figure(values, NAMES))
+    out.print(f"written: {dest}/study.json, {dest}/study.png")
+    return 0
+
+
 def _record_peaks(args: argparse.Namespace):
     from common.ecg_records import read_record
     from common.rpeaks import detect
@@ -783,6 +848,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     report.add_argument("--rr-rest", type=float, help="the operator's resting mean RR for the figure, s")
     report.set_defaults(func=cmd_report)
+
+    study = sub.add_parser(
+        "study",
+        help="the paper's comparison of conditions on simulated operators (labelled as simulated)",
+        description="Conditions (a) minimum time, (b) minimum jerk and (c) tuned online, each run for every "
+        "simulated subject (an operator twin with its own seed, resting RR and tolerance) in simulated time "
+        "as fast as the machine allows. Prints a table like the paper's Table I (φ, ε, normalised mean RR) "
+        "and Wilcoxon signed-rank p-values for a-b, a-c, b-c; writes DIR/study.json and DIR/study.png.",
+    )
+    study.add_argument(
+        "--subjects", type=_positive_int(2), default=12, help="simulated subjects (default 12)"
+    )
+    study.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
+    study.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
+    study.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    study.add_argument("--out", default="study-out", metavar="DIR", help="output folder (default study-out)")
+    study.set_defaults(func=cmd_study)
 
     demo = sub.add_parser(
         "demo",

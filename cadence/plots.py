@@ -172,3 +172,17 @@ def front_usage_figure(sets: dict, used: dict[str, dict[int, int]]) -> bytes:
         ax.axis("off")
     axes[0, 0].legend(fontsize=7)
     return _png(fig)
+
+
+def study_figure(values: dict[str, dict[str, list[float]]], names: dict[str, str]) -> bytes:
+    """Box plots per condition of normalised mean RR, φ and ε (like the paper's Fig. 7), simulated."""
+    metrics = (("mean_rr_norm", "mean RR / resting RR"), ("productivity_per_min", "φ [cycles/min]"),
+               ("error_rate", "ε [errors/cycle]"))  # fmt: skip
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
+    conds = list(values)
+    for ax, (m, label) in zip(axes, metrics, strict=True):
+        ax.boxplot([values[c][m] for c in conds], tick_labels=[f"({c}) {names[c]}" for c in conds])
+        ax.set_ylabel(label)
+        ax.tick_params(axis="x", labelsize=8)
+    fig.suptitle("Simulated operators (operator twin), not a study of people")
+    return _png(fig)

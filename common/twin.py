@@ -149,12 +149,21 @@ class Operator:
         rsa = p.rsa_s * math.sin(2 * math.pi * p.resp_hz * t + self._resp_phase)
         return min(1.6, max(0.35, self.mean_rr() + rsa + self._noise))
 
+    def beats_until(self, t: float) -> list[float]:
+        """Lay down the R peaks up to data time t, each as the state is at the beat before; returns the
+        new ones (the study uses them directly, the ECG below draws them)."""
+        new = []
+        while self.beats[-1] < t:
+            self.advance(self.beats[-1])
+            self.beats.append(self.beats[-1] + self._next_rr(self.beats[-1]))
+            new.append(self.beats[-1])
+        return new
+
     def ecg(self, t0: float, n: int) -> NDArray[np.float64]:
         """n samples at fs from data time t0, in µV; beats are laid down as the state is then."""
         t = t0 + np.arange(n) / self.fs
         self.advance(t0)
-        while self.beats[-1] < t[-1] + REACH_S:
-            self.beats.append(self.beats[-1] + self._next_rr(self.beats[-1]))
+        self.beats_until(t[-1] + REACH_S)
         p = self.p
         x = p.wander_uv * np.sin(2 * math.pi * p.wander_hz * t + self._wander_phase)
         x += self.rng.normal(0.0, p.ecg_noise_uv, n)
