@@ -318,6 +318,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         async with await Bus.open(_bus_config(args, "peer"), args.cell) as bus:
             keys = args.keys or [bus.key("**")]
             err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
+            bus.token(bus.key("health/recorder"))  # a recorder is running (zenoh liveliness)
             rec = await record(bus, Path(args.output), keys, stop, json=args.json)
         err.print(f"{rec.count} messages written to {args.output}")
         return 0

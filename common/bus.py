@@ -201,6 +201,23 @@ class Bus:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.session.put(key, payload, congestion_control=cc)
 
+    async def until_subscribed(self, key: str, timeout: float) -> None:
+        """Wait until a subscriber somewhere matches ``key`` (Zenoh's matching status), so that what is
+        published next reaches it: a replay, a test. TimeoutError when none appears."""
+        self._check_open()
+        pub = self.session.declare_publisher(key)
+        matched = asyncio.Event()
+        loop = self.loop
+        listener = pub.declare_matching_listener(
+            lambda status: _call_soon(loop, matched.set) if status.matching else None
+        )
+        try:
+            if not pub.matching_status.matching:
+                await asyncio.wait_for(matched.wait(), timeout)
+        finally:
+            listener.undeclare()
+            pub.undeclare()
+
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> RawSubscription:
         """Payloads as they travel, undecoded (recording): ``callback(key, bytes)`` on the loop thread."""
         self._check_open()
