@@ -301,20 +301,28 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_record(args: argparse.Namespace) -> int:
+def _stop_on_signals():
+    """An event set by SIGTERM or SIGINT (Ctrl-C), for the commands that run until stopped."""
     import asyncio
     import signal
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    return stop
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import asyncio
 
     from cadence.recording import record
     from common.bus import Bus
 
     async def go() -> int:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, stop.set)
+        stop = _stop_on_signals()
         if args.duration is not None:
-            loop.call_later(args.duration, stop.set)
+            asyncio.get_running_loop().call_later(args.duration, stop.set)
         async with await Bus.open(_bus_config(args, "peer"), args.cell) as bus:
             keys = args.keys or [bus.key("**")]
             err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
@@ -694,16 +702,12 @@ def cmd_get(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     import asyncio
-    import signal
 
     from common.bus import Bus
     from common.service import sd_notify, watchdog_period_s
 
     async def go() -> None:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, stop.set)
+        stop = _stop_on_signals()
         async with await Bus.open(_bus_config(args, "router"), "cell1"):
             err.print(f"Zenoh router listening on {', '.join(args.listen or ['its config file'])}")
             sd_notify("READY=1")  # under systemd (Type=notify); a no-op elsewhere

@@ -54,14 +54,16 @@ class InProcessService:
     """A service running in this test's event loop exactly as `cadence run <name>` runs it (its real
     ``main``, real Zenoh, data on disk), connecting to the test's listening endpoint; dora's MockNode."""
 
-    def __init__(self, name: str, main, settings: object, data: Path, endpoint: str) -> None:
+    def __init__(
+        self, name: str, main, settings: object, data: Path, endpoint: str, speed: float = 1.0
+    ) -> None:
         import asyncio
 
         from common.bus import BusConfig
         from common.service import CommonSettings, serve
 
         self.stop = asyncio.Event()
-        common = CommonSettings(data_dir=str(data), status_period_s=0.1)
+        common = CommonSettings(data_dir=str(data), status_period_s=0.1, speed=speed)
         self.task = asyncio.ensure_future(
             serve(
                 name,

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from common.bus import Bus, BusConfig
-from common.service import CommonSettings, serve
 from common.task import load_task
 from schemas import CycleReport, OperatorSignal, ParetoSet, RobotEvent, RobotState, Selection, ServiceStatus
 from schemas.topology import encode
@@ -22,6 +21,7 @@ from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
+from tests.conftest import InProcessService
 
 pytestmark = pytest.mark.asyncio
 
@@ -63,34 +63,9 @@ def task_file(tmp_path: Path) -> Path:
     return p
 
 
-class Running:
-    """A service in this event loop with the common settings a test needs (speed, data folder)."""
-
-    def __init__(
-        self, main, name: str, settings: object, data: Path, endpoint: str, speed: float = 1.0
-    ) -> None:
-        self.stop = asyncio.Event()
-        common = CommonSettings(data_dir=str(data), status_period_s=0.1, speed=speed)
-        self.task = asyncio.ensure_future(
-            serve(
-                name,
-                main,
-                common,
-                BusConfig(connect=[endpoint]),
-                settings,
-                stop=self.stop,
-                install_signals=False,
-            )
-        )
-
-    async def close(self) -> None:
-        self.stop.set()
-        await asyncio.wait_for(self.task, 15)
-
-
-async def store_serving(bus: Bus, task: Path, data: Path, endpoint: str) -> Running:
+async def store_serving(bus: Bus, task: Path, data: Path, endpoint: str) -> InProcessService:
     health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
-    store = Running(store_main, "pareto_store", StoreSettings(task=str(task)), data, endpoint)
+    store = InProcessService("pareto_store", store_main, StoreSettings(task=str(task)), data, endpoint)
     async with asyncio.timeout(60):
         async for _, status in health:
             if status.state == "serving":
@@ -114,9 +89,9 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
-        ex = Running(
-            executor_main,
+        ex = InProcessService(
             "executor",
+            executor_main,
             Settings(task=str(task_file), fifo_priority=0, initial_k=2, cycles=3),
             tmp_path / "ex",
             endpoint,
@@ -167,7 +142,7 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
         settings = Settings(
             task=str(task_file), fifo_priority=0, cycles=1, wait_for_signals=False, initial_k=3
         )
-        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         report = await next_of(cycles)
         await asyncio.wait_for(ex.task, 15)
         assert report.k_per_path == {"there": 3, "back": 3}
@@ -181,7 +156,7 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
         (cache / "there.msgpack").write_bytes(encode(tampered))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         refused = await next_of(events, lambda e: e.kind == "refused")
         state = await next_of(states, lambda s: s.mode == "refused")
         await ex.close()
@@ -206,7 +181,7 @@ async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
             sim_start_deg=[10, -90, 90, -90, -90, 0],
             start_policy=policy,
         )
-        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         first = await next_of(events, lambda e: e.path_id == "there")
         if policy == "refuse":
             assert first.kind == "refused" and "0.1745 rad from the start of 'there'" in first.message

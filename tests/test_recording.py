@@ -156,8 +156,9 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
         for i in range(1, 2001):
             bus.put(bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
         proc.send_signal(signal.SIGTERM)
-        assert await asyncio.wait_for(proc.wait(), 30) == 0
-        said = (await proc.stderr.read()).decode()
+        _, err = await asyncio.wait_for(proc.communicate(), 60)  # reads stderr while it finishes
+        said = err.decode()
+        assert proc.returncode == 0, said
     count = int(re.search(r"(\d+) messages written", said).group(1))
     seqs = [msgspec.msgpack.decode(m.data, type=Selection).seq for m in read(path)]
     assert count == len(seqs) > 0 and seqs == list(range(1, count + 1))

@@ -28,6 +28,9 @@ EXPECTED_JSON = (
     '{"period_us": 0, "ticks": 0, "p50_err_us": 0, "p99_err_us": 0, "p999_err_us": 0, "max_err_us": 0, '
     '"overruns": 0, "prepare_ms": 0}'
 )
+# The controller stops the program when kicks stop for 1/WATCHDOG_HZ s. On a loaded 2-core CI machine the
+# emulator's own threads can fall 100 ms behind (the 10 Hz default), so the tests give it 0.5 s.
+WATCHDOG_HZ = 2.0
 CONTRACT = Path(__file__).parent / "data" / "ur_rtde_1.6.5_recipes.json"
 
 
@@ -92,7 +95,7 @@ def emulator(tmp_path: Path) -> Iterator[EmulatorProcess]:
 
 @pytest.fixture
 def backend(emulator: EmulatorProcess) -> Iterator[UrRtdeBackend]:
-    b = UrRtdeBackend(emulator.host)
+    b = UrRtdeBackend(emulator.host, watchdog_hz=WATCHDOG_HZ)
     b.connect()
     yield b
     b.close()
@@ -122,7 +125,7 @@ def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtd
     lags: list[float] = []
     loop = ServoLoop(backend, core=None, fifo_priority=0, lock_memory=False)
     loop.start()
-    fut = loop.run(backend.prepare(q), settle_ticks=500)
+    fut = loop.run(backend.prepare(q), settle_ticks=500)  # prepare arms the watchdog: run at once
     while not fut.done():  # the commanded sample against the arm's, as a state publisher would see them
         i = loop.index
         if i >= 0:
@@ -130,6 +133,7 @@ def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtd
         time.sleep(0.01)
     r = fut.result()
     loop.close()
+    assert r.outcome == "done", backend.fault()
     print(
         f"\ntracking error: median {np.median(lags):.4f} rad, max {max(lags):.4f} rad over {len(lags)} reads"
     )
@@ -155,7 +159,7 @@ def test_the_watchdog_stops_the_program_when_the_executor_stalls(
     emulator: EmulatorProcess, backend: UrRtdeBackend
 ) -> None:
     q = backend.actual_q()
-    targets = backend.prepare(q[None, :] + np.linspace(0, 0.01, 50)[:, None])  # arms the watchdog (10 Hz)
+    targets = backend.prepare(q[None, :] + np.linspace(0, 0.01, 50)[:, None])  # arms the watchdog
     for x in targets:
         assert backend.servo(x)
         time.sleep(0.002)
@@ -192,7 +196,8 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
     from schemas import CycleReport, RobotEvent
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.test_executor import Running, next_of, store_serving
+    from tests.conftest import InProcessService
+    from tests.test_executor import next_of, store_serving
 
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
@@ -206,9 +211,10 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 fifo_priority=0,
                 cycles=1,
                 wait_for_signals=False,
+                watchdog_hz=WATCHDOG_HZ,
                 initial_k=1,  # the slowest: headroom below the speed limits under CI's jitter
             )
-            ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint)
+            ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
             assert (await next_of(events, lambda e: e.kind == "connected", timeout=30)).message.startswith(
                 "ur_rtde"
             )
@@ -230,7 +236,8 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
     from schemas import CycleReport, RobotEvent, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.test_executor import Running, next_of, store_serving
+    from tests.conftest import InProcessService
+    from tests.test_executor import next_of, store_serving
 
     host = free_loopback()
     emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
@@ -240,9 +247,14 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = Settings(
-            backend="ur_rtde", host=host, fifo_priority=0, wait_for_signals=False, initial_k=1
+            backend="ur_rtde",
+            host=host,
+            fifo_priority=0,
+            wait_for_signals=False,
+            initial_k=1,
+            watchdog_hz=WATCHDOG_HZ,
         )
-        ex = Running(executor_main, "executor", settings, tmp_path / "ex", endpoint)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
         try:
             await next_of(states, lambda s: s.mode == "moving" and s.path_id == "b1_to_b2", timeout=60)
             emu.stop(signal.SIGKILL)  # the controller is gone mid-motion

@@ -7,10 +7,8 @@ GIL while they wait for data, so an emulator in the client's process would deadl
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 import socket
 import struct
 import threading
@@ -166,8 +164,6 @@ class Emulator:
             atomic_write(self.recipes_out, json.dumps(self.recipes_seen).encode())
 
     def _ticks(self) -> None:
-        with contextlib.suppress(OSError):  # like the controller's own real-time loop, where permitted
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(70))
         tick, start = 0, time.monotonic()
         c = self.controller
         while not self._stop.is_set():
