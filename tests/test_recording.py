@@ -46,7 +46,7 @@ async def chain(bus: Bus, tmp: Path, endpoint: str) -> tuple[InProcessService, I
     analyser = InProcessService("hrv_analyser", analyser_main, AnalyserSettings(), tmp / "a", endpoint)
     for name in ("decision_maker", "hrv_analyser"):
         health = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
-        async with asyncio.timeout(10):
+        async with asyncio.timeout(30):
             await anext(health)
     return decider, analyser
 
