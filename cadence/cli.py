@@ -293,7 +293,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         ", ".join(f"{k} {v}" for k, v in summary["restarts"].items() if v) or "none",
     )
     out.print(table)
-    out.print(f"written: {args.out}/summary.json, rr_k.png, cycles.png; service logs in {args.out}/logs")
+    out.print(
+        f"written: {args.out}/summary.json and a report (index.html, rr_k.png, pareto.png, cycles.png); "
+        f"service logs in {args.out}/logs"
+    )
     bad = {n: c for n, c in summary["exit_codes"].items() if c != 0}
     if bad:
         err.print(f"services that did not exit cleanly: {bad}")

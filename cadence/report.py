@@ -158,7 +158,11 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
                 used[pid][k] += 1
         atomic_write(out / "pareto.png", front_usage_figure(run.sets, used))
         written.append("pareto.png")
-        with_k = [c for c in run.cycles if c["k"] and all(p in run.sets for p in c["k"])]
+        with_k = [
+            {**c, "label": f"cycle {i + 1}"}
+            for i, c in enumerate(run.cycles)
+            if c["k"] and all(p in run.sets for p in c["k"])
+        ]
         if with_k:
             pick = [with_k[0], with_k[-1]] if len(with_k) > 1 else with_k[:1]
             atomic_write(out / "cycles.png", cycle_kinematics_figure(run.sets, pick))
