@@ -307,12 +307,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def _stop_on_signals():
     """An event set by SIGTERM or SIGINT (Ctrl-C), for the commands that run until stopped."""
     import asyncio
-    import signal
+
+    from common.service import on_stop_signals
 
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+    on_stop_signals(asyncio.get_running_loop(), stop.set)
     return stop
 
 

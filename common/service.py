@@ -211,6 +211,18 @@ async def _periodic(ctx: ServiceContext) -> None:
         await asyncio.sleep(min(ctx.common.status_period_s, wd or ctx.common.status_period_s))
 
 
+def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[], None]) -> None:
+    """Call ``callback`` in the loop on SIGTERM and SIGINT.
+
+    Not ``loop.add_signal_handler``: asyncio learns of such a signal from a byte in its self-pipe, the
+    pipe that ``call_soon_threadsafe`` also writes to, and a burst of Zenoh samples can fill it just when
+    the signal comes; the byte is then dropped and the signal lost (a recorder under load ignored its
+    SIGTERM that way). A Python-level handler always runs, and hands the callback to the loop.
+    """
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: loop.call_soon_threadsafe(callback))
+
+
 async def serve(
     name: str,
     main: Callable[[ServiceContext], Awaitable[None]],
@@ -235,8 +247,7 @@ async def serve(
             log.info("stopping %s", name)
             stop.set()
 
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, on_signal)
+        on_stop_signals(loop, on_signal)
     async with await Bus.open(bus_cfg, common.cell) as bus:
         ctx = ServiceContext(name, bus, common, settings, stop)
         bus.token(bus.key(f"health/{name}"))

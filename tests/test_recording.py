@@ -146,17 +146,24 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
     import signal
 
     path = tmp_path / "rec.mcap"
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    cell = "rectest"  # a cell of its own: no other test's session can be the subscriber it waits for
+    async with await Bus.open(BusConfig(listen=[endpoint]), cell) as bus:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "cadence", "record", "-o", str(path), "--connect", endpoint,
+            sys.executable, "-m", "cadence", "record", "-o", str(path), "--connect", endpoint, "--cell", cell,
             stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
-        await bus.until_subscribed(bus.key("decision/selection"), 30)  # the recorder is listening
-        sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=0)
-        for i in range(1, 2001):
-            bus.put(bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
-        proc.send_signal(signal.SIGTERM)
-        _, err = await asyncio.wait_for(proc.communicate(), 60)  # reads stderr while it finishes
+        try:
+            first = await asyncio.wait_for(proc.stderr.readline(), 60)  # its signal handlers are in place
+            assert b"recording" in first, first
+            await bus.until_subscribed(bus.key("decision/selection"), 30)  # and it is listening
+            sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=0)
+            for i in range(1, 2001):
+                bus.put(bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
+            proc.send_signal(signal.SIGTERM)
+            _, err = await asyncio.wait_for(proc.communicate(), 60)  # reads stderr while it finishes
+        finally:
+            if proc.returncode is None:
+                proc.kill()
         said = err.decode()
         assert proc.returncode == 0, said
     count = int(re.search(r"(\d+) messages written", said).group(1))
