@@ -349,7 +349,6 @@ def bench_hrv(
 @dataclass(frozen=True, slots=True)
 class ExecutorBench:
     backend: str
-    seconds: float
     timing: dict[str, float | int]
     prepare_ms: float
     motions: int
@@ -432,5 +431,5 @@ def bench_executor(
     finally:
         backend.close()
     return ExecutorBench(
-        backend_name, seconds, loop.summary().as_dict(), round(prepare_ms, 2), n, loop.warnings, aborted
+        backend_name, loop.summary().as_dict(), round(prepare_ms, 2), n, loop.warnings, aborted
     )

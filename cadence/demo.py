@@ -25,10 +25,11 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
+from cadence.report import from_demo, write_report
 from common.bus import Bus, BusConfig
 from common.clock import Clock
 from common.storage import atomic_write
-from common.task import Task, load_task
+from common.task import load_task
 from common.twin import TwinParams
 from schemas import (
     CycleReport,
@@ -73,7 +74,6 @@ class Supervised:
     proc: asyncio.subprocess.Process | None = None
     restarts: int = 0
     exit_code: int | None = None  # at the end: after SIGTERM
-    started: asyncio.Event = field(default_factory=asyncio.Event)
 
     async def supervise(self, stopping: asyncio.Event, on_restart) -> None:
         with self.log.open("ab") as log:
@@ -81,7 +81,6 @@ class Supervised:
                 self.proc = await asyncio.create_subprocess_exec(
                     sys.executable, "-m", f"services.{self.name}", env=self.env, stdout=log, stderr=log
                 )
-                self.started.set()
                 rc = await self.proc.wait()
                 if stopping.is_set():
                     self.exit_code = rc
@@ -295,7 +294,9 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "events": obs.events,
     }
     atomic_write(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
-    write_figures(opts.out, obs, task, sets)
+    run = from_demo(opts.out)  # the report of the run (cadence/report.py) into the demo's own folder
+    run.sets.update(sets)
+    write_report(run, opts.out, TwinParams().rr_rest_s)
     return summary
 
 
@@ -304,12 +305,3 @@ def _call(fn):
         fn(msg)
 
     return handler
-
-
-def write_figures(out: Path, obs: Observed, task: Task, sets: dict[str, ParetoSet]) -> None:
-    """The report of the run (cadence/report.py) into the demo's own folder."""
-    from cadence.report import from_demo, write_report
-
-    run = from_demo(out)
-    run.sets.update(sets)
-    write_report(run, out, TwinParams().rr_rest_s)

@@ -116,9 +116,6 @@ class ServoLoop:
         self._jobs.put(None)
         self._thread.join(timeout=5.0)
 
-    def reset_timing(self) -> None:
-        self.ticks = self.overruns = 0
-
     def summary(self) -> TickSummary:
         return summarise(self.errors_ns, self.ticks, self.overruns, self.period_ns)
 

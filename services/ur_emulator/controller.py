@@ -44,21 +44,18 @@ class Controller:
         self.digital_out = 0
         self.watchdog_hz = 0.0
         self.last_kick = 0.0
-        self.scripts = 0  # uploads seen
         self._running: int | None = None  # the non-realtime command being run
         self._profile: np.ndarray | None = None
         self._profile_i = 0
         self._brake = 0.0
         self._mask = 0xFF
         self.servo: tuple[np.ndarray, float, float] | None = None  # target, lookahead, gain while servoing
-        self.servo_ticks = 0
         self.log: list[str] = []  # what happened, for the operator's terminal and the tests
 
     # --- from the sockets ---------------------------------------------------------------------------
 
     def load_script(self, text: str) -> None:
         with self.lock:
-            self.scripts += 1
             self.runtime_state = PLAYING
             self._running = None
             self.watchdog_hz = 0.0
@@ -138,7 +135,6 @@ class Controller:
         d = self.in_double
         if self.servo is not None and cmd in (0, SERVOJ):
             target, lookahead, gain = self.servo
-            self.servo_ticks += 1
             self.arm.servo(target, lookahead, gain)
         if cmd == 0:
             self._running = None
