@@ -208,6 +208,12 @@ class UrRtdeBackend:
         return np.asarray(q, dtype=float).tolist()
 
     def servo(self, target: object) -> bool:
+        # The receive interface sees a vanished controller at once (its reader thread gets EOF). Asking
+        # the control interface then would enter its own reconnect, which blocks inside the call for
+        # seconds: this check keeps the servo thread out of it.
+        if self._lost or not self._r.isConnected():
+            self._lost = self._lost or "connection to the controller lost during motion"
+            return False
         try:
             ok = self._c.servoJ(target, 0.0, 0.0, DT, self.lookahead, self.gain)
             self._c.kickWatchdog()
@@ -217,6 +223,8 @@ class UrRtdeBackend:
         return bool(ok)
 
     def brake(self) -> bool:
+        if self._lost or not self._r.isConnected():
+            return True  # nothing to tell a controller that is gone
         try:
             self._c.servoStop(self.stop_deceleration)
         except RuntimeError:
