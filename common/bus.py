@@ -4,7 +4,9 @@ Zenoh has no asyncio API. Its callbacks run on Zenoh's own threads and only hand
 loop (``call_soon_threadsafe``, tolerant of a closed loop); decoding and handling happen in the loop.
 ``get`` runs in a worker thread with a timeout; queryable handlers always drop the query (``with query``),
 or the querier would wait for its timeout; everything declared is undeclared before the session closes.
-A payload that does not decode is counted per key, logged at most once per key every 10 s, and dropped.
+What is dropped is counted and logged at most once per key and kind every 10 s (README "Bad input"):
+a payload that does not decode (``decode_errors``), a message its receiver rejects (``reject``, the rules
+of ``common/admission.py``), a handler that raises (``handler_errors``). None of them stops a service.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import time
 from collections import Counter
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 import zenoh
@@ -29,6 +31,7 @@ from schemas.topology import encode
 log = logging.getLogger("cadence.bus")
 
 _LOG_EVERY_S = 10.0
+_MAX_COUNTERS = 200  # of each kind in a status: a wildcard subscription may see any number of keys
 
 
 class BusConfig(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -39,7 +42,7 @@ class BusConfig(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     listen: list[str] = []
     connect: list[str] = []
     multicast_scouting: bool = False
-    lease_ms: int = 1000
+    lease_ms: Annotated[int, msgspec.Meta(ge=100, le=600_000)] = 1000
     config_file: str | None = None
 
 
@@ -145,7 +148,9 @@ class Bus:
         self.loop = loop
         self.cell = cell
         self.decode_errors: Counter[str] = Counter()
-        self._last_log: dict[str, float] = {}
+        self.rejected: Counter[tuple[str, str]] = Counter()  # (key, reason)
+        self.handler_errors: Counter[tuple[str, str]] = Counter()  # (key, exception type)
+        self._last_log: dict[tuple[str, str], float] = {}
         self._declared: list[Any] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
@@ -174,18 +179,49 @@ class Bus:
 
     # --- decoding -----------------------------------------------------------------------------------
 
+    def _log_limited(self, key: str, kind: str, text: str, count: int) -> None:
+        """One line per key and kind every 10 s at most, with the count so far: a flood of bad input
+        must not become a flood of log."""
+        now = time.monotonic()
+        if now - self._last_log.get((key, kind), -_LOG_EVERY_S) >= _LOG_EVERY_S:
+            self._last_log[(key, kind)] = now
+            log.warning("%s on %s: %s (%d so far)", kind, key, text, count)
+
     def decode(self, key: str, payload: bytes, decoder: msgspec.msgpack.Decoder) -> Any:
         try:
             return decoder.decode(payload)
         except (msgspec.ValidationError, msgspec.DecodeError) as exc:
             self.decode_errors[key] += 1
-            now = time.monotonic()
-            if now - self._last_log.get(key, -_LOG_EVERY_S) >= _LOG_EVERY_S:
-                self._last_log[key] = now
-                log.warning(
-                    "dropped a malformed message on %s: %s (%d so far)", key, exc, self.decode_errors[key]
-                )
+            self._log_limited(key, "dropped a malformed message", str(exc), self.decode_errors[key])
             return None
+
+    def reject(self, key: str, reason: str, detail: str = "") -> None:
+        """A message that decoded but that the receiver must not act on (common/admission.py)."""
+        self.rejected[(key, reason)] += 1
+        self._log_limited(
+            key,
+            f"dropped a message ({reason})",
+            detail or reason,
+            sum(n for (k, _), n in self.rejected.items() if k == key),
+        )
+
+    def handler_failed(self, key: str, exc: Exception) -> None:
+        name = type(exc).__name__
+        self.handler_errors[(key, name)] += 1
+        tb = exc.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        where = f" at {tb.tb_frame.f_code.co_filename}:{tb.tb_lineno}" if tb is not None else ""
+        self._log_limited(key, "a handler failed", f"{name}: {exc}{where}", self.handler_errors[(key, name)])
+
+    def drop_counters(self) -> dict[str, int]:
+        """What was dropped, for ``ServiceStatus.counters``: keys relative to ``cadence/<cell>/``."""
+        prefix = f"cadence/{self.cell}/"
+        out = {"decode_errors": sum(self.decode_errors.values())}
+        for name, counter in (("rejected", self.rejected), ("handler_errors", self.handler_errors)):
+            for (key, why), n in counter.most_common(_MAX_COUNTERS):
+                out[f"{name}/{key.removeprefix(prefix)}/{why}"] = n
+        return out
 
     # --- topics -------------------------------------------------------------------------------------
 
@@ -244,15 +280,16 @@ class Bus:
         maxsize: int = 256,
     ) -> Subscription:
         """Subscribe with a handler coroutine, run for each message in order in a task the bus owns.
-        A handler that raises is logged and the next message is handled: bad input never stops a service."""
+        A handler that raises is counted and logged (rate-limited) and the next message is handled: bad
+        input never stops a service."""
         sub = self.subscribe(key_expr, msg_type, maxsize)
 
         async def pump() -> None:
             async for key, msg in sub:
                 try:
                     await handler(key, msg)
-                except Exception:
-                    log.exception("handler for %s failed", key)
+                except Exception as exc:
+                    self.handler_failed(key, exc)
 
         self._spawn(pump())
         return sub

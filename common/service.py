@@ -29,13 +29,14 @@ from collections import Counter
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 
 from common.bus import Bus, BusConfig
 from common.clock import Clock
 from common.errors import BusError, ConfigError, InputError
+from schemas.base import TimeNs
 from schemas.health import ServiceStatus
 
 log = logging.getLogger("cadence.service")
@@ -43,16 +44,33 @@ log = logging.getLogger("cadence.service")
 T = TypeVar("T")
 
 DRAIN_S = 5.0
+MAX_STATE_CHARS = 4000  # what ServiceStatus.state may hold (schemas.base.Text)
+
+
+# The tables a deployment config may have: these and a table per service. Anything else is a typo
+# (``[decisionmaker]``) that would otherwise be ignored in silence.
+CONFIG_SECTIONS = frozenset(
+    {
+        "cadence",
+        "bus",
+        "decision_maker",
+        "ecg_gateway",
+        "hrv_analyser",
+        "executor",
+        "pareto_store",
+        "ur_emulator",
+    }
+)
 
 
 class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    cell: str = "cell1"
+    cell: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$")] = "cell1"  # a key chunk
     data_dir: str = "~/.local/share/cadence"
     log_format: Literal["auto", "text", "json"] = "auto"
-    status_period_s: float = 5.0
+    status_period_s: Annotated[float, msgspec.Meta(ge=0.05, le=3600.0)] = 5.0
     # data time (common/clock.py): one epoch and speed for every process of a simulated run
-    speed: float = 1.0
-    epoch_ns: int | None = None
+    speed: Annotated[float, msgspec.Meta(gt=0.0, le=1000.0)] = 1.0
+    epoch_ns: TimeNs | None = None
 
     @property
     def data_path(self) -> Path:
@@ -68,11 +86,19 @@ def read_config(path: str | None) -> dict[str, Any]:
         return {}
     try:
         with open(path, "rb") as f:
-            return tomllib.load(f)
+            raw = tomllib.load(f)
     except OSError as exc:
         raise ConfigError(f"{path}: (file): {exc.strerror or exc}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: (syntax): {exc}") from exc
+    for name, table in raw.items():
+        if name not in CONFIG_SECTIONS:
+            raise ConfigError(
+                f"{path}: [{name}]: unknown section; expected one of {', '.join(sorted(CONFIG_SECTIONS))}"
+            )
+        if not isinstance(table, dict):
+            raise ConfigError(f"{path}: {name}: expected a table [{name}], got {type(table).__name__}")
+    return raw
 
 
 def _env_value(text: str) -> object:
@@ -120,18 +146,20 @@ class ServiceContext:
     stop: asyncio.Event
     counters: Counter[str] = field(default_factory=Counter)
     state: str = "starting"
+    detail: str = ""  # what an operator should know beyond the state (a damaged file moved aside)
     started: float = field(default_factory=time.monotonic)
 
     def status(self, seq: int) -> ServiceStatus:
-        counters = dict(self.counters)
-        counters["decode_errors"] = sum(self.bus.decode_errors.values())
+        counters = {k: v for k, v in self.counters.items() if v >= 0}
+        counters.update(self.bus.drop_counters())
         return ServiceStatus(
             t_ns=time.time_ns(),
             seq=seq,
             service=self.name,
-            state=self.state,
+            state=self.state[:MAX_STATE_CHARS],
             uptime_s=time.monotonic() - self.started,
             counters=counters,
+            detail=self.detail[:MAX_STATE_CHARS],
         )
 
 
@@ -299,9 +327,13 @@ def service_main(
         if args.cell:
             common = msgspec.structs.replace(common, cell=args.cell)
         if args.speed is not None:
-            if not args.speed > 0:
-                raise ConfigError(f"--speed: must be positive, got {args.speed}")
+            if not 0 < args.speed <= 1000:
+                raise ConfigError(f"--speed: must be above 0 and at most 1000, got {args.speed}")
             common = msgspec.structs.replace(common, speed=args.speed)
+        # the command line's values are held to the same rules as the file's
+        common = section(
+            {"cadence": msgspec.structs.asdict(common)}, "cadence", CommonSettings, "(command line)", {}
+        )
         bus_cfg = section(raw, "bus", BusConfig, source)
         settings = section(raw, name, settings_type, source)
         setup_logging(common.log_format)

@@ -22,6 +22,8 @@ from numpy.typing import NDArray
 from common.bspline import Boundary
 from common.errors import TaskError
 from common.limits import N_JOINTS, UR16E, JointLimits
+from schemas.decision import MAX_N
+from schemas.pareto import MAX_PATH_S
 
 Unit = Literal["deg", "rad"]
 Constraints = Literal["hull", "exact"]
@@ -30,6 +32,8 @@ Constraints = Literal["hull", "exact"]
 # to radians must not fail for the last bit of the conversion.
 _LIMIT_RTOL = 1e-9
 CONTINUITY_TOL_RAD = 1e-6
+MAX_WAIT_S = 3600.0
+MIN_LIMIT_SHARE = 1e-3  # a limit lowered further than this is a typo, and would plan hour-long paths
 
 
 # ---- the file's shape (msgspec decodes into these; unknown keys are errors) -------------------------
@@ -167,8 +171,13 @@ def _limits(file: str, spec: _LimitsSpec | None) -> JointLimits:
             continue
         arr = _vector(file, given, f"limits.{name}") * s
         for j in range(N_JOINTS):
-            if arr[j] <= 0:
-                raise TaskError(file, f"limits.{name}[{j}]", f"must be > 0, got {given[j]}")
+            if arr[j] < table[j] * MIN_LIMIT_SHARE:
+                raise TaskError(
+                    file,
+                    f"limits.{name}[{j}]",
+                    f"must be at least {MIN_LIMIT_SHARE:g} of the UR16e table "
+                    f"({table[j] * MIN_LIMIT_SHARE / s:.6g} {spec.unit}), got {given[j]}",
+                )
             if arr[j] > table[j] * (1 + _LIMIT_RTOL):
                 raise TaskError(
                     file,
@@ -227,15 +236,39 @@ def _path(file: str, spec: _PathSpec, limits: JointLimits) -> PathPlan:
 
 def _planner(file: str, spec: PlannerSettings) -> PlannerSettings:
     checks = [
-        ("n_solutions", spec.n_solutions >= 2, "must be at least 2"),
-        ("population", spec.population >= 8, "must be at least 8"),
-        ("generations", spec.generations is None or spec.generations >= 1, "must be at least 1"),
-        ("kappa", math.isfinite(spec.kappa) and spec.kappa > 1.0, "must be a finite number above 1"),
+        ("n_solutions", 2 <= spec.n_solutions <= MAX_N, f"must be from 2 to {MAX_N}"),
+        ("population", 8 <= spec.population <= 10_000, "must be from 8 to 10000"),
+        (
+            "generations",
+            spec.generations is None or 1 <= spec.generations <= 100_000,
+            "must be from 1 to 100000",
+        ),
+        ("seed", 0 <= spec.seed < 2**32, "must be from 0 to 2**32 - 1"),
+        (
+            "kappa",
+            math.isfinite(spec.kappa) and 1.0 < spec.kappa <= 1000.0,
+            "must be above 1 and at most 1000",
+        ),
     ]
     for name, ok, why in checks:
         if not ok:
             raise TaskError(file, f"planner.{name}", f"{why}, got {getattr(spec, name)}")
     return spec
+
+
+def _slowest(file: str, path: PathPlan, limits: JointLimits, kappa: float) -> None:
+    """The slowest trajectory on the front takes about κ·Σ h_lb (DESIGN §5); no path may take longer
+    than any path can (the executor refuses it, and samples grow with it)."""
+    h_lb = np.max(np.abs(np.diff(path.waypoints, axis=0)) / limits.velocity, axis=1)
+    slowest = kappa * float(h_lb.sum())
+    if slowest > MAX_PATH_S:
+        raise TaskError(
+            file,
+            "waypoints",
+            f"the slowest trajectory would take about {slowest:.4g} s, over the {MAX_PATH_S:g} s a path may "
+            "take: raise the velocity limits or lower planner.kappa",
+            path.id,
+        )
 
 
 def _cycle(file: str, steps: list[_StepSpec] | None, paths: dict[str, PathPlan]) -> list[Step]:
@@ -252,8 +285,14 @@ def _cycle(file: str, steps: list[_StepSpec] | None, paths: dict[str, PathPlan])
             )
         if st.move is not None and st.move not in paths:
             raise TaskError(file, f"cycle[{i}].move", f"no path with id {st.move!r}")
-        if st.wait is not None and not (math.isfinite(st.wait) and st.wait >= 0):
-            raise TaskError(file, f"cycle[{i}].wait", f"must be seconds ≥ 0, got {st.wait}")
+        if st.wait is not None and not (math.isfinite(st.wait) and 0 <= st.wait <= MAX_WAIT_S):
+            raise TaskError(
+                file, f"cycle[{i}].wait", f"must be seconds from 0 to {MAX_WAIT_S:g}, got {st.wait}"
+            )
+        if st.wait_for is not None and not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", st.wait_for):
+            raise TaskError(
+                file, f"cycle[{i}].wait_for", f"{st.wait_for!r} must be 1–64 letters, digits, '_' or '-'"
+            )
         out.append(Step(st.move, st.gripper, st.wait, st.wait_for))
     if not any(s.move for s in out):
         raise TaskError(file, "cycle", "the cycle moves along no path")
@@ -278,13 +317,16 @@ def parse_task(text: str, file: str = "<task>") -> Task:
         paths[ps.id] = _path(file, ps, limits)
     if not paths:
         raise TaskError(file, "paths", "the task has no path")
+    planner = _planner(file, spec.planner)
+    for p in paths.values():
+        _slowest(file, p, limits, planner.kappa)
     return Task(
         name=spec.task.name,
         source=file,
         limits=limits,
         paths=paths,
         cycle=_cycle(file, spec.cycle, paths),
-        planner=_planner(file, spec.planner),
+        planner=planner,
         description=spec.task.description,
     )
 

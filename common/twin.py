@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from typing import Annotated
 
 import msgspec
 import numpy as np
@@ -40,31 +41,41 @@ WAVES = np.array(
 REACH_S = 0.6  # a beat's waves are negligible further than this from its R peak
 
 
+def _in(lo: float, hi: float) -> msgspec.Meta:
+    return msgspec.Meta(ge=lo, le=hi)
+
+
+Positive = Annotated[float, msgspec.Meta(gt=0.0, le=1e6)]
+Share = Annotated[float, _in(0.0, 1.0)]
+
+
 class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    seed: int = 1
-    rr_rest_s: float = 0.85
-    rr_range_s: float = 0.16
-    fatigue_rr_s: float = 0.02
-    window_s: float = 20.0
-    pace_ref_rad_s: float = 1.0
-    accel_ref_rad_s2: float = 2.0
-    accel_weight: float = 0.5
-    tolerance: float = 0.8
-    span: float = 0.3
-    tau_up_s: float = 30.0
-    tau_down_s: float = 60.0
-    fatigue_per_hour: float = 0.1
-    resp_hz: float = 0.25
-    rsa_s: float = 0.025
-    rr_noise_s: float = 0.012
-    rr_noise_memory: float = 0.6  # AR(1) coefficient
-    ecg_noise_uv: float = 12.0
-    wander_uv: float = 60.0
-    wander_hz: float = 0.3
-    error_base: float = 0.02
-    error_pace: float = 0.15
-    error_stress: float = 0.25
-    handling_s: float = 1.2  # the operator's time to put a part once the robot waits for it
+    """Every value has the range the model makes sense in; a config outside it stops the service."""
+
+    seed: Annotated[int, _in(0, 2**32 - 1)] = 1
+    rr_rest_s: Annotated[float, _in(0.4, 1.5)] = 0.85
+    rr_range_s: Annotated[float, _in(0.0, 0.4)] = 0.16
+    fatigue_rr_s: Annotated[float, _in(0.0, 0.2)] = 0.02
+    window_s: Annotated[float, _in(1.0, 600.0)] = 20.0
+    pace_ref_rad_s: Positive = 1.0
+    accel_ref_rad_s2: Positive = 2.0
+    accel_weight: Annotated[float, _in(0.0, 10.0)] = 0.5
+    tolerance: Annotated[float, _in(0.0, 10.0)] = 0.8
+    span: Positive = 0.3
+    tau_up_s: Positive = 30.0
+    tau_down_s: Positive = 60.0
+    fatigue_per_hour: Annotated[float, _in(0.0, 10.0)] = 0.1
+    resp_hz: Annotated[float, _in(0.05, 1.0)] = 0.25
+    rsa_s: Annotated[float, _in(0.0, 0.2)] = 0.025
+    rr_noise_s: Annotated[float, _in(0.0, 0.2)] = 0.012
+    rr_noise_memory: Annotated[float, _in(0.0, 0.99)] = 0.6  # AR(1) coefficient
+    ecg_noise_uv: Annotated[float, _in(0.0, 5000.0)] = 12.0
+    wander_uv: Annotated[float, _in(0.0, 5000.0)] = 60.0
+    wander_hz: Annotated[float, _in(0.0, 5.0)] = 0.3
+    error_base: Share = 0.02
+    error_pace: Share = 0.15
+    error_stress: Share = 0.25
+    handling_s: Annotated[float, _in(0.0, 600.0)] = 1.2  # time to put a part once the robot waits
 
 
 class Operator:
@@ -88,7 +99,7 @@ class Operator:
     def observe(self, t: float, qd: NDArray[np.float64]) -> None:
         """One robot state (joint velocities) at data time t."""
         accel = 0.0
-        if self._last_qd is not None and t > self._last_qd[0]:
+        if self._last_qd is not None and t > self._last_qd[0] + 1e-3:  # no rate from two near-equal times
             accel = float(np.linalg.norm(qd - self._last_qd[1])) / (t - self._last_qd[0])
         self._last_qd = (t, np.asarray(qd, dtype=float))
         self._obs.append((t, float(np.linalg.norm(qd)), accel))

@@ -11,6 +11,7 @@ from common import bspline as bs
 from common.errors import TrajectoryRejected
 from common.limits import JOINT_NAMES, JointLimits
 from common.task import PathPlan
+from schemas.pareto import MAX_PATH_S
 
 WAYPOINT_TOL_RAD = 1e-9
 # Relative slack on a limit: exact maxima carry round-off of ~1e-12; a real excess is far larger.
@@ -32,6 +33,8 @@ def trajectory_problems(
         return [f"h has shape {h.shape}, expected ({w + 1},) for {w} waypoints"]
     if not np.all(np.isfinite(h)) or np.any(h <= 0):
         return ["h must be finite and positive"]
+    if h.sum() > MAX_PATH_S:  # before anything is sampled: memory grows with the duration
+        return [f"the path takes {h.sum():.6g} s, over the {MAX_PATH_S:g} s any path may take"]
     problems = []
     if claimed_waypoints is not None:
         claimed = np.asarray(claimed_waypoints, dtype=float)

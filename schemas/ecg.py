@@ -6,22 +6,34 @@ from typing import Annotated
 
 import msgspec
 
-from schemas.base import Message, PositiveFloat
+from schemas.base import Message, Name, RrSeconds
+
+# The sample rates an ECG source can have: the H10's 130 Hz (replays are resampled to it) and the
+# usual rates of other chest straps and recorders.
+ECG_RATES_HZ = (125.0, 128.0, 130.0, 200.0, 250.0, 256.0, 360.0, 500.0, 512.0, 1000.0)
+MAX_CHUNK_S = 10.0  # an H10 frame is 73 samples (0.56 s); a chunk is never longer than this
+MicroVolts = Annotated[int, msgspec.Meta(ge=-(2**23), le=2**23 - 1)]  # the H10's int24
 
 
 class EcgChunk(Message, frozen=True, tag="ecg.chunk.v1"):
     """Consecutive samples in µV; ``t_ns`` is the data time of the first one. ``gap`` marks samples
     missing before this chunk (a BLE drop, a restart of the stream): never bridge it."""
 
-    fs_hz: PositiveFloat
-    samples_uv: list[int]
+    fs_hz: float
+    samples_uv: Annotated[list[MicroVolts], msgspec.Meta(max_length=round(MAX_CHUNK_S * 1000))]
     gap: bool = False
-    source: str = ""
+    source: Name = ""
+
+    def __post_init__(self) -> None:
+        if self.fs_hz not in ECG_RATES_HZ:
+            raise ValueError(f"fs_hz = {self.fs_hz} is not a rate an ECG source has {ECG_RATES_HZ}")
+        if len(self.samples_uv) > MAX_CHUNK_S * self.fs_hz:
+            raise ValueError(f"{len(self.samples_uv)} samples is over {MAX_CHUNK_S:g} s at {self.fs_hz:g} Hz")
 
 
 class RrIntervals(Message, frozen=True, tag="ecg.rr.v1"):
     """RR intervals as the device reports them (H10: 1/1024 s); ``t_ns`` is the notification time."""
 
-    rr_s: list[Annotated[float, msgspec.Meta(gt=0, lt=5)]]
+    rr_s: Annotated[list[RrSeconds], msgspec.Meta(max_length=64)]
     gap: bool = False
-    source: str = ""
+    source: Name = ""

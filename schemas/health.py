@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
-from schemas.base import Message, Seconds
+from typing import Annotated
+
+import msgspec
+
+from schemas.base import Message, Name, NonNegInt, Seconds, Text
 
 
 class ServiceStatus(Message, frozen=True, tag="health.status.v1"):
-    service: str
-    state: str
+    """``counters`` also holds what the service dropped: ``decode_errors``, ``rejected/<key>/<reason>``
+    and ``handler_errors/<key>/<error>`` (README "Bad input")."""
+
+    service: Name
+    state: Text
     uptime_s: Seconds
-    counters: dict[str, int]
-    detail: str = ""
+    counters: Annotated[dict[Name, NonNegInt], msgspec.Meta(max_length=1000)]
+    detail: Text = ""

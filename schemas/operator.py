@@ -3,29 +3,41 @@
 
 from __future__ import annotations
 
-from schemas.base import Message, PositiveFloat
+from typing import Annotated
+
+import msgspec
+
+from schemas.base import Message, Name, NonNegInt, RrSeconds, Text
+
+# σ_r, σ_s and the RR_s offset: tenths of a second in the paper; never a second or more
+Spread = Annotated[float, msgspec.Meta(gt=0.0, lt=1.0)]
+SignalName = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
 
 
 class Calibration(Message, frozen=True, tag="operator.calibration.v1"):
     """Resting mean RR and its spread for one subject (paper §III-B); stress values derive from them."""
 
-    subject: str
-    rr_rest_s: PositiveFloat
-    sigma_rest_s: PositiveFloat = 0.14
-    rr_stress_offset_s: PositiveFloat = 0.08
-    sigma_stress_s: PositiveFloat = 0.08
+    subject: Name
+    rr_rest_s: RrSeconds
+    sigma_rest_s: Spread = 0.14
+    rr_stress_offset_s: Spread = 0.08
+    sigma_stress_s: Spread = 0.08
+
+    def __post_init__(self) -> None:
+        if self.rr_rest_s - self.rr_stress_offset_s - self.sigma_stress_s <= 0:
+            raise ValueError("RR_r minus the stress offset and σ_s leaves no positive RR_s^max")
 
 
 class OperatorSignal(Message, frozen=True, tag="operator.signal.v1"):
     """The operator (a button, a light curtain, the twin) says something the task waits for
     (``wait_for`` in the task program): ``name`` is that step's name, e.g. ``part_a2``."""
 
-    name: str
+    name: SignalName
 
 
 class OperatorError(Message, frozen=True, tag="operator.error.v1"):
     """An error the operator made (a quality check, a button, the twin); ``cycle`` is the robot's cycle
     it happened in, when known."""
 
-    cycle: int | None = None
-    description: str = ""
+    cycle: NonNegInt | None = None
+    description: Text = ""

@@ -2,29 +2,43 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from schemas.base import Message, NonNegInt, Seconds
-from schemas.pareto import Vector6
+import msgspec
+
+from schemas.base import Message, Name, NonNegInt, Seconds, Text
+from schemas.decision import SolutionIndex
+
+# What a UR16e can report: joints within ±2π (and a little), speeds far below 10 rad/s, the tool
+# within a few metres of the base and its rotation vector within ±2π.
+Joints = Annotated[
+    list[Annotated[float, msgspec.Meta(ge=-7.0, le=7.0)]], msgspec.Meta(min_length=6, max_length=6)
+]
+JointSpeeds = Annotated[
+    list[Annotated[float, msgspec.Meta(ge=-10.0, le=10.0)]], msgspec.Meta(min_length=6, max_length=6)
+]
+Pose = Annotated[
+    list[Annotated[float, msgspec.Meta(ge=-10.0, le=10.0)]], msgspec.Meta(min_length=6, max_length=6)
+]
 
 
 class RobotState(Message, frozen=True, tag="robot.state.v1"):
-    q: Vector6
-    qd: Vector6
-    tcp: Vector6
-    path_id: str | None = None
-    k: int | None = None
-    mode: str = "idle"
-    waiting_for: str | None = None  # the operator signal a ``wait_for`` step waits for
+    q: Joints
+    qd: JointSpeeds
+    tcp: Pose
+    path_id: Name | None = None
+    k: SolutionIndex | None = None
+    mode: Name = "idle"
+    waiting_for: Name | None = None  # the operator signal a ``wait_for`` step waits for
 
 
 class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
     cycle: NonNegInt
     cycle_time_s: Seconds
-    k_per_path: dict[str, int]
+    k_per_path: Annotated[dict[Name, SolutionIndex], msgspec.Meta(max_length=1000)]
 
 
 class RobotEvent(Message, frozen=True, tag="robot.event.v1"):
     kind: Literal["refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info"]
-    message: str
-    path_id: str | None = None
+    message: Text
+    path_id: Name | None = None

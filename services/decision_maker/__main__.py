@@ -2,162 +2,89 @@
 
 The selection is state, not an event: it is republished every ``republish_s`` and answered on query, so a
 publication lost while a router was down is not lost for long. k and RR_{i-1} are written atomically to
-the data folder after every window, so a restarted service goes on where it stopped; a window it has
-already answered (a replay, a duplicate) is skipped. Without a calibration it publishes nothing and says
-so on its status, rather than guess the subject's resting RR.
+the data folder after every window, before the selection is announced, so a restarted service goes on
+where it stopped. A window it has answered already (a replay, a duplicate) or one far from the windows'
+data time is dropped and counted (common/admission.py). Without a calibration it publishes nothing and
+says so on its status, rather than guess the subject's resting RR.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import sys
-from decimal import Decimal
 from pathlib import Path
+from typing import Annotated
 
 import msgspec
 
 from common.bus import QueryError, Request
-from common.decision import Params, State, step
 from common.service import ServiceContext, service_main
-from common.storage import atomic_write
-from schemas.decision import Selection
+from schemas.base import RrSeconds
+from schemas.decision import MAX_N, Selection
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
+from services.decision_maker.state import (
+    CALIBRATION_FILE,
+    Decider,
+    load_calibration_file,
+    load_record,
+    same_calibration,
+)
 
 log = logging.getLogger("cadence.decision_maker")
 NAME = "decision_maker"
-STATE_FILE = "decision_state.json"
-CALIBRATION_FILE = "calibration.json"
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    n: int = 15
-    republish_s: float = 2.0
+    n: Annotated[int, msgspec.Meta(ge=1, le=MAX_N)] = 15
+    republish_s: Annotated[float, msgspec.Meta(ge=0.1, le=3600.0)] = 2.0
     # For a cell without `cadence calibrate`: the subject's resting mean RR, in seconds.
-    rr_rest_s: float | None = None
+    rr_rest_s: RrSeconds | None = None
 
 
-def params_of(cal: Calibration, n: int) -> Params:
-    return Params.of(cal.rr_rest_s, n, cal.sigma_rest_s, cal.rr_stress_offset_s, cal.sigma_stress_s)
-
-
-class Decider:
-    """The service's state and its persistence; the rule itself is ``common.decision.step``."""
-
-    def __init__(self, data_dir: Path, n: int) -> None:
-        self.path = data_dir / STATE_FILE
-        self.n = n
-        self.calibration: Calibration | None = None
-        self.params: Params | None = None
-        self.state: State | None = None
-        self.last_end_ns = -1
-        self.selection: Selection | None = None
-        self.seq = 0
-
-    def calibrate(self, cal: Calibration, t_ns: int) -> bool:
-        """Adopt a calibration; False when it is the one in use already (a republish)."""
-        if self.calibration is not None and _same(self.calibration, cal):
-            return False
-        self.calibration, self.params = cal, params_of(cal, self.n)
-        self.state = State.initial(self.params)
-        self.last_end_ns = -1
-        self.selection = self._selection(0, "initial", t_ns, None)
-        return True
-
-    def resume(self) -> bool:
-        """Reload k and RR_{i-1} written by an earlier run, if they belong to this calibration."""
-        try:
-            doc = json.loads(self.path.read_text())
-            cal = msgspec.convert(doc["calibration"], Calibration)
-        except FileNotFoundError:
-            return False
-        except (ValueError, KeyError, msgspec.ValidationError) as exc:
-            log.warning("ignoring unreadable %s: %s", self.path, exc)
-            return False
-        if doc.get("n") != self.n:
-            return False
-        self.calibration, self.params = cal, params_of(cal, self.n)
-        self.state = State(int(doc["k"]), Decimal(doc["rr_prev"]))
-        self.last_end_ns = int(doc["last_end_ns"])
-        self.seq = int(doc["seq"])
-        self.selection = self._selection(
-            int(doc["delta"]), doc["reason"], int(doc["t_ns"]), doc["window_end_ns"]
-        )
-        return True
-
-    def on_window(self, w: HrvWindow) -> Selection | None:
-        if self.params is None or self.state is None or w.end_ns <= self.last_end_ns:
-            return None
-        r = step(self.params, self.state, w.mean_rr_s, good_quality=w.quality == "good")
-        self.state, self.last_end_ns = r.state, w.end_ns
-        self.selection = self._selection(r.delta, r.reason, w.end_ns, w.end_ns)
-        return self.selection
-
-    def _selection(self, delta: int, reason: str, t_ns: int, window_end_ns: int | None) -> Selection:
-        assert self.state is not None
-        self.seq += 1
-        return Selection(
-            t_ns=t_ns,
-            seq=self.seq,
-            k=self.state.k,
-            n=self.n,
-            delta=delta,
-            reason=reason,  # type: ignore[arg-type]
-            window_end_ns=window_end_ns,
-        )
-
-    def persist(self) -> None:
-        assert self.state is not None and self.selection is not None and self.calibration is not None
-        s = self.selection
-        doc = {
-            "calibration": msgspec.to_builtins(self.calibration),
-            "n": self.n,
-            "k": self.state.k,
-            "rr_prev": str(self.state.rr_prev),
-            "last_end_ns": self.last_end_ns,
-            "seq": self.seq,
-            "delta": s.delta,
-            "reason": s.reason,
-            "t_ns": s.t_ns,
-            "window_end_ns": s.window_end_ns,
-        }
-        atomic_write(self.path, json.dumps(doc, indent=1).encode())
-
-
-def _same(a: Calibration, b: Calibration) -> bool:
-    fields = ("subject", "rr_rest_s", "sigma_rest_s", "rr_stress_offset_s", "sigma_stress_s")
-    return all(getattr(a, f) == getattr(b, f) for f in fields)
-
-
-def load_calibration(data_dir: Path, settings: Settings) -> Calibration | None:
+def load_calibration(data_dir: Path, settings: Settings, problems: list[str]) -> Calibration | None:
     """The calibration `cadence calibrate` stored, else one from ``rr_rest_s`` in the config."""
-    path = data_dir / CALIBRATION_FILE
-    if path.exists():
-        try:
-            return msgspec.json.decode(path.read_bytes(), type=Calibration)
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
-            log.error("ignoring %s: %s", path, exc)
+    loaded = load_calibration_file(data_dir / CALIBRATION_FILE)
+    if loaded.problem:
+        problems.append(loaded.problem)
+    if loaded.value is not None:
+        return loaded.value
     if settings.rr_rest_s is not None:
         return Calibration(t_ns=0, seq=0, subject="config", rr_rest_s=settings.rr_rest_s)
     return None
 
 
+def start(decider: Decider, data: Path, settings: Settings) -> list[str]:
+    """Resume the persisted state, or start at the initial k; what was wrong with the files on disk."""
+    problems: list[str] = []
+    cal = load_calibration(data, settings, problems)
+    loaded = load_record(decider.path)
+    if loaded.problem:
+        problems.append(loaded.problem)
+    rec = loaded.value
+    if rec is not None and rec.n != settings.n:
+        log.info("%s was written for n = %d, not %d: starting afresh", decider.path, rec.n, settings.n)
+        rec = None
+    if rec is not None and (cal is None or same_calibration(rec.calibration, cal)):
+        decider.commit(rec, resumed=True)
+        log.info("resumed at k = %d", rec.k)
+    elif cal is not None and (fresh := decider.calibrated(cal, 0)) is not None:
+        decider.commit(fresh)
+    for p in problems:
+        log.error("%s", p)
+    return problems
+
+
 async def main(ctx: ServiceContext) -> None:
     settings: Settings = ctx.settings
     bus = ctx.bus
-    data = ctx.common.data_path
-    decider = Decider(data, settings.n)
-    key = bus.key("decision/selection")
-    cal = await asyncio.to_thread(load_calibration, data, settings)
-    if await asyncio.to_thread(decider.resume):
-        log.info("resumed at k = %d", decider.state.k if decider.state else -1)
-        if cal is not None and not _same(cal, decider.calibration):  # type: ignore[arg-type]
-            decider.calibrate(cal, 0)
-    elif cal is not None:
-        decider.calibrate(cal, 0)
+    decider = Decider(ctx.common.data_path, settings.n)
+    key, window_key = bus.key("decision/selection"), bus.key("hrv/window")
+    problems = await asyncio.to_thread(start, decider, ctx.common.data_path, settings)
+    if problems:  # said until the service restarts: the operator should look at the file moved aside
+        ctx.detail = "; ".join(problems) + "; started at the initial k, waiting for a fresh window"
     ctx.state = "running" if decider.params else "waiting for calibration"
 
     def publish() -> None:
@@ -169,17 +96,24 @@ async def main(ctx: ServiceContext) -> None:
         if decider.params is None:
             ctx.counters["windows_without_calibration"] += 1
             return
-        sel = decider.on_window(w)
-        if sel is None:
-            ctx.counters["windows_skipped"] += 1
+        verdict = decider.line.admit(w.start_ns, w.end_ns)
+        if not verdict.acted_on:
+            bus.reject(window_key, verdict.code, verdict.detail)
             return
-        await asyncio.to_thread(decider.persist)  # persisted before it is announced
+        if verdict.action == "restart":
+            log.warning("hrv/window: %s", verdict.detail)
+            ctx.counters["window_line_restarts"] += 1
+        record = decider.answer(w)
+        await asyncio.to_thread(decider.persist, record)  # persisted before it is announced
+        decider.commit(record)
         publish()
 
     async def on_calibration(_: str, cal: Calibration) -> None:
-        if decider.calibrate(cal, cal.t_ns):
+        record = decider.calibrated(cal, cal.t_ns)
+        if record is not None:
             log.info("calibration for %s: RR_r = %.3f s", cal.subject, cal.rr_rest_s)
-            await asyncio.to_thread(decider.persist)
+            await asyncio.to_thread(decider.persist, record)
+            decider.commit(record)
             ctx.state = "running"
             publish()
 
@@ -189,7 +123,7 @@ async def main(ctx: ServiceContext) -> None:
         return decider.selection
 
     bus.handle(bus.key("operator/calibration"), Calibration, on_calibration)
-    bus.handle(bus.key("hrv/window"), HrvWindow, on_window)
+    bus.handle(window_key, HrvWindow, on_window)
     bus.serve(key, on_query)
     while not ctx.stop.is_set():
         publish()

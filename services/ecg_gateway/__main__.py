@@ -4,7 +4,7 @@ interface: ``polar`` (the H10 over BLE), ``replay`` (a recording) and ``twin`` (
 from __future__ import annotations
 
 import sys
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 
@@ -12,6 +12,7 @@ from common.clock import Clock
 from common.errors import ConfigError
 from common.service import CommonSettings, ServiceContext, service_main
 from common.twin import TwinParams
+from schemas.base import TimeNs
 from schemas.ecg import EcgChunk, RrIntervals
 from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
@@ -23,10 +24,10 @@ NAME = "ecg_gateway"
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     source: Literal["replay", "polar", "twin"] = "replay"
     strap: str = "Polar H10"  # polar: MAC address or (part of) the advertised name
-    gap_timeout_s: float = 5.0  # polar: reconnect after this long without an ECG frame
+    gap_timeout_s: Annotated[float, msgspec.Meta(ge=0.5, le=300.0)] = 5.0  # polar: reconnect after this
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
-    speed: float = 1.0  # replay: × real time; 0 = as fast as possible
-    start_ns: int | None = None  # replay: data time of the first sample (default: now)
+    speed: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 1.0  # replay: × real time; 0 = at once
+    start_ns: TimeNs | None = None  # replay: data time of the first sample (default: now)
     twin: TwinParams = TwinParams()  # twin: the simulated operator's parameters (common/twin.py)
 
 

@@ -14,6 +14,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 
+from common.admission import TimeLine
 from common.bus import Bus
 from common.clock import Clock
 from common.twin import Operator, TwinParams
@@ -22,6 +23,10 @@ from schemas.robot import CycleReport, RobotState
 from services.ecg_gateway.sources import CHUNK, FS_HZ, Chunk, EcgSource
 
 log = logging.getLogger("cadence.ecg_gateway")
+
+
+STATE_AHEAD_S = 10.0
+STATE_CONFIRM = 25  # half a second of robot states
 
 
 class TwinSource(EcgSource):
@@ -35,6 +40,8 @@ class TwinSource(EcgSource):
         self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
         self.waiting_for: str | None = None
         self.seq = {"signal": 0, "error": 0}
+        # robot/state at 50 Hz: one far from the states before it is dropped (common/admission.py)
+        self.line = TimeLine(STATE_AHEAD_S, tolerance_s=0.0, confirm=STATE_CONFIRM)
 
     def connect(self, bus: Bus) -> None:
         self.bus = bus
@@ -44,7 +51,12 @@ class TwinSource(EcgSource):
     def _t(self, t_ns: int) -> float:
         return (t_ns - self.origin_ns) / 1e9
 
-    async def on_state(self, _: str, state: RobotState) -> None:
+    async def on_state(self, key: str, state: RobotState) -> None:
+        verdict = self.line.admit(state.t_ns, state.t_ns)
+        if not verdict.acted_on:
+            if self.bus is not None:
+                self.bus.reject(key, verdict.code, verdict.detail)
+            return
         t = self._t(state.t_ns)
         self.operator.observe(t, np.array(state.qd))
         if state.waiting_for is not None and state.waiting_for != self.waiting_for:

@@ -17,19 +17,20 @@ import os
 import sys
 from collections import Counter
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 import numpy as np
 
 from common.arm import DT
+from common.bus import Bus
 from common.clock import Clock
 from common.decision import k_for_path
 from common.errors import ConfigError, TrajectoryRejected
 from common.service import CommonSettings, ServiceContext, service_main
 from common.task import PathPlan, Task, load_task
 from common.validate import validated_samples
-from schemas.decision import Selection
+from schemas.decision import MAX_N, Selection
 from schemas.operator import OperatorSignal
 from schemas.robot import CycleReport, RobotEvent, RobotState
 from services.executor.backends import Backend, RobotUnavailable, SimBackend, UrRtdeBackend
@@ -42,31 +43,35 @@ EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_f
 RATE_HZ = 1.0 / DT
 
 
+def _range(lo: float, hi: float) -> msgspec.Meta:
+    return msgspec.Meta(ge=lo, le=hi)
+
+
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: str = str(EXAMPLE_TASK)
     backend: Literal["sim", "ur_rtde"] = "sim"
     host: str = "127.0.0.1"  # ur_rtde: the controller
-    lookahead_s: float = 0.1  # servoJ
-    gain: float = 300.0  # servoJ
-    gripper_output: int = 0  # standard digital output driving the gripper
-    watchdog_hz: float = 10.0  # ur_rtde: the controller stops the arm below this command rate
-    servo_core: int | None = None  # default: the last core
-    fifo_priority: int = 80  # 0: no SCHED_FIFO
+    lookahead_s: Annotated[float, _range(0.03, 0.2)] = 0.1  # servoJ (UR's range)
+    gain: Annotated[float, _range(100.0, 2000.0)] = 300.0  # servoJ (UR's range)
+    gripper_output: Annotated[int, _range(0, 7)] = 0  # standard digital output driving the gripper
+    watchdog_hz: Annotated[float, _range(1.0, 500.0)] = 10.0  # ur_rtde: the arm stops below this rate
+    servo_core: Annotated[int, _range(0, 4095)] | None = None  # default: the last core
+    fifo_priority: Annotated[int, _range(0, 99)] = 80  # 0: no SCHED_FIFO
     lock_memory: bool = True
-    spin_us: int = 400
-    overrun_limit: int = 5  # this many overruns in a row stop the robot
-    stop_deceleration: float = 4.0  # rad/s², SIGTERM and overrun stops
-    settle_s: float = 0.5  # after the last sample, hold the target at most this long for the arm to arrive
+    spin_us: Annotated[int, _range(0, 1900)] = 400
+    overrun_limit: Annotated[int, _range(1, 1000)] = 5  # this many overruns in a row stop the robot
+    stop_deceleration: Annotated[float, _range(0.5, 40.0)] = 4.0  # rad/s², SIGTERM and overrun stops
+    settle_s: Annotated[float, _range(0.0, 10.0)] = 0.5  # after the last sample, wait this long at most
     start_policy: Literal["move", "refuse"] = "move"  # the arm is not at the path's start
-    start_speed: float = 0.3  # rad/s, the slow move there
-    start_acceleration: float = 0.6  # rad/s²
-    start_tolerance_rad: float = 2e-3
-    initial_k: int = 8  # until a selection is known (the decision rule's initial index for N = 15)
-    state_rate_hz: float = 50.0  # robot/state, wall clock
-    query_timeout_s: float = 2.0
+    start_speed: Annotated[float, _range(0.01, 1.0)] = 0.3  # rad/s, the slow move there
+    start_acceleration: Annotated[float, _range(0.01, 2.0)] = 0.6  # rad/s²
+    start_tolerance_rad: Annotated[float, _range(1e-5, 0.05)] = 2e-3
+    initial_k: Annotated[int, _range(1, MAX_N)] = 8  # until a selection is known (Alg. 1's k0 for N = 15)
+    state_rate_hz: Annotated[float, _range(1.0, 500.0)] = 50.0  # robot/state, wall clock
+    query_timeout_s: Annotated[float, _range(0.1, 60.0)] = 2.0
     wait_for_signals: bool = True  # false: `wait_for` steps pass at once (no operator on the bus)
-    cycles: int = 0  # stop after this many cycles; 0: run until stopped
-    sim_start_deg: list[float] | None = None  # sim: the arm's pose at start; default the first waypoint
+    cycles: Annotated[int, _range(0, 10**9)] = 0  # stop after this many cycles; 0: run until stopped
+    sim_start_deg: list[Annotated[float, _range(-360.0, 360.0)]] | None = None  # sim: pose at start
 
 
 def first_waypoint(task: Task) -> np.ndarray:
@@ -105,14 +110,19 @@ def make_backend(settings: Settings, task: Task, speed: float) -> Backend:
 
 class Signals:
     """Operator signals by name. A ``wait_for`` is met by a signal that arrived since the last wait for
-    the same name, so a part put down before the robot got there is not missed."""
+    the same name, so a part put down before the robot got there is not missed. Only the names the task
+    waits for are counted: any other is dropped, so a flood of names cannot grow the table."""
 
-    def __init__(self) -> None:
+    def __init__(self, bus: Bus, names: set[str]) -> None:
+        self.bus, self.names = bus, names
         self.received: Counter[str] = Counter()
         self.consumed: Counter[str] = Counter()
         self.arrived = asyncio.Event()
 
-    async def on_signal(self, _: str, sig: OperatorSignal) -> None:
+    async def on_signal(self, key: str, sig: OperatorSignal) -> None:
+        if sig.name not in self.names:
+            self.bus.reject(key, "unknown_signal", f"no step of the task waits for '{sig.name}'")
+            return
         self.received[sig.name] += 1
         self.arrived.set()
 
@@ -142,7 +152,7 @@ class Executor:
         self.clock: Clock = ctx.common.clock
         self.bus = ctx.bus
         self.sets = SetCache(ctx.bus, ctx.common.data_path / "executor", task)
-        self.signals = Signals()
+        self.signals = Signals(ctx.bus, {s.wait_for for s in task.cycle if s.wait_for is not None})
         self.selection: Selection | None = None
         self.selection_changed = asyncio.Event()
         self.path_id: str | None = None
@@ -209,8 +219,13 @@ class Executor:
             await asyncio.sleep(period)
 
     async def keep_sets(self) -> None:
-        """Fetch what is missing until every path has its set (the store may still be planning)."""
-        while not self.ctx.stop.is_set() and self.sets.missing():
+        """Fetch what is missing (the store may still be planning; a refused set was dropped), and wait
+        while nothing is."""
+        while not self.ctx.stop.is_set():
+            if not self.sets.missing():
+                self.sets.wanted.clear()
+                await _first(self.sets.wanted.wait(), self.ctx.stop.wait())
+                continue
             why = await self.sets.fetch_missing(self.settings.query_timeout_s)
             if why:
                 self.ctx.state = f"waiting for Pareto sets: {', '.join(why)}"
@@ -296,6 +311,7 @@ class Executor:
             except TrajectoryRejected as exc:
                 self.mode = "refused"
                 self.event("refused", f"k = {k}: {exc}", pid)
+                self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
                 await self.until_changed()
                 continue
             if not await self.reach(q[0], pid):
@@ -384,6 +400,8 @@ async def main(ctx: ServiceContext) -> None:
     )
     ex = Executor(ctx, task, backend, loop)
     ex.sets.load()
+    if ex.sets.problems:
+        ctx.detail = "; ".join(ex.sets.problems)
     bus = ctx.bus
     bus.handle(bus.key("decision/selection"), Selection, ex.on_selection, maxsize=1)
     bus.handle(bus.key("operator/signal"), OperatorSignal, ex.signals.on_signal)

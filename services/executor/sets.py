@@ -1,7 +1,8 @@
 """The executor's Pareto sets (DESIGN §9): fetched from the store, kept in memory and on disk, so the
 robot keeps working while the store is down. A set is taken only if its content hash is the one the
-executor computes from its own copy of the task: a set planned for other waypoints, limits or settings
-is never used."""
+executor computes from its own copy of the task and it has that task's waypoints: a set planned for other
+waypoints, limits or settings is never used. A cached file that fails validation is moved aside; a set
+whose trajectory the executor refuses is dropped from the cache and fetched again (``discard``)."""
 
 from __future__ import annotations
 
@@ -10,10 +11,11 @@ import logging
 from pathlib import Path
 
 import msgspec
+import numpy as np
 
 from common.bus import Bus
 from common.planner import content_hash
-from common.storage import atomic_write
+from common.storage import atomic_write, load_checked
 from common.task import Task
 from schemas.pareto import ParetoSet
 from schemas.topology import encode
@@ -23,30 +25,51 @@ log = logging.getLogger("cadence.executor")
 
 class SetCache:
     def __init__(self, bus: Bus, folder: Path, task: Task) -> None:
-        self.bus, self.folder = bus, folder
+        self.bus, self.folder, self.task = bus, folder, task
         self.digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
         self.sets: dict[str, ParetoSet] = {}
         self.changed = asyncio.Event()  # set whenever a set arrives; the executor waits on it
+        self.wanted = asyncio.Event()  # set whenever a set goes missing; the fetcher waits on it
+        self.problems: list[str] = []  # cached files moved aside, for the status
         self._decoder = msgspec.msgpack.Decoder(ParetoSet)
 
     def file(self, pid: str) -> Path:
         return self.folder / f"{pid}.msgpack"
 
+    def mismatch(self, pid: str, s: ParetoSet) -> str | None:
+        """Why a set that decoded is not this task's set for ``pid``; None when it is."""
+        own = self.task.paths[pid]
+        if s.path_id != pid or s.content_hash != self.digests[pid]:
+            return (
+                f"the set for '{pid}' was planned from other inputs (hash {s.content_hash[:12]}, "
+                f"the executor's task gives {self.digests[pid][:12]})"
+            )
+        if np.shape(s.waypoints) != own.waypoints.shape:
+            return f"the set for '{pid}' has {len(s.waypoints)} waypoints, the task {len(own.waypoints)}"
+        return None
+
     def load(self) -> None:
         """Sets cached by an earlier run (a restart while the store is down must not stop the robot)."""
-        for pid, digest in self.digests.items():
-            try:
-                s = self._decoder.decode(self.file(pid).read_bytes())
-            except FileNotFoundError:
-                continue
-            except (OSError, msgspec.DecodeError) as exc:
-                log.warning("ignoring the cached set %s: %s", self.file(pid), exc)
-                continue
-            if s.content_hash == digest and s.path_id == pid:
+        for pid in self.digests:
+            loaded = load_checked(self.file(pid), self._decoder.decode)
+            if loaded.problem:
+                log.error("%s", loaded.problem)
+                self.problems.append(loaded.problem)
+            s = loaded.value
+            if s is not None and self.mismatch(pid, s) is None:
                 self.sets[pid] = s
+        if self.missing():
+            self.wanted.set()
 
     def missing(self) -> list[str]:
         return [pid for pid in self.digests if pid not in self.sets]
+
+    def discard(self, pid: str, why: str) -> None:
+        """A set the executor refused is not kept, on disk or in memory; the store is asked again."""
+        if self.sets.pop(pid, None) is not None:
+            log.warning("dropping the cached set for '%s': %s", pid, why)
+            self.file(pid).unlink(missing_ok=True)
+            self.wanted.set()
 
     async def fetch(self, pid: str, timeout: float) -> str | None:
         """Ask the store for one path's set; None when it was taken, else why not."""
@@ -57,14 +80,11 @@ class SetCache:
         if r.message is None:
             return r.error or "an empty reply"
         s: ParetoSet = r.message
-        if s.path_id != pid or s.content_hash != self.digests[pid]:
-            return (
-                f"the store's set for '{pid}' was planned from other inputs (hash {s.content_hash[:12]}, "
-                f"the executor's task gives {self.digests[pid][:12]})"
-            )
+        if (why := self.mismatch(pid, s)) is not None:
+            return why
         if self.sets.get(pid) != s:
-            self.sets[pid] = s
             await asyncio.to_thread(atomic_write, self.file(pid), encode(s))
+            self.sets[pid] = s  # cached only once it passed every check and is on disk
             self.changed.set()
         return None
 

@@ -2,16 +2,20 @@
 (DESIGN §1, §4, §6). All on data time: a replay at any speed gives the same windows as live.
 
 ``input = "rr"`` takes the device's RR intervals (``ecg/rr``) instead, for a source that sends no ECG;
-the H10's own RR leaves out premature beats, so samples are the default and the better input."""
+the H10's own RR leaves out premature beats, so samples are the default and the better input.
+
+A chunk far from the stream's data time, or at another sample rate, is dropped and counted; a run of
+them that agree with each other starts the stream afresh there (common/admission.py)."""
 
 from __future__ import annotations
 
 import sys
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 
-from common.hrv import MAX_RR_S, MIN_RR_S, HrvStream, Window
+from common.admission import TimeLine
+from common.hrv import MAX_RR_S, MIN_RR_S, RR_RESYNC_S, HrvStream, Window
 from common.service import ServiceContext, service_main
 from schemas.ecg import EcgChunk, RrIntervals
 from schemas.hrv import Beats, HrvWindow
@@ -20,8 +24,16 @@ NAME = "hrv_analyser"
 RR_RESOLUTION_HZ = 1024.0  # device RR comes in 1/1024 s; no detector runs on this input
 
 
+# A source comes back from a BLE drop within this much data time (the H10 takes 20–30 s to restart its
+# ECG); a chunk further ahead, or behind, is out of line until this many chunks in a row agree with it.
+MAX_GAP_S = 120.0
+CONFIRM_CHUNKS = 10  # about 5.6 s of H10 ECG
+CHUNK_TOLERANCE_S = 0.012  # a chunk may start this much before the last one ended (1.5 samples at 130 Hz)
+CONFIRM_RR = 5  # notifications, about 5 s
+
+
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    window_s: float = 30.0
+    window_s: Annotated[float, msgspec.Meta(ge=5.0, le=600.0)] = 30.0
     input: Literal["samples", "rr"] = "samples"
 
 
@@ -31,6 +43,12 @@ async def main(ctx: ServiceContext) -> None:
     beats_key, window_key = bus.key("hrv/beats"), bus.key("hrv/window")
     stream: HrvStream | None = None
     origin_ns = 0
+    samples_key, rr_key = bus.key("ecg/samples"), bus.key("ecg/rr")
+    line = (
+        TimeLine(MAX_GAP_S, tolerance_s=RR_RESYNC_S, confirm=CONFIRM_RR)
+        if settings.input == "rr"
+        else TimeLine(MAX_GAP_S, tolerance_s=CHUNK_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
+    )
     last_peak: float | None = None
     seq = {"beats": 0, "window": 0}
 
@@ -79,16 +97,37 @@ async def main(ctx: ServiceContext) -> None:
             seq["window"] += 1
             ctx.counters["windows"] += 1
 
-    async def on_chunk(_: str, chunk: EcgChunk) -> None:
+    def admitted(key: str, start_ns: int, end_ns: int, fs: float) -> bool:
+        """The time line's word on a message; a restart flushes the old stream and starts a new one."""
+        nonlocal stream
+        verdict = line.admit(start_ns, end_ns, fs)
+        if not verdict.acted_on:
+            bus.reject(key, verdict.code, verdict.detail)
+            return False
+        if verdict.action == "restart":
+            ctx.counters["stream_restarts"] += 1
+            if stream is not None:
+                publish(*stream.flush(), fresh=False)
+            stream = None
+        return True
+
+    async def on_chunk(key: str, chunk: EcgChunk) -> None:
         nonlocal stream, origin_ns
-        if stream is None or chunk.fs_hz != stream.fs:
+        if not chunk.samples_uv:
+            return  # nothing to analyse; a gap shows in the next chunk's data time
+        end_ns = chunk.t_ns + round(len(chunk.samples_uv) * 1e9 / chunk.fs_hz)
+        if not admitted(key, chunk.t_ns, end_ns, chunk.fs_hz):
+            return
+        if stream is None:
             stream, origin_ns = HrvStream(chunk.fs_hz, settings.window_s), chunk.t_ns
         segments = stream.segments
         peaks, wins = stream.feed((chunk.t_ns - origin_ns) / 1e9, chunk.samples_uv, chunk.gap)
         publish(peaks, wins, fresh=stream.segments != segments)
 
-    async def on_rr(_: str, msg: RrIntervals) -> None:
+    async def on_rr(key: str, msg: RrIntervals) -> None:
         nonlocal stream, origin_ns
+        if not admitted(key, msg.t_ns - round(sum(msg.rr_s) * 1e9), msg.t_ns, RR_RESOLUTION_HZ):
+            return
         if stream is None:
             stream, origin_ns = HrvStream(RR_RESOLUTION_HZ, settings.window_s), msg.t_ns
         segments = stream.segments
@@ -96,9 +135,9 @@ async def main(ctx: ServiceContext) -> None:
         publish(peaks, wins, fresh=stream.segments != segments)
 
     if settings.input == "rr":
-        bus.handle(bus.key("ecg/rr"), RrIntervals, on_rr, maxsize=10_000)
+        bus.handle(rr_key, RrIntervals, on_rr, maxsize=10_000)
     else:
-        bus.handle(bus.key("ecg/samples"), EcgChunk, on_chunk, maxsize=10_000)
+        bus.handle(samples_key, EcgChunk, on_chunk, maxsize=10_000)
     await ctx.stop.wait()
 
 

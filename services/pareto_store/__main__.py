@@ -10,6 +10,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Annotated
 
 import msgspec
 
@@ -18,17 +19,19 @@ from common.planner import content_hash
 from common.service import CommonSettings, ServiceContext, service_main
 from common.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress
+from schemas.topology import encode
 from services.pareto_store.jobs import lower_priority, plan_job
 from services.pareto_store.store import SetStore
 
 log = logging.getLogger("cadence.pareto_store")
 NAME = "pareto_store"
+_SET_DECODER = msgspec.msgpack.Decoder(ParetoSet)
 EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_filling.toml"
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: str = str(EXAMPLE_TASK)
-    workers: int = 1
+    workers: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
 
 
 def answer(
@@ -65,7 +68,10 @@ def answer(
 async def main(ctx: ServiceContext) -> None:
     settings: Settings = ctx.settings
     task = load_task(settings.task)
-    store = await asyncio.to_thread(SetStore, ctx.common.data_path / "pareto.sqlite")
+    store, problem = await asyncio.to_thread(SetStore.open, ctx.common.data_path / "pareto.sqlite")
+    if problem:
+        log.error("%s", problem)
+        ctx.detail = problem
     sets: dict[str, ParetoSet] = {}
     digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
     for pid, digest in digests.items():
@@ -111,6 +117,8 @@ async def main(ctx: ServiceContext) -> None:
                 future = pool.submit(plan_job, task.paths[pid], task, task.planner, digests[pid])
                 lower_priority(pool)
                 msg = await asyncio.wrap_future(future)
+                # what is stored and served passes the schema's checks, as any receiver will apply them
+                msg = _SET_DECODER.decode(encode(msg))
             except Exception as exc:  # a path that cannot be planned must not stop the others
                 log.exception("planning %s failed", pid)
                 ctx.counters["plan_failures"] += 1

@@ -1,14 +1,21 @@
-"""SQLite (WAL) storage of computed Pareto sets, keyed by path id and content hash (DESIGN §10)."""
+"""SQLite (WAL) storage of computed Pareto sets, keyed by path id and content hash (DESIGN §10).
+
+A damaged database is moved aside and a new one started, so the store plans again rather than crash-loop
+(DESIGN §9); a stored set that no longer decodes is deleted and planned again."""
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import time
 from pathlib import Path
 
 import msgspec
 
+from common.storage import quarantine
 from schemas.pareto import ParetoSet
+
+log = logging.getLogger("cadence.pareto_store")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS pareto_sets (
@@ -27,16 +34,56 @@ class SetStore:
     def __init__(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.execute(_SCHEMA)
+        try:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute(_SCHEMA)
+            (verdict,) = self._db.execute("PRAGMA quick_check").fetchone()
+            if verdict != "ok":
+                raise sqlite3.DatabaseError(f"integrity check: {verdict}")
+        except sqlite3.DatabaseError:
+            self._db.close()
+            raise
         self._decoder = msgspec.msgpack.Decoder(ParetoSet)
+
+    @classmethod
+    def open(cls, path: Path) -> tuple[SetStore, str | None]:
+        """The store at ``path``; a damaged one is moved aside (with its WAL) and a new one made. The
+        second value says what was wrong, for the log and the status."""
+        try:
+            return cls(path), None
+        except sqlite3.DatabaseError as exc:
+            moved = quarantine(path)
+            for side in ("-wal", "-shm"):
+                extra = path.with_name(path.name + side)
+                if extra.exists():
+                    extra.rename(moved.with_name(moved.name + side))
+            problem = f"{path}: {exc}; moved aside to {moved.name}, the sets will be planned again"
+            return cls(path), problem
 
     def load(self, path_id: str, content_hash: str) -> ParetoSet | None:
         row = self._db.execute(
             "SELECT payload FROM pareto_sets WHERE path_id = ? AND content_hash = ?", (path_id, content_hash)
         ).fetchone()
-        return None if row is None else self._decoder.decode(row[0])
+        if row is None:
+            return None
+        try:
+            s = self._decoder.decode(row[0])
+        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+            log.error(
+                "the stored set for '%s' does not decode (%s): deleted, it will be planned again",
+                path_id,
+                exc,
+            )
+            self.delete(path_id, content_hash)
+            return None
+        return s if (s.path_id, s.content_hash) == (path_id, content_hash) else None
+
+    def delete(self, path_id: str, content_hash: str) -> None:
+        with self._db:
+            self._db.execute(
+                "DELETE FROM pareto_sets WHERE path_id = ? AND content_hash = ?", (path_id, content_hash)
+            )
 
     def save(self, msg: ParetoSet) -> None:
         with self._db:  # one transaction

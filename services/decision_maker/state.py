@@ -1,0 +1,146 @@
+"""The decision maker's state and its file (DESIGN §7, §9): k, RR_{i-1}, the last window answered and the
+selection that announced them, for one calibration. The file is validated on load as strictly as a
+message; a damaged one is moved aside and the service starts afresh at the initial k."""
+
+from __future__ import annotations
+
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+from typing import Annotated
+
+import msgspec
+
+from common.admission import TimeLine
+from common.decision import Params, State, step
+from common.storage import Loaded, atomic_write, load_checked
+from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
+from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
+from schemas.hrv import HrvWindow
+from schemas.operator import Calibration
+
+STATE_FILE = "decision_state.json"
+CALIBRATION_FILE = "calibration.json"
+# Windows come every 30 s. One that starts more than this after the last answered is out of line (a
+# broken clock, a hostile message) until a second one agrees with it; one that ends within this before it
+# is a duplicate (a replay, a republish), answered already.
+WINDOW_AHEAD_S = 600.0
+WINDOW_DUPLICATE_S = 600.0
+
+
+class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """``decision_state.json``. ``last_end_ns`` is -1 before the first window of a calibration."""
+
+    calibration: Calibration
+    n: SolutionIndex
+    k: SolutionIndex
+    rr_prev: str  # RR_{i-1} as the decimal it was written as (common/decision.py)
+    last_end_ns: Annotated[int, msgspec.Meta(ge=-1, le=MAX_TIME_NS)]
+    seq: NonNegInt
+    delta: Annotated[int, msgspec.Meta(ge=-MAX_N, le=MAX_N)]
+    reason: Reason
+    t_ns: TimeNs
+    window_end_ns: TimeNs | None
+
+    def __post_init__(self) -> None:
+        if self.k > self.n:
+            raise ValueError(f"k = {self.k} is above n = {self.n}")
+        try:
+            rr = Decimal(self.rr_prev)
+        except InvalidOperation:
+            raise ValueError(f"rr_prev = {self.rr_prev!r} is not a number") from None
+        if not (rr.is_finite() and Decimal(str(RR_MIN_S)) <= rr <= Decimal(str(RR_MAX_S))):
+            raise ValueError(f"rr_prev = {self.rr_prev!r} is not an RR a heart has ({RR_MIN_S}–{RR_MAX_S} s)")
+
+    @property
+    def state(self) -> State:
+        return State(self.k, Decimal(self.rr_prev))
+
+    @property
+    def selection(self) -> Selection:
+        return Selection(
+            t_ns=self.t_ns,
+            seq=self.seq,
+            k=self.k,
+            n=self.n,
+            delta=self.delta,
+            reason=self.reason,
+            window_end_ns=self.window_end_ns,
+        )
+
+
+def params_of(cal: Calibration, n: int) -> Params:
+    return Params.of(cal.rr_rest_s, n, cal.sigma_rest_s, cal.rr_stress_offset_s, cal.sigma_stress_s)
+
+
+def same_calibration(a: Calibration, b: Calibration) -> bool:
+    return msgspec.structs.replace(a, t_ns=0, seq=0) == msgspec.structs.replace(b, t_ns=0, seq=0)
+
+
+def load_record(path: Path) -> Loaded[DecisionRecord]:
+    return load_checked(path, lambda b: msgspec.json.decode(b, type=DecisionRecord))
+
+
+def load_calibration_file(path: Path) -> Loaded[Calibration]:
+    return load_checked(path, lambda b: msgspec.json.decode(b, type=Calibration))
+
+
+class Decider:
+    """The service's state. A change is proposed as a new record, persisted, and only then adopted and
+    announced (``commit``), so what is published is always what a restart would resume."""
+
+    def __init__(self, data_dir: Path, n: int) -> None:
+        self.path = data_dir / STATE_FILE
+        self.n = n
+        self.record: DecisionRecord | None = None
+        self.params: Params | None = None
+        self.line = TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S)
+
+    @property
+    def selection(self) -> Selection | None:
+        return self.record.selection if self.record is not None else None
+
+    def calibrated(self, cal: Calibration, t_ns: int) -> DecisionRecord | None:
+        """The record that starts a calibration at the initial k; None when it is the one in use."""
+        if self.record is not None and same_calibration(self.record.calibration, cal):
+            return None
+        initial = State.initial(params_of(cal, self.n))
+        seq = self.record.seq + 1 if self.record is not None else 1
+        return DecisionRecord(
+            calibration=cal,
+            n=self.n,
+            k=initial.k,
+            rr_prev=str(initial.rr_prev),
+            last_end_ns=-1,
+            seq=seq,
+            delta=0,
+            reason="initial",
+            t_ns=t_ns,
+            window_end_ns=None,
+        )
+
+    def answer(self, w: HrvWindow) -> DecisionRecord:
+        """Alg. 1 on a window that the time line admitted."""
+        assert self.record is not None and self.params is not None
+        r = step(self.params, self.record.state, w.mean_rr_s, good_quality=w.quality == "good")
+        return msgspec.structs.replace(
+            self.record,
+            k=r.state.k,
+            rr_prev=str(r.state.rr_prev),
+            last_end_ns=w.end_ns,
+            seq=self.record.seq + 1,
+            delta=r.delta,
+            reason=r.reason,
+            t_ns=w.end_ns,
+            window_end_ns=w.end_ns,
+        )
+
+    def commit(self, record: DecisionRecord, resumed: bool = False) -> None:
+        fresh = self.record is None or not same_calibration(self.record.calibration, record.calibration)
+        self.record, self.params = record, params_of(record.calibration, self.n)
+        if fresh:
+            self.line = TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S)
+            if resumed and record.last_end_ns >= 0:
+                self.line.anchor(record.last_end_ns)
+
+    def persist(self, record: DecisionRecord) -> None:
+        atomic_write(self.path, msgspec.json.format(msgspec.json.encode(record), indent=1))
