@@ -239,6 +239,19 @@ async def _periodic(ctx: ServiceContext) -> None:
         await asyncio.sleep(min(ctx.common.status_period_s, wd or ctx.common.status_period_s))
 
 
+async def first_of(*aws: Awaitable[object]) -> None:
+    """Wait for the first of ``aws`` to finish (an event, a sleep, a stop); the others are cancelled.
+    The first one's exception, if it raised, is raised."""
+    tasks = [asyncio.ensure_future(a) for a in aws]
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for t in tasks:
+            t.cancel()
+    for t in done:
+        t.result()
+
+
 def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[], None]) -> None:
     """Call ``callback`` in the loop on SIGTERM and SIGINT.
 

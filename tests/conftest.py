@@ -76,6 +76,26 @@ class InProcessService:
             )
         )
 
+    async def listening(self, bus, *suffixes: str, timeout: float = 30.0) -> None:
+        """Wait until this service's subscriptions to ``cadence/cell1/<suffix>`` are known to the test's
+        session, so what the test publishes next reaches them: Zenoh drops a put that has no known
+        subscriber, and a service's first status can come before its subscriptions. The right way to
+        wait before publishing; never wait on a status for that. (Matching counts every subscriber,
+        the test's own too: call it before the test subscribes to the same keys.)"""
+        import asyncio
+
+        async with asyncio.timeout(timeout):
+            for suffix in suffixes:
+                while True:
+                    if self.task.done():
+                        self.task.result()  # the service died: say why
+                        raise AssertionError(f"the service ended before subscribing to {suffix}")
+                    try:
+                        await bus.until_subscribed(bus.key(suffix), 0.5)
+                        break
+                    except TimeoutError:
+                        continue
+
     async def close(self) -> None:
         import asyncio
 

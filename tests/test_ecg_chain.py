@@ -14,7 +14,7 @@ from common.decision import Params, State, step
 from common.ecg_records import read_record
 from common.hrv import intervals, windows
 from common.rpeaks import detect
-from schemas import HrvWindow, Selection, ServiceStatus
+from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.ecg_gateway.__main__ import Settings as GatewaySettings
@@ -58,10 +58,7 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
         )
         async with asyncio.timeout(10):
             await anext(sels)  # the decision maker is up (its initial selection)
-        # the analyser is up once its status is seen
-        health = aiter(bus.subscribe(bus.key("health/hrv_analyser"), ServiceStatus, maxsize=1))
-        async with asyncio.timeout(10):
-            await anext(health)
+        await analyser.listening(bus, "ecg/samples")  # and the replay waits for it too
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,
@@ -116,9 +113,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
         analyser = InProcessService(
             "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
         )
-        health = aiter(bus.subscribe(bus.key("health/hrv_analyser"), ServiceStatus, maxsize=1))
-        async with asyncio.timeout(10):
-            await anext(health)
+        await analyser.listening(bus, "ecg/samples")
         task = asyncio.ensure_future(calibrate(bus, 1.0, "s07", tmp_path, measured_sigma=False))
         gateway = InProcessService(
             "ecg_gateway",
@@ -153,9 +148,7 @@ async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str
         analyser = InProcessService(
             "hrv_analyser", analyser_main, AnalyserSettings(input="rr"), tmp_path / "a", endpoint
         )
-        health = aiter(bus.subscribe(bus.key("health/hrv_analyser"), ServiceStatus, maxsize=1))
-        async with asyncio.timeout(10):
-            await anext(health)
+        await analyser.listening(bus, "ecg/rr")  # not its status: that can come before its subscription
         for i, (t, rr) in enumerate(device_rr(beats)):
             msg = RrIntervals(t_ns=START_NS + round(t * 1e9), seq=i, rr_s=rr)
             bus.put(bus.key("ecg/rr"), msg, block=True)

@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from cadence.recording import read, record, replay
 from common.bus import Bus, BusConfig
-from schemas import HrvWindow, Selection, ServiceStatus
+from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.ecg_gateway.__main__ import Settings as GatewaySettings
@@ -35,7 +35,8 @@ def content(msg: msgspec.Struct) -> dict:
 
 
 async def chain(bus: Bus, tmp: Path, endpoint: str) -> tuple[InProcessService, InProcessService]:
-    """A fresh analyser and decision maker, both up (their status seen)."""
+    """A fresh analyser and decision maker, both listening (their subscriptions known to the test's
+    session: call it before the test subscribes to their keys)."""
     decider = InProcessService(
         "decision_maker",
         decision_main,
@@ -44,10 +45,8 @@ async def chain(bus: Bus, tmp: Path, endpoint: str) -> tuple[InProcessService, I
         endpoint,
     )
     analyser = InProcessService("hrv_analyser", analyser_main, AnalyserSettings(), tmp / "a", endpoint)
-    for name in ("decision_maker", "hrv_analyser"):
-        health = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
-        async with asyncio.timeout(30):
-            await anext(health)
+    await decider.listening(bus, "hrv/window")
+    await analyser.listening(bus, "ecg/samples")
     return decider, analyser
 
 
@@ -73,10 +72,10 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
     mcap = tmp_path / "live.mcap"
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         stop = asyncio.Event()
+        services = await chain(bus, tmp_path / "live", endpoint)  # before the recorder subscribes to all
         recording = asyncio.ensure_future(record(bus, mcap, [bus.key("**")], stop))
         wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
-        services = await chain(bus, tmp_path / "live", endpoint)
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,
@@ -92,9 +91,9 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
 
         replayed = {}
         for speed in (1.0, 10.0):
+            services = await chain(bus, tmp_path / f"x{speed}", endpoint)
             wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
             sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
-            services = await chain(bus, tmp_path / f"x{speed}", endpoint)
             sent = await replay(bus, mcap, speed, keys=[bus.key("ecg/samples")])
             replayed[speed] = await outputs(wins, sels)
             for svc in services:

@@ -3,6 +3,7 @@ interface: ``polar`` (the H10 over BLE), ``replay`` (a recording) and ``twin`` (
 
 from __future__ import annotations
 
+import logging
 import sys
 from typing import Annotated, Literal
 
@@ -10,7 +11,7 @@ import msgspec
 
 from common.clock import Clock
 from common.errors import ConfigError
-from common.service import CommonSettings, ServiceContext, service_main
+from common.service import CommonSettings, ServiceContext, first_of, service_main
 from common.twin import TwinParams
 from schemas.base import TimeNs
 from schemas.ecg import EcgChunk, RrIntervals
@@ -19,6 +20,8 @@ from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
 from services.ecg_gateway.twin import TwinSource
 
 NAME = "ecg_gateway"
+LISTENER_WAIT_S = 30.0
+log = logging.getLogger("cadence.ecg_gateway")
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -48,6 +51,15 @@ async def main(ctx: ServiceContext) -> None:
     key = ctx.bus.key("ecg/samples")
     rr_key = ctx.bus.key("ecg/rr")
     seq = rr_seq = 0
+    if source.waits_for_listener:
+        ctx.state = "waiting for a subscriber of ecg/samples"
+        try:
+            await first_of(ctx.bus.until_subscribed(key, LISTENER_WAIT_S), ctx.stop.wait())
+        except TimeoutError:
+            log.warning("nobody subscribes to %s after %.0f s: replaying anyway", key, LISTENER_WAIT_S)
+        if ctx.stop.is_set():
+            return
+        ctx.state = "running"
     async for chunk in source.chunks():
         if isinstance(chunk, RrChunk):
             ctx.bus.put(rr_key, RrIntervals(t_ns=chunk.t_ns, seq=rr_seq, rr_s=chunk.rr_s, source=source.name))

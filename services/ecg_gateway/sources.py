@@ -38,6 +38,9 @@ class RrChunk:
 
 class EcgSource(abc.ABC):
     name: str
+    # A recording is worth nothing to nobody: a replay waits for a subscriber before its first chunk
+    # (Zenoh drops a put that has no known subscriber). A live strap streams whoever listens.
+    waits_for_listener: bool = False
 
     @abc.abstractmethod
     def chunks(self) -> AsyncIterator[Chunk | RrChunk]: ...
@@ -48,6 +51,7 @@ class ReplaySource(EcgSource):
     ``start_ns``, paced at ``speed`` × real time (0: as fast as the consumer allows)."""
 
     name = "replay"
+    waits_for_listener = True
 
     def __init__(self, record: str, speed: float = 1.0, start_ns: int | None = None) -> None:
         self.recording = read_record(record, fs=FS_HZ)  # InputError on a broken file, at start

@@ -27,7 +27,7 @@ from common.bus import Bus
 from common.clock import Clock
 from common.decision import k_for_path
 from common.errors import ConfigError, TrajectoryRejected
-from common.service import CommonSettings, ServiceContext, service_main
+from common.service import CommonSettings, ServiceContext, first_of, service_main
 from common.task import PathPlan, Task, load_task
 from common.validate import validated_samples
 from schemas.decision import MAX_N, Selection
@@ -131,18 +131,9 @@ class Signals:
             if stop.is_set():
                 return False
             self.arrived.clear()
-            await _first(self.arrived.wait(), stop.wait())
+            await first_of(self.arrived.wait(), stop.wait())
         self.consumed[name] += 1
         return True
-
-
-async def _first(*aws) -> None:
-    tasks = [asyncio.ensure_future(a) for a in aws]
-    try:
-        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for t in tasks:
-            t.cancel()
 
 
 class Executor:
@@ -224,12 +215,12 @@ class Executor:
         while not self.ctx.stop.is_set():
             if not self.sets.missing():
                 self.sets.wanted.clear()
-                await _first(self.sets.wanted.wait(), self.ctx.stop.wait())
+                await first_of(self.sets.wanted.wait(), self.ctx.stop.wait())
                 continue
             why = await self.sets.fetch_missing(self.settings.query_timeout_s)
             if why:
                 self.ctx.state = f"waiting for Pareto sets: {', '.join(why)}"
-                await _first(asyncio.sleep(2.0), self.ctx.stop.wait())
+                await first_of(asyncio.sleep(2.0), self.ctx.stop.wait())
 
     # --- motion -------------------------------------------------------------------------------------
 
@@ -241,7 +232,7 @@ class Executor:
         while (a person may have moved the arm)."""
         self.selection_changed.clear()
         self.sets.changed.clear()
-        await _first(
+        await first_of(
             self.selection_changed.wait(),
             self.sets.changed.wait(),
             self.ctx.stop.wait(),
@@ -261,7 +252,7 @@ class Executor:
                     continue
                 except RobotUnavailable as exc:
                     self.event("disconnected", str(exc))
-            await _first(asyncio.sleep(delay), self.ctx.stop.wait())
+            await first_of(asyncio.sleep(delay), self.ctx.stop.wait())
             delay = min(delay * 2, 10.0)
         return not self.ctx.stop.is_set()
 
@@ -361,7 +352,7 @@ class Executor:
                 elif step.gripper is not None:
                     await asyncio.to_thread(self.backend.set_gripper, step.gripper == "on")
                 elif step.wait is not None:
-                    await _first(self.clock.sleep(step.wait), self.ctx.stop.wait())
+                    await first_of(self.clock.sleep(step.wait), self.ctx.stop.wait())
                 elif step.wait_for is not None and self.settings.wait_for_signals:
                     self.mode, self.ctx.state = "waiting", f"waiting for '{step.wait_for}'"
                     self.waiting_for = step.wait_for
@@ -413,7 +404,7 @@ async def main(ctx: ServiceContext) -> None:
         except RobotUnavailable as exc:
             ex.event("disconnected", f"{exc}; retrying in {delay:.0f} s")
             ctx.state = "waiting for the robot"
-            await _first(asyncio.sleep(delay), ctx.stop.wait())
+            await first_of(asyncio.sleep(delay), ctx.stop.wait())
             if ctx.stop.is_set():
                 return
             delay = min(delay * 2, 30.0)
