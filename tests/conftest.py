@@ -55,7 +55,14 @@ class InProcessService:
     ``main``, real Zenoh, data on disk), connecting to the test's listening endpoint; dora's MockNode."""
 
     def __init__(
-        self, name: str, main, settings: object, data: Path, endpoint: str, speed: float = 1.0
+        self,
+        name: str,
+        main,
+        settings: object,
+        data: Path,
+        endpoint: str,
+        speed: float = 1.0,
+        cell: str = "cell1",
     ) -> None:
         import asyncio
 
@@ -63,7 +70,7 @@ class InProcessService:
         from common.service import CommonSettings, serve
 
         self.stop = asyncio.Event()
-        common = CommonSettings(data_dir=str(data), status_period_s=0.1, speed=speed)
+        common = CommonSettings(cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed)
         self.task = asyncio.ensure_future(
             serve(
                 name,

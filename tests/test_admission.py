@@ -1,0 +1,85 @@
+"""The receivers' rule for data time (common/admission.py): one message far from its stream is dropped;
+a run of messages that agree with each other moves the stream there; duplicates never do."""
+
+from __future__ import annotations
+
+import pytest
+
+from common.admission import TimeLine
+
+S = 1_000_000_000
+DAY = 86_400 * S
+
+
+def windows(line: TimeLine, spans: list[tuple[int, int]]) -> list[str]:
+    return [line.admit(a * S, b * S).action for a, b in spans]
+
+
+def test_the_first_message_anchors_and_consecutive_ones_are_in_line() -> None:
+    line = TimeLine(600)
+    assert windows(line, [(0, 30), (30, 60), (60, 90)]) == ["accept"] * 3
+    assert line.position_ns == 90 * S
+
+
+def test_one_window_far_ahead_is_dropped_and_the_next_honest_one_is_answered() -> None:
+    line = TimeLine(600)
+    line.admit(0, 30 * S)
+    v = line.admit(30 * DAY, 30 * DAY + 30 * S)
+    assert (v.action, v.code) == (
+        "drop",
+        "ahead",
+    ) and "2591970.000 s ahead" in v.detail  # from the stream's end, 30 s
+    assert line.admit(30 * S, 60 * S).action == "accept"
+    assert line.position_ns == 60 * S
+
+
+def test_a_duplicate_is_dropped_and_never_moves_the_line_however_many_come() -> None:
+    line = TimeLine(600, duplicate_s=600)
+    line.admit(0, 30 * S)
+    line.admit(30 * S, 60 * S)
+    for _ in range(5):
+        v = line.admit(30 * S, 60 * S)
+        assert (v.action, v.code) == ("drop", "duplicate")
+    assert line.position_ns == 60 * S
+
+
+def test_a_run_that_agrees_with_itself_moves_the_line_after_confirm_messages() -> None:
+    """A source restarted in time (a replay again from the start, a clock set right)."""
+    line = TimeLine(120, tolerance_s=0.01, confirm=3)
+    line.admit(5000 * S, 5001 * S)
+    assert windows(line, [(0, 1), (1, 2)]) == ["drop", "drop"]
+    assert line.admit(2 * S, 3 * S).action == "restart"
+    assert line.position_ns == 3 * S
+    assert line.admit(3 * S, 4 * S).action == "accept"
+
+
+def test_a_position_persisted_far_in_the_future_cannot_lock_an_honest_stream_out() -> None:
+    line = TimeLine(600, duplicate_s=600)
+    line.anchor(3000 * DAY)
+    assert windows(line, [(0, 30), (30, 60), (60, 90)]) == ["drop", "restart", "accept"]
+
+
+def test_scattered_hostile_times_never_confirm_each_other() -> None:
+    line = TimeLine(600, confirm=2)
+    line.admit(0, 30 * S)
+    assert (
+        windows(line, [(10 * DAY, 10 * DAY + 30), (3 * DAY, 3 * DAY + 30), (50 * DAY, 50 * DAY + 30)])
+        == ["drop"] * 3
+    )
+    assert line.position_ns == 30 * S
+
+
+def test_a_change_of_kind_is_out_of_line_until_confirmed() -> None:
+    line = TimeLine(120, tolerance_s=0.01, confirm=2)
+    line.admit(0, S, 130.0)
+    v = line.admit(S, 2 * S, 250.0)
+    assert (v.action, v.code) == ("drop", "changed")
+    assert line.admit(S, 2 * S, 130.0).action == "accept"
+    assert [line.admit(t * S, (t + 1) * S, 250.0).action for t in (2, 3)] == ["drop", "restart"]
+
+
+def test_bad_parameters_are_refused() -> None:
+    with pytest.raises(ValueError):
+        TimeLine(0)
+    with pytest.raises(ValueError):
+        TimeLine(10, confirm=1)
