@@ -329,7 +329,14 @@ def cmd_record(args: argparse.Namespace) -> int:
             keys = args.keys or [bus.key("**")]
             err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
             bus.token(bus.key("health/recorder"))  # a recorder is running (zenoh liveliness)
-            rec = await record(bus, Path(args.output), keys, stop, json=args.json)
+            rec = await record(
+                bus,
+                Path(args.output),
+                keys,
+                stop,
+                json=args.json,
+                on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
+            )
         err.print(f"{rec.count} messages written to {args.output}")
         return 0
 

@@ -167,6 +167,12 @@ def service_env(name: str, opts: DemoOptions, endpoint: str, data: Path, epoch_n
     elif name == "executor":
         env["CADENCE_EXECUTOR_TASK"] = task
         env["CADENCE_EXECUTOR_BACKEND"] = "sim"
+        env["CADENCE_EXECUTOR_START_SELECTION"] = "last"
+        # the simulated arm on a busy laptop stops for overruns now and then: the demo resumes by itself
+        # (a real robot never does: resume_policy = "auto" is for the sim backend only)
+        env["CADENCE_EXECUTOR_RESUME_POLICY"] = "auto"
+        env["CADENCE_EXECUTOR_AUTO_RESUME_S"] = "1.0"
+        env["CADENCE_EXECUTOR_AUTO_RESUME_PER_HOUR"] = "1000"
     return env
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -87,10 +87,24 @@ class Recorder:
         self._file.close()
 
 
-async def record(bus: Bus, path: Path, keys: list[str], stop: asyncio.Event, json: bool = False) -> Recorder:
-    """Record until ``stop``; the file is complete even when the stop is a signal."""
+async def record(
+    bus: Bus,
+    path: Path,
+    keys: list[str],
+    stop: asyncio.Event,
+    json: bool = False,
+    on_first: Callable[[str], None] | None = None,
+) -> Recorder:
+    """Record until ``stop``; the file is complete even when the stop is a signal. ``on_first(key)`` is
+    called once, when the first message is written (a person wants to know that anything comes)."""
     rec = Recorder(path, json)
-    subs = [bus.subscribe_raw(k, rec.write) for k in keys]
+
+    def write(key: str, payload: bytes) -> None:
+        rec.write(key, payload)
+        if on_first is not None and rec.count == 1:
+            on_first(key)
+
+    subs = [bus.subscribe_raw(k, write) for k in keys]
     try:
         await stop.wait()
     finally:

@@ -12,12 +12,15 @@
 3. A handler that fails anyway is counted under ``handler_errors/<key>/<error>`` and the next message is
    handled (``Bus.handle``).
 
-Why the stream's own data time and not the wall clock: a replay carries the recorded data times
-(DESIGN §4), so a receiver cannot tell a recording from last week from a broken clock by the wall clock.
+Why mostly the stream's own data time and not the receiver's clock: a replay carries the recorded data
+times (DESIGN §4), so a receiver cannot tell a recording from last week from a broken clock by its clock.
 It can tell a single message that leaps away from its stream. A source that really moved in time (a
 restarted replay, a clock set right, a strap back after an hour) sends a run of messages that are in line
-with each other: after ``confirm`` of them the line moves there and the stream starts afresh. So one
-hostile or broken message costs at most itself, and an honest stream can never be locked out.
+with each other: after ``confirm`` of them the line moves there and the stream starts afresh. The
+receiver's data clock (wall time live, the shared clock of a simulation) decides only where the stream
+has no line yet or a line far from the clock: a message near the clock is believed at once, one far from
+it waits for ``confirm`` more. So one hostile or broken message costs at most itself, even as a stream's
+first, and an honest stream can never be locked out.
 """
 
 from __future__ import annotations
@@ -84,18 +87,38 @@ class TimeLine:
         p = line.position_ns
         return kind == line.kind and p - self.tolerance_ns <= start_ns <= p + self.ahead_ns and end_ns > p
 
-    def admit(self, start_ns: int, end_ns: int, kind: Hashable = None) -> Verdict:
+    def admit(
+        self, start_ns: int, end_ns: int, kind: Hashable = None, clock_ns: int | None = None
+    ) -> Verdict:
+        """The verdict on a message covering [start, end). ``clock_ns`` is the receiver's data clock:
+        a message near it (within ``ahead_s``) is believed where the stream has no line yet or its line
+        is itself far from the clock (a stale persisted position, a replay that ended); elsewhere the
+        stream's own line rules, so replays of old recordings work on their recorded times."""
         line = self._line
-        if line is None:
+        near = clock_ns is not None and abs(start_ns - clock_ns) <= self.ahead_ns
+        if line is None and (clock_ns is None or near):
             self._line = _Line(end_ns, kind)
             return _ACCEPT
-        if self._in_line(line, start_ns, end_ns, kind):
+        if line is not None and self._in_line(line, start_ns, end_ns, kind):
             line.position_ns = max(line.position_ns, end_ns)
             self._candidate = None
             return _ACCEPT
-        p = line.position_ns
-        if kind == line.kind and p - self.duplicate_ns < end_ns <= p:
+        if (
+            line is not None
+            and kind == line.kind
+            and line.position_ns - self.duplicate_ns < end_ns <= line.position_ns
+        ):
             return Verdict("drop", "duplicate", "already answered (ends at or before the stream's data time)")
+        if (
+            near
+            and clock_ns is not None
+            and line is not None
+            and abs(line.position_ns - clock_ns) > self.ahead_ns
+        ):
+            self._line, self._candidate = _Line(end_ns, kind), None
+            return Verdict(
+                "restart", "restarted", "at the receiver's data clock, the stream's was far from it"
+            )
         cand = self._candidate
         if cand is not None and self._in_line(cand, start_ns, end_ns, kind):
             cand.position_ns, cand.run = max(cand.position_ns, end_ns), cand.run + 1
@@ -108,8 +131,18 @@ class TimeLine:
                 )
         else:
             self._candidate = _Line(end_ns, kind)
+        if line is None:
+            assert clock_ns is not None
+            off_s = (start_ns - clock_ns) / 1e9
+            return Verdict(
+                "drop",
+                "far_from_clock",
+                f"data time {abs(off_s):.3f} s {'ahead of' if off_s > 0 else 'behind'} the receiver's clock, "
+                "and no stream to place it in yet",
+            )
         if kind != line.kind:
             return Verdict("drop", "changed", f"{kind} where the stream has {line.kind}")
+        p = line.position_ns
         off_s = ((start_ns - p) if start_ns > p else (end_ns - p)) / 1e9
         return Verdict(
             "drop",

@@ -30,6 +30,9 @@ class RobotState(Message, frozen=True, tag="robot.state.v1"):
     k: SolutionIndex | None = None
     mode: Name = "idle"
     waiting_for: Name | None = None  # the operator signal a ``wait_for`` step waits for
+    # the executor's safety state (common/motion.py) and why it is in it: why the robot does not move
+    state: Name = "starting"
+    reason: Text = ""
 
 
 class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
@@ -39,6 +42,9 @@ class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
 
 
 class RobotEvent(Message, frozen=True, tag="robot.event.v1"):
-    kind: Literal["refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info"]
+    # "state": a change of the executor's safety state (common/motion.py), "from → to: why"
+    kind: Literal[
+        "refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info", "state"
+    ]
     message: Text
     path_id: Name | None = None

@@ -50,6 +50,8 @@ TOPICS: tuple[Topic, ...] = (
     Topic("robot/state", RobotState, "executor", "topic", "drop"),
     Topic("robot/cycle", CycleReport, "executor", "topic", "reliable"),
     Topic("robot/event", RobotEvent, "executor", "topic", "reliable"),
+    # clear a latched stop (`cadence robot resume`): the reply is the state change it made
+    Topic("robot/resume", RobotEvent, "executor", "query", "reliable"),
     Topic("health/*", ServiceStatus, "every service", "topic", "drop"),
 )
 

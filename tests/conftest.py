@@ -36,6 +36,14 @@ def example_task_path() -> Path:
     return EXAMPLE_TASK
 
 
+def now_ns() -> int:
+    """Data time for a test's messages: now, to the second. Receivers believe a stream's first message
+    when it is near their data clock (common/admission.py), as a live source's is."""
+    import time
+
+    return time.time_ns() // 1_000_000_000 * 1_000_000_000
+
+
 def free_port() -> int:
     import socket
 

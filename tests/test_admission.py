@@ -83,3 +83,33 @@ def test_bad_parameters_are_refused() -> None:
         TimeLine(0)
     with pytest.raises(ValueError):
         TimeLine(10, confirm=1)
+
+
+NOW = 1_790_000_000 * S
+
+
+def test_with_a_clock_the_first_message_is_believed_only_near_it() -> None:
+    line = TimeLine(600, duplicate_s=600)
+    v = line.admit(NOW + 30 * DAY, NOW + 30 * DAY + 30 * S, clock_ns=NOW)
+    assert (v.action, v.code) == ("drop", "far_from_clock")
+    assert line.admit(NOW, NOW + 30 * S, clock_ns=NOW).action == "accept"
+    assert line.position_ns == NOW + 30 * S
+
+
+def test_with_a_clock_a_replay_far_from_it_is_taken_after_confirm() -> None:
+    line = TimeLine(600, duplicate_s=600, confirm=2)
+    old = NOW - 7 * DAY  # a recording from last week
+    assert [line.admit(old + i * 30 * S, old + (i + 1) * 30 * S, clock_ns=NOW).action for i in range(3)] == [
+        "drop",
+        "restart",
+        "accept",
+    ]
+
+
+def test_a_stale_line_gives_way_at_once_to_a_message_near_the_clock() -> None:
+    line = TimeLine(600, duplicate_s=600)
+    line.anchor(NOW - DAY)  # persisted yesterday
+    v = line.admit(NOW, NOW + 30 * S, clock_ns=NOW)
+    assert v.action == "restart" and "clock" in v.detail
+    # but near the clock a single message far from a live stream is still dropped
+    assert line.admit(NOW + 3 * DAY, NOW + 3 * DAY + 30 * S, clock_ns=NOW).action == "drop"

@@ -15,7 +15,7 @@ from common.decision import Params, State, step
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main
-from tests.conftest import InProcessService
+from tests.conftest import InProcessService, now_ns
 
 pytestmark = pytest.mark.asyncio
 S = 1_000_000_000
@@ -25,12 +25,20 @@ def start_decider(data: Path, endpoint: str, settings: Settings) -> InProcessSer
     return InProcessService("decision_maker", main, settings, data, endpoint)
 
 
+BASE = [now_ns()]  # data time of window 0: near the decision maker's clock, as live windows are
+
+
+@pytest.fixture(autouse=True)
+def _base_now() -> None:
+    BASE[0] = now_ns()
+
+
 def window(i: int, rr: float | None, quality: str = "good") -> HrvWindow:
     return HrvWindow(
-        t_ns=(i + 1) * 30 * S,
+        t_ns=BASE[0] + (i + 1) * 30 * S,
         seq=i,
-        start_ns=i * 30 * S,
-        end_ns=(i + 1) * 30 * S,
+        start_ns=BASE[0] + i * 30 * S,
+        end_ns=BASE[0] + (i + 1) * 30 * S,
         mean_rr_s=rr,
         n_beats=37,
         excluded_fraction=0.0,

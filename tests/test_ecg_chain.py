@@ -21,11 +21,10 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService
+from tests.conftest import InProcessService, now_ns
 from tests.test_rpeaks import ECG, needs_data
 
 pytestmark = pytest.mark.asyncio
-START_NS = 1_800_000_000_000_000_000
 
 
 def record_cut(tmp_path: Path, name: str, seconds: float) -> tuple[Path, np.ndarray]:
@@ -41,6 +40,7 @@ def record_cut(tmp_path: Path, name: str, seconds: float) -> tuple[Path, np.ndar
 @needs_data
 async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) -> None:
     csv, x = record_cut(tmp_path, "100", 125)
+    START_NS = now_ns()
     expected = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
@@ -102,6 +102,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     from schemas import Calibration
 
     csv, x = record_cut(tmp_path, "103", 100)
+    START_NS = now_ns()
     offline = [
         w
         for w in windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)[:2]
@@ -140,6 +141,7 @@ async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str
     from tests.test_hrv import device_rr
 
     beats = read_record(str(ECG / "100"), fs=130.0).beats_s
+    START_NS = now_ns()
     beats = beats[beats < 100.0]
     expected = windows(intervals(beats), 30.0, start_s=float(beats[0]), end_s=float(beats[-1]))
 

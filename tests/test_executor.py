@@ -92,7 +92,7 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
         ex = InProcessService(
             "executor",
             executor_main,
-            Settings(task=str(task_file), fifo_priority=0, initial_k=2, cycles=3),
+            Settings(task=str(task_file), fifo_priority=0, start_selection="initial", initial_k=2, cycles=3),
             tmp_path / "ex",
             endpoint,
             speed=SPEED,
@@ -121,7 +121,7 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
         {"there": 5, "back": 5},
     ]
     assert reports[2].cycle_time_s < reports[0].cycle_time_s  # k = 5 is the fastest of the set
-    cached = sorted(p.name for p in (tmp_path / "ex" / "executor").iterdir())
+    cached = sorted(p.name for p in (tmp_path / "ex" / "executor").glob("*.msgpack"))
     assert cached == ["back.msgpack", "there.msgpack"]
 
 
@@ -140,7 +140,12 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
 
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = Settings(
-            task=str(task_file), fifo_priority=0, cycles=1, wait_for_signals=False, initial_k=3
+            task=str(task_file),
+            fifo_priority=0,
+            cycles=1,
+            wait_for_signals=False,
+            start_selection="initial",
+            initial_k=3,
         )
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         report = await next_of(cycles)
@@ -180,6 +185,7 @@ async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
             wait_for_signals=False,
             sim_start_deg=[10, -90, 90, -90, -90, 0],
             start_policy=policy,
+            start_selection="initial",
         )
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         first = await next_of(events, lambda e: e.path_id == "there")
@@ -207,6 +213,7 @@ async def test_sigterm_during_motion_stops_decelerating_and_exits_0(
             "CADENCE_EXECUTOR_TASK": str(task_file),
             "CADENCE_EXECUTOR_WAIT_FOR_SIGNALS": "false",
             "CADENCE_EXECUTOR_FIFO_PRIORITY": "0",
+            "CADENCE_EXECUTOR_START_SELECTION": "initial",
             "CADENCE_DATA_DIR": str(tmp_path / "ex"),
         }
         proc = subprocess.Popen([sys.executable, "-m", "services.executor"], env=env)

@@ -37,9 +37,9 @@ from services.executor.__main__ import Settings as ExecutorSettings
 from services.executor.__main__ import main as executor_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService
+from tests.conftest import InProcessService, now_ns
 from tests.test_executor import SPEED, TASK, store_serving
-from tests.test_hostile import DAY, T0, S, chunks, synthetic_ecg
+from tests.test_hostile import DAY, S, chunks, synthetic_ecg
 from tests.test_schemas import SAMPLES
 
 pytestmark = pytest.mark.asyncio
@@ -133,6 +133,7 @@ def concrete(topic: Topic) -> str:
 async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_input(
     tmp_path: Path, endpoint: str
 ) -> None:
+    T0 = base = now_ns()
     honest_chunks = chunks(synthetic_ecg(100), T0)
     n_hostile = len(honest_chunks) * HOSTILE_PER_CHUNK
     drawn = draw(
@@ -156,10 +157,10 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
 
     honest_windows = [
         HrvWindow(
-            t_ns=(i + 1) * 30 * S,
+            t_ns=base + (i + 1) * 30 * S,
             seq=i,
-            start_ns=i * 30 * S,
-            end_ns=(i + 1) * 30 * S,
+            start_ns=base + i * 30 * S,
+            end_ns=base + (i + 1) * 30 * S,
             mean_rr_s=rr,
             n_beats=37,
             excluded_fraction=0.0,

@@ -22,8 +22,8 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService
-from tests.test_ecg_chain import START_NS, record_cut
+from tests.conftest import InProcessService, now_ns
+from tests.test_ecg_chain import record_cut
 from tests.test_rpeaks import needs_data
 
 WINDOWS = 2
@@ -79,7 +79,7 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,
-            GatewaySettings(record=str(csv), speed=40.0, start_ns=START_NS),
+            GatewaySettings(record=str(csv), speed=40.0, start_ns=now_ns()),
             tmp_path / "g",
             endpoint,
         )
@@ -158,6 +158,9 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
             sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=0)
             for i in range(1, 2001):
                 bus.put(bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
+            async with asyncio.timeout(60):  # at least one arrived: the check below is not vacuous
+                while b"first message: cadence/rectest/decision/selection" not in await proc.stderr.readline():
+                    pass
             proc.send_signal(signal.SIGTERM)
             _, err = await asyncio.wait_for(proc.communicate(), 60)  # reads stderr while it finishes
         finally:

@@ -212,6 +212,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 cycles=1,
                 wait_for_signals=False,
                 watchdog_hz=WATCHDOG_HZ,
+                start_selection="initial",
                 initial_k=1,  # the slowest: headroom below the speed limits under CI's jitter
             )
             ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
@@ -251,6 +252,7 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
             host=host,
             fifo_priority=0,
             wait_for_signals=False,
+            start_selection="initial",
             initial_k=1,
             watchdog_hz=WATCHDOG_HZ,
         )

@@ -96,7 +96,7 @@ async def main(ctx: ServiceContext) -> None:
         if decider.params is None:
             ctx.counters["windows_without_calibration"] += 1
             return
-        verdict = decider.line.admit(w.start_ns, w.end_ns)
+        verdict = decider.line.admit(w.start_ns, w.end_ns, clock_ns=ctx.common.clock.now_ns())
         if not verdict.acted_on:
             bus.reject(window_key, verdict.code, verdict.detail)
             return

@@ -52,7 +52,7 @@ class TwinSource(EcgSource):
         return (t_ns - self.origin_ns) / 1e9
 
     async def on_state(self, key: str, state: RobotState) -> None:
-        verdict = self.line.admit(state.t_ns, state.t_ns)
+        verdict = self.line.admit(state.t_ns, state.t_ns, clock_ns=self.clock.now_ns())
         if not verdict.acted_on:
             if self.bus is not None:
                 self.bus.reject(key, verdict.code, verdict.detail)

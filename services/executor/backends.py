@@ -35,7 +35,9 @@ class Backend(Protocol):
     def actual_qd(self) -> Array: ...
     def tcp_pose(self) -> Array: ...
     def fault(self) -> str: ...  # "" while the arm may move; else why not (protective stop, lost link)
-    def reset_fault(self) -> None: ...
+    def link_lost(self) -> bool: ...  # the controller cannot be reached (reconnect() may bring it back)
+    def reconnect(self) -> None: ...  # restore the link only; a protective stop stays
+    def reset_fault(self) -> None: ...  # a person's resume: unlock a protective stop, restart control
     def prepare(self, q: Array) -> Sequence[object]: ...  # the targets in the form servo takes
     def servo(self, target: object) -> bool: ...
     def brake(self) -> bool: ...
@@ -88,6 +90,12 @@ class SimBackend:
 
     def fault(self) -> str:
         return self.arm.fault
+
+    def link_lost(self) -> bool:
+        return False
+
+    def reconnect(self) -> None:
+        pass
 
     def reset_fault(self) -> None:
         self.arm.unlock()
@@ -195,9 +203,37 @@ class UrRtdeBackend:
             return "the control script stopped on the controller (its watchdog, or a stop there)"
         return ""
 
-    def reset_fault(self) -> None:
+    def link_lost(self) -> bool:
+        return bool(self._lost) or self._c is None or not self._c.isConnected()
+
+    def reconnect(self) -> None:
         self.close()
         self.connect()
+
+    def reset_fault(self) -> None:
+        """What a person does at the pendant after a protective stop, through the dashboard server
+        (port 29999): unlock it and close the safety pop-up; then the control script is started again
+        (a reconnect uploads it). The controller refuses an unlock within 5 s of the stop: that is a
+        ``RobotUnavailable`` with its words, and the robot stays stopped."""
+        if self._r is not None and self._r.isConnected() and self._r.isProtectiveStopped():
+            import dashboard_client
+
+            dash = dashboard_client.DashboardClient(self.host)
+            try:
+                dash.connect()
+                dash.unlockProtectiveStop()
+                dash.closeSafetyPopup()
+            except RuntimeError as exc:
+                raise RobotUnavailable(f"UR dashboard at {self.host}: {exc}") from None
+            finally:
+                with contextlib.suppress(RuntimeError):
+                    dash.disconnect()
+            deadline = time.monotonic() + 1.0  # the receive interface sees the release a tick or two later
+            while self._r.isProtectiveStopped() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if self._r.isProtectiveStopped():
+                raise RobotUnavailable(f"the controller at {self.host} did not release its protective stop")
+        self.reconnect()
 
     def prepare(self, q: Array) -> Sequence[object]:
         """Also arms the controller's watchdog: from here on the servo loop kicks it every tick, and the

@@ -100,7 +100,7 @@ async def main(ctx: ServiceContext) -> None:
     def admitted(key: str, start_ns: int, end_ns: int, fs: float) -> bool:
         """The time line's word on a message; a restart flushes the old stream and starts a new one."""
         nonlocal stream
-        verdict = line.admit(start_ns, end_ns, fs)
+        verdict = line.admit(start_ns, end_ns, fs, clock_ns=ctx.common.clock.now_ns())
         if not verdict.acted_on:
             bus.reject(key, verdict.code, verdict.detail)
             return False

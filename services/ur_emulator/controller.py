@@ -29,6 +29,7 @@ JOINT_MODE_RUNNING = 253
 SERVOJ, SERVOSTOP, STOPJ, MOVEJ, SET_WATCHDOG, STOP_SCRIPT = 11, 16, 34, 1, 35, 255
 REALTIME = {11, 24, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
 CMD_REGISTER = 0  # input_int_register_0 (24 with the client's upper-range flag)
+UNLOCK_AFTER_S = 5.0  # the dashboard refuses to unlock a protective stop sooner
 
 
 class Controller:
@@ -51,6 +52,8 @@ class Controller:
         self._mask = 0xFF
         self.servo: tuple[np.ndarray, float, float] | None = None  # target, lookahead, gain while servoing
         self.log: list[str] = []  # what happened, for the operator's terminal and the tests
+        self.fault_since = 0.0  # when the current protective stop began (monotonic)
+        self._faulted = False
 
     # --- from the sockets ---------------------------------------------------------------------------
 
@@ -96,8 +99,16 @@ class Controller:
                 self._end_program("stopped from the dashboard")
                 return "Stopped"
             if cmd == "unlock protective stop":
+                # as the real controller: not within 5 s of the stop, to make a person look first
+                if self.arm.fault and time.monotonic() - self.fault_since < UNLOCK_AFTER_S:
+                    return (
+                        "Cannot unlock protective stop until 5s after occurrence. "
+                        "Always inspect cause of protective stop before unlocking"
+                    )
                 self.arm.unlock()
                 return "Protective stop releasing"
+            if cmd == "close safety popup":
+                return "closing safety popup"
             if cmd == "safetystatus":
                 return "Safetystatus: PROTECTIVE_STOP" if self.arm.fault else "Safetystatus: NORMAL"
             if cmd == "programState":
@@ -110,6 +121,9 @@ class Controller:
 
     def tick(self) -> None:
         with self.lock:
+            if self.arm.fault and not self._faulted:
+                self.fault_since = time.monotonic()
+            self._faulted = bool(self.arm.fault)
             if self.runtime_state == PLAYING:
                 if self.arm.fault:
                     self._end_program(f"protective stop: {self.arm.fault}")

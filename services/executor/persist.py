@@ -1,0 +1,70 @@
+"""What the executor keeps on disk besides its sets (DESIGN §9): the last selection it applied, so a
+restart while the decision maker is unreachable can go on at the last decided k (if that is young
+enough), and the cycle in progress, so a restart says which cycle it cut short. Validated on load like a
+message; a damaged file is moved aside."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import msgspec
+
+from common.storage import Loaded, atomic_write, load_checked
+from schemas.base import NonNegInt, TimeNs
+from schemas.decision import Selection, SolutionIndex
+
+FILE = "executor_state.json"
+
+
+class AppliedSelection(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    k: SolutionIndex
+    n: SolutionIndex
+    seq: NonNegInt
+    t_ns: TimeNs  # the selection's data time
+    applied_ns: TimeNs  # wall clock, when a path first ran with it
+
+    def __post_init__(self) -> None:
+        if self.k > self.n:
+            raise ValueError(f"k = {self.k} is above n = {self.n}")
+
+    def age_s(self, now_ns: int | None = None) -> float:
+        return ((now_ns or time.time_ns()) - self.applied_ns) / 1e9
+
+    def selection(self) -> Selection:
+        return Selection(t_ns=self.t_ns, seq=self.seq, k=self.k, n=self.n, delta=0, reason="hold")
+
+
+class ExecutorRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    selection: AppliedSelection | None = None
+    cycle_in_progress: NonNegInt | None = None
+
+
+class ExecutorStore:
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / FILE
+        self.record = ExecutorRecord()
+
+    def load(self) -> Loaded[ExecutorRecord]:
+        loaded = load_checked(self.path, lambda b: msgspec.json.decode(b, type=ExecutorRecord))
+        if loaded.value is not None:
+            self.record = loaded.value
+        return loaded
+
+    def _save(self, record: ExecutorRecord) -> None:
+        if record != self.record:
+            atomic_write(self.path, msgspec.json.encode(record))
+            self.record = record
+
+    def applied(self, sel: Selection) -> None:
+        """A path starts with ``sel``: kept if it is another selection than the one on file."""
+        old = self.record.selection
+        if old is not None and (old.k, old.n, old.seq, old.t_ns) == (sel.k, sel.n, sel.seq, sel.t_ns):
+            return
+        applied = AppliedSelection(
+            k=sel.k, n=max(sel.n, sel.k), seq=sel.seq, t_ns=sel.t_ns, applied_ns=time.time_ns()
+        )
+        self._save(msgspec.structs.replace(self.record, selection=applied))
+
+    def cycle(self, in_progress: int | None) -> None:
+        self._save(msgspec.structs.replace(self.record, cycle_in_progress=in_progress))
