@@ -709,6 +709,37 @@ def cmd_get(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+def cmd_robot_resume(args: argparse.Namespace) -> int:
+    """Clear a latched stop: ask the executor of the cell on ``robot/resume`` and print what it did."""
+    import asyncio
+    import getpass
+
+    from common.bus import Bus
+    from schemas import RobotEvent
+
+    by = args.by or getpass.getuser()
+
+    async def go() -> int:
+        async with await Bus.open(
+            _bus_config(args, "peer" if not args.connect else "client"), args.cell
+        ) as bus:
+            replies = await bus.get(f"{bus.key('robot/resume')}?by={by}", RobotEvent, timeout=args.timeout)
+        for r in replies:
+            if r.message is not None:
+                print(r.message.message)
+                return 1 if r.message.message.startswith("stopped") else 0
+            err.print(f"cadence robot resume: {r.error}", markup=False, highlight=False)
+            return 1
+        err.print(
+            f"cadence robot resume: no executor answered on cadence/{args.cell}/robot/resume within "
+            f"{args.timeout:g} s (is it running, and is this host on its bus? --connect ENDPOINT)",
+            markup=False,
+        )
+        return 1
+
+    return asyncio.run(go())
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -984,6 +1015,22 @@ def build_parser() -> argparse.ArgumentParser:
     get.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
     get.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     get.set_defaults(func=cmd_get)
+
+    robot = sub.add_parser("robot", help="the robot's executor: clear a latched stop")
+    robot_sub = robot.add_subparsers(dest="robot_command", required=True)
+    resume = robot_sub.add_parser(
+        "resume",
+        help="clear a latched stop (protective stop, overruns, lost controller) once its cause is seen to",
+        description="Ask the cell's executor to clear its latched stop. On a real UR16e this also unlocks "
+        "the controller's protective stop (its dashboard refuses within 5 s of the stop). Prints the "
+        "state it reached; exit 1 when the robot is still stopped after it.",
+    )
+    resume.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    resume.add_argument("--by", help="who resumes, for the record (default: your user name)")
+    resume.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    resume.add_argument("--timeout", type=float, default=15.0, help="seconds (default 15)")
+    resume.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    resume.set_defaults(func=cmd_robot_resume)
 
     router = sub.add_parser("router", help="run a Zenoh router (no zenohd binary needed)")
     router.add_argument(

@@ -127,7 +127,10 @@ class Subscription:
             yield await self._queue.get()
 
     def undeclare(self) -> None:
-        self._sub.undeclare()
+        """Idempotent: the bus undeclares what is left at close."""
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
 
 
 class RawSubscription:

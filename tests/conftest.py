@@ -78,11 +78,17 @@ class InProcessService:
         from common.service import CommonSettings, serve
 
         self.stop = asyncio.Event()
+        self.ctx = None  # the service's context once it runs (its bus, its counters)
+
+        async def wrapped(ctx) -> None:
+            self.ctx = ctx
+            await main(ctx)
+
         common = CommonSettings(cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed)
         self.task = asyncio.ensure_future(
             serve(
                 name,
-                main,
+                wrapped,
                 common,
                 BusConfig(connect=[endpoint]),
                 settings,
@@ -110,6 +116,19 @@ class InProcessService:
                         break
                     except TimeoutError:
                         continue
+
+    async def reaches(self, *suffixes: str, timeout: float = 30.0) -> None:
+        """Wait until this service's own session knows a subscriber of each key, so what it publishes
+        next arrives (a service that feeds another: the analyser's windows, the decision maker)."""
+        import asyncio
+
+        async with asyncio.timeout(timeout):
+            while self.ctx is None:
+                if self.task.done():
+                    self.task.result()
+                await asyncio.sleep(0.01)  # polls a flag the service's first step sets; bounded above
+            for suffix in suffixes:
+                await self.ctx.bus.until_subscribed(self.ctx.bus.key(suffix), timeout)
 
     async def close(self) -> None:
         import asyncio

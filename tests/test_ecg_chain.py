@@ -44,8 +44,6 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
     expected = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
-        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         decider = InProcessService(
             "decision_maker",
             decision_main,
@@ -56,9 +54,10 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
         analyser = InProcessService(
             "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
         )
-        async with asyncio.timeout(10):
-            await anext(sels)  # the decision maker is up (its initial selection)
         await analyser.listening(bus, "ecg/samples")  # and the replay waits for it too
+        await analyser.reaches("hrv/window")  # its windows reach the decision maker (nobody else yet)
+        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
+        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,

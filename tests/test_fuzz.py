@@ -38,7 +38,7 @@ from services.executor.__main__ import main as executor_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from tests.conftest import InProcessService, now_ns
-from tests.test_executor import SPEED, TASK, store_serving
+from tests.test_executor import CALM, SPEED, TASK, store_serving
 from tests.test_hostile import DAY, S, chunks, synthetic_ecg
 from tests.test_schemas import SAMPLES
 
@@ -186,7 +186,9 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
         executor = InProcessService(
             "executor",
             executor_main,
-            ExecutorSettings(task=str(task_file), fifo_priority=0, wait_for_signals=False),
+            ExecutorSettings(
+                task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False
+            ),
             tmp_path / "x",
             endpoint,
             speed=SPEED,

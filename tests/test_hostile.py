@@ -341,7 +341,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
     from schemas import CycleReport
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.test_executor import SPEED, TASK, next_of, store_serving
+    from tests.test_executor import CALM, SPEED, TASK, next_of, store_serving
 
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK)
@@ -375,6 +375,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
         settings = Settings(
             task=str(task_file),
             fifo_priority=0,
+            overrun_limit=CALM,
             cycles=1,
             wait_for_signals=False,
             start_selection="initial",

@@ -45,8 +45,8 @@ async def chain(bus: Bus, tmp: Path, endpoint: str) -> tuple[InProcessService, I
         endpoint,
     )
     analyser = InProcessService("hrv_analyser", analyser_main, AnalyserSettings(), tmp / "a", endpoint)
-    await decider.listening(bus, "hrv/window")
     await analyser.listening(bus, "ecg/samples")
+    await analyser.reaches("hrv/window")  # its windows reach the decision maker
     return decider, analyser
 
 
@@ -74,8 +74,11 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
         stop = asyncio.Event()
         services = await chain(bus, tmp_path / "live", endpoint)  # before the recorder subscribes to all
         recording = asyncio.ensure_future(record(bus, mcap, [bus.key("**")], stop))
-        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
-        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        subs = [
+            bus.subscribe(bus.key("hrv/window"), HrvWindow),
+            bus.subscribe(bus.key("decision/selection"), Selection),
+        ]
+        wins, sels = map(aiter, subs)
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,
@@ -91,9 +94,14 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
 
         replayed = {}
         for speed in (1.0, 10.0):
+            for sub in subs:  # the test's own subscribers would satisfy chain()'s waits
+                sub.undeclare()
             services = await chain(bus, tmp_path / f"x{speed}", endpoint)
-            wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
-            sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+            subs = [
+                bus.subscribe(bus.key("hrv/window"), HrvWindow),
+                bus.subscribe(bus.key("decision/selection"), Selection),
+            ]
+            wins, sels = map(aiter, subs)
             sent = await replay(bus, mcap, speed, keys=[bus.key("ecg/samples")])
             replayed[speed] = await outputs(wins, sels)
             for svc in services:
@@ -159,7 +167,9 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
             for i in range(1, 2001):
                 bus.put(bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
             async with asyncio.timeout(60):  # at least one arrived: the check below is not vacuous
-                while b"first message: cadence/rectest/decision/selection" not in await proc.stderr.readline():
+                while (
+                    b"first message: cadence/rectest/decision/selection" not in await proc.stderr.readline()
+                ):
                     pass
             proc.send_signal(signal.SIGTERM)
             _, err = await asyncio.wait_for(proc.communicate(), 60)  # reads stderr while it finishes

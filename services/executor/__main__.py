@@ -136,6 +136,8 @@ async def main(ctx: ServiceContext) -> None:
     ctx.detail = "; ".join(ex.notes)
     if claim.note:
         log.warning("%s", claim.note)
+    else:
+        ctx.counters["servo_core"] = claim.core
     bus = ctx.bus
     bus.handle(bus.key("decision/selection"), Selection, ex.on_selection, maxsize=1)
     bus.handle(bus.key("operator/signal"), OperatorSignal, ex.signals.on_signal)

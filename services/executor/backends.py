@@ -162,6 +162,7 @@ class UrRtdeBackend:
         self._c = self._r = None
         self._lost = ""
         self._watchdog = False
+        self._last = {"q": np.zeros(6), "qd": np.zeros(6), "tcp": np.zeros(6)}
 
     def connect(self) -> None:
         import rtde_control
@@ -183,14 +184,23 @@ class UrRtdeBackend:
                     iface.disconnect()
         self._c = self._r = None
 
+    def _read(self, name: str, getter: str) -> Array:
+        """The receive interface's latest value; while it reconnects (None, or a dead link), the last
+        value read, so the state publisher never fails on a reconnect."""
+        r = self._r
+        if r is not None:
+            with contextlib.suppress(RuntimeError):
+                self._last[name] = np.array(getattr(r, getter)())
+        return self._last[name].copy()
+
     def actual_q(self) -> Array:
-        return np.array(self._r.getActualQ())
+        return self._read("q", "getActualQ")
 
     def actual_qd(self) -> Array:
-        return np.array(self._r.getActualQd())
+        return self._read("qd", "getActualQd")
 
     def tcp_pose(self) -> Array:
-        return np.array(self._r.getActualTCPPose())
+        return self._read("tcp", "getActualTCPPose")
 
     def fault(self) -> str:
         if self._lost or self._c is None or not self._c.isConnected():

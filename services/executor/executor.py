@@ -277,24 +277,30 @@ class Executor:
         period = 1.0 / self.settings.state_rate_hz
         key = self.bus.key("robot/state")
         while not self.ctx.stop.is_set():
-            q, qd = self.backend.actual_q(), self.backend.actual_qd()
-            self.bus.put(
-                key,
-                RobotState(
-                    t_ns=self.clock.now_ns(),
-                    seq=self._next("state"),
-                    q=q.tolist(),
-                    qd=qd.tolist(),
-                    tcp=self.backend.tcp_pose().tolist(),
-                    path_id=self.path_id,
-                    k=self.k,
-                    mode=self.mode,
-                    waiting_for=self.waiting_for,
-                    state=self.motion.state,
-                    reason=self.motion.reason[:4000],
-                ),
-            )
+            try:
+                self._put_state(key)
+            except Exception as exc:  # telemetry must outlive a backend's bad moment
+                self.bus.handler_failed(key, exc)
             await asyncio.sleep(period)
+
+    def _put_state(self, key: str) -> None:
+        q, qd = self.backend.actual_q(), self.backend.actual_qd()
+        self.bus.put(
+            key,
+            RobotState(
+                t_ns=self.clock.now_ns(),
+                seq=self._next("state"),
+                q=q.tolist(),
+                qd=qd.tolist(),
+                tcp=self.backend.tcp_pose().tolist(),
+                path_id=self.path_id,
+                k=self.k,
+                mode=self.mode,
+                waiting_for=self.waiting_for,
+                state=self.motion.state,
+                reason=self.motion.reason[:4000],
+            ),
+        )
 
     async def keep_sets(self) -> None:
         """Fetch what is missing (the store may still be planning; a refused set was dropped), and wait

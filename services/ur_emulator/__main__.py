@@ -2,6 +2,8 @@
 (tests, and trying the executor's ur_rtde backend): ``cadence run ur_emulator --host 127.0.0.2``.
 
 It prints ``ready <host>`` once its three ports listen, and, with ``--verbose``, what the client asked.
+SIGUSR1 is a bump against the arm: a protective stop, as the real arm's force limit gives, which only the
+dashboard's ``unlock protective stop`` clears (and not within 5 s of it).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ def run(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    signal.signal(signal.SIGUSR1, lambda *_: controller.bump())
     print(f"ready {args.host}", flush=True)
     seen_log = recipes_logged = 0
     while not stop.wait(0.2):

@@ -117,6 +117,11 @@ class Controller:
                 return "Robotmode: RUNNING"
         return f"could not understand: '{cmd}'"
 
+    def bump(self) -> None:
+        """Something hit the arm (SIGUSR1): a protective stop, as the force limit gives on the real one."""
+        with self.lock:
+            self.arm.protect("external force over the limit (a collision)")
+
     # --- the 2 ms tick ------------------------------------------------------------------------------
 
     def tick(self) -> None:

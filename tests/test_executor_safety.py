@@ -1,0 +1,303 @@
+"""The executor's fault paths, as the issue reproduced them: a stop is a latch (no motion until a resume),
+a restart never moves at initial_k silently, and two executors never share a servo core. With the sim
+backend over real Zenoh, and with the real ur-rtde client against the emulator."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+from pathlib import Path
+
+import pytest
+
+from common.bus import Bus, BusConfig
+from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatus
+from services.executor.__main__ import Settings
+from services.executor.__main__ import main as executor_main
+from services.executor.backends import SimBackend, UrRtdeBackend
+from tests.conftest import InProcessService
+from tests.test_executor import CALM, SPEED, TASK, next_of, store_serving
+
+pytestmark = pytest.mark.asyncio
+STALL_S = 0.02  # a servo call this slow is an overrun at any speed
+RUN = 25  # overruns in a row that stop the robot here: half a second of a stall, rarer than CI's jitter
+
+
+@pytest.fixture
+def task_file(tmp_path: Path) -> Path:
+    p = tmp_path / "shuttle.toml"
+    p.write_text(TASK)
+    return p
+
+
+def stall(monkeypatch: pytest.MonkeyPatch, backend: type) -> dict[str, bool]:
+    """The machine stalls (as a loaded VM does) while ``on["stall"]``: every servo call takes 20 ms."""
+    import time
+
+    on = {"stall": False}
+    real = backend.servo
+
+    def slow(self, target):
+        if on["stall"]:
+            time.sleep(STALL_S)
+        return real(self, target)
+
+    monkeypatch.setattr(backend, "servo", slow)
+    return on
+
+
+async def still_while_stopped(states, n: int = 100) -> RobotState:
+    """The next ``n`` robot states (2 s at 50 Hz) once stopped and at rest: all stopped, none moving."""
+    await next_of(states, lambda s: s.state == "stopped" and max(map(abs, s.qd)) == 0.0, timeout=30)
+    last = None
+    for _ in range(n):
+        last = await next_of(states, timeout=10)
+        assert last.state == "stopped" and last.mode != "moving", last
+        assert max(map(abs, last.qd)) == 0.0, f"the arm moved while stopped: {last.qd}"
+    assert last is not None
+    return last
+
+
+async def resume(bus: Bus, by: str = "the test") -> str:
+    (reply,) = await bus.get(f"{bus.key('robot/resume')}?by={by}", RobotEvent, timeout=20)
+    assert reply.message is not None, reply.error
+    return reply.message.message
+
+
+async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
+    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    on = stall(monkeypatch, SimBackend)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = Settings(
+            task=str(task_file),
+            fifo_priority=0,
+            overrun_limit=RUN,
+            wait_for_signals=False,
+            start_selection="initial",
+            initial_k=2,
+        )
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        await next_of(states, lambda s: s.mode == "moving")
+        on["stall"] = True
+        stop = await next_of(events, lambda e: e.kind == "protective_stop")
+        on["stall"] = False  # the machine is fine again: still, nothing moves until a person says so
+        held = await still_while_stopped(states)
+        said = await resume(bus)
+        report = await next_of(cycles)
+        await ex.close()
+        await store.close()
+    assert "overruns in a row" in stop.message
+    assert "overruns in a row" in held.reason
+    assert said.startswith("ready") and "resumed by the test" in said
+    assert report.k_per_path == {"there": 2, "back": 2}
+
+
+async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        settings = Settings(task=str(task_file), fifo_priority=0, overrun_limit=CALM, start_selection="wait")
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        await next_of(states, lambda s: s.state == "waiting_for_selection")
+        (reply,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
+        await ex.close()
+    assert reply.message is None and "nothing to resume: the robot is waiting_for_selection" in reply.error
+
+
+async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_off(
+    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    on = stall(monkeypatch, SimBackend)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = Settings(
+            task=str(task_file),
+            fifo_priority=0,
+            overrun_limit=RUN,
+            wait_for_signals=False,
+            start_selection="initial",
+            initial_k=2,
+            resume_policy="auto",
+            auto_resume_s=0.5,
+        )
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        on["stall"] = True
+        await next_of(events, lambda e: e.kind == "protective_stop")
+        on["stall"] = False
+        auto = await next_of(events, lambda e: e.kind == "state" and "resumed automatically" in e.message)
+        await next_of(cycles)
+        await ex.close()
+        await store.close()
+    assert "after 0 s" in auto.message or "after 1 s" in auto.message
+
+
+def test_the_automatic_resume_is_for_the_sim_only(
+    task_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from services.executor.__main__ import run
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[executor]\nbackend = 'ur_rtde'\nresume_policy = 'auto'\ntask = '{task_file}'\n")
+    assert run(["--config", str(cfg), "--data-dir", str(tmp_path)]) == 2
+    assert "resume_policy" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("policy", ["last", "wait"])
+async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_initial_k(
+    policy: str, task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    """The reproduction: k = 1 decided, the executor restarted, the decision maker frozen: it moved at
+    initial_k (8). Now it goes on at the persisted k ("last"), or waits ("wait") until a selection."""
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        decided = Selection(t_ns=1, seq=7, k=1, n=15, delta=-2, reason="stress")
+        common = dict(
+            task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, initial_k=8
+        )
+
+        # the first run: the decision maker answers (the test stands in for it) and k = 1 runs a cycle
+        async def answer(req):
+            return decided
+
+        bus.serve(bus.key("decision/selection"), answer)
+        ex = InProcessService(
+            "executor", executor_main, Settings(**common, cycles=1), tmp_path / "ex", endpoint
+        )
+        assert (await next_of(cycles, timeout=60)).k_per_path == {"there": 1, "back": 1}
+        await asyncio.wait_for(ex.task, 15)
+        bus._declared.pop().undeclare()  # the decision maker is gone (frozen: it answers nothing)
+
+        settings = Settings(**common, cycles=1, start_selection=policy)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        chose = await next_of(events, lambda e: "the decision maker does not answer" in e.message, timeout=30)
+        if policy == "wait":
+            waiting = [await next_of(states, lambda s: s.state == "waiting_for_selection") for _ in range(50)]
+            assert all(max(map(abs, s.qd)) == 0.0 and s.mode != "moving" for s in waiting)
+            later = Selection(t_ns=2, seq=8, k=3, n=15, delta=2, reason="rest")
+            await ex.listening(bus, "decision/selection")
+            bus.put(bus.key("decision/selection"), later, block=True)
+        report = await next_of(cycles, timeout=60)
+        await asyncio.wait_for(ex.task, 15)
+        await store.close()
+    if policy == "last":
+        assert "going on at the last selection applied, k = 1" in chose.message
+        assert report.k_per_path == {"there": 1, "back": 1}
+    else:
+        assert 'waiting for a selection (start_selection = "wait")' in chose.message
+        assert report.k_per_path == {"there": 3, "back": 3}
+
+
+async def test_with_nothing_on_file_the_sim_waits_then_moves_at_the_first_selection(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        settings = Settings(
+            task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, cycles=1
+        )
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        chose = await next_of(events, lambda e: "the decision maker does not answer" in e.message, timeout=30)
+        await ex.listening(bus, "decision/selection")
+        bus.put(
+            bus.key("decision/selection"),
+            Selection(t_ns=2, seq=1, k=4, n=15, delta=0, reason="hold"),
+            block=True,
+        )
+        report = await next_of(cycles, timeout=60)
+        await asyncio.wait_for(ex.task, 15)
+        await store.close()
+    assert "waiting for a selection (no selection on file)" in chose.message
+    assert report.k_per_path == {"there": 4, "back": 4}
+
+
+async def test_two_executors_on_one_host_get_different_servo_cores(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        cores = {}
+        execs = []
+        for cell in ("a", "b"):
+            health = aiter(bus.subscribe(f"cadence/{cell}/health/executor", ServiceStatus, maxsize=1))
+            settings = Settings(
+                task=str(task_file),
+                fifo_priority=0,
+                overrun_limit=CALM,
+                start_selection="wait",
+                lock_dir=str(tmp_path),
+            )
+            execs.append(
+                InProcessService("executor", executor_main, settings, tmp_path / cell, endpoint, cell=cell)
+            )
+            st = await next_of(health, lambda s: "servo_core" in s.counters or s.detail != "", timeout=30)
+            cores[cell] = st.counters.get("servo_core")
+        for ex in execs:
+            await ex.close()
+    assert None not in cores.values() and cores["a"] != cores["b"], cores
+
+
+# --- the real ur-rtde client against the emulator -------------------------------------------------
+
+
+async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resumed(
+    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from tests.test_ur_emulator import WATCHDOG_HZ, EmulatorProcess, free_loopback
+
+    on = stall(monkeypatch, UrRtdeBackend)
+    emu = EmulatorProcess(free_loopback(), q0_deg=[0.0, -90.0, 90.0, -90.0, -90.0, 0.0])  # the task's start
+    try:
+        async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+            store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+            events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+            states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+            settings = Settings(
+                task=str(task_file),
+                backend="ur_rtde",
+                host=emu.host,
+                fifo_priority=0,
+                overrun_limit=RUN,
+                wait_for_signals=False,
+                start_selection="initial",
+                initial_k=1,
+                watchdog_hz=WATCHDOG_HZ,
+            )
+            ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+            await next_of(states, lambda s: s.mode == "moving", timeout=60)
+            on["stall"] = True
+            overrun = await next_of(events, lambda e: e.kind == "protective_stop", timeout=30)
+            on["stall"] = False
+            await still_while_stopped(states)
+            assert (await resume(bus)).startswith("ready")
+
+            # a bump against the arm: the controller's own protective stop, which its dashboard unlocks
+            await next_of(states, lambda s: s.mode == "moving", timeout=60)
+            emu.proc.send_signal(signal.SIGUSR1)
+            bumped = await next_of(events, lambda e: e.kind == "protective_stop", timeout=30)
+            held = await still_while_stopped(states, n=25)
+            early = await resume(bus)  # within 5 s of the stop: the controller refuses
+            async with asyncio.timeout(30):
+                while not (said := await resume(bus)).startswith("ready"):
+                    await next_of(states, timeout=10)  # a state later (20 ms), ask again
+            moving = await next_of(states, lambda s: s.mode == "moving", timeout=60)
+            await ex.close()
+            await store.close()
+    finally:
+        emu.stop()
+    assert "overruns in a row" in overrun.message
+    assert "protective stop" in bumped.message and "protective stop" in held.reason
+    assert early.startswith("stopped") and "Cannot unlock protective stop until 5s" in early
+    assert "resumed by the test" in said and moving.state == "moving"
+    assert any("external force" in line for line in emu.lines)
