@@ -85,3 +85,15 @@ def test_an_absurd_task_program_is_one_task_error_naming_the_field(extra: str, f
     with pytest.raises(TaskError) as err:
         parse_task(GOOD + "\n" + extra + "\n", "t.toml")
     assert err.value.field == field and "\n" not in str(err.value)
+
+
+def test_the_automatic_resume_is_for_the_sim_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from services.executor.__main__ import run
+    from tests.test_executor import TASK
+
+    task_file = tmp_path / "shuttle.toml"
+    task_file.write_text(TASK)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[executor]\nbackend = 'ur_rtde'\nresume_policy = 'auto'\ntask = '{task_file}'\n")
+    assert run(["--config", str(cfg), "--data-dir", str(tmp_path)]) == 2
+    assert "resume_policy" in capsys.readouterr().err

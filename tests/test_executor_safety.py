@@ -139,17 +139,6 @@ async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_of
     assert "after 0 s" in auto.message or "after 1 s" in auto.message
 
 
-def test_the_automatic_resume_is_for_the_sim_only(
-    task_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    from services.executor.__main__ import run
-
-    cfg = tmp_path / "c.toml"
-    cfg.write_text(f"[executor]\nbackend = 'ur_rtde'\nresume_policy = 'auto'\ntask = '{task_file}'\n")
-    assert run(["--config", str(cfg), "--data-dir", str(tmp_path)]) == 2
-    assert "resume_policy" in capsys.readouterr().err
-
-
 @pytest.mark.parametrize("policy", ["last", "wait"])
 async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_initial_k(
     policy: str, task_file: Path, tmp_path: Path, endpoint: str
