@@ -28,6 +28,7 @@ from rich.table import Table
 from cadence.report import from_demo, write_report
 from common.bus import Bus, BusConfig
 from common.clock import Clock
+from common.motion import routine_change
 from common.storage import atomic_write
 from common.task import load_task
 from common.twin import TwinParams
@@ -136,6 +137,8 @@ class Observed:
         )
 
     def on_event(self, source: str, kind: str, message: str, t_ns: int) -> None:
+        if kind == "state" and routine_change(message):
+            return
         self.events.append({"t_s": self.t(t_ns), "source": source, "kind": kind, "message": message})
 
     def k_steps(self) -> tuple[int, int]:

@@ -16,6 +16,7 @@ import msgspec
 import numpy as np
 
 from common.errors import InputError
+from common.motion import routine_change
 from common.storage import atomic_write
 from schemas import (
     CycleReport,
@@ -131,7 +132,7 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
             run.cycles.append({"end_s": t(m.t_ns), "cycle_time_s": m.cycle_time_s, "k": dict(m.k_per_path)})
         elif isinstance(m, OperatorError):
             run.errors += 1
-        elif isinstance(m, RobotEvent):
+        elif isinstance(m, RobotEvent) and not (m.kind == "state" and routine_change(m.message)):
             run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message})
         elif isinstance(m, ParetoSet):
             run.sets[m.path_id] = m

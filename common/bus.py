@@ -134,6 +134,8 @@ class Subscription:
 
 
 class RawSubscription:
+    """Something declared on the session (a raw subscriber, a queryable); ``undeclare`` is idempotent."""
+
     def __init__(self, sub: Any) -> None:
         self._sub: Any = sub
 
@@ -299,14 +301,17 @@ class Bus:
 
     # --- queries ------------------------------------------------------------------------------------
 
-    def serve(self, key_expr: str, handler: Callable[[Request], Awaitable[Message]]) -> None:
-        """Answer queries on ``key_expr``: the handler returns a message or raises ``QueryError``."""
+    def serve(self, key_expr: str, handler: Callable[[Request], Awaitable[Message]]) -> RawSubscription:
+        """Answer queries on ``key_expr``: the handler returns a message or raises ``QueryError``. The
+        returned handle undeclares the queryable (the bus does at close)."""
         self._check_open()
 
         def on_query(query: zenoh.Query) -> None:
             _call_soon(self.loop, self._spawn, self._answer(handler, query))
 
-        self._declared.append(self.session.declare_queryable(key_expr, on_query))
+        served = RawSubscription(self.session.declare_queryable(key_expr, on_query))
+        self._declared.append(served)
+        return served
 
     def _spawn(self, coro: Awaitable[None]) -> None:
         task = asyncio.ensure_future(coro)

@@ -118,3 +118,13 @@ def transition(m: Motion, event: Event, reason: str = "") -> Motion:
     if nxt is not None:
         return replace(m, state=nxt, reason=reason)
     return m
+
+
+_ROUTINE = {State.READY.value, State.MOVING.value, State.WAITING_FOR_OPERATOR.value}
+
+
+def routine_change(message: str) -> bool:
+    """A ``robot/event`` of kind "state" ("from → to: why") between the states of normal work (ready,
+    moving, waiting for the operator): every path gives two, so a report or a live view leaves them out."""
+    states = message.split(":", 1)[0].split(" → ")
+    return len(states) == 2 and all(x.strip() in _ROUTINE for x in states)

@@ -78,6 +78,7 @@ class InProcessService:
         from common.service import CommonSettings, serve
 
         self.stop = asyncio.Event()
+        self.cell = cell
         self.ctx = None  # the service's context once it runs (its bus, its counters)
 
         async def wrapped(ctx) -> None:
@@ -98,7 +99,7 @@ class InProcessService:
         )
 
     async def listening(self, bus, *suffixes: str, timeout: float = 30.0) -> None:
-        """Wait until this service's subscriptions to ``cadence/cell1/<suffix>`` are known to the test's
+        """Wait until this service's subscriptions to ``cadence/<its cell>/<suffix>`` are known to the test's
         session, so what the test publishes next reaches them: Zenoh drops a put that has no known
         subscriber, and a service's first status can come before its subscriptions. The right way to
         wait before publishing; never wait on a status for that. (Matching counts every subscriber,
@@ -112,7 +113,7 @@ class InProcessService:
                         self.task.result()  # the service died: say why
                         raise AssertionError(f"the service ended before subscribing to {suffix}")
                     try:
-                        await bus.until_subscribed(bus.key(suffix), 0.5)
+                        await bus.until_subscribed(f"cadence/{self.cell}/{suffix}", 0.5)
                         break
                     except TimeoutError:
                         continue

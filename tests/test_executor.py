@@ -58,6 +58,21 @@ SPEED = 8.0
 CALM = 1000
 
 
+def sim_settings(task_file: Path, **changes: object) -> Settings:
+    """The executor as these tests run it: no FIFO, not stopped by a loaded machine's overruns, one cycle
+    with no operator, starting at k = 3 with no decision maker; ``changes`` override."""
+    base: dict[str, object] = {
+        "task": str(task_file),
+        "fifo_priority": 0,
+        "overrun_limit": CALM,
+        "cycles": 1,
+        "wait_for_signals": False,
+        "start_selection": "initial",
+        "initial_k": 3,
+    }
+    return Settings(**{**base, **changes})
+
+
 @pytest.fixture
 def task_file(tmp_path: Path) -> Path:
     p = tmp_path / "shuttle.toml"
@@ -157,15 +172,7 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
             (cache / f"{pid}.msgpack").write_bytes(encode(s))
 
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = Settings(
-            task=str(task_file),
-            fifo_priority=0,
-            overrun_limit=CALM,
-            cycles=1,
-            wait_for_signals=False,
-            start_selection="initial",
-            initial_k=3,
-        )
+        settings = sim_settings(task_file)
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         report = await next_of(cycles)
         await asyncio.wait_for(ex.task, 15)

@@ -16,7 +16,7 @@ from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.executor.backends import SimBackend, UrRtdeBackend
 from tests.conftest import InProcessService
-from tests.test_executor import CALM, SPEED, TASK, next_of, store_serving
+from tests.test_executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
 STALL_S = 0.02  # a servo call this slow is an overrun at any speed
@@ -73,14 +73,7 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = Settings(
-            task=str(task_file),
-            fifo_priority=0,
-            overrun_limit=RUN,
-            wait_for_signals=False,
-            start_selection="initial",
-            initial_k=2,
-        )
+        settings = sim_settings(task_file, overrun_limit=RUN, cycles=0, initial_k=2)
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         await next_of(states, lambda s: s.mode == "moving")
         on["stall"] = True
@@ -118,15 +111,8 @@ async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_of
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = Settings(
-            task=str(task_file),
-            fifo_priority=0,
-            overrun_limit=RUN,
-            wait_for_signals=False,
-            start_selection="initial",
-            initial_k=2,
-            resume_policy="auto",
-            auto_resume_s=0.5,
+        settings = sim_settings(
+            task_file, overrun_limit=RUN, cycles=0, initial_k=2, resume_policy="auto", auto_resume_s=0.5
         )
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         on["stall"] = True
@@ -159,13 +145,13 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         async def answer(req):
             return decided
 
-        bus.serve(bus.key("decision/selection"), answer)
+        stand_in = bus.serve(bus.key("decision/selection"), answer)
         ex = InProcessService(
             "executor", executor_main, Settings(**common, cycles=1), tmp_path / "ex", endpoint
         )
         assert (await next_of(cycles, timeout=60)).k_per_path == {"there": 1, "back": 1}
         await asyncio.wait_for(ex.task, 15)
-        bus._declared.pop().undeclare()  # the decision maker is gone (frozen: it answers nothing)
+        stand_in.undeclare()  # the decision maker is gone (frozen: it answers nothing)
 
         settings = Settings(**common, cycles=1, start_selection=policy)
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)

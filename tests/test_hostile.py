@@ -339,9 +339,8 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
     tmp_path: Path, endpoint: str
 ) -> None:
     from schemas import CycleReport
-    from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.test_executor import CALM, SPEED, TASK, next_of, store_serving
+    from tests.test_executor import SPEED, TASK, next_of, sim_settings, store_serving
 
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK)
@@ -372,15 +371,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
         fake = bus.session.declare_queryable(bus.key("pareto/**"), on_query)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = Settings(
-            task=str(task_file),
-            fifo_priority=0,
-            overrun_limit=CALM,
-            cycles=1,
-            wait_for_signals=False,
-            start_selection="initial",
-            initial_k=3,
-        )
+        settings = sim_settings(task_file)
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         refused = await next_of(events, lambda e: e.kind == "refused" and "over its limit" in e.message)
         async with asyncio.timeout(20):

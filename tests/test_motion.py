@@ -99,3 +99,12 @@ def test_two_executors_on_one_host_get_different_cores_and_a_third_none(tmp_path
     assert claim_core([0, 1], tmp_path, explicit=0).core is None  # an explicit core that is taken
     for x in (b, c, d):
         x.release()
+
+
+def test_routine_changes_are_told_from_the_ones_a_person_should_see() -> None:
+    from common.motion import routine_change
+
+    assert routine_change("ready → moving: 'there' at k = 3") and routine_change("moving → ready")
+    assert routine_change("waiting_for_operator → ready")
+    assert not routine_change("moving → stopped: 5 servo overruns in a row during 'there'")
+    assert not routine_change("recovering → ready: resumed by ana") and not routine_change("started")
