@@ -276,3 +276,19 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
     assert early.startswith("stopped") and "Cannot unlock protective stop until 5s" in early
     assert "resumed by the test" in said and moving.state == "moving"
     assert any("external force" in line for line in emu.lines)
+
+
+async def test_a_cycle_cut_short_by_a_restart_is_said(task_file: Path, tmp_path: Path, endpoint: str) -> None:
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        settings = sim_settings(task_file, cycles=0)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        await next_of(states, lambda s: s.mode == "moving" and s.path_id == "there")
+        await ex.close()  # SIGTERM mid-motion, as systemd stops it
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        said = await next_of(events, lambda e: "cut short by a restart" in e.message)
+        await ex.close()
+        await store.close()
+    assert said.kind == "info" and said.message.startswith("cycle 0 of the last run")
