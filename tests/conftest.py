@@ -36,6 +36,25 @@ def example_task_path() -> Path:
     return EXAMPLE_TASK
 
 
+@pytest.fixture(scope="session")
+def example_sets(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The example task's sets, planned once per test run into a store's SQLite file: tests that need
+    them served copy it into their store's data folder (a store serves stored sets without planning).
+    Planning in each test would put the store's low-priority worker behind any CPU load on the machine."""
+    from common.planner import content_hash
+    from common.task import load_task
+    from services.pareto_store.jobs import plan_job
+    from services.pareto_store.store import SetStore
+
+    task = load_task(EXAMPLE_TASK)
+    db = tmp_path_factory.mktemp("example_sets") / "pareto.sqlite"
+    store, _ = SetStore.open(db)
+    for path in task.paths.values():
+        store.save(plan_job(path, task, task.planner, content_hash(path, task.limits, task.planner)))
+    store.close()
+    return db
+
+
 def now_ns() -> int:
     """Data time for a test's messages: now, to the second. Receivers believe a stream's first message
     when it is near their data clock (common/admission.py), as a live source's is."""

@@ -80,7 +80,15 @@ def task_file(tmp_path: Path) -> Path:
     return p
 
 
-async def store_serving(bus: Bus, task: Path, data: Path, endpoint: str) -> InProcessService:
+async def store_serving(
+    bus: Bus, task: Path, data: Path, endpoint: str, planned: Path | None = None
+) -> InProcessService:
+    """A store serving ``task``; with ``planned`` (a store's SQLite file) it starts from those sets."""
+    if planned is not None:
+        import shutil
+
+        data.mkdir(parents=True, exist_ok=True)
+        shutil.copy(planned, data / "pareto.sqlite")
     health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
     store = InProcessService("pareto_store", store_main, StoreSettings(task=str(task)), data, endpoint)
     async with asyncio.timeout(60):

@@ -195,7 +195,7 @@ FIRST_WAYPOINT_DEG = ["-62", "-78", "112", "-124", "-90", "28"]  # box_filling's
 
 @pytest.mark.asyncio
 async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_real_client(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, endpoint: str, example_sets: Path
 ) -> None:
     from common.bus import Bus, BusConfig
     from schemas import CycleReport, RobotEvent
@@ -207,7 +207,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
         async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-            store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint)
+            store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
             cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
             events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
             settings = Settings(
@@ -240,7 +240,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
 
 @pytest.mark.asyncio
 async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_reconnects_and_a_resume_clears(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, endpoint: str, example_sets: Path
 ) -> None:
     from common.bus import Bus, BusConfig
     from schemas import CycleReport, RobotEvent, RobotState
@@ -252,7 +252,7 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
     host = free_loopback()
     emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint)
+        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
