@@ -271,7 +271,8 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
             await store.close()
     finally:
         emu.stop()
-    assert "overruns in a row" in overrun.message
+    # the stall stops the robot by its overruns, or first by the controller's watchdog (kicks late too)
+    assert "overruns in a row" in overrun.message or "control script stopped" in overrun.message
     assert "protective stop" in bumped.message and "protective stop" in held.reason
     assert early.startswith("stopped") and "Cannot unlock protective stop until 5s" in early
     assert "resumed by the test" in said and moving.state == "moving"
