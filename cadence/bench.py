@@ -18,9 +18,8 @@ from common.planner import (
     hypervolume,
     plan_path,
 )
+from common.resources import EXAMPLE_TASK
 from common.task import PathPlan, PlannerSettings, Task, load_task
-
-EXAMPLE_TASK_FILE = Path(__file__).resolve().parents[1] / "deploy" / "tasks" / "box_filling.toml"
 
 
 def longest_path(task: Task) -> PathPlan:
@@ -187,7 +186,6 @@ async def bench_store(task_path: str, queries: int = 200) -> StoreBench:
     import subprocess
     import sys
     import tempfile
-    from pathlib import Path
 
     from common.bus import Bus, BusConfig
     from schemas.health import ServiceStatus
@@ -293,7 +291,6 @@ def bench_hrv(
     """Every annotated record of ``data_dir`` at ``fs``: each detector's Se, PPV, F1 and speed; for
     Cadence also the publication latency (data time from the peak to the end of the chunk that released
     it; chunks of 13 samples, 0.1 s) and the window mean-RR error."""
-    from pathlib import Path
 
     from common.ecg_records import read_record
     from common.hrv import intervals, match_beats, windows
@@ -379,7 +376,7 @@ def bench_executor(
     from services.executor.backends import SimBackend, UrRtdeBackend
     from services.executor.servo import ServoLoop
 
-    task = load_task(task_file or EXAMPLE_TASK_FILE)
+    task = load_task(task_file or EXAMPLE_TASK)
     path = longest_path(task)
     lb, _ = interval_bounds(path.waypoints, task.limits, task.planner.kappa)
     h_fast = lb * boundary_stretch(lb[None], path, task.limits, "exact")[0]

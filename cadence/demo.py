@@ -28,7 +28,9 @@ from rich.table import Table
 from cadence.report import from_demo, write_report
 from common.bus import Bus, BusConfig
 from common.clock import Clock
+from common.lifetime import PARENT_ENV
 from common.motion import routine_change
+from common.resources import EXAMPLE_TASK
 from common.storage import atomic_write
 from common.task import load_task
 from common.twin import TwinParams
@@ -54,7 +56,7 @@ class DemoOptions:
     speed: float = 8.0
     out: Path = Path("demo-out")
     seed: int = 1
-    task: Path = Path(__file__).resolve().parents[1] / "deploy" / "tasks" / "box_filling.toml"
+    task: Path = EXAMPLE_TASK
     kill: tuple[tuple[str, float], ...] = ()  # (service, data time s): SIGKILL it then
     live: bool = True
 
@@ -79,8 +81,14 @@ class Supervised:
     async def supervise(self, stopping: asyncio.Event, on_restart) -> None:
         with self.log.open("ab") as log:
             while True:
+                # from the loop's thread, and with PARENT_ENV: the service dies with the demo (SIGKILL too)
                 self.proc = await asyncio.create_subprocess_exec(
-                    sys.executable, "-m", f"services.{self.name}", env=self.env, stdout=log, stderr=log
+                    sys.executable,
+                    "-m",
+                    f"services.{self.name}",
+                    env=self.env | {PARENT_ENV: str(os.getpid())},
+                    stdout=log,
+                    stderr=log,
                 )
                 rc = await self.proc.wait()
                 if stopping.is_set():

@@ -34,12 +34,17 @@ _LOG_EVERY_S = 10.0
 _MAX_COUNTERS = 200  # of each kind in a status: a wildcard subscription may see any number of keys
 
 
+# Where a session listens unless told: loopback only. A cell's services are clients of its router, and
+# the router listens on the network only where its config says (``cadence install`` writes one).
+LOOPBACK_LISTEN = {"router": ["tcp/127.0.0.1:7447"], "peer": ["tcp/127.0.0.1:0"], "client": []}
+
+
 class BusConfig(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     """How a service joins the bus. ``config_file`` (JSON5, Zenoh's own format) is read first; the
     other fields override it. Multicast scouting is off unless asked for: cells share networks."""
 
-    mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = []
+    mode: Literal["peer", "client", "router"] | None = None  # default: the config file's, else peer
+    listen: list[str] = []  # default: the config file's, else loopback only (LOOPBACK_LISTEN)
     connect: list[str] = []
     multicast_scouting: bool = False
     lease_ms: Annotated[int, msgspec.Meta(ge=100, le=600_000)] = 1000
@@ -49,10 +54,14 @@ class BusConfig(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     try:
         conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
-        conf.insert_json5("mode", json.dumps(cfg.mode))
+        if cfg.mode is not None or not cfg.config_file:
+            conf.insert_json5("mode", json.dumps(cfg.mode or "peer"))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
         if cfg.listen:
             conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+        elif not isinstance(json.loads(conf.get_json("listen/endpoints")), list):
+            # Zenoh's own default listens on every interface, with no authentication (issue 16)
+            conf.insert_json5("listen/endpoints", json.dumps(LOOPBACK_LISTEN))
         if cfg.connect:
             conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))
         # A killed peer's token vanishes at once; a frozen one only when its lease runs out (DESIGN §11).
@@ -126,6 +135,11 @@ class Subscription:
         while True:
             yield await self._queue.get()
 
+    async def receive(self, timeout: float) -> tuple[str, Message]:
+        """The next message, or ``TimeoutError``; unlike a cancelled ``anext``, the subscription goes on."""
+        async with asyncio.timeout(timeout):
+            return await self._queue.get()
+
     def undeclare(self) -> None:
         """Idempotent: the bus undeclares what is left at close."""
         if self._sub is not None:
@@ -166,7 +180,9 @@ class Bus:
         try:
             session = await asyncio.to_thread(zenoh.open, conf)
         except zenoh.ZError as exc:
-            raise BusError(f"cannot open a Zenoh session ({cfg.mode}): {exc}") from exc
+            raise BusError(
+                f"cannot open a Zenoh session ({cfg.mode or cfg.config_file or 'peer'}): {exc}"
+            ) from exc
         return cls(session, asyncio.get_running_loop(), cell)
 
     async def __aenter__(self) -> Bus:

@@ -36,6 +36,7 @@ import msgspec
 from common.bus import Bus, BusConfig
 from common.clock import Clock
 from common.errors import BusError, ConfigError, InputError
+from common.lifetime import die_with_supervisor
 from schemas.base import TimeNs
 from schemas.health import ServiceStatus
 
@@ -253,14 +254,15 @@ async def first_of(*aws: Awaitable[object]) -> None:
 
 
 def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[], None]) -> None:
-    """Call ``callback`` in the loop on SIGTERM and SIGINT.
+    """Call ``callback`` in the loop on SIGTERM, SIGINT and SIGHUP (a closed terminal, or systemd's
+    ``kill -HUP``: a service that reloads nothing stops cleanly rather than dying of it).
 
     Not ``loop.add_signal_handler``: asyncio learns of such a signal from a byte in its self-pipe, the
     pipe that ``call_soon_threadsafe`` also writes to, and a burst of Zenoh samples can fill it just when
     the signal comes; the byte is then dropped and the signal lost (a recorder under load ignored its
     SIGTERM that way). A Python-level handler always runs, and hands the callback to the loop.
     """
-    for sig in (signal.SIGTERM, signal.SIGINT):
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(sig, lambda *_: loop.call_soon_threadsafe(callback))
 
 
@@ -331,6 +333,7 @@ def service_main(
         "--speed", type=float, help="simulation: data time runs this many times faster than the wall clock"
     )
     args = parser.parse_args(argv)
+    die_with_supervisor()
     try:
         raw = read_config(args.config)
         source = args.config or "<defaults>"

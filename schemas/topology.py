@@ -33,6 +33,7 @@ class Topic:
     publisher: str
     pattern: Pattern
     qos: QoS
+    also: tuple[str, ...] = ()  # other services that may publish it (the router's ACL: common/cell.py)
 
 
 TOPICS: tuple[Topic, ...] = (
@@ -41,8 +42,9 @@ TOPICS: tuple[Topic, ...] = (
     Topic("hrv/beats", Beats, "hrv_analyser", "topic", "reliable"),
     Topic("hrv/window", HrvWindow, "hrv_analyser", "topic", "block"),
     Topic("operator/calibration", Calibration, "calibrate", "topic", "reliable"),
-    Topic("operator/signal", OperatorSignal, "operator", "topic", "reliable"),
-    Topic("operator/error", OperatorError, "operator", "topic", "reliable"),
+    # the operator's HMI, or the operator twin inside the ECG gateway (source = "twin")
+    Topic("operator/signal", OperatorSignal, "operator", "topic", "reliable", also=("ecg_gateway",)),
+    Topic("operator/error", OperatorError, "operator", "topic", "reliable", also=("ecg_gateway",)),
     Topic("decision/selection", Selection, "decision_maker", "topic", "block"),
     Topic("pareto/progress", PlanProgress, "pareto_store", "topic", "drop"),
     Topic("pareto/*", ParetoSet, "pareto_store", "query", "reliable"),

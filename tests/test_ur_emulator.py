@@ -29,8 +29,9 @@ EXPECTED_JSON = (
     '"overruns": 0, "prepare_ms": 0}'
 )
 # The controller stops the program when kicks stop for 1/WATCHDOG_HZ s. On a loaded 2-core CI machine the
-# emulator's own threads can fall 100 ms behind (the 10 Hz default), so the tests give it 0.5 s.
-WATCHDOG_HZ = 2.0
+# emulator's own threads can fall 100 ms behind (the 10 Hz default), and with a third load (a venv being
+# built beside two busy loops) over 0.5 s: the tests give it 1 s, the least the executor's settings allow.
+WATCHDOG_HZ = 1.0
 CONTRACT = Path(__file__).parent / "data" / "ur_rtde_1.6.5_recipes.json"
 
 

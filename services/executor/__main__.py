@@ -24,6 +24,7 @@ import numpy as np
 
 from common.errors import ConfigError
 from common.motion import Event
+from common.resources import EXAMPLE_TASK
 from common.service import CommonSettings, ServiceContext, first_of, service_main
 from common.task import Task, load_task
 from schemas.decision import MAX_N, Selection
@@ -35,7 +36,6 @@ from services.executor.servo import ServoLoop
 
 log = logging.getLogger("cadence.executor")
 NAME = "executor"
-EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_filling.toml"
 
 
 def _range(lo: float, hi: float) -> msgspec.Meta:

@@ -6,16 +6,18 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 from typing import Annotated
 
 import msgspec
 
 from common.bus import QueryError, Request
+from common.lifetime import die_with_parent
 from common.planner import content_hash
+from common.resources import EXAMPLE_TASK
 from common.service import CommonSettings, ServiceContext, service_main
 from common.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress
@@ -26,7 +28,6 @@ from services.pareto_store.store import SetStore
 log = logging.getLogger("cadence.pareto_store")
 NAME = "pareto_store"
 _SET_DECODER = msgspec.msgpack.Decoder(ParetoSet)
-EXAMPLE_TASK = Path(__file__).resolve().parents[2] / "deploy" / "tasks" / "box_filling.toml"
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -108,7 +109,13 @@ async def main(ctx: ServiceContext) -> None:
     for pid in sets:
         progress(pid, "stored")
     missing = [pid for pid in task.paths if pid not in sets]
-    pool = ProcessPoolExecutor(max_workers=settings.workers, mp_context=multiprocessing.get_context("spawn"))
+    # started from this (the loop's) thread by submit(); a worker outlives no store, however it ends
+    pool = ProcessPoolExecutor(
+        max_workers=settings.workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=die_with_parent,
+        initargs=(os.getpid(),),
+    )
     try:
         for pid in missing:
             progress(pid, "running")

@@ -1,0 +1,518 @@
+"""``cadence install`` and ``cadence uninstall``: a robot cell in one command (issue 16).
+
+What it writes (every file is in the manifest, ``/etc/cadence/installed.json``, so uninstall removes
+exactly that and keeps the data folder):
+- the system user ``cadence`` (``/etc/sysusers.d/cadence.conf``);
+- ``/etc/cadence/cadence.toml``: every key of every section, commented, set for the real hardware (or the
+  twin and the sim arm); kept if it exists, so a re-install never loses an edit;
+- ``/etc/cadence/credentials/``: the cell's CA, one Zenoh account per service (random password, its own
+  certificate), the router's config with the ACL generated from the topology, and ``cell.json``, the
+  bundle a second host joins with (``--join``);
+- the units, with the prefix put in, enabled under ``cadence.target``;
+- a Python the ``cadence`` user can run, and the venv on it, under the prefix.
+
+Pure parts (what the files say) are in ``common/cell.py`` and ``common/pki.py``; this module decides what
+goes where and does it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import grp
+import json
+import os
+import pwd
+import secrets
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common import cell
+from common.errors import InputError
+from common.pki import Pem, issue, make_ca
+from common.resources import DEPLOY, EXAMPLE_TASK
+
+USER = "cadence"
+ETC = Path("/etc/cadence")
+CREDS = ETC / "credentials"
+DATA = Path("/var/lib/cadence")
+TASKS = ETC / "tasks"  # the cell's task programs: the example to start from
+UNITS = Path("/etc/systemd/system")
+MANIFEST = ETC / "installed.json"
+SYSUSERS = Path("/etc/sysusers.d/cadence.conf")
+PYTHON_MIN = (3, 11)
+HOSTS_ALL = (*cell.SERVICES, "router")
+
+
+class InstallError(InputError):
+    """The install cannot go on; the message says what to do."""
+
+
+@dataclass(frozen=True, slots=True)
+class Options:
+    robot: str = "sim"  # "sim" or the UR controller's address
+    strap: str = "Polar H10"  # "twin", "replay", or the H10's MAC address or advertised name
+    cell_name: str = "cell1"
+    prefix: Path = Path("/opt/cadence")
+    services: tuple[str, ...] = HOSTS_ALL  # what runs on this host; "router" for the cell's router
+    router_host: str = ""  # where other hosts reach the router (default: this host's name)
+    port: int = cell.ROUTER_PORT
+    join: Path | None = None  # the first host's credentials/cell.json
+    python: str | None = None
+    source: str | None = None  # what to install in the venv (default: this checkout, or cadence==VERSION)
+    venv: bool = True  # False: write files and units only (a venv already there)
+    systemctl: bool = True  # False: no daemon-reload / enable (an image being built)
+
+
+@dataclass
+class File:
+    path: Path
+    text: str
+    mode: int = 0o640
+    group: str | None = USER  # owner is root; the group may read
+    secret: bool = False
+    keep: bool = False  # an existing file is kept (the admin's config)
+
+
+@dataclass
+class Plan:
+    files: list[File] = field(default_factory=list)
+    dirs: list[tuple[Path, int, str | None, str | None]] = field(
+        default_factory=list
+    )  # path, mode, user, grp
+    notes: list[str] = field(default_factory=list)
+
+
+# --- what to write ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Bundle:
+    """What every host of one cell shares: the CA (to issue each host's certificates), every account's
+    password and where the router is. ``credentials/cell.json``, mode 0600: the cell's root secret."""
+
+    cell: str
+    router_host: str
+    port: int
+    ca: Pem
+    passwords: dict[str, str]
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {
+                "cell": self.cell,
+                "router_host": self.router_host,
+                "port": self.port,
+                "ca_cert": self.ca.cert.decode(),
+                "ca_key": self.ca.key.decode(),
+                "passwords": self.passwords,
+            },
+            indent=2,
+        )
+
+    @classmethod
+    def load(cls, path: Path) -> Bundle:
+        try:
+            raw = json.loads(path.read_text())
+            return cls(
+                cell=str(raw["cell"]),
+                router_host=str(raw["router_host"]),
+                port=int(raw["port"]),
+                ca=Pem(raw["ca_cert"].encode(), raw["ca_key"].encode()),
+                passwords={a: str(raw["passwords"][a]) for a in cell.ACCOUNTS},
+            )
+        except OSError as exc:
+            raise InstallError(f"{path}: (file): {exc.strerror or exc}") from exc
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise InstallError(f"{path}: not a cell bundle from `cadence install` ({exc!r})") from exc
+
+
+def new_bundle(opts: Options) -> Bundle:
+    return Bundle(
+        cell=opts.cell_name,
+        router_host=opts.router_host or socket.gethostname(),
+        port=opts.port,
+        ca=make_ca(opts.cell_name),
+        passwords={a: secrets.token_urlsafe(24) for a in cell.ACCOUNTS},
+    )
+
+
+def config_toml(opts: Options, bundle: Bundle) -> str:
+    """``/etc/cadence/cadence.toml``: the hardware's values set, every other key commented at its default."""
+    from common.bus import BusConfig
+    from common.service import CommonSettings
+    from services.decision_maker.__main__ import Settings as DecisionSettings
+    from services.ecg_gateway.__main__ import Settings as GatewaySettings
+    from services.executor.__main__ import Settings as ExecutorSettings
+    from services.hrv_analyser.__main__ import Settings as AnalyserSettings
+    from services.pareto_store.__main__ import Settings as StoreSettings
+
+    sim = opts.robot == "sim"
+    twin = opts.strap == "twin"
+    gateway: dict[str, object] = (
+        {"source": opts.strap}
+        if opts.strap in ("twin", "replay")
+        else {
+            "source": "polar",
+            "strap": opts.strap,
+        }
+    )
+    task = {"task": str(TASKS / EXAMPLE_TASK.name)}
+    executor: dict[str, object] = task | (
+        {"backend": "sim"} if sim else {"backend": "ur_rtde", "host": opts.robot}
+    )
+    decision: dict[str, object] = {}
+    if twin:
+        from common.twin import TwinParams
+
+        decision["rr_rest_s"] = TwinParams().rr_rest_s  # the twin's resting RR: no `cadence calibrate`
+    head = (
+        f"# Cadence, cell {bundle.cell}: written by `cadence install`"
+        f" (robot: {opts.robot}; strap: {opts.strap}).\n"
+        "# Every key of every section is here: set ones are the install's, commented ones show their\n"
+        "# defaults, ranges and meaning. Any key can also be set as CADENCE_<SECTION>_<KEY> in\n"
+        "# /etc/cadence/cadence.env. After an edit: systemctl restart cadence.target\n"
+    )
+    sections = [
+        cell.settings_toml("cadence", CommonSettings, {"cell": bundle.cell, "data_dir": str(DATA)}),
+        cell.settings_toml(
+            "bus",
+            BusConfig,
+            {"mode": "client"},
+            "# each unit sets config_file to its own account (credentials/<service>.json5)",
+        ),
+        cell.settings_toml("ecg_gateway", GatewaySettings, gateway),
+        cell.settings_toml("hrv_analyser", AnalyserSettings, {}),
+        cell.settings_toml(
+            "decision_maker",
+            DecisionSettings,
+            decision,
+            ""
+            if twin
+            else "# run `cadence calibrate` once per operator: it writes the calibration this reads",
+        ),
+        cell.settings_toml("pareto_store", StoreSettings, task),
+        cell.settings_toml("executor", ExecutorSettings, executor),
+    ]
+    return head + "\n" + "\n".join(sections)
+
+
+def _connect(opts: Options, bundle: Bundle) -> list[str]:
+    host = "127.0.0.1" if "router" in opts.services else bundle.router_host
+    return [f"tls/{host}:{bundle.port}"]
+
+
+def plan(opts: Options, bundle: Bundle) -> Plan:
+    p = Plan()
+    p.dirs += [
+        (ETC, 0o750, "root", USER),
+        (CREDS, 0o750, "root", USER),
+        (TASKS, 0o750, "root", USER),
+        (DATA, 0o750, USER, USER),
+    ]
+    p.files.append(File(SYSUSERS, f'u {USER} - "Cadence services" {DATA}\n', 0o644, None))
+    p.files.append(File(ETC / "cadence.toml", config_toml(opts, bundle), keep=True))
+    p.files.append(File(TASKS / EXAMPLE_TASK.name, EXAMPLE_TASK.read_text(), keep=True))
+    p.files.append(File(ETC / "cadence.env", (DEPLOY / "systemd" / "cadence.env").read_text(), keep=True))
+    p.files.append(File(CREDS / "cell.json", bundle.to_json(), 0o600, None, secret=True))
+    ca_file = File(CREDS / "ca.pem", bundle.ca.cert.decode(), 0o644, None)
+    p.files.append(ca_file)
+    hosts = sorted({bundle.router_host, "localhost", "127.0.0.1"})
+    if "router" in opts.services:
+        leaf = issue(bundle.ca, "router", bundle.cell, hosts)
+        users = CREDS / "users.txt"
+        p.files.append(File(users, cell.users_file(bundle.passwords), secret=True))
+        router = cell.router_config(
+            bundle.cell,
+            [f"tls/0.0.0.0:{bundle.port}"],
+            cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
+            str(users),
+        )
+        p.files.append(
+            File(
+                CREDS / "router.json5",
+                cell.to_json5(
+                    router, f"The router of cell {bundle.cell}: mTLS, passwords, ACL from the topology."
+                ),
+                secret=True,
+            )
+        )
+    # this host's accounts: its services, and the operator's and the monitor's tools (root reads those)
+    accounts = [s for s in opts.services if s in cell.SERVICES]
+    for account in [*accounts, "operator", "monitor"]:
+        leaf = issue(bundle.ca, account, bundle.cell, [account])
+        cfg = cell.client_config(
+            account,
+            bundle.passwords[account],
+            _connect(opts, bundle),
+            cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
+        )
+        tool = account in ("operator", "monitor")
+        p.files.append(
+            File(
+                CREDS / f"{account}.json5",
+                cell.to_json5(cfg, f"Bus account '{account}' of cell {bundle.cell}."),
+                0o600 if tool else 0o640,
+                None if tool else USER,
+                secret=True,
+            )
+        )
+    for name in [*(f"cadence-{s}.service" for s in opts.services), "cadence.target"]:
+        text = (DEPLOY / "systemd" / name).read_text().replace("/opt/cadence", str(opts.prefix))
+        p.files.append(File(UNITS / name, text, 0o644, None))
+    if not opts.systemctl:
+        p.notes.append("systemctl: skipped (--no-systemctl)")
+    return p
+
+
+# --- doing it -----------------------------------------------------------------------------------------
+
+
+def _run(cmd: list[str], what: str, timeout: float = 900.0) -> subprocess.CompletedProcess[str]:
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise InstallError(f"{what}: {' '.join(cmd)}: {exc}") from exc
+    if r.returncode != 0:
+        tail = (r.stderr or r.stdout).strip().splitlines()[-3:]
+        raise InstallError(f"{what}: {' '.join(cmd)} exited {r.returncode}: {' / '.join(tail)}")
+    return r
+
+
+def _write(f: File, written: list[str]) -> str:
+    if f.keep and f.path.exists():
+        return f"kept {f.path} (exists)"
+    f.path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=f.path.parent, prefix=f".{f.path.name}.")
+    try:
+        with os.fdopen(fd, "w") as out:
+            out.write(f.text)
+        os.chmod(tmp, f.mode)
+        os.chown(tmp, 0, grp.getgrnam(f.group).gr_gid if f.group else 0)
+        os.replace(tmp, f.path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    written.append(str(f.path))
+    return f"wrote {f.path} ({f.mode:o})"
+
+
+def _ensure_user() -> None:
+    with contextlib.suppress(KeyError):
+        pwd.getpwnam(USER)
+        return
+    if shutil.which("systemd-sysusers"):
+        _run(["systemd-sysusers", str(SYSUSERS)], "creating the user")
+    else:
+        _run(["useradd", "--system", "--home-dir", str(DATA), "--no-create-home", USER], "creating the user")
+
+
+def _hidden(path: str) -> bool:
+    """Under a folder the units hide (ProtectHome=yes) or that root keeps to itself."""
+    return any(Path(path).is_relative_to(p) for p in ("/root", "/home", "/run/user"))
+
+
+def _runs_as_user(python: str) -> str | None:
+    """Why the service user cannot use this interpreter, or None."""
+    real = os.path.realpath(python)
+    if _hidden(real):
+        return f"{real} is under a home folder (ProtectHome=yes hides it, and /root is mode 700)"
+    probe = f"import sys; sys.exit(0 if sys.version_info >= {PYTHON_MIN} else 3)"
+    runner = ["runuser", "-u", USER, "--"] if shutil.which("runuser") else ["su", "-s", "/bin/sh", USER, "-c"]
+    cmd = [*runner, real, "-c", probe] if runner[0] == "runuser" else [*runner, f"{real} -c '{probe}'"]
+    r = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if r.returncode == 3:
+        return f"{real} is older than Python {'.'.join(map(str, PYTHON_MIN))}"
+    if r.returncode != 0:
+        return f"{real} does not run as {USER}: {(r.stderr or r.stdout).strip()[-200:]}"
+    return None
+
+
+def ensure_python(opts: Options, uv: str, say: list[str]) -> str:
+    """An interpreter the ``cadence`` user can run: the one asked for, else one uv installs under the
+    prefix, else a system one that passes the same check. Never a link into root's home."""
+    if opts.python:
+        why = _runs_as_user(opts.python)
+        if why:
+            raise InstallError(f"--python {opts.python}: {why}")
+        return os.path.realpath(opts.python)
+    where = opts.prefix / "python"
+    r = subprocess.run(
+        [uv, "python", "install", "--install-dir", str(where), "3.12"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=600,
+    )
+    if r.returncode == 0:
+        found = sorted(where.glob("cpython-*/bin/python3"))
+        if found and _runs_as_user(str(found[-1])) is None:
+            say.append(f"python: {found[-1]} (uv, under the prefix)")
+            return str(found[-1])
+    say.append(f"python: uv could not install one under {where} ({(r.stderr or '').strip()[-120:]})")
+    for cand in (sys._base_executable, "/usr/bin/python3.13", "/usr/bin/python3.12", "/usr/bin/python3.11"):
+        if cand and Path(cand).exists() and _runs_as_user(cand) is None:
+            say.append(f"python: {os.path.realpath(cand)} (the service user can run it)")
+            return os.path.realpath(cand)
+    raise InstallError(
+        f"no Python >= {'.'.join(map(str, PYTHON_MIN))} that the {USER} user can run: "
+        "install one (apt install python3.11, or uv python install with network) and pass --python PATH"
+    )
+
+
+def _checkout() -> Path | None:
+    root = Path(__file__).resolve().parents[1]
+    return root if (root / "uv.lock").exists() and (root / "pyproject.toml").exists() else None
+
+
+def build_venv(opts: Options, say: list[str]) -> None:
+    uv = shutil.which("uv")
+    if uv is None:
+        raise InstallError("uv is not on PATH: pip install uv (it builds the services' venv)")
+    python = ensure_python(opts, uv, say)
+    venv = opts.prefix / ".venv"
+    _run([uv, "venv", "--allow-existing", "--python", python, str(venv)], "creating the venv")
+    py = str(venv / "bin" / "python")
+    src = opts.source or (str(_checkout()) if _checkout() else None)
+    if src and Path(src).is_dir() and (Path(src) / "uv.lock").exists():
+        with tempfile.NamedTemporaryFile("w", suffix=".txt") as req:
+            _run(
+                [
+                    uv,
+                    "export",
+                    "--frozen",
+                    "--no-dev",
+                    "--no-emit-project",
+                    "--no-hashes",
+                    "--project",
+                    src,
+                    "-o",
+                    req.name,
+                ],
+                "reading the lock",
+            )
+            _run([uv, "pip", "install", "--python", py, "-r", req.name], "installing the locked dependencies")
+        _run(
+            [uv, "pip", "install", "--python", py, "--no-deps", "--reinstall-package", "cadence", src],
+            "installing cadence",
+        )
+    else:
+        from importlib.metadata import version
+
+        _run(
+            [uv, "pip", "install", "--python", py, src or f"cadence=={version('cadence')}"],
+            "installing cadence",
+        )
+    say.append(f"venv: {venv} on {python}")
+
+
+def install(opts: Options, dry_run: bool = False) -> list[str]:
+    """Does (or, dry, describes) the install; returns the lines to print."""
+    if not set(opts.services) <= set(HOSTS_ALL):
+        raise InstallError(
+            f"--services: unknown {sorted(set(opts.services) - set(HOSTS_ALL))}; "
+            f"expected some of {', '.join(HOSTS_ALL)}"
+        )
+    existing = CREDS / "cell.json"
+    if opts.join:
+        bundle = Bundle.load(opts.join)
+    elif existing.exists():
+        bundle = Bundle.load(existing)  # a re-install keeps the cell's CA and passwords
+    else:
+        bundle = new_bundle(opts)
+    p = plan(opts, bundle)
+    say: list[str] = []
+    if dry_run:
+        for d, mode, user, group in p.dirs:
+            say.append(f"mkdir {d} ({mode:o} {user}:{group})")
+        for f in p.files:
+            say.append(
+                f"--- {f.path} ({f.mode:o} root:{f.group or 'root'}){' kept if present' if f.keep else ''}"
+            )
+            say.append("    <secret: passwords and keys>" if f.secret else f.text.rstrip())
+        say.append(f"venv: {opts.prefix}/.venv" if opts.venv else "venv: skipped")
+        say += p.notes
+        return say
+    if os.geteuid() != 0:
+        raise InstallError("cadence install writes /etc, /opt and systemd units: run it as root (sudo)")
+    written: list[str] = []
+    made: list[str] = []
+    SYSUSERS.parent.mkdir(parents=True, exist_ok=True)
+    say.append(_write(p.files[0], written))
+    _ensure_user()
+    uid = pwd.getpwnam(USER).pw_uid
+    gid = grp.getgrnam(USER).gr_gid
+    for d, mode, user, group in p.dirs:
+        if not d.exists():
+            made.append(str(d))
+        d.mkdir(parents=True, exist_ok=True)
+        os.chmod(d, mode)
+        os.chown(d, uid if user == USER else 0, gid if group == USER else 0)
+    for f in p.files[1:]:
+        say.append(_write(f, written))
+    if opts.venv:
+        if not opts.prefix.exists():
+            made.append(str(opts.prefix))
+        build_venv(opts, say)
+    old = json.loads(MANIFEST.read_text()) if MANIFEST.exists() else {}
+    manifest = {
+        "files": sorted(set(old.get("files", [])) | set(written)),
+        "dirs": sorted(set(old.get("dirs", [])) | set(made)),
+        "units": sorted({*old.get("units", []), *(f"cadence-{s}.service" for s in opts.services)}),
+        "prefix": str(opts.prefix),
+    }
+    MANIFEST.write_text(json.dumps(manifest, indent=2))
+    if opts.systemctl:
+        _run(["systemctl", "daemon-reload"], "reloading systemd")
+        _run(["systemctl", "enable", "cadence.target", *manifest["units"]], "enabling the units")
+        say.append(
+            f"enabled cadence.target: {', '.join(manifest['units'])}; start: systemctl start cadence.target"
+        )
+    if "router" in opts.services:
+        say.append(
+            f"a second host joins with: cadence install --join {existing} --services … "
+            "(copy that file over a secure channel, then delete the copy)"
+        )
+    return say
+
+
+def uninstall(keep_venv: bool = False) -> list[str]:
+    if os.geteuid() != 0:
+        raise InstallError("cadence uninstall removes what the install wrote: run it as root (sudo)")
+    if not MANIFEST.exists():
+        raise InstallError(f"{MANIFEST}: not found: nothing was installed here by `cadence install`")
+    m = json.loads(MANIFEST.read_text())
+    say: list[str] = []
+    if shutil.which("systemctl"):
+        subprocess.run(
+            ["systemctl", "disable", "--now", "cadence.target", *m["units"]], capture_output=True, check=False
+        )
+    for f in m["files"]:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(f)
+            say.append(f"removed {f}")
+    prefix = Path(m["prefix"])
+    if not keep_venv:
+        for sub in (".venv", "python"):
+            if (prefix / sub).exists():
+                shutil.rmtree(prefix / sub)
+                say.append(f"removed {prefix / sub}")
+    for d in sorted(m["dirs"], key=len, reverse=True):
+        if Path(d) == DATA:
+            continue
+        with contextlib.suppress(OSError):
+            shutil.rmtree(d) if Path(d).is_relative_to(ETC) else os.rmdir(d)
+            say.append(f"removed {d}")
+    with contextlib.suppress(FileNotFoundError):
+        MANIFEST.unlink()
+    if ETC.exists() and not any(ETC.iterdir()):
+        ETC.rmdir()
+    if shutil.which("systemctl"):
+        subprocess.run(["systemctl", "daemon-reload"], capture_output=True, check=False)
+    say.append(f"kept {DATA} (the data: Pareto sets, decision state, recordings)")
+    return say

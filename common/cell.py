@@ -1,0 +1,265 @@
+"""What a deployed cell is made of, as pure functions (issue 16): the bus's accounts and the router's
+access control, derived from the topology so the two can never disagree; the Zenoh configs of the router
+and of each client; the commented deployment config. ``cadence install`` writes what these return.
+
+The rules (DESIGN §11):
+- One account per service, plus ``operator`` (``cadence calibrate``, ``cadence robot resume``, an HMI) and
+  ``monitor`` (``zenoh subscribe``, ``cadence record``). Each has its own random password and its own
+  certificate whose common name is the account: the router requires both (mTLS and user-password), and
+  its ACL names each subject by both, so one stolen secret opens nothing.
+- Everyone may read the cell. Each account may publish, and answer queries for, only the keys the topology
+  names it the publisher of, and its own ``health/<account>``. Only the operator may ask ``robot/resume``.
+- The router is the only listener on the network; every service is its client.
+"""
+
+from __future__ import annotations
+
+import ast
+import base64
+import inspect
+import io
+import json
+import tokenize
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from schemas.topology import ROOT, TOPICS, Topic
+
+SERVICES = ("ecg_gateway", "hrv_analyser", "decision_maker", "pareto_store", "executor")
+ACCOUNTS = (*SERVICES, "operator", "monitor")
+ROUTER_PORT = 7447
+# the topology's publishers that are people's tools, not services: they use the operator account
+_TOOLS = {"calibrate": "operator", "operator": "operator"}
+OPERATOR_ONLY_QUERIES = ("robot/resume",)  # a query here changes the robot's state
+
+
+def publishers(topic: Topic) -> set[str]:
+    """The accounts that may publish ``topic`` (and answer queries for it)."""
+    names = {_TOOLS.get(topic.publisher, topic.publisher), *topic.also}
+    return names & set(ACCOUNTS)
+
+
+def _acl_key(cell: str, suffix: str) -> str:
+    # A queryable is declared on the family (the store serves pareto/**), and Zenoh's ACL compares key
+    # expressions by inclusion: pareto/* does not include pareto/**.
+    if "*" in suffix:
+        suffix = suffix.split("*", 1)[0] + "**"
+    return f"{ROOT}/{cell}/{suffix}"
+
+
+def access_control(cell: str) -> dict[str, Any]:
+    """The router's ``access_control`` section: default deny, every rule derived from ``TOPICS``."""
+    everything = f"{ROOT}/{cell}/**"
+    queries = sorted({_acl_key(cell, t.suffix) for t in TOPICS if t.suffix not in OPERATOR_ONLY_QUERIES})
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "read",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            "key_exprs": [everything],
+        },
+        {
+            "id": "receive",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "delete", "reply", "query", "declare_queryable", "liveliness_token"],
+            "key_exprs": [everything],
+        },
+        {
+            "id": "ask",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["query"],
+            "key_exprs": queries,
+        },
+        {
+            "id": "ask operator-only",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["query"],
+            "key_exprs": [f"{ROOT}/{cell}/{s}" for s in OPERATOR_ONLY_QUERIES],
+        },
+    ]
+    policies: list[dict[str, Any]] = [
+        {"rules": ["read", "receive", "ask"], "subjects": list(ACCOUNTS)},
+        {"rules": ["ask operator-only"], "subjects": ["operator"]},
+    ]
+    for account in ACCOUNTS:
+        keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if account in publishers(t)})
+        rules.append(
+            {
+                "id": f"publish {account}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put", "delete", "declare_queryable", "reply"],
+                "key_exprs": [*keys, f"{ROOT}/{cell}/health/{account}"],
+            }
+        )
+        rules.append(
+            {
+                "id": f"presence {account}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["liveliness_token"],
+                "key_exprs": [f"{ROOT}/{cell}/health/{account}"],
+            }
+        )
+        policies.append({"rules": [f"publish {account}", f"presence {account}"], "subjects": [account]})
+    # both properties: a subject matches only a session with this certificate AND this username
+    subjects = [{"id": a, "cert_common_names": [a], "usernames": [a]} for a in ACCOUNTS]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def _b64(pem: bytes) -> str:
+    return base64.b64encode(pem).decode()
+
+
+@dataclass(frozen=True, slots=True)
+class Tls:
+    """PEM material, inlined into a Zenoh config as base64 so one file (one systemd credential) holds
+    all of a service's secrets."""
+
+    ca: bytes
+    cert: bytes
+    key: bytes
+
+
+def router_config(cell: str, listen: Iterable[str], tls: Tls, users_file: str) -> dict[str, Any]:
+    return {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tx": {"lease": 1000},
+                "tls": {
+                    "root_ca_certificate_base64": _b64(tls.ca),
+                    "listen_certificate_base64": _b64(tls.cert),
+                    "listen_private_key_base64": _b64(tls.key),
+                    "enable_mtls": True,  # a client without a certificate of this cell's CA is refused
+                },
+            },
+            "auth": {"usrpwd": {"dictionary_file": users_file}},
+        },
+        "access_control": access_control(cell),
+    }
+
+
+def client_config(account: str, password: str, connect: Iterable[str], tls: Tls) -> dict[str, Any]:
+    return {
+        "mode": "client",
+        "connect": {"endpoints": list(connect)},
+        "listen": {"endpoints": []},  # a client listens nowhere: the router is the only listener
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tx": {"lease": 1000},
+                "tls": {
+                    "root_ca_certificate_base64": _b64(tls.ca),
+                    "connect_certificate_base64": _b64(tls.cert),
+                    "connect_private_key_base64": _b64(tls.key),
+                    "enable_mtls": True,
+                },
+            },
+            "auth": {"usrpwd": {"user": account, "password": password}},
+        },
+    }
+
+
+def users_file(passwords: dict[str, str]) -> str:
+    return "".join(f"{a}:{p}\n" for a, p in sorted(passwords.items()))
+
+
+def to_json5(cfg: dict[str, Any], comment: str) -> str:
+    lines = "".join(f"// {line}\n" for line in comment.splitlines())
+    return lines + json.dumps(cfg, indent=2) + "\n"
+
+
+# --- the deployment's config: every key of every section, commented -----------------------------------
+
+
+def _field_comments(kind: type) -> dict[str, str]:
+    """The comments written beside (or just above) each field of a settings struct, from its source."""
+    try:
+        src = inspect.getsource(kind)
+    except (OSError, TypeError):
+        return {}
+    trailing: dict[int, str] = {}
+    alone: dict[int, str] = {}  # comment lines of their own, which describe the field below them
+    lines = src.splitlines()
+    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+        if tok.type == tokenize.COMMENT:
+            text = tok.string.lstrip("#").strip()
+            row = tok.start[0]
+            (alone if lines[row - 1].lstrip().startswith("#") else trailing)[row] = text
+    out: dict[str, str] = {}
+    cls = ast.parse(src).body[0]
+    assert isinstance(cls, ast.ClassDef)
+    for node in cls.body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            above, row = [], node.lineno - 1
+            while row in alone:
+                above.insert(0, alone[row])
+                row -= 1
+            text = " ".join([*above, trailing.get(node.lineno, "")]).strip()
+            if text:
+                out[node.target.id] = text
+    return out
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"no TOML for {v!r}")
+
+
+def _range(t: msgspec.inspect.Type) -> str:
+    if isinstance(t, msgspec.inspect.UnionType):
+        return " or ".join(filter(None, (_range(x) for x in t.types)))
+    if isinstance(t, msgspec.inspect.LiteralType):
+        return " | ".join(json.dumps(v) for v in t.values)
+    lo = getattr(t, "ge", None) if getattr(t, "ge", None) is not None else getattr(t, "gt", None)
+    hi = getattr(t, "le", None) if getattr(t, "le", None) is not None else getattr(t, "lt", None)
+    if lo is not None or hi is not None:
+        return f"{lo if lo is not None else '…'}–{hi if hi is not None else '…'}"
+    return ""
+
+
+def settings_toml(name: str, kind: type, values: dict[str, Any], header: str = "") -> str:
+    """``[name]`` with every field of ``kind``: the ones in ``values`` set, the others commented out at
+    their defaults, each with its range and the comment from the source."""
+    info = msgspec.inspect.type_info(kind)
+    assert isinstance(info, msgspec.inspect.StructType)
+    notes = _field_comments(kind)
+    lines = [f"[{name}]"] if not header else [header, f"[{name}]"]
+    nested: list[str] = []
+    for f in info.fields:
+        if isinstance(f.type, msgspec.inspect.StructType):
+            sub = values.get(f.name, {})
+            nested.append(settings_toml(f"{name}.{f.name}", f.type.cls, sub if isinstance(sub, dict) else {}))
+            continue
+        why = "; ".join(filter(None, (_range(f.type), notes.get(f.name))))
+        tail = f"  # {why}" if why else ""
+        if f.name in values:
+            lines.append(f"{f.name} = {_toml_value(values[f.name])}{tail}")
+        elif f.default is msgspec.NODEFAULT or f.default is None:
+            lines.append(f"# {f.name} =  # unset{'; ' + why if why else ''}")
+        else:
+            lines.append(f"# {f.name} = {_toml_value(f.default)}{tail}")
+    return "\n".join([*lines, "", *nested])

@@ -1,0 +1,203 @@
+"""A deployed cell's bus (common/cell.py, common/pki.py): the ACL follows the topology, and a real router
+with the generated config holds: mTLS and passwords both required, each account publishes only its keys.
+Also the secure default (a peer listens on loopback only), the install's dry run, and children that die
+with their parent."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cadence.install import Bundle, Options, new_bundle, plan
+from common.bus import Bus, BusConfig
+from common.cell import ACCOUNTS, Tls, access_control, client_config, publishers, router_config, users_file
+from common.pki import common_name, issue, make_ca
+from schemas import HrvWindow, Selection
+from schemas.topology import TOPICS
+from tests.conftest import REPO, free_port
+
+
+def test_every_topic_has_exactly_its_publishers_in_the_acl() -> None:
+    acl = access_control("c1")
+    rules = {r["id"]: r for r in acl["rules"]}
+    for t in TOPICS:
+        if t.publisher == "every service":
+            continue
+        key = f"cadence/c1/{t.suffix}".split("*")[0]
+        owners = {a for a in ACCOUNTS if any(k.startswith(key) for k in rules[f"publish {a}"]["key_exprs"])}
+        assert owners == publishers(t), t.suffix
+    assert publishers(next(t for t in TOPICS if t.suffix == "decision/selection")) == {"decision_maker"}
+    # only the operator may ask the executor to resume
+    asks = [p for p in acl["policies"] if "ask operator-only" in p["rules"]]
+    assert [p["subjects"] for p in asks] == [["operator"]]
+    assert all("cadence/c1/robot/resume" not in k for k in rules["ask"]["key_exprs"])
+
+
+def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
+    p = tmp / f"{name}.json5"
+    p.write_text(json.dumps(cfg))
+    return BusConfig(config_file=str(p))
+
+
+@pytest.mark.asyncio
+async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_keys(tmp_path: Path) -> None:
+    ca = make_ca("cell1")
+    passwords = {a: f"pw-{a}" for a in ACCOUNTS}
+    (tmp_path / "users.txt").write_text(users_file(passwords))
+    port = free_port()
+    endpoint = [f"tls/127.0.0.1:{port}"]
+    leaf = issue(ca, "router", "cell1", ["127.0.0.1"])
+    router = _write(
+        tmp_path,
+        "router",
+        router_config("cell1", endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt")),
+    )
+    certs = {a: issue(ca, a, "cell1", [a]) for a in ACCOUNTS}
+    assert common_name(certs["executor"].cert) == "executor"
+
+    def account(cert: str, user: str) -> BusConfig:
+        c = certs[cert]
+        return _write(
+            tmp_path,
+            f"{cert}-{user}",
+            client_config(user, passwords[user], endpoint, Tls(ca.cert, c.cert, c.key)),
+        )
+
+    sel = Selection(t_ns=1, seq=7, k=3, n=15, delta=-1, reason="stress", window_end_ns=1)
+    window = HrvWindow(
+        t_ns=2, seq=0, start_ns=0, end_ns=2, mean_rr_s=0.8, n_beats=3, excluded_fraction=0.0, quality="good"
+    )
+    async with (
+        await Bus.open(router, "cell1"),
+        await Bus.open(account("monitor", "monitor"), "cell1") as monitor,
+        await Bus.open(account("decision_maker", "decision_maker"), "cell1") as decider,
+        await Bus.open(account("hrv_analyser", "hrv_analyser"), "cell1") as analyser,
+        # a stolen password with another account's certificate
+        await Bus.open(account("monitor", "decision_maker"), "cell1") as mixed,
+    ):
+        selections = monitor.subscribe(monitor.key("decision/selection"), Selection)
+        windows = monitor.subscribe(monitor.key("hrv/window"), HrvWindow)
+        await analyser.until_subscribed(analyser.key("hrv/window"), 10)
+        await decider.until_subscribed(decider.key("decision/selection"), 10)
+        analyser.put(analyser.key("hrv/window"), window, block=True)  # its own key: allowed
+        assert (await windows.receive(10))[1] == window
+        for rogue in (analyser, mixed):
+            rogue.put(rogue.key("decision/selection"), sel, block=True)  # forbidden
+        analyser.put(analyser.key("hrv/window"), window, block=True)  # after them on the same links
+        mixed.put(mixed.key("hrv/window"), window, block=True)  # (the monitor's rights: forbidden too)
+        await windows.receive(10)
+        decider.put(decider.key("decision/selection"), sel, block=True)
+        _, got = await selections.receive(10)
+        assert got == sel and selections.pending == 0  # the decision maker's, and only it
+        assert windows.pending == 0
+    # no certificate of the cell: the router refuses the link
+    stranger = {"mode": "client", "connect": {"endpoints": endpoint, "timeout_ms": 2000}}
+    stranger["transport"] = {"auth": {"usrpwd": {"user": "monitor", "password": passwords["monitor"]}}}
+    with pytest.raises(Exception):  # noqa: B017 (Zenoh's own error type)
+        async with (
+            await Bus.open(router, "cell1"),
+            await Bus.open(_write(tmp_path, "stranger", stranger), "cell1"),
+        ):
+            pass
+
+
+def _listening_ports(pid: int) -> list[str]:
+    """The local addresses of the TCP sockets process ``pid`` listens on, from /proc."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            link = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    out = []
+    for table in ("tcp", "tcp6"):
+        for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:  # LISTEN
+                out.append(f[1])
+    return out
+
+
+@pytest.mark.asyncio
+async def test_a_peer_listens_on_loopback_only_unless_told() -> None:
+    async with await Bus.open(BusConfig(), "cell1"):
+        addrs = _listening_ports(os.getpid())
+    assert addrs, "a peer listens somewhere"
+    loopback = ("0100007F:",)  # 127.0.0.1, as /proc/net/tcp writes it
+    assert all(a.startswith(loopback) for a in addrs), addrs
+
+
+def test_the_dry_run_prints_every_file_and_no_secret() -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "install", "--robot", "192.168.0.10", "--dry-run"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    out = r.stdout
+    for f in (
+        "/etc/cadence/cadence.toml",
+        "/etc/cadence/credentials/router.json5",
+        "cadence-executor.service",
+    ):
+        assert f in out
+    assert 'backend = "ur_rtde"' in out and 'host = "192.168.0.10"' in out and 'source = "polar"' in out
+    assert "PRIVATE KEY" not in out and '"password"' not in out and "_base64" not in out
+    # every key of every section is in the config: set, or commented at its default
+    assert "# fifo_priority = 80" in out and "# window_s = 30.0" in out
+
+
+def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Path) -> None:
+    first = new_bundle(Options(robot="sim", router_host="cellpc"))
+    (tmp_path / "cell.json").write_text(first.to_json())
+    joined = Bundle.load(tmp_path / "cell.json")
+    assert joined == first
+    p = plan(Options(robot="sim", services=("pareto_store",), join=tmp_path / "cell.json"), joined)
+    names = {f.path.name for f in p.files}
+    assert "pareto_store.json5" in names and "router.json5" not in names and "executor.json5" not in names
+    cfg = json.loads(next(f for f in p.files if f.path.name == "pareto_store.json5").text.split("\n", 1)[1])
+    assert cfg["connect"]["endpoints"] == ["tls/cellpc:7447"]
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(Exception, match=r"bad\.json: not a cell bundle"):
+        Bundle.load(tmp_path / "bad.json")
+
+
+CHILD = """
+import os, sys, time
+from common.lifetime import die_with_parent
+parent = os.getpid()
+if os.fork() == 0:  # the child: once it has asked to die with its parent, it says its pid
+    die_with_parent(parent)
+    print(os.getpid(), flush=True)
+    time.sleep(120)
+    os._exit(0)
+time.sleep(120)
+"""
+
+
+def test_a_child_dies_with_its_parent_even_on_sigkill() -> None:
+    parent = subprocess.Popen([sys.executable, "-c", CHILD], stdout=subprocess.PIPE, text=True, cwd=REPO)
+    assert parent.stdout is not None
+    child = int(parent.stdout.readline())
+    parent.send_signal(signal.SIGKILL)
+    parent.wait(10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:  # gone, or a zombie not yet reaped by init: dead either way
+            if Path(f"/proc/{child}/stat").read_text().split(")")[-1].split()[0] == "Z":
+                break
+        except FileNotFoundError:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(child, signal.SIGKILL)
+        raise AssertionError("the child outlived its SIGKILLed parent")

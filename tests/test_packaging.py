@@ -1,0 +1,110 @@
+"""An installed Cadence is whole (issue 16): the wheel carries the example task and the deploy templates,
+and `cadence demo` runs from a fresh venv outside the checkout. And a demo that dies, even of SIGKILL,
+takes its services and the store's planning worker with it."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+
+needs_uv = pytest.mark.skipif(shutil.which("uv") is None, reason="uv is not on PATH (.ci/run installs it)")
+
+
+def _run(cmd: list[str], cwd: Path, timeout: float) -> str:
+    r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout, check=False)
+    assert r.returncode == 0, f"{' '.join(cmd)}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    return r.stdout
+
+
+@needs_uv
+def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path) -> None:
+    uv = shutil.which("uv")
+    assert uv is not None
+    _run([uv, "build", "--wheel", "-o", str(tmp_path / "dist"), str(REPO)], REPO, 300)
+    wheel = next((tmp_path / "dist").glob("cadence-*.whl"))
+    req = tmp_path / "requirements.txt"
+    _run(
+        [uv, "export", "--frozen", "--no-dev", "--no-emit-project", "--no-hashes", "-o", str(req)], REPO, 120
+    )
+    venv = tmp_path / "venv"
+    _run([uv, "venv", "--python", sys.executable, str(venv)], tmp_path, 120)
+    _run(
+        [uv, "pip", "install", "--python", str(venv / "bin" / "python"), "-r", str(req), str(wheel)],
+        tmp_path,
+        600,
+    )
+    work = tmp_path / "elsewhere"  # not the checkout: nothing may be found relative to it
+    work.mkdir()
+    _run([str(venv / "bin" / "cadence"), "demo", "--duration", "60", "--no-live", "--out", "out"], work, 600)
+    s = json.loads((work / "out" / "summary.json").read_text())
+    assert s["selections"] and all(code == 0 for code in s["exit_codes"].values())
+    site = next((venv / "lib").glob("python3*/site-packages"))
+    assert (site / "cadence" / "deploy" / "tasks" / "box_filling.toml").exists()
+    assert (site / "cadence" / "deploy" / "systemd" / "cadence-executor.service").exists()
+
+
+def _descendants(pid: int) -> list[int]:
+    out = subprocess.run(
+        ["pgrep", "-P", str(pid)], capture_output=True, text=True, check=False
+    ).stdout.split()
+    kids = [int(p) for p in out]
+    return kids + [d for k in kids for d in _descendants(k)]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(shutil.which("pgrep") is None, reason="needs pgrep")
+def test_a_killed_demo_leaves_no_process_behind(tmp_path: Path) -> None:
+    demo = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cadence",
+            "demo",
+            "--duration",
+            "600",
+            "--no-live",
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # so that nothing of it is this test's process group
+    )
+    try:
+        # the store is planning: the demo → the store → its planning worker (a grandchild)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not any(_descendants(k) for k in _descendants(demo.pid)):
+            time.sleep(0.1)
+        tree = _descendants(demo.pid)
+        assert any(_descendants(k) for k in tree), "the store's planning worker never started"
+        demo.send_signal(signal.SIGKILL)
+        demo.wait(10)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(_alive(p) for p in tree):
+            time.sleep(0.1)
+        left = [p for p in tree if _alive(p)]
+        assert not left, f"outlived the demo: {left}"
+    finally:
+        for p in _descendants(demo.pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(p, signal.SIGKILL)
+        if demo.poll() is None:
+            demo.kill()
