@@ -492,10 +492,15 @@ def uninstall(keep_venv: bool = False) -> list[str]:
         subprocess.run(
             ["systemctl", "disable", "--now", "cadence.target", *m["units"]], capture_output=True, check=False
         )
+    failed: list[str] = []
     for f in m["files"]:
-        with contextlib.suppress(FileNotFoundError):
+        try:
             os.unlink(f)
             say.append(f"removed {f}")
+        except FileNotFoundError:
+            pass
+        except OSError as exc:  # go on: remove what can be, then say what could not
+            failed.append(f"{f}: {exc.strerror or exc}")
     prefix = Path(m["prefix"])
     if not keep_venv:
         for sub in (".venv", "python"):
@@ -515,4 +520,6 @@ def uninstall(keep_venv: bool = False) -> list[str]:
     if shutil.which("systemctl"):
         subprocess.run(["systemctl", "daemon-reload"], capture_output=True, check=False)
     say.append(f"kept {DATA} (the data: Pareto sets, decision state, recordings)")
+    if failed:
+        raise InstallError("could not remove: " + "; ".join(failed) + " (the rest is removed)")
     return say

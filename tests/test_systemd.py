@@ -1,9 +1,10 @@
 """The shipped deployment under a real systemd (issue 16): systemd 252 boots as PID 1 of a new PID and
-mount namespace, with private /tmp and /var/tmp (its tmpfiles would empty the machine's) and overlays on
-/etc, /var/lib, /var/log (the journal) and /opt: the install touches nothing real. In there, ``cadence install`` with the twin
-and the sim arm, then ``systemctl start cadence.target``, and the cell is watched from outside over its
-router, as the monitor account: loop closed, restarts after kill -9 and kill -STOP, ACL and mTLS hold,
-clean stop, JSON in the journal. Figures are printed (pytest -s) for the note."""
+mount namespace, with private /tmp, /var/tmp and /run (its tmpfiles would empty the machine's) and
+a private /etc and overlays on /var/lib, /var/log and /opt: the install touches nothing real. In there,
+``cadence install`` with the twin and the sim arm, then ``systemctl start cadence.target``, and the
+cell is watched from outside over its router, as the monitor account: loop closed, restarts after
+kill -9 and kill -STOP, ACL and mTLS hold, clean stop, JSON in the journal, uninstall. The figures are
+printed (pytest -s) for the note."""
 
 from __future__ import annotations
 
@@ -37,13 +38,17 @@ set -euo pipefail
 STAGE=$1; SRC=$2
 mount --make-rprivate /
 mount -t tmpfs tmpfs "$STAGE/ov"
-for d in etc var/lib var/log opt; do
+# /etc is copied (small), not overlaid: overlayfs gave ESTALE on unlinking files that sandboxed units
+# had read, which `cadence uninstall` must do
+mkdir -p "$STAGE/ov/etc"; cp -a /etc/. "$STAGE/ov/etc/"; mount --bind "$STAGE/ov/etc" /etc
+for d in var/lib var/log opt; do
   n=${d//\//_}; mkdir -p "$STAGE/ov/$n/u" "$STAGE/ov/$n/w"
   mount -t overlay overlay -o "lowerdir=/$d,upperdir=$STAGE/ov/$n/u,workdir=$STAGE/ov/$n/w" "/$d"
 done
 mount --bind "$SRC" "$STAGE/src"        # the checkout may be under /tmp: keep it where it was
 mount -t tmpfs tmpfs /tmp
 mount -t tmpfs tmpfs /var/tmp
+mount -t tmpfs -o mode=755 tmpfs /run  # its own runtime state and volatile journal
 mkdir -p "$SRC"; mount --bind "$STAGE/src" "$SRC"
 mkdir -p /etc/systemd/system
 cat > /etc/systemd/system/cadence-test-boot.target <<EOT
@@ -97,6 +102,27 @@ class Machine:
                     return
             time.sleep(0.2)
         raise AssertionError(f"systemd did not boot: {(stage / 'systemd.log').read_text()[-2000:]}")
+
+    def put(self, path: str, data: bytes, owner: str = "root") -> None:
+        """Write a file from inside (through /proc/PID/root, overlayfs gave ESTALE on a later unlink)."""
+        r = subprocess.run(
+            [
+                "nsenter",
+                "-t",
+                str(self.pid),
+                "-m",
+                "-p",
+                "sh",
+                "-c",
+                f'cat > "$0" && chown {owner} "$0"',
+                path,
+            ],
+            input=data,
+            capture_output=True,
+            timeout=60,
+            check=False,
+        )
+        assert r.returncode == 0, r.stderr
 
     def sh(self, cmd: str, check: bool = True, timeout: float = 120) -> subprocess.CompletedProcess[str]:
         uv_dir = Path(shutil.which("uv") or "uv").parent  # the rest as here: proxies, certificates
@@ -181,10 +207,9 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
     assert not venv_python.startswith(("/root", "/home")), venv_python
     m.sh("runuser -u cadence -- /opt/cadence/.venv/bin/cadence --help >/dev/null")
     # the test's speed-ups, as an admin would set them: short windows, sets already planned, auto resume
-    m.path("/etc/cadence/hrv_analyser.env").write_text("CADENCE_HRV_ANALYSER_WINDOW_S=10\n")
-    m.path("/etc/cadence/executor.env").write_text("CADENCE_EXECUTOR_RESUME_POLICY=auto\n")
-    shutil.copy(example_sets, m.path("/var/lib/cadence/pareto.sqlite"))
-    m.sh("chown cadence:cadence /var/lib/cadence/pareto.sqlite")
+    m.put("/etc/cadence/hrv_analyser.env", b"CADENCE_HRV_ANALYSER_WINDOW_S=10\n")
+    m.put("/etc/cadence/executor.env", b"CADENCE_EXECUTOR_RESUME_POLICY=auto\n")
+    m.put("/var/lib/cadence/pareto.sqlite", example_sets.read_bytes(), "cadence:cadence")
 
     t_start = time.monotonic()
     m.sh("systemctl start cadence.target")
@@ -263,13 +288,16 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
         await Bus.open(stranger, "cell1")
 
     t_halt = time.monotonic()
-    m.sh("systemctl stop cadence.target", timeout=120)
+    m.sh("systemctl stop cadence.target", timeout=120)  # returns with the target's job; the units' follow
+    m.until(
+        "every unit stopped",
+        lambda: all(m.show(f"cadence-{u}", "ActiveState")["ActiveState"] == "inactive" for u in UNITS),
+        60,
+    )
     stop_s = time.monotonic() - t_halt
     for u in UNITS:
         st = m.show(f"cadence-{u}", "ActiveState", "Result", "ExecMainStatus")
-        log = m.sh(f"systemctl status cadence-{u} --no-pager -n 20", check=False).stdout
-        if st["ActiveState"] != "inactive":
-            print(log)
+        log = m.sh(f"journalctl -u cadence-{u} -n 8 --no-pager -o cat", check=False).stdout
         assert st["ActiveState"] == "inactive" and st["Result"] == "success", (u, st, log)
         assert st["ExecMainStatus"] == "0", (u, st, log)
     journal = m.sh("journalctl -u cadence-decision_maker -o cat --no-pager").stdout.splitlines()
