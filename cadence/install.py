@@ -22,6 +22,7 @@ import grp
 import json
 import os
 import pwd
+import re
 import secrets
 import shutil
 import socket
@@ -418,6 +419,10 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
             f"--services: unknown {sorted(set(opts.services) - set(HOSTS_ALL))}; "
             f"expected some of {', '.join(HOSTS_ALL)}"
         )
+    if not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", opts.cell_name):  # a key chunk, as [cadence] cell
+        raise InstallError(f"--cell {opts.cell_name!r}: letters, digits, '_' and '-' only, at most 64")
+    if not re.fullmatch(r"[A-Za-z0-9.:\-\[\]]{1,253}", opts.robot):
+        raise InstallError(f"--robot {opts.robot!r}: a host name or address, or sim")
     existing = CREDS / "cell.json"
     if opts.join:
         bundle = Bundle.load(opts.join)

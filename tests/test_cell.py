@@ -201,3 +201,22 @@ def test_a_child_dies_with_its_parent_even_on_sigkill() -> None:
     else:
         os.kill(child, signal.SIGKILL)
         raise AssertionError("the child outlived its SIGKILLed parent")
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--services", "executor,planner"], "--services: unknown ['planner']"),
+        (["--join", "/nonexistent/cell.json"], "/nonexistent/cell.json: (file)"),
+        (["--cell", "cell 1/x"], "--cell 'cell 1/x': letters, digits"),
+        (["--robot", "ur16 e"], "--robot 'ur16 e': a host name"),
+    ],
+)
+def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "install", "--robot", "sim", "--dry-run", *args],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert r.returncode == 2 and said in r.stderr, r.stderr

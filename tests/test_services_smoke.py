@@ -1,4 +1,5 @@
-"""Every service's `__main__` as a process: it comes up, reports its status, and exits 0 on SIGTERM."""
+"""Every service's `__main__` as a process: it comes up, reports its status, and exits 0 on SIGTERM (and
+SIGHUP)."""
 
 from __future__ import annotations
 
@@ -18,9 +19,15 @@ from schemas import ServiceStatus
 pytestmark = pytest.mark.asyncio
 
 
-@pytest.mark.parametrize("name", sorted(set(SERVICES) - {"ur_emulator"}))  # not on the bus: its own tests
+CASES = [
+    (name, signal.SIGTERM) for name in sorted(set(SERVICES) - {"ur_emulator"})
+]  # the emulator: its tests
+CASES.append(("decision_maker", signal.SIGHUP))  # a closed terminal or `kill -HUP` stops it cleanly too
+
+
+@pytest.mark.parametrize(("name", "sig"), CASES, ids=[f"{n}-{s.name}" for n, s in CASES])
 async def test_the_service_starts_reports_and_stops_on_sigterm(
-    name: str, tmp_path: Path, endpoint: str
+    name: str, sig: signal.Signals, tmp_path: Path, endpoint: str
 ) -> None:
     cfg = tmp_path / "c.toml"
     text = f"[cadence]\ndata_dir = '{tmp_path}'\nstatus_period_s = 0.1\n[bus]\nconnect = ['{endpoint}']\n"
@@ -37,7 +44,7 @@ async def test_the_service_starts_reports_and_stops_on_sigterm(
             async with asyncio.timeout(30):
                 _, status = await anext(health)
             assert status.service == name
-            proc.send_signal(signal.SIGTERM)
+            proc.send_signal(sig)
             assert await asyncio.to_thread(proc.wait, 20) == 0
         finally:
             proc.kill()

@@ -263,6 +263,8 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
         )
         stop_restart_s = time.monotonic() - t_stop
         assert m.show("cadence-hrv_analyser", "NRestarts")["NRestarts"] != "0"
+        why = m.sh("journalctl -u cadence-hrv_analyser --no-pager -o cat").stdout
+        assert "Watchdog timeout" in why, why[-2000:]  # systemd's own word: its watchdog, not a crash
         await windows.receive(120)  # windows again, from the new process
 
         # ACL: the analyser's own account cannot publish a selection
