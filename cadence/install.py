@@ -34,7 +34,7 @@ from pathlib import Path
 
 from common import cell
 from common.errors import InputError
-from common.pki import Pem, issue, make_ca
+from common.pki import Pem, issue, load_ca, make_ca
 from common.resources import DEPLOY, EXAMPLE_TASK
 
 USER = "cadence"
@@ -119,13 +119,15 @@ class Bundle:
     def load(cls, path: Path) -> Bundle:
         try:
             raw = json.loads(path.read_text())
-            return cls(
+            bundle = cls(
                 cell=str(raw["cell"]),
                 router_host=str(raw["router_host"]),
                 port=int(raw["port"]),
                 ca=Pem(raw["ca_cert"].encode(), raw["ca_key"].encode()),
                 passwords={a: str(raw["passwords"][a]) for a in cell.ACCOUNTS},
             )
+            load_ca(bundle.ca)
+            return bundle
         except OSError as exc:
             raise InstallError(f"{path}: (file): {exc.strerror or exc}") from exc
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
@@ -215,7 +217,7 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
         (TASKS, 0o750, "root", USER),
         (DATA, 0o750, USER, USER),
     ]
-    p.files.append(File(SYSUSERS, f'u {USER} - "Cadence services" {DATA}\n', 0o644, None))
+    p.files.append(File(SYSUSERS, (DEPLOY / "systemd" / "cadence.sysusers").read_text(), 0o644, None))
     p.files.append(File(ETC / "cadence.toml", config_toml(opts, bundle), keep=True))
     p.files.append(File(TASKS / EXAMPLE_TASK.name, EXAMPLE_TASK.read_text(), keep=True))
     p.files.append(File(ETC / "cadence.env", (DEPLOY / "systemd" / "cadence.env").read_text(), keep=True))

@@ -17,7 +17,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-VALID_DAYS = 3650  # a cell is installed for years; rotating means `cadence install --rotate`
+VALID_DAYS = 3650  # a cell runs for years; to renew, remove credentials/ and install again (new CA)
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,12 +86,19 @@ def _san(names: list[str]) -> list[x509.GeneralName]:
     return out
 
 
+def load_ca(ca: Pem) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    """The CA's certificate and key; ``ValueError`` saying what is wrong with them."""
+    cert = x509.load_pem_x509_certificate(ca.cert)
+    key = serialization.load_pem_private_key(ca.key, password=None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey) or key.public_key() != cert.public_key():
+        raise ValueError("the CA key is not the CA certificate's (EC) key")
+    return cert, key
+
+
 def issue(ca: Pem, cn: str, cell: str, hosts: list[str], now: dt.datetime | None = None) -> Pem:
     """A leaf certificate for account ``cn``, good as a server (the router, on ``hosts``) and as a client."""
     now = now or dt.datetime.now(dt.UTC)
-    ca_cert = x509.load_pem_x509_certificate(ca.cert)
-    ca_key = serialization.load_pem_private_key(ca.key, password=None)
-    assert isinstance(ca_key, ec.EllipticCurvePrivateKey)
+    ca_cert, ca_key = load_ca(ca)
     key = ec.generate_private_key(ec.SECP256R1())
     cert = (
         x509.CertificateBuilder()

@@ -169,6 +169,10 @@ def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Pat
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(Exception, match=r"bad\.json: not a cell bundle"):
         Bundle.load(tmp_path / "bad.json")
+    other = json.loads(first.to_json()) | {"ca_key": make_ca("c2").key.decode()}  # another CA's key
+    (tmp_path / "mixed.json").write_text(json.dumps(other))
+    with pytest.raises(Exception, match=r"mixed\.json: not a cell bundle.*not the CA certificate's"):
+        Bundle.load(tmp_path / "mixed.json")
 
 
 CHILD = """
