@@ -126,12 +126,25 @@ def _b64(pem: bytes) -> str:
 
 @dataclass(frozen=True, slots=True)
 class Tls:
-    """PEM material, inlined into a Zenoh config as base64 so one file (one systemd credential) holds
-    all of a service's secrets."""
+    """PEM material, inlined into a Zenoh config as base64, so that one file holds all of an account's
+    secrets."""
 
     ca: bytes
     cert: bytes
     key: bytes
+
+
+def _link(tls: Tls, side: str) -> dict[str, Any]:
+    """Mutual TLS on both ends: a router refuses a client without a certificate of this cell's CA."""
+    return {
+        "tx": {"lease": 1000},
+        "tls": {
+            "root_ca_certificate_base64": _b64(tls.ca),
+            f"{side}_certificate_base64": _b64(tls.cert),
+            f"{side}_private_key_base64": _b64(tls.key),
+            "enable_mtls": True,
+        },
+    }
 
 
 def router_config(cell: str, listen: Iterable[str], tls: Tls, users_file: str) -> dict[str, Any]:
@@ -140,15 +153,7 @@ def router_config(cell: str, listen: Iterable[str], tls: Tls, users_file: str) -
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {
-            "link": {
-                "tx": {"lease": 1000},
-                "tls": {
-                    "root_ca_certificate_base64": _b64(tls.ca),
-                    "listen_certificate_base64": _b64(tls.cert),
-                    "listen_private_key_base64": _b64(tls.key),
-                    "enable_mtls": True,  # a client without a certificate of this cell's CA is refused
-                },
-            },
+            "link": _link(tls, "listen"),
             "auth": {"usrpwd": {"dictionary_file": users_file}},
         },
         "access_control": access_control(cell),
@@ -162,15 +167,7 @@ def client_config(account: str, password: str, connect: Iterable[str], tls: Tls)
         "listen": {"endpoints": []},  # a client listens nowhere: the router is the only listener
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {
-            "link": {
-                "tx": {"lease": 1000},
-                "tls": {
-                    "root_ca_certificate_base64": _b64(tls.ca),
-                    "connect_certificate_base64": _b64(tls.cert),
-                    "connect_private_key_base64": _b64(tls.key),
-                    "enable_mtls": True,
-                },
-            },
+            "link": _link(tls, "connect"),
             "auth": {"usrpwd": {"user": account, "password": password}},
         },
     }
