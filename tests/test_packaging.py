@@ -1,6 +1,6 @@
 """An installed Cadence is whole (issue 16): the wheel carries the example task and the deploy templates,
-and `cadence demo` runs from a fresh venv outside the checkout. And a demo that dies, even of SIGKILL,
-takes its services and the store's planning worker with it."""
+and `cadence demo` runs from a fresh venv outside the checkout. And a store or a demo that dies, even of
+SIGKILL, takes its children with it: the planning worker, the services."""
 
 from __future__ import annotations
 
@@ -69,8 +69,35 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _until(cond, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(what)
+        time.sleep(0.1)
+
+
+def _planning(demo: int, not_store: int | None = None) -> tuple[int, int]:
+    """The demo's store and its planning worker (a spawned process; the resource tracker is not one)."""
+    found: list[tuple[int, int]] = []
+
+    def look() -> bool:
+        for store in _descendants(demo):
+            if store == not_store:
+                continue
+            for kid in _descendants(store):
+                with contextlib.suppress(OSError):
+                    if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                        found.append((store, kid))
+                        return True
+        return False
+
+    _until(look, 120, "the store's planning worker never started")
+    return found[0]
+
+
 @pytest.mark.skipif(shutil.which("pgrep") is None, reason="needs pgrep")
-def test_a_killed_demo_leaves_no_process_behind(tmp_path: Path) -> None:
+def test_a_killed_store_or_demo_leaves_no_process_behind(tmp_path: Path) -> None:
     demo = subprocess.Popen(
         [
             sys.executable,
@@ -89,19 +116,16 @@ def test_a_killed_demo_leaves_no_process_behind(tmp_path: Path) -> None:
         start_new_session=True,  # so that nothing of it is this test's process group
     )
     try:
-        # the store is planning: the demo → the store → its planning worker (a grandchild)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not any(_descendants(k) for k in _descendants(demo.pid)):
-            time.sleep(0.1)
+        # a SIGKILLed store: its planning worker goes with it
+        store, worker = _planning(demo.pid)
+        os.kill(store, signal.SIGKILL)
+        _until(lambda: not _alive(worker), 30, f"the planning worker {worker} outlived its SIGKILLed store")
+        # the demo restarts the store, which plans again; a SIGKILLed demo: every service and worker goes
+        _planning(demo.pid, not_store=store)
         tree = _descendants(demo.pid)
-        assert any(_descendants(k) for k in tree), "the store's planning worker never started"
         demo.send_signal(signal.SIGKILL)
         demo.wait(10)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and any(_alive(p) for p in tree):
-            time.sleep(0.1)
-        left = [p for p in tree if _alive(p)]
-        assert not left, f"outlived the demo: {left}"
+        _until(lambda: not any(_alive(p) for p in tree), 30, "a process outlived the SIGKILLed demo")
     finally:
         for p in _descendants(demo.pid):
             with contextlib.suppress(ProcessLookupError):
