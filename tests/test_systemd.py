@@ -22,8 +22,9 @@ from pathlib import Path
 import pytest
 
 from common.bus import Bus, BusConfig
+from common.task import load_task
 from schemas import CycleReport, HrvWindow, Selection
-from tests.conftest import REPO, free_port
+from tests.conftest import EXAMPLE_TASK, REPO, free_port
 
 TOOLS = ("unshare", "nsenter", "systemctl", "uv")
 SYSTEMD = Path("/lib/systemd/systemd")
@@ -171,8 +172,7 @@ class Machine:
         self.log.close()
 
 
-@pytest.fixture
-def machine() -> Iterator[Machine]:
+def _booted() -> Iterator[Machine]:
     stage = Path("/dev/shm") / f"cadence-systemd-{uuid.uuid4().hex[:8]}"
     m = Machine(stage)
     try:
@@ -180,6 +180,18 @@ def machine() -> Iterator[Machine]:
     finally:
         m.close()
         shutil.rmtree(stage, ignore_errors=True)
+
+
+machine = pytest.fixture(_booted)
+second_machine = pytest.fixture(_booted)  # another host of the same cell (the network is shared)
+
+
+def _speed_ups(m: Machine, example_sets: Path) -> None:
+    """The tests' settings, as an admin would set them: short windows, sets already planned (the store
+    serves them without planning), and the sim arm resuming by itself after a stop on a loaded machine."""
+    m.put("/etc/cadence/hrv_analyser.env", b"CADENCE_HRV_ANALYSER_WINDOW_S=10\n")
+    m.put("/etc/cadence/executor.env", b"CADENCE_EXECUTOR_RESUME_POLICY=auto\n")
+    m.put("/var/lib/cadence/pareto.sqlite", example_sets.read_bytes(), "cadence:cadence")
 
 
 def _account(m: Machine, tmp: Path, name: str) -> BusConfig:
@@ -206,10 +218,7 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
     venv_python = m.sh("readlink -f /opt/cadence/.venv/bin/python").stdout.strip()
     assert not venv_python.startswith(("/root", "/home")), venv_python
     m.sh("runuser -u cadence -- /opt/cadence/.venv/bin/cadence --help >/dev/null")
-    # the test's speed-ups, as an admin would set them: short windows, sets already planned, auto resume
-    m.put("/etc/cadence/hrv_analyser.env", b"CADENCE_HRV_ANALYSER_WINDOW_S=10\n")
-    m.put("/etc/cadence/executor.env", b"CADENCE_EXECUTOR_RESUME_POLICY=auto\n")
-    m.put("/var/lib/cadence/pareto.sqlite", example_sets.read_bytes(), "cadence:cadence")
+    _speed_ups(m, example_sets)
 
     t_start = time.monotonic()
     m.sh("systemctl start cadence.target")
@@ -319,3 +328,39 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
         f" kill -9 → running again {kill_restart_s:.1f} s; kill -STOP → restarted by the watchdog"
         f" {stop_restart_s:.1f} s; systemctl stop {stop_s:.1f} s; {len(records)} JSON journal lines"
     )
+
+
+@needs_root
+@pytest.mark.asyncio
+async def test_a_second_host_joins_the_cell_with_the_first_hosts_bundle(
+    machine: Machine, second_machine: Machine, tmp_path: Path, example_sets: Path
+) -> None:
+    """The README's two-host layout: the cell PC runs the router, the executor and the gateway; the
+    second host joins with the first's cell.json and runs the store, the analyser and the decision maker.
+    A cycle needs both: the executor's sets and selections come from the other host."""
+    cell_pc, second = machine, second_machine
+    port = free_port()
+    install = f"{sys.executable} -m cadence install --robot sim --strap twin"
+    cell_pc.sh(
+        f"{install} --services router,executor,ecg_gateway --port {port} --router-host 127.0.0.1", timeout=900
+    )
+    second.put("/root/cell.json", cell_pc.path("/etc/cadence/credentials/cell.json").read_bytes())
+    second.sh(
+        f"{install} --join /root/cell.json --services pareto_store,hrv_analyser,decision_maker", timeout=900
+    )
+    assert not second.path("/etc/cadence/credentials/router.json5").exists()
+    assert not second.path("/etc/systemd/system/cadence-executor.service").exists()
+    _speed_ups(cell_pc, example_sets)
+    _speed_ups(second, example_sets)
+    for m in (cell_pc, second):
+        m.sh("systemctl start cadence.target")
+    async with await Bus.open(_account(cell_pc, tmp_path, "monitor"), "cell1") as monitor:
+        cycles = monitor.subscribe(monitor.key("robot/cycle"), CycleReport)
+        _, cycle = await cycles.receive(300)
+    assert set(cycle.k_per_path) == set(load_task(EXAMPLE_TASK).paths)
+    for m, units in (
+        (cell_pc, ("router", "executor", "ecg_gateway")),
+        (second, ("pareto_store", "decision_maker")),
+    ):
+        for u in units:
+            assert m.show(f"cadence-{u}", "NRestarts")["NRestarts"] == "0", u  # nobody crashed to get here
