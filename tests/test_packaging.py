@@ -28,7 +28,7 @@ def _run(cmd: list[str], cwd: Path, timeout: float) -> str:
 
 
 @needs_uv
-def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path) -> None:
+def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path, example_sets: Path) -> None:
     uv = shutil.which("uv")
     assert uv is not None
     _run([uv, "build", "--wheel", "-o", str(tmp_path / "dist"), str(REPO)], REPO, 300)
@@ -45,7 +45,9 @@ def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path) -> None:
         600,
     )
     work = tmp_path / "elsewhere"  # not the checkout: nothing may be found relative to it
-    work.mkdir()
+    (work / "out" / "data").mkdir(parents=True)
+    # the sets, planned once per test run: the store checks them against the task the wheel carries
+    shutil.copy(example_sets, work / "out" / "data" / "pareto.sqlite")
     _run([str(venv / "bin" / "cadence"), "demo", "--duration", "60", "--no-live", "--out", "out"], work, 600)
     s = json.loads((work / "out" / "summary.json").read_text())
     assert s["selections"] and all(code == 0 for code in s["exit_codes"].values())
