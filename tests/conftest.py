@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -36,23 +39,44 @@ def example_task_path() -> Path:
     return EXAMPLE_TASK
 
 
-@pytest.fixture(scope="session")
-def example_sets(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The example task's sets, planned once per test run into a store's SQLite file: tests that need
-    them served copy it into their store's data folder (a store serves stored sets without planning).
-    Planning in each test would put the store's low-priority worker behind any CPU load on the machine."""
+def plan_sets(task_file: Path, db: Path) -> Path:
+    """Every path of ``task_file`` planned, in this process, into a store's SQLite file ``db``."""
     from common.planner import content_hash
     from common.task import load_task
     from services.pareto_store.jobs import plan_job
     from services.pareto_store.store import SetStore
 
-    task = load_task(EXAMPLE_TASK)
-    db = tmp_path_factory.mktemp("example_sets") / "pareto.sqlite"
+    task = load_task(task_file)
     store, _ = SetStore.open(db)
     for path in task.paths.values():
         store.save(plan_job(path, task, task.planner, content_hash(path, task.limits, task.planner)))
     store.close()
     return db
+
+
+_PLANNED: dict[str, Path] = {}  # a task program's text → its sets, planned once per test run
+
+
+def planned_once(task_file: Path, tmp_path_factory: pytest.TempPathFactory | None = None) -> Path:
+    """A store's SQLite file with ``task_file``'s sets, planned the first time a test asks for them.
+    A store that plans in each test puts its low-priority worker behind any CPU load on the machine:
+    under CI's load a store took over 60 s to serve a one-path task."""
+    text = task_file.read_text()
+    if text not in _PLANNED:
+        folder = (
+            tmp_path_factory.mktemp("sets") if tmp_path_factory else Path(tempfile.mkdtemp(prefix="sets-"))
+        )
+        if tmp_path_factory is None:
+            atexit.register(shutil.rmtree, folder, True)
+        _PLANNED[text] = plan_sets(task_file, folder / "pareto.sqlite")
+    return _PLANNED[text]
+
+
+@pytest.fixture(scope="session")
+def example_sets(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The example task's sets, planned once per test run into a store's SQLite file: tests that need
+    them served copy it into their store's data folder (a store serves stored sets without planning)."""
+    return planned_once(EXAMPLE_TASK, tmp_path_factory)
 
 
 def now_ns() -> int:

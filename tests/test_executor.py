@@ -21,7 +21,7 @@ from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.conftest import InProcessService
+from tests.conftest import InProcessService, planned_once
 
 pytestmark = pytest.mark.asyncio
 
@@ -83,12 +83,12 @@ def task_file(tmp_path: Path) -> Path:
 async def store_serving(
     bus: Bus, task: Path, data: Path, endpoint: str, planned: Path | None = None
 ) -> InProcessService:
-    """A store serving ``task``; with ``planned`` (a store's SQLite file) it starts from those sets."""
-    if planned is not None:
-        import shutil
+    """A store serving ``task``, from ``planned`` (a store's SQLite file), by default the task's sets as
+    planned once per test run: the store serves stored sets at once (tests of planning are elsewhere)."""
+    import shutil
 
-        data.mkdir(parents=True, exist_ok=True)
-        shutil.copy(planned, data / "pareto.sqlite")
+    data.mkdir(parents=True, exist_ok=True)
+    shutil.copy(planned or planned_once(task), data / "pareto.sqlite")
     health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
     store = InProcessService("pareto_store", store_main, StoreSettings(task=str(task)), data, endpoint)
     async with asyncio.timeout(60):
