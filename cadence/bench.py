@@ -4,12 +4,14 @@ to it measured in the same run (the machines are shared and noisy; absolute time
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from msgspec import structs
 
+from common.hrv_scoring import WindowScore
 from common.limits import JointLimits
 from common.naive import evaluate_naive
 from common.planner import (
@@ -341,6 +343,86 @@ def bench_hrv(
         "good_windows": float(len(errors)),
     }
     return scores, extra
+
+
+def bench_hrv_windows(
+    data_dir: str,
+    fs: float = 130.0,
+    variants: tuple[str, ...] = ("clean",),
+    records: tuple[str, ...] = (),
+    progress: Callable[[str], None] | None = None,
+    peers: bool = True,
+) -> dict[str, dict[str, WindowScore]]:
+    """Issue 19's table: per noise variant, how far the windows each pipeline marks good are from the
+    annotated NN mean (``common.hrv_scoring``), for Cadence (its detector, cleaning and quality gate) and
+    for NeuroKit2 (its default detector with its own artefact correction, Kubios' ``signal_fixpeaks``,
+    and MeanNN over the corrected intervals of each window: it has no quality gate, so every window
+    counts as good), in the same run. Noise is seeded by the record's name (``common.ecg_noise``).
+
+    With the clean variant, also ``cadence-rr``: the same cleaning and gate on a strap's own RR (``input =
+    "rr"``), simulated as the H10 gives it: the annotated beats less every beat that is not normal (the
+    strap leaves premature beats out, so one interval spans each)."""
+    import zlib
+
+    from common.ecg_noise import noisy
+    from common.ecg_records import read_annotations, read_record
+    from common.hrv import intervals, windows
+    from common.hrv_scoring import NN_SYMBOLS, has_arrhythmia_runs, truth
+    from common.rpeaks import detect
+
+    try:
+        import neurokit2 as nk
+    except ImportError:
+        nk = None
+    nk = nk if peers else None
+    paths = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
+    if records:
+        paths = [p for p in paths if p.name in records]
+    out = {
+        v: {"cadence": WindowScore("cadence"), **({"neurokit2": WindowScore("neurokit2")} if nk else {})}
+        for v in variants
+    }
+    if "clean" in out:
+        out["clean"]["cadence-rr"] = WindowScore("cadence-rr")
+    for path in paths:
+        rec, ann = read_record(str(path), fs=fs), read_annotations(str(path))
+        sinus = not has_arrhythmia_runs(ann)
+        end = len(rec.uv) / fs
+        for v in variants:
+            if progress:
+                progress(f"{path.name} {v}")
+            x = noisy(rec.uv, fs, v, seed=zlib.crc32(path.name.encode()))  # type: ignore[arg-type]
+            ws = windows(intervals(detect(x, fs, chunk=13) / fs), 30.0, end_s=end)
+            tr = truth(ann, [w.start_s for w in ws], 30.0, end)
+            out[v]["cadence"].add(
+                path.name,
+                tr,
+                [w.mean_rr_s if w.quality == "good" else None for w in ws],
+                [w.reason or "" for w in ws],
+                sinus,
+            )
+            if nk is not None:
+                _, info = nk.ecg_peaks(
+                    nk.ecg_clean(x, sampling_rate=fs), sampling_rate=fs, correct_artifacts=True
+                )
+                peaks = np.asarray(info["ECG_R_Peaks"], dtype=float) / fs
+                rr, t_end = np.diff(peaks), peaks[1:]
+                means = []
+                for t in tr:
+                    sel = (t_end >= t.start_s) & (t_end < t.end_s)
+                    means.append(float(rr[sel].mean()) if sel.any() else None)
+                out[v]["neurokit2"].add(path.name, tr, means, ["no beats"] * len(tr), sinus)
+            if v == "clean":
+                normal = [t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS]
+                ws = windows(intervals(np.array(normal)), 30.0, end_s=end)
+                out[v]["cadence-rr"].add(
+                    path.name,
+                    tr,
+                    [w.mean_rr_s if w.quality == "good" else None for w in ws],
+                    [w.reason or "" for w in ws],
+                    sinus,
+                )
+    return out
 
 
 @dataclass(frozen=True, slots=True)

@@ -515,11 +515,56 @@ def cmd_decide(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_hrv_windows(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_hrv_windows
+    from common.ecg_noise import VARIANTS
+
+    variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+    records = tuple(r for r in (args.records or "").split(",") if r)
+    with Progress(console=err, transient=True) as bar:
+        task = bar.add_task("scoring windows", total=None)
+        scores = bench_hrv_windows(
+            args.data, args.fs, variants, records, progress=lambda what: bar.update(task, description=what)
+        )
+    table = Table(title=f"30 s windows marked good vs the annotated NN mean, {args.fs:g} Hz")
+    for col in ("variant", "pipeline", "good", "held", "held sinus", "p95 ms", ">10 ms", ">20 ms", "worst"):
+        table.add_column(col, justify="left" if col in ("variant", "pipeline") else "right", no_wrap=True)
+    figures: dict[str, dict[str, dict[str, float | int | str]]] = {}
+    notes = []
+    for v, by_name in scores.items():
+        for name, sc in by_name.items():
+            f = figures.setdefault(v, {})[name] = sc.figures()
+            table.add_row(
+                v,
+                name,
+                str(f["good"]),
+                str(f["held"]),
+                f"{float(f['held_share_sinus']) * 100:.1f} %",
+                f"{f['p95_ms']:.2f}",
+                str(f["over_10_ms"]),
+                str(f["over_20_ms"]),
+                f"{f['worst_ms']} ms",
+            )
+            if f["worst_records"] and name == "cadence":
+                notes.append(f"{v}: {f['worst_records']}")
+    out.print(table)
+    out.print("held sinus: the share held on the records without arrhythmia runs")
+    if notes:
+        out.print("Cadence's windows over 10 ms, worst first: " + "; ".join(notes))
+    print(json.dumps(figures))
+    return 0
+
+
 def cmd_bench_hrv(args: argparse.Namespace) -> int:
     from cadence.bench import bench_hrv
 
     if not Path(args.data).is_dir():
         raise InputError(f"{args.data}: no such folder (the annotated recordings, e.g. ../shared/data/ecg)")
+    if args.windows:
+        return _bench_hrv_windows(args)
     with err.status("detecting beats on every record …"):
         scores, extra = bench_hrv(args.data, args.fs)
     table = Table(
@@ -1030,6 +1075,18 @@ def build_parser() -> argparse.ArgumentParser:
     bh.add_argument(
         "--fs", type=float, default=130.0, help="sample rate to resample to (default 130, the H10's)"
     )
+    bh.add_argument(
+        "--windows",
+        action="store_true",
+        help="score the 30 s windows instead: how far each window marked good is from the annotated NN "
+        "mean (p95, over 10 and 20 ms, the share held), for Cadence and NeuroKit2, per noise variant",
+    )
+    bh.add_argument(
+        "--variants",
+        metavar="V,…",
+        help="with --windows: noise variants (clean, white12, white6, wander, motion; default all)",
+    )
+    bh.add_argument("--records", metavar="R,…", help="with --windows: only these records (default all)")
     bh.set_defaults(func=cmd_bench_hrv)
 
     run = sub.add_parser("run", help="run one service (production: one systemd unit each)")

@@ -28,6 +28,7 @@ from rich.table import Table
 from cadence.report import from_demo, write_report
 from common.bus import Bus, BusConfig
 from common.clock import Clock
+from common.errors import CadenceError
 from common.lifetime import PARENT_ENV
 from common.motion import routine_change
 from common.resources import EXAMPLE_TASK
@@ -45,6 +46,7 @@ from schemas import (
     ServiceStatus,
 )
 
+STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
 ORDER = ("pareto_store", "decision_maker", "hrv_analyser", "ecg_gateway", "executor")
 RESTART_DELAY_S = 0.5
 STOP_TIMEOUT_S = 15.0
@@ -257,10 +259,33 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             obs.errors += 1
 
         bus.handle(bus.key("operator/error"), OperatorError, _call(on_error))
+        up: set[str] = set()
+        all_up = asyncio.Event()
+
+        def on_status(st: ServiceStatus) -> None:
+            up.add(st.service)
+            if up >= set(ORDER):
+                all_up.set()
+
+        bus.handle(bus.key("health/*"), ServiceStatus, _call(on_status))
         for name in ORDER[1:]:
             start(name, clock.epoch_ns)
+        # the run's duration counts from when every service is up: on a slow or loaded machine their start
+        # (imports, sessions) can take longer than a short run, which would then end before it began
+        with console.status("starting the services …"):
+            try:
+                async with asyncio.timeout(STARTUP_TIMEOUT_S):
+                    await all_up.wait()
+            except TimeoutError:
+                stopping.set()
+                for p in procs.values():
+                    await p.stop()
+                missing = ", ".join(sorted(set(ORDER) - up))
+                raise CadenceError(
+                    f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
+                ) from None
         kills = sorted(opts.kill, key=lambda k: k[1])
-        end_ns = clock.epoch_ns + round(opts.duration_s * 1e9)
+        end_ns = clock.now_ns() + round(opts.duration_s * 1e9)
         live = Live(console=console, refresh_per_second=4, transient=False) if opts.live else None
         try:
             if live is not None:

@@ -19,6 +19,16 @@ BEAT_SYMBOLS = frozenset("NLRBAaJSVrFejnE/fQ?")
 
 
 @dataclass(frozen=True, slots=True)
+class Annotations:
+    """A record's reference annotations, all of them: beats, rhythm changes (``aux`` like ``(VFL``) and
+    the flutter marks ``[`` ``!`` ``]``."""
+
+    t_s: NDArray[np.float64]
+    symbol: list[str]
+    aux: list[str]
+
+
+@dataclass(frozen=True, slots=True)
 class Recording:
     fs: float
     uv: NDArray[np.float64]  # one lead, µV
@@ -64,6 +74,19 @@ def _read_wfdb(p: Path, lead: int) -> Recording:
             raise InputError(f"{p}.atr: cannot read the annotations: {exc}") from exc
         beats = np.array([s for s, sym in zip(a.sample, a.symbol, strict=True) if sym in BEAT_SYMBOLS]) / r.fs
     return Recording(float(r.fs), uv, beats)
+
+
+def read_annotations(path: str) -> Annotations:
+    """Every reference annotation of a WFDB record (beats, rhythm changes, noise marks), in seconds."""
+    import wfdb
+
+    p = Path(path)
+    try:
+        a = wfdb.rdann(str(p), "atr")
+    except Exception as exc:
+        raise InputError(f"{p}.atr: cannot read the annotations: {exc}") from exc
+    aux = list(a.aux_note) if a.aux_note is not None else [""] * len(a.sample)
+    return Annotations(np.asarray(a.sample, dtype=float) / float(a.fs), list(a.symbol), aux)
 
 
 def _read_csv(p: Path) -> Recording:

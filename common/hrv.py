@@ -16,7 +16,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.hrv import HoldReason, Quality
+
 TOLERANCE = 0.2  # relative departure from the local median that excludes an interval
+PREMATURE, PAUSE = 0.08, 0.05  # a beat this much early, then a pause this much long: premature
 NEIGHBOURS = 5  # on each side, for the local median
 MIN_RR_S, MAX_RR_S = 0.25, 2.5  # physiological bounds (240 and 24 beats per minute)
 MAX_EXCLUDED = 0.2  # a window with more excluded intervals than this is low quality
@@ -25,7 +28,6 @@ RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the 
 
 Kind = Literal["ok", "missed", "extra", "ectopic", "implausible"]
 Gaps = tuple[tuple[float, float], ...] | list[tuple[float, float]]  # (start, end) of missing data, s
-Quality = Literal["good", "low", "none"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,22 +62,52 @@ def classify(rr: NDArray[np.float64]) -> list[Kind]:
 
 
 def classify_one(rr: NDArray[np.float64] | list[float], i: int) -> Kind:
-    """Interval i against the median of up to NEIGHBOURS plausible intervals on each side."""
+    """Interval i, from ``rr[i - NEIGHBOURS : i + NEIGHBOURS + 1]`` only (the stream classifies an
+    interval once NEIGHBOURS follow it).
+
+    The reference is the median of the plausible intervals around i, leaving out i and its two
+    neighbours (a premature beat moves two intervals). An interval is excluded when it departs from the
+    reference by more than TOLERANCE, or when a beat at either end of it is premature: the interval
+    that beat closes is short by more than TOLERANCE, or short by more than PREMATURE with the next
+    one long by more than PAUSE (a mildly early beat and its compensatory pause). The reference counts
+    intervals between normal beats (NN), as the annotations' truth does: both intervals around an
+    ectopic beat go. The second half of an interval that a false beat split is not premature: its
+    closing beat is a real one.
+    """
     x = rr[i]
     if not MIN_RR_S <= x <= MAX_RR_S:
         return "implausible"
-    lo, hi = max(0, i - NEIGHBOURS), min(len(rr), i + NEIGHBOURS + 1)
-    neigh = np.array([v for j, v in enumerate(rr[lo:hi], start=lo) if j != i and MIN_RR_S <= v <= MAX_RR_S])
-    if neigh.size < 2:
+    n = len(rr)
+    lo, hi = max(0, i - NEIGHBOURS), min(n, i + NEIGHBOURS + 1)
+    neigh = [rr[j] for j in range(lo, hi) if abs(j - i) > 1 and MIN_RR_S <= rr[j] <= MAX_RR_S]
+    if len(neigh) < 2:
         return "ok"
-    ratio = x / float(np.median(neigh))
-    if abs(ratio - 1.0) <= TOLERANCE:
-        return "ok"
-    if 1.6 <= ratio <= 2.4:
-        return "missed"
-    if ratio <= 0.6:
-        return "extra"
-    return "ectopic"
+    ref = float(np.median(neigh))
+    ratio = x / ref
+    if abs(ratio - 1.0) > TOLERANCE:
+        if 1.6 <= ratio <= 2.4:
+            return "missed"
+        if ratio <= 0.6:
+            return "extra"
+        return "ectopic"
+
+    def premature(a: int) -> bool:  # the beat that closes interval a
+        if not 0 <= a < n or not MIN_RR_S <= rr[a] <= MAX_RR_S:
+            return False
+        if (
+            a >= 1
+            and rr[a - 1] < (1.0 - TOLERANCE) * ref
+            and abs((rr[a - 1] + rr[a]) / ref - 1.0) <= TOLERANCE
+        ):
+            return False  # the second half of an interval a false beat split: its beat is the real one
+        short = rr[a] / ref
+        if short < 1.0 - TOLERANCE:
+            return True
+        return a + 1 < n and short < 1.0 - PREMATURE and rr[a + 1] / ref > 1.0 + PAUSE
+
+    if premature(i) or premature(i - 1):
+        return "ectopic"
+    return "ok"
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,6 +120,21 @@ class Window:
     quality: Quality
     rmssd_s: float | None
     sdnn_s: float | None
+    reason: HoldReason | None = None  # why it is not good
+
+
+@dataclass(frozen=True, slots=True)
+class Beat:
+    """A beat once the cleaning has decided on the interval it ends (``rr_s`` 0 and kind ``start`` for
+    the first beat of a segment, which ends no interval): what ``hrv/beats`` publishes."""
+
+    t_s: float
+    rr_s: float
+    kind: Kind | Literal["start"]
+
+    @property
+    def excluded(self) -> bool:
+        return self.kind != "ok"
 
 
 def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ()) -> Window:
@@ -100,10 +147,15 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
     n = int(rr.size)
     excluded = float(bad.mean()) if n else 1.0
     if clean.size == 0:
-        return Window(start_s, end_s, None, n, excluded, "none", None, None)
+        return Window(start_s, end_s, None, n, excluded, "none", None, None, "no_clean_beats")
     coverage = float(clean.sum()) / (end_s - start_s)
-    gapped = any(g0 < end_s and g1 > start_s for g0, g1 in gaps_s)
-    good = excluded <= MAX_EXCLUDED and coverage >= MIN_COVERAGE and not gapped
+    reason: HoldReason | None = None
+    if any(g0 < end_s and g1 > start_s for g0, g1 in gaps_s):
+        reason = "gap"
+    elif excluded > MAX_EXCLUDED:
+        reason = "excluded"
+    elif coverage < MIN_COVERAGE:
+        reason = "coverage"
     # successive differences only between intervals that are next to each other and both clean
     idx = np.nonzero(sel)[0]
     pairs = [
@@ -118,9 +170,10 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
         float(clean.mean()),
         n,
         excluded,
-        "good" if good else "low",
+        "good" if reason is None else "low",
         rmssd,
         float(clean.std(ddof=1)) if clean.size > 1 else None,
+        reason,
     )
 
 
@@ -185,6 +238,7 @@ class HrvStream:
         self._done_t: list[float] = []
         self._done_rr: list[float] = []
         self._done_kind: list[Kind] = []
+        self._beats: list[Beat] = []  # final since the last feed
         self.gaps: list[tuple[float, float]] = []
         self._win_start: float | None = None
         self._now = 0.0
@@ -193,8 +247,8 @@ class HrvStream:
 
     def feed(
         self, t0_s: float, samples: NDArray[np.float64], gap: bool = False
-    ) -> tuple[list[float], list[Window]]:
-        """Returns (new peak times, windows now final)."""
+    ) -> tuple[list[Beat], list[Window]]:
+        """Returns (beats now final, windows now final)."""
         samples = np.asarray(samples, dtype=float)
         if self._win_start is None:
             self._win_start = t0_s
@@ -212,9 +266,9 @@ class HrvStream:
         self._now = self._next_t
         peaks += self._add_peaks(found)
         self._classify(final=False)
-        return peaks, self._close_windows(final=False)
+        return self._take_beats(), self._close_windows(final=False)
 
-    def feed_rr(self, t_s: float, rr_s: list[float], gap: bool = False) -> tuple[list[float], list[Window]]:
+    def feed_rr(self, t_s: float, rr_s: list[float], gap: bool = False) -> tuple[list[Beat], list[Window]]:
         """Device RR (a strap that sends no ECG) instead of samples; ``t_s`` is the notification time.
 
         The device gives intervals, not beat times: the beats are placed by summing them from an anchor,
@@ -241,12 +295,17 @@ class HrvStream:
             peaks += self._add_times([last])
         self._now = max(self._now, t_s, *peaks)
         self._classify(final=False)
-        return peaks, self._close_windows(final=False)
+        return self._take_beats(), self._close_windows(final=False)
 
-    def flush(self) -> tuple[list[float], list[Window]]:
-        peaks = self._end_segment() if self._det is not None or self._seg_peaks else []
+    def flush(self) -> tuple[list[Beat], list[Window]]:
+        if self._det is not None or self._seg_peaks:
+            self._end_segment()
         self._det = None
-        return peaks, self._close_windows(final=True)
+        return self._take_beats(), self._close_windows(final=True)
+
+    def _take_beats(self) -> list[Beat]:
+        out, self._beats = self._beats, []
+        return out
 
     def _end_segment(self) -> list[float]:
         peaks = self._add_peaks(self._det.flush()) if self._det is not None else []
@@ -262,6 +321,8 @@ class HrvStream:
             if self._seg_peaks:
                 self._seg_rr.append(t - self._seg_peaks[-1])
                 self._seg_t.append(t)
+            else:
+                self._beats.append(Beat(t, 0.0, "start"))
             self._seg_peaks.append(t)
         return times
 
@@ -271,6 +332,7 @@ class HrvStream:
             self._done_t.append(self._seg_t[i])
             self._done_rr.append(self._seg_rr[i])
             self._done_kind.append(classify_one(self._seg_rr, i))
+            self._beats.append(Beat(self._seg_t[i], self._seg_rr[i], self._done_kind[-1]))
         self._classified = max(self._classified, upto)
 
     def _close_windows(self, final: bool) -> list[Window]:

@@ -9,6 +9,9 @@ import msgspec
 from schemas.base import RR_MAX_S, Fraction, Message, RrSeconds, TimeNs
 
 Quality = Literal["good", "low", "none"]
+# why a window is not good: data missing in it, too many of its intervals excluded by the cleaning, too
+# little of it covered by clean intervals, or no clean interval at all
+HoldReason = Literal["gap", "excluded", "coverage", "no_clean_beats"]
 MAX_WINDOW_S = 600.0  # a window is 30 s by default; none is longer than ten minutes
 MAX_BEATS = 1000  # per Beats message, and far above what a window at 300 bpm can hold (x 3 for 600 s)
 Spread = Annotated[float, msgspec.Meta(ge=0.0, le=RR_MAX_S)]
@@ -40,6 +43,7 @@ class HrvWindow(Message, frozen=True, tag="hrv.window.v1"):
     quality: Quality
     rmssd_s: Spread | None = None
     sdnn_s: Spread | None = None
+    reason: HoldReason | None = None  # why the window is not good; None when it is (added in 0.x, optional)
 
     def __post_init__(self) -> None:
         if not self.start_ns < self.end_ns:
@@ -48,3 +52,5 @@ class HrvWindow(Message, frozen=True, tag="hrv.window.v1"):
             raise ValueError(f"the window is longer than {MAX_WINDOW_S:g} s")
         if self.quality == "good" and self.mean_rr_s is None:
             raise ValueError("a good window has a mean RR")
+        if self.quality == "good" and self.reason is not None:
+            raise ValueError(f"a good window has no reason to be held (got {self.reason!r})")

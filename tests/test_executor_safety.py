@@ -258,9 +258,16 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
             assert (await resume(bus)).startswith("ready")
 
             # a bump against the arm: the controller's own protective stop, which its dashboard unlocks
-            await next_of(states, lambda s: s.mode == "moving", timeout=60)
-            emu.proc.send_signal(signal.SIGUSR1)
-            bumped = await next_of(events, lambda e: e.kind == "protective_stop", timeout=30)
+            for _ in range(3):
+                await next_of(states, lambda s: s.mode == "moving", timeout=60)
+                emu.proc.send_signal(signal.SIGUSR1)
+                bumped = await next_of(events, lambda e: e.kind == "protective_stop", timeout=30)
+                if "protective stop" in bumped.message:
+                    break
+                # a loaded machine's stall tripped the controller's watchdog first: clear it and bump again
+                async with asyncio.timeout(30):
+                    while not (await resume(bus)).startswith("ready"):
+                        await next_of(states, timeout=10)
             held = await still_while_stopped(states, n=25)
             early = await resume(bus)  # within 5 s of the stop: the controller refuses
             async with asyncio.timeout(30):

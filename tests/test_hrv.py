@@ -12,7 +12,7 @@ import pytest
 from common.ecg_records import read_record
 from common.hrv import HrvStream, classify, intervals, windows
 from common.rpeaks import detect
-from tests.test_rpeaks import ECG, RECORDS, needs_data
+from tests.test_rpeaks import ECG, needs_data
 
 
 def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
@@ -25,26 +25,29 @@ def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
     assert sum(k != "ok" for k in kinds) == 5
 
 
+def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a_false_one() -> None:
+    rr = np.full(30, 0.8)
+    rr[8], rr[9] = 0.72, 0.86  # 10 % early, then a pause: within TOLERANCE each, a premature beat as a pair
+    rr[20], rr[21] = 0.3, 0.5  # a false beat splits an interval: the beat closing 21 is a real one
+    kinds = classify(rr)
+    assert kinds[8] == kinds[9] == "ectopic"
+    assert kinds[22] == "ok" and kinds[7] == "ok" and kinds[10] == "ok"
+    assert sum(k != "ok" for k in kinds) == 4
+
+
 @needs_data
-def test_window_mean_rr_error_against_the_annotations() -> None:
-    errors = []
-    for name in RECORDS:
-        rec = read_record(str(ECG / name), fs=130.0)
-        end = len(rec.uv) / 130.0
-        ours = windows(intervals(detect(rec.uv, 130.0) / 130.0), 30.0, end_s=end)
-        ref = windows(intervals(rec.beats_s), 30.0, end_s=end)
-        errors += [
-            abs(a.mean_rr_s - b.mean_rr_s)
-            for a, b in zip(ours, ref, strict=True)
-            if a.quality == "good" and b.mean_rr_s is not None
-        ]
-    errors_ms = np.array(errors) * 1000
-    print(
-        f"{len(errors_ms)} good windows: median {np.median(errors_ms):.2f} ms, "
-        f"p95 {np.percentile(errors_ms, 95):.2f} ms"
-    )
-    assert np.median(errors_ms) <= 2.0
-    assert np.percentile(errors_ms, 95) <= 5.0
+def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> None:
+    """Issue 19's scorer on the shared records: the truth is the mean of the annotated NN intervals."""
+    from cadence.bench import bench_hrv_windows
+
+    score = bench_hrv_windows(str(ECG), 130.0, ("clean",), peers=False)["clean"]["cadence"]
+    f = score.figures()
+    print(f)
+    assert f["p95_ms"] <= 5.0
+    assert f["held_share_sinus"] <= 0.24  # holding everything would be accurate and useless
+    # what is left over 20 ms: 101 at 300 s and 105 at 1290 s, where the annotators marked noise and left
+    # out a beat in it, so their "NN" interval is 1.4-1.9 s long (issue 19, still open on them)
+    assert f["over_20_ms"] <= 2 and set(str(f["worst_records"]).split(", ")) <= {"101", "105", "208"}
 
 
 @needs_data
@@ -143,7 +146,7 @@ def device_rr(beats: np.ndarray, every_s: float = 1.0) -> list[tuple[float, list
 
 @needs_data
 def test_device_rr_gives_the_windows_of_the_same_beats() -> None:
-    beats = read_record(str(ECG / "208"), fs=130.0).beats_s
+    beats = read_record(str(ECG / "106"), fs=130.0).beats_s
     beats = beats[beats < 600.0]
     offline = windows(intervals(beats), 30.0, start_s=float(beats[0]), end_s=float(beats[-1]))
     stream, online = HrvStream(1024.0), []
@@ -154,7 +157,7 @@ def test_device_rr_gives_the_windows_of_the_same_beats() -> None:
     for a, b in zip(online, offline, strict=True):
         assert (a.start_s, a.n_beats, a.quality) == pytest.approx((b.start_s, b.n_beats, b.quality))
         assert a.mean_rr_s == pytest.approx(b.mean_rr_s, abs=1e-9)
-    assert {w.quality for w in online} >= {"good", "low"}  # record 208's ectopic runs are seen in RR too
+    assert {w.quality for w in online} >= {"good", "low"}  # record 106's runs of PVCs are seen in RR too
 
 
 @needs_data
@@ -173,3 +176,22 @@ def test_lost_rr_notifications_form_no_interval_across_them() -> None:
     # an interval across the lost stretch would be ~10 s long, implausible, and excluded
     assert by_start[30].quality == "low" and by_start[30].excluded == 0.0
     assert by_start[0].quality == "good" and by_start[60].quality == "good"
+
+
+@needs_data
+def test_the_beats_the_stream_flags_are_the_intervals_its_windows_exclude() -> None:
+    rec = read_record(str(ECG / "208"), fs=130.0)
+    x = rec.uv[: 130 * 300]
+    stream, beats, wins = HrvStream(130.0), [], []
+    for i in range(0, len(x), 130):
+        b, w = stream.feed(i / 130.0, x[i : i + 130])
+        beats, wins = beats + b, wins + w
+    b, w = stream.flush()
+    beats, wins = beats + b, wins + w
+    iv = intervals(np.array([b.t_s for b in beats]))
+    assert beats[0].kind == "start" and beats[0].excluded and [b.kind for b in beats[1:]] == iv.kind
+    assert any(b.excluded for b in beats[1:]) and not all(b.excluded for b in beats[1:])  # 208: many PVCs
+    for w in wins:
+        inside = [b for b in beats[1:] if w.start_s <= b.t_s < w.end_s]
+        assert w.excluded == pytest.approx(np.mean([b.excluded for b in inside]))
+        assert (w.reason is None) == (w.quality == "good")

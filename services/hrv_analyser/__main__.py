@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from common.admission import TimeLine
-from common.hrv import MAX_RR_S, MIN_RR_S, RR_RESYNC_S, HrvStream, Window
+from common.hrv import RR_RESYNC_S, Beat, HrvStream, Window
 from common.service import ServiceContext, service_main
 from schemas.ecg import EcgChunk, RrIntervals
 from schemas.hrv import Beats, HrvWindow
@@ -49,34 +49,25 @@ async def main(ctx: ServiceContext) -> None:
         if settings.input == "rr"
         else TimeLine(MAX_GAP_S, tolerance_s=CHUNK_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
     )
-    last_peak: float | None = None
     seq = {"beats": 0, "window": 0}
 
     def ns(t_s: float) -> int:
         return origin_ns + round(t_s * 1e9)
 
-    def publish(peaks: list[float], wins: list[Window], fresh: bool) -> None:
-        nonlocal last_peak
-        if fresh:  # a new segment: no interval reaches back across its gap
-            last_peak = None
-        if peaks:
-            # the RR ending at each peak; 0 for the first peak of a segment (none spans a gap)
-            rr = [
-                p - q if q is not None else 0.0 for p, q in zip(peaks, [last_peak, *peaks[:-1]], strict=True)
-            ]
-            last_peak = peaks[-1]
+    def publish(beats: list[Beat], wins: list[Window]) -> None:
+        if beats:  # flagged as the windows use them: the cleaning's verdict on the interval each ends
             bus.put(
                 beats_key,
                 Beats(
-                    t_ns=ns(peaks[-1]),
+                    t_ns=ns(beats[-1].t_s),
                     seq=seq["beats"],
-                    peak_t_ns=[ns(p) for p in peaks],
-                    rr_s=rr,
-                    excluded=[not MIN_RR_S <= r <= MAX_RR_S for r in rr],
+                    peak_t_ns=[ns(b.t_s) for b in beats],
+                    rr_s=[b.rr_s for b in beats],
+                    excluded=[b.excluded for b in beats],
                 ),
             )
             seq["beats"] += 1
-            ctx.counters["beats"] += len(peaks)
+            ctx.counters["beats"] += len(beats)
         for w in wins:
             bus.put(
                 window_key,
@@ -91,6 +82,7 @@ async def main(ctx: ServiceContext) -> None:
                     quality=w.quality,
                     rmssd_s=w.rmssd_s,
                     sdnn_s=w.sdnn_s,
+                    reason=w.reason,
                 ),
                 block=True,
             )
@@ -107,7 +99,7 @@ async def main(ctx: ServiceContext) -> None:
         if verdict.action == "restart":
             ctx.counters["stream_restarts"] += 1
             if stream is not None:
-                publish(*stream.flush(), fresh=False)
+                publish(*stream.flush())
             stream = None
         return True
 
@@ -120,9 +112,7 @@ async def main(ctx: ServiceContext) -> None:
             return
         if stream is None:
             stream, origin_ns = HrvStream(chunk.fs_hz, settings.window_s), chunk.t_ns
-        segments = stream.segments
-        peaks, wins = stream.feed((chunk.t_ns - origin_ns) / 1e9, chunk.samples_uv, chunk.gap)
-        publish(peaks, wins, fresh=stream.segments != segments)
+        publish(*stream.feed((chunk.t_ns - origin_ns) / 1e9, chunk.samples_uv, chunk.gap))
 
     async def on_rr(key: str, msg: RrIntervals) -> None:
         nonlocal stream, origin_ns
@@ -130,9 +120,7 @@ async def main(ctx: ServiceContext) -> None:
             return
         if stream is None:
             stream, origin_ns = HrvStream(RR_RESOLUTION_HZ, settings.window_s), msg.t_ns
-        segments = stream.segments
-        peaks, wins = stream.feed_rr((msg.t_ns - origin_ns) / 1e9, msg.rr_s, msg.gap)
-        publish(peaks, wins, fresh=stream.segments != segments)
+        publish(*stream.feed_rr((msg.t_ns - origin_ns) / 1e9, msg.rr_s, msg.gap))
 
     if settings.input == "rr":
         bus.handle(rr_key, RrIntervals, on_rr, maxsize=10_000)

@@ -21,3 +21,47 @@ def test_bench_hrv_against_established_detectors() -> None:
         pytest.skip("no established detector installed (uv sync --extra bench)")
     assert ours.f1 >= 0.99
     assert extra["window_err_median_ms"] <= 2.0
+
+
+@needs_data
+def test_bench_hrv_windows_prints_cadence_and_neurokit2_per_noise_variant() -> None:
+    """The window scorer's CLI on one noisy record (the whole set is `cadence bench hrv --windows`)."""
+    import json
+    import subprocess
+    import sys
+
+    args = ["--windows", "--data", str(ECG), "--records", "105", "--variants", "clean,white6,motion"]
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "bench", "hrv", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr
+    print("\n" + r.stdout)
+    figures = json.loads(r.stdout.strip().splitlines()[-1])
+    assert set(figures) == {"clean", "white6", "motion"}
+    for by_pipeline in figures.values():
+        ours = by_pipeline["cadence"]
+        assert ours["p95_ms"] <= 5.0 and ours["held_share_sinus"] <= 0.24
+        if "neurokit2" in by_pipeline:  # the same windows scored for both (it holds none)
+            peer = by_pipeline["neurokit2"]
+            assert peer["good"] == ours["good"] + ours["held"] and peer["held"] == 0
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cadence",
+            "bench",
+            "hrv",
+            "--windows",
+            "--variants",
+            "pink",
+            "--data",
+            str(ECG),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "unknown pink" in bad.stderr

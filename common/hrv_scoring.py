@@ -1,0 +1,142 @@
+"""How far the windows a pipeline marks good are from the truth, on annotated records (issue 19).
+
+Alg. 1 moves k one step for each Δ_rs = 20 ms of mean RR, so what matters is not the F1 of the beats but
+the error of each window that is allowed to move k. The truth of a window is the mean of the annotated
+NN intervals (both beats normal: N L R e j) whose closing beat lies in it. A window is not scored when it
+has fewer than ``MIN_NN`` of them (there is no truth to compare with) or touches ventricular flutter or
+fibrillation (no RR interval means anything there).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from common.ecg_records import BEAT_SYMBOLS, Annotations
+
+NN_SYMBOLS = frozenset("NLRej")  # normal beats of MIT-BIH's beat labels
+MIN_NN = 10
+
+
+def has_arrhythmia_runs(ann: Annotations) -> bool:
+    """Any rhythm other than normal sinus annotated (bigeminy, trigeminy, AF, tachycardia, …): the held
+    share is judged on records without them, where a window has no reason to be held but noise."""
+    return any(
+        s == "+" and a.strip("\x00 ") not in ("", "(N") for s, a in zip(ann.symbol, ann.aux, strict=True)
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Truth:
+    start_s: float
+    end_s: float
+    mean_nn_s: float | None  # None: not scored
+
+
+def flutter_spans(ann: Annotations, end_s: float) -> list[tuple[float, float]]:
+    """Where the rhythm is ventricular flutter or fibrillation: a ``(VFL``/``(VF`` rhythm until the next
+    rhythm annotation, and each ``[`` … ``]`` episode."""
+    spans: list[tuple[float, float]] = []
+    open_at: float | None = None
+    for t, sym, aux in zip(ann.t_s, ann.symbol, ann.aux, strict=True):
+        rhythm = aux.strip("\x00 ")
+        if sym == "+" and rhythm.startswith("("):
+            if open_at is not None:
+                spans.append((open_at, float(t)))
+                open_at = None
+            if rhythm in ("(VFL", "(VF"):
+                open_at = float(t)
+        elif sym == "[":
+            open_at = float(t) if open_at is None else open_at
+        elif sym == "]" and open_at is not None:
+            spans.append((open_at, float(t)))
+            open_at = None
+    if open_at is not None:
+        spans.append((open_at, end_s))
+    return spans
+
+
+def truth(ann: Annotations, starts_s: Sequence[float], length_s: float, end_s: float) -> list[Truth]:
+    """The reference mean NN of each window [start, start + length)."""
+    beats = [(float(t), s) for t, s in zip(ann.t_s, ann.symbol, strict=True) if s in BEAT_SYMBOLS]
+    t_end = np.array([b[0] for b in beats[1:]])
+    nn = np.array([a[1] in NN_SYMBOLS and b[1] in NN_SYMBOLS for a, b in itertools.pairwise(beats)])
+    rr = np.diff([b[0] for b in beats]) if beats else np.empty(0)
+    spans = flutter_spans(ann, end_s)
+    out = []
+    for s in starts_s:
+        e = s + length_s
+        sel = (t_end >= s) & (t_end < e) & nn
+        touched = any(a < e and b > s for a, b in spans)
+        out.append(Truth(s, e, float(rr[sel].mean()) if sel.sum() >= MIN_NN and not touched else None))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class WindowError:
+    record: str
+    start_s: float
+    error_s: float  # |pipeline's mean RR − truth|
+    reason: str = ""
+
+
+@dataclass
+class WindowScore:
+    """The figures of issue 19's table for one pipeline over a set of records."""
+
+    name: str
+    good: list[WindowError] = field(default_factory=list)
+    held: int = 0  # scored windows the pipeline marked low (it would hold k)
+    held_reasons: dict[str, int] = field(default_factory=dict)
+    sinus_scored: int = 0  # scored windows of records without arrhythmia runs
+    sinus_held: int = 0
+
+    def add(
+        self,
+        record: str,
+        truths: Iterable[Truth],
+        means: Iterable[float | None],
+        reasons: Iterable[str],
+        sinus: bool = False,
+    ) -> None:
+        """``means[i]`` is the pipeline's mean RR for ``truths[i]``'s window when it marks it good, else
+        None; ``reasons[i]`` says why it held the window; ``sinus``: the record has no arrhythmia runs."""
+        for t, m, why in zip(truths, means, reasons, strict=True):
+            if t.mean_nn_s is None:
+                continue
+            self.sinus_scored += sinus
+            if m is None:
+                self.held += 1
+                self.sinus_held += sinus
+                self.held_reasons[why] = self.held_reasons.get(why, 0) + 1
+            else:
+                self.good.append(WindowError(record, t.start_s, abs(m - t.mean_nn_s)))
+
+    @property
+    def errors_ms(self) -> NDArray[np.float64]:
+        return np.array([w.error_s for w in self.good]) * 1e3
+
+    @property
+    def held_share(self) -> float:
+        n = len(self.good) + self.held
+        return self.held / n if n else 0.0
+
+    def figures(self) -> dict[str, float | int | str]:
+        e = self.errors_ms
+        worst = sorted(self.good, key=lambda w: -w.error_s)
+        return {
+            "good": len(self.good),
+            "held": self.held,
+            "held_share": round(self.held_share, 3),
+            "held_share_sinus": round(self.sinus_held / self.sinus_scored, 3) if self.sinus_scored else 0.0,
+            "p95_ms": round(float(np.percentile(e, 95)), 2) if e.size else 0.0,
+            "over_10_ms": int((e > 10).sum()),
+            "over_20_ms": int((e > 20).sum()),
+            "worst_ms": round(float(e.max()), 1) if e.size else 0.0,
+            # the records of the windows over 10 ms, worst first
+            "worst_records": ", ".join(dict.fromkeys(w.record for w in worst if w.error_s > 0.01)),
+        }

@@ -1,0 +1,48 @@
+"""The window scorer of issue 19 on annotations made up here, where every figure is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.ecg_records import Annotations
+from common.hrv_scoring import WindowScore, flutter_spans, has_arrhythmia_runs, truth
+
+
+def beats(times: list[float], symbols: str, extra: list[tuple[float, str, str]] = ()) -> Annotations:
+    rows = sorted([(t, s, "") for t, s in zip(times, symbols, strict=True)] + list(extra))
+    return Annotations(np.array([r[0] for r in rows]), [r[1] for r in rows], [r[2] for r in rows])
+
+
+def test_the_truth_is_the_mean_of_intervals_between_two_normal_beats() -> None:
+    t = [i * 1.0 for i in range(31)]
+    t[10] = 9.6  # a premature V beat: the intervals into and out of it are not NN
+    sym = "N" * 10 + "V" + "N" * 20
+    [w] = truth(beats(t, sym), [0.5], 30.0, 31.0)
+    # NN intervals closing in [0.5, 30.5): 1..30 less those closing at 9.6 (into V) and 11 (out of it)
+    assert w.mean_nn_s == pytest.approx(1.0)
+    # no beat at 10 s but a rhythm mark: the mark is not a beat, the 2 s interval spans it (29 intervals)
+    [w] = truth(beats(t[:10] + t[11:], "N" * 30, [(10.0, "+", "(N")]), [0.5], 30.0, 31.0)
+    assert w.mean_nn_s == pytest.approx(30 / 29)
+
+
+def test_too_few_nn_intervals_or_flutter_leave_a_window_unscored() -> None:
+    t = [i * 1.0 for i in range(40)]
+    few = truth(beats(t, "N" * 5 + "V" * 35), [0.0], 30.0, 40.0)
+    assert few[0].mean_nn_s is None
+    ann = beats(t, "N" * 40, [(12.0, "+", "(VFL"), (14.0, "+", "(N")])
+    assert flutter_spans(ann, 40.0) == [(12.0, 14.0)]
+    touched, clear = truth(ann, [0.0, 15.0], 10.0, 40.0)
+    assert touched.mean_nn_s is None and clear.mean_nn_s == pytest.approx(1.0)
+    assert has_arrhythmia_runs(ann) and not has_arrhythmia_runs(beats(t, "N" * 40, [(0.0, "+", "(N")]))
+
+
+def test_the_score_counts_good_and_held_windows_and_their_errors() -> None:
+    t = [i * 1.0 for i in range(200)]
+    tr = truth(beats(t, "N" * 200), [0.0, 30.0, 60.0, 90.0], 30.0, 200.0)
+    sc = WindowScore("x")
+    sc.add("r1", tr, [1.004, None, 1.025, 1.0], ["", "excluded", "", ""], sinus=True)
+    f = sc.figures()
+    assert (f["good"], f["held"], f["over_10_ms"], f["over_20_ms"]) == (3, 1, 1, 1)
+    assert f["worst_ms"] == pytest.approx(25.0) and f["worst_records"] == "r1"
+    assert f["held_share_sinus"] == pytest.approx(0.25) and sc.held_reasons == {"excluded": 1}
