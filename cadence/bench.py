@@ -394,13 +394,7 @@ def bench_hrv_windows(
             x = noisy(rec.uv, fs, v, seed=zlib.crc32(path.name.encode()))  # type: ignore[arg-type]
             ws = windows(intervals(detect(x, fs, chunk=13) / fs), 30.0, end_s=end)
             tr = truth(ann, [w.start_s for w in ws], 30.0, end)
-            out[v]["cadence"].add(
-                path.name,
-                tr,
-                [w.mean_rr_s if w.quality == "good" else None for w in ws],
-                [w.reason or "" for w in ws],
-                sinus,
-            )
+            out[v]["cadence"].add_windows(path.name, tr, ws, sinus)
             if nk is not None:
                 _, info = nk.ecg_peaks(
                     nk.ecg_clean(x, sampling_rate=fs), sampling_rate=fs, correct_artifacts=True
@@ -415,13 +409,7 @@ def bench_hrv_windows(
             if v == "clean":
                 normal = [t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS]
                 ws = windows(intervals(np.array(normal)), 30.0, end_s=end)
-                out[v]["cadence-rr"].add(
-                    path.name,
-                    tr,
-                    [w.mean_rr_s if w.quality == "good" else None for w in ws],
-                    [w.reason or "" for w in ws],
-                    sinus,
-                )
+                out[v]["cadence-rr"].add_windows(path.name, tr, ws, sinus)
     return out
 
 

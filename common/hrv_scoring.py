@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.ecg_records import BEAT_SYMBOLS, Annotations
+from common.hrv import Window
 
 NN_SYMBOLS = frozenset("NLRej")  # normal beats of MIT-BIH's beat labels
 MIN_NN = 10
@@ -115,6 +116,11 @@ class WindowScore:
                 self.held_reasons[why] = self.held_reasons.get(why, 0) + 1
             else:
                 self.good.append(WindowError(record, t.start_s, abs(m - t.mean_nn_s)))
+
+    def add_windows(self, record: str, truths: Sequence[Truth], wins: Sequence[Window], sinus: bool) -> None:
+        """A Cadence pipeline's windows: the mean RR of those it marks good, the reason of the others."""
+        means = [w.mean_rr_s if w.quality == "good" else None for w in wins]
+        self.add(record, truths, means, [w.reason or "" for w in wins], sinus)
 
     @property
     def errors_ms(self) -> NDArray[np.float64]:
