@@ -482,6 +482,7 @@ def cmd_hrv_windows(args: argparse.Namespace) -> int:
                     "n_beats": w.n_beats,
                     "excluded": w.excluded,
                     "quality": w.quality,
+                    "reason": w.reason,
                 }
             )
         )

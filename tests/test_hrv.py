@@ -87,7 +87,9 @@ def test_cadence_hrv_prints_json(tool: str) -> None:
             "n_beats",
             "excluded",
             "quality",
+            "reason",
         } <= set(lines[0])
+        assert all((w["reason"] is None) == (w["quality"] == "good") for w in lines)
 
 
 def test_a_broken_recording_is_one_line_and_exit_2(tmp_path) -> None:
