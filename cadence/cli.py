@@ -530,8 +530,8 @@ def _bench_hrv_windows(args: argparse.Namespace) -> int:
         scores = bench_hrv_windows(
             args.data, args.fs, variants, records, progress=lambda what: bar.update(task, description=what)
         )
-    table = Table(title=f"30 s windows marked good vs the annotated NN mean, {args.fs:g} Hz")
-    for col in ("variant", "pipeline", "good", "held", "held sinus", "p95 ms", ">10 ms", ">20 ms", "worst"):
+    table = Table(title=f"30 s windows marked good vs the annotated NN mean, {args.fs:g} Hz; errors in ms")
+    for col in ("variant", "pipeline", "good", "held", "held %*", "p95", ">10", ">20", "worst"):
         table.add_column(col, justify="left" if col in ("variant", "pipeline") else "right", no_wrap=True)
     figures: dict[str, dict[str, dict[str, float | int | str]]] = {}
     notes = []
@@ -543,16 +543,16 @@ def _bench_hrv_windows(args: argparse.Namespace) -> int:
                 name,
                 str(f["good"]),
                 str(f["held"]),
-                f"{float(f['held_share_sinus']) * 100:.1f} %",
+                f"{float(f['held_share_sinus']) * 100:.1f}",
                 f"{f['p95_ms']:.2f}",
                 str(f["over_10_ms"]),
                 str(f["over_20_ms"]),
-                f"{f['worst_ms']} ms",
+                f"{f['worst_ms']}",
             )
             if f["worst_records"] and name == "cadence":
                 notes.append(f"{v}: {f['worst_records']}")
     out.print(table)
-    out.print("held sinus: the share held on the records without arrhythmia runs")
+    out.print("* the share held on the records without arrhythmia runs")
     if notes:
         out.print("Cadence's windows over 10 ms, worst first: " + "; ".join(notes))
     print(json.dumps(figures))
