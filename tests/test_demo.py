@@ -58,8 +58,18 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     }
     assert all(code == 0 for code in s["exit_codes"].values())  # every service stopped cleanly on SIGTERM
     ends = s["cycle_ends_s"]
+    started = next(e["t_s"] for e in s["events"] if e["kind"] == "started")
+    stops = [e["t_s"] for e in s["events"] if e["kind"] == "protective_stop"]
+    # the robot never waited on the killed services for a selection
+    assert not any(
+        e["kind"] == "state" and "→ waiting_for_selection" in e["message"] and e["t_s"] > started
+        for e in s["events"]
+    )
     for kill in (KILL_HRV, KILL_DECISION):  # the robot went on cycling while each was down and restarting
-        assert any(kill < t < kill + 30 for t in ends)
+        # (unless its own overruns on a loaded machine stopped it then: a stop of its own, resumed by the
+        # demo's auto policy, after which it cycles again)
+        stopped = [t for t in stops if kill < t < kill + 30]
+        assert any(kill < t < kill + 30 for t in ends) or (stopped and any(t > stopped[0] for t in ends))
     assert any(w["end_s"] > KILL_HRV + 40 for w in s["windows"])  # the restarted analyser windows again
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
     assert s["cycles"] >= 5 and len(ends) == s["cycles"]

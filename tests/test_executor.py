@@ -161,9 +161,12 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
         {"there": 2, "back": 5},
         {"there": 5, "back": 5},
     ]
-    assert reports[2].cycle_time_s < reports[0].cycle_time_s  # k = 5 is the fastest of the set
     cached = sorted(p.name for p in (tmp_path / "ex" / "executor").glob("*.msgpack"))
     assert cached == ["back.msgpack", "there.msgpack"]
+    # k = 5 is the fastest of the set the executor ran (not compared by cycle time: a cycle's time is
+    # mostly the wait for the test's signal, which a loaded machine stretches by more than the difference)
+    ran = msgspec.msgpack.decode((tmp_path / "ex" / "executor" / "back.msgpack").read_bytes(), type=ParetoSet)
+    assert ran.solutions[4].t_f < ran.solutions[1].t_f
 
 
 async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused_without_moving(
