@@ -253,10 +253,9 @@ class HrvStream:
         if self._win_start is None:
             self._win_start = t0_s
         jumped = self._next_t is not None and abs(t0_s - self._next_t) > 1.5 / self.fs
-        peaks: list[float] = []
         if self._det is None or gap or jumped:
             if self._det is not None:
-                peaks += self._end_segment()
+                self._end_segment()
                 self.gaps.append((self._next_t, t0_s))
             self._det, self._seg_t0, self._seg_n = self._factory(), t0_s, 0
             self.segments += 1
@@ -264,7 +263,7 @@ class HrvStream:
         self._seg_n += samples.size
         self._next_t = t0_s + samples.size / self.fs
         self._now = self._next_t
-        peaks += self._add_peaks(found)
+        self._add_peaks(found)
         self._classify(final=False)
         return self._take_beats(), self._close_windows(final=False)
 
@@ -285,7 +284,7 @@ class HrvStream:
         strayed = last is not None and abs(last + sum(rr_s) - t_s) > RR_RESYNC_S
         if rr_s and (gap or strayed or last is None):
             if last is not None:
-                peaks += self._end_segment()
+                self._end_segment()
                 self.gaps.append((last, t_s - sum(rr_s)))
             self.segments += 1
             last = t_s - sum(rr_s)
@@ -307,11 +306,11 @@ class HrvStream:
         out, self._beats = self._beats, []
         return out
 
-    def _end_segment(self) -> list[float]:
-        peaks = self._add_peaks(self._det.flush()) if self._det is not None else []
+    def _end_segment(self) -> None:
+        if self._det is not None:
+            self._add_peaks(self._det.flush())
         self._classify(final=True)
         self._seg_peaks, self._seg_rr, self._seg_t, self._classified = [], [], [], 0
-        return peaks
 
     def _add_peaks(self, idx: list[int]) -> list[float]:
         return self._add_times([self._seg_t0 + i / self.fs for i in sorted(idx)])

@@ -43,7 +43,7 @@ class HrvWindow(Message, frozen=True, tag="hrv.window.v1"):
     quality: Quality
     rmssd_s: Spread | None = None
     sdnn_s: Spread | None = None
-    reason: HoldReason | None = None  # why the window is not good; None when it is (added in 0.x, optional)
+    reason: HoldReason | None = None  # why the window is not good (a new field: old decoders skip it)
 
     def __post_init__(self) -> None:
         if not self.start_ns < self.end_ns:
