@@ -119,6 +119,11 @@ def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtd
     # spike (its servoJ-like tracking moves err/τ), and a spike over the limit is a protective stop
     q = validated_samples(np.full(len(path.waypoints) + 1, 0.9), path, task.limits)
     assert backend.move_j(q[0], 1.0, 2.0)
+    # the move is done; the state stream says so within a few of its 500 Hz packets (a loaded machine
+    # delivers the last ones late: one read right away was 5e-6 rad short once)
+    deadline = time.monotonic() + 5.0
+    while float(np.max(np.abs(backend.actual_q() - q[0]))) >= 1e-6 and time.monotonic() < deadline:
+        time.sleep(0.002)
     assert float(np.max(np.abs(backend.actual_q() - q[0]))) < 1e-6
     lags: list[float] = []
     loop = ServoLoop(
