@@ -223,6 +223,13 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             "demo", "restart", f"{name} exited with {rc}; restarted", Clock(opts.speed, obs.epoch_ns).now_ns()
         )
 
+    async def stop_all() -> None:
+        """The robot first, the store last, each with SIGTERM; their exit codes are kept."""
+        stopping.set()
+        for name in reversed(list(procs)):
+            await procs[name].stop()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
     def start(name: str, epoch_ns: int) -> None:
         p = Supervised(name, service_env(name, opts, endpoint, data, epoch_ns), logs / f"{name}.log")
         procs[name] = p
@@ -277,9 +284,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                 async with asyncio.timeout(STARTUP_TIMEOUT_S):
                     await all_up.wait()
             except TimeoutError:
-                stopping.set()
-                for p in procs.values():
-                    await p.stop()
+                await stop_all()
                 missing = ", ".join(sorted(set(ORDER) - up))
                 raise CadenceError(
                     f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
@@ -308,11 +313,8 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             replies = await bus.get(bus.key(f"pareto/{pid}"), ParetoSet, 5.0)
             if replies and replies[0].message is not None:
                 sets[pid] = replies[0].message
-        # 4. stop: the robot first, the store last, each with SIGTERM; exit codes are checked
-        stopping.set()
-        for name in reversed(list(procs)):
-            await procs[name].stop()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        # 4. stop; exit codes are checked
+        await stop_all()
 
     down, up = obs.k_steps()
     minutes = opts.duration_s / 60.0
