@@ -26,28 +26,39 @@ from rich.live import Live
 from rich.table import Table
 
 from cadence.report import from_demo, write_report
-from common.bus import Bus, BusConfig
-from common.clock import Clock
-from common.errors import CadenceError
-from common.lifetime import PARENT_ENV
+from common.hrv.calibration import CALIBRATION_FILE
 from common.motion import routine_change
-from common.resources import EXAMPLE_TASK
-from common.storage import atomic_write
-from common.task import load_task
-from common.twin import TwinParams
+from common.runtime.bus import Bus, BusConfig
+from common.runtime.clock import Clock
+from common.runtime.errors import CadenceError
+from common.runtime.lifetime import PARENT_ENV
+from common.runtime.resources import EXAMPLE_TASK
+from common.runtime.storage import atomic_write
+from common.sim.twin import TwinParams
+from common.trajectory.task import load_task
 from schemas import (
     CycleReport,
     HrvWindow,
     OperatorError,
-    ParetoSet,
     PlanProgress,
-    RobotEvent,
     Selection,
     ServiceStatus,
 )
+from schemas.topology import (
+    HEALTH,
+    HRV_WINDOW,
+    OPERATOR_ERROR,
+    PARETO_SET,
+    PLAN_PROGRESS,
+    ROBOT_CYCLE,
+    ROBOT_EVENT,
+    SELECTION,
+    launch_order,
+)
+from services.decision_maker.state import STATE_FILE
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
-ORDER = ("pareto_store", "decision_maker", "hrv_analyser", "ecg_gateway", "executor")
+ORDER = launch_order()  # from the graph: readers before writers, answerers before askers
 RESTART_DELAY_S = 0.5
 STOP_TIMEOUT_S = 15.0
 
@@ -169,24 +180,30 @@ def service_env(name: str, opts: DemoOptions, endpoint: str, data: Path, epoch_n
         "CADENCE_CADENCE_STATUS_PERIOD_S": "1.0",
         "CADENCE_CADENCE_LOG_FORMAT": "text",
     }
-    task = str(opts.task)
-    if name == "pareto_store":
-        env["CADENCE_PARETO_STORE_TASK"] = task
-    elif name == "decision_maker":
-        env["CADENCE_DECISION_MAKER_RR_REST_S"] = repr(TwinParams().rr_rest_s)
-    elif name == "ecg_gateway":
-        env["CADENCE_ECG_GATEWAY_SOURCE"] = "twin"
-        env["CADENCE_ECG_GATEWAY_TWIN"] = f"{{ seed = {opts.seed} }}"
-    elif name == "executor":
-        env["CADENCE_EXECUTOR_TASK"] = task
-        env["CADENCE_EXECUTOR_BACKEND"] = "sim"
-        env["CADENCE_EXECUTOR_START_SELECTION"] = "last"
-        # the simulated arm on a busy laptop stops for overruns now and then: the demo resumes by itself
-        # (a real robot never does: resume_policy = "auto" is for the sim backend only)
-        env["CADENCE_EXECUTOR_RESUME_POLICY"] = "auto"
-        env["CADENCE_EXECUTOR_AUTO_RESUME_S"] = "1.0"
-        env["CADENCE_EXECUTOR_AUTO_RESUME_PER_HOUR"] = "1000"
+    for key, value in demo_settings(opts).get(name, {}).items():
+        env[f"CADENCE_{name.upper()}_{key.upper()}"] = value
     return env
+
+
+def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
+    """Each service's settings in the demo beyond its built-in defaults, as a deployment config's
+    ``[service]`` tables would hold them (values in TOML; a bare word is a string)."""
+    task = str(opts.task)
+    return {
+        "pareto_store": {"task": task},
+        "decision_maker": {"rr_rest_s": repr(TwinParams().rr_rest_s)},
+        "ecg_gateway": {"source": "twin", "twin": f"{{ seed = {opts.seed} }}"},
+        "executor": {
+            "task": task,
+            "backend": "sim",
+            "start_selection": "last",
+            # the simulated arm on a busy laptop stops for overruns now and then: the demo resumes by
+            # itself (a real robot never does: resume_policy = "auto" is for the sim backend only)
+            "resume_policy": "auto",
+            "auto_resume_s": "1.0",
+            "auto_resume_per_hour": "1000",
+        },
+    }
 
 
 def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, Supervised]) -> Group:
@@ -210,7 +227,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
     opts.out.mkdir(parents=True, exist_ok=True)
     data, logs = opts.out / "data", opts.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    for stale in ("decision_state.json", "calibration.json"):  # a demo starts from a rested operator
+    for stale in (STATE_FILE, CALIBRATION_FILE):  # a demo starts from a rested operator
         (data / stale).unlink(missing_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     stopping = asyncio.Event()
@@ -235,9 +252,9 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         procs[name] = p
         tasks.append(asyncio.create_task(p.supervise(stopping, on_restart)))
 
-    async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), "cell1", role="monitor") as bus:
         # 1. the store first: it plans what it lacks, before the operator's clock starts
-        health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
+        health = aiter(bus.subscribe(HEALTH.at("pareto_store"), maxsize=1))
         with console.status("planning the task's Pareto sets (once; they are stored) …") as status:
 
             def on_progress(pr: PlanProgress) -> None:
@@ -245,38 +262,34 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     f"Pareto sets: {pr.done_paths}/{pr.total_paths} ready ('{pr.path_id}' {pr.state})"
                 )
 
-            bus.handle(bus.key("pareto/progress"), PlanProgress, _call(on_progress))
+            bus.handle(PLAN_PROGRESS, _call(on_progress))
             start("pareto_store", obs.epoch_ns)
             async with asyncio.timeout(600):
                 while (await anext(health))[1].state != "serving":
                     pass
         # 2. the clock starts; everyone else joins
-        clock = Clock(opts.speed, time.time_ns())
-        obs.epoch_ns = clock.epoch_ns
-        bus.handle(bus.key("hrv/window"), HrvWindow, _call(obs.on_window))
-        bus.handle(bus.key("decision/selection"), Selection, _call(obs.on_selection))
-        bus.handle(bus.key("robot/cycle"), CycleReport, _call(obs.cycles.append))
-        bus.handle(
-            bus.key("robot/event"),
-            RobotEvent,
-            _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns)),
-        )
+        epoch_ns = obs.epoch_ns = time.time_ns()
+        clock = Clock(opts.speed, epoch_ns)
+        bus.handle(HRV_WINDOW, _call(obs.on_window))
+        bus.handle(SELECTION, _call(obs.on_selection))
+        bus.handle(ROBOT_CYCLE, _call(obs.cycles.append))
+        bus.handle(ROBOT_EVENT, _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns)))
 
         def on_error(e: OperatorError) -> None:
             obs.errors += 1
 
-        bus.handle(bus.key("operator/error"), OperatorError, _call(on_error))
-        up: set[str] = set()
+        bus.handle(OPERATOR_ERROR, _call(on_error))
+        running: set[str] = set()
         all_up = asyncio.Event()
 
         def on_status(st: ServiceStatus) -> None:
-            up.add(st.service)
-            if up >= set(ORDER):
+            running.add(st.service)
+            if running >= set(ORDER):
                 all_up.set()
 
-        bus.handle(bus.key("health/*"), ServiceStatus, _call(on_status))
-        for name in ORDER[1:]:
-            start(name, clock.epoch_ns)
+        bus.handle(HEALTH, _call(on_status))
+        for name in (n for n in ORDER if n != "pareto_store"):
+            start(name, epoch_ns)
         # the run's duration counts from when every service is up: on a slow or loaded machine their start
         # (imports, sessions) can take longer than a short run, which would then end before it began
         with console.status("starting the services …"):
@@ -285,7 +298,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     await all_up.wait()
             except TimeoutError:
                 await stop_all()
-                missing = ", ".join(sorted(set(ORDER) - up))
+                missing = ", ".join(sorted(set(ORDER) - running))
                 raise CadenceError(
                     f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
                 ) from None
@@ -296,7 +309,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             if live is not None:
                 live.start()
             while (now := clock.now_ns()) < end_ns:
-                now_s = (now - clock.epoch_ns) / 1e9
+                now_s = (now - epoch_ns) / 1e9
                 while kills and kills[0][1] <= now_s:
                     name, _ = kills.pop(0)
                     obs.on_event("demo", "kill", f"SIGKILL {name}", now)
@@ -310,7 +323,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         # 3. the sets the executor used, for the figures, while the store still answers
         sets = {}
         for pid in task.paths:
-            replies = await bus.get(bus.key(f"pareto/{pid}"), ParetoSet, 5.0)
+            replies = await bus.get(PARETO_SET.at(pid), timeout=5.0)
             if replies and replies[0].message is not None:
                 sets[pid] = replies[0].message
         # 4. stop; exit codes are checked

@@ -11,7 +11,7 @@ exactly that and keeps the data folder):
 - the units, with the prefix put in, enabled under ``cadence.target``;
 - a Python the ``cadence`` user can run, and the venv on it, under the prefix.
 
-Pure parts (what the files say) are in ``common/cell.py`` and ``common/pki.py``; this module decides what
+Pure parts (what the files say) are in ``common/runtime/cell.py`` and ``pki.py``; this module decides what
 goes where and does it.
 """
 
@@ -32,10 +32,11 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common import cell
-from common.errors import InputError
-from common.pki import Pem, issue, load_ca, make_ca
-from common.resources import DEPLOY, EXAMPLE_TASK
+from common.runtime import cell
+from common.runtime.errors import InputError
+from common.runtime.pki import Pem, issue, load_ca, make_ca
+from common.runtime.resources import DEPLOY, EXAMPLE_TASK
+from schemas.topology import SERVICES
 
 USER = "cadence"
 ETC = Path("/etc/cadence")
@@ -46,7 +47,7 @@ UNITS = Path("/etc/systemd/system")
 MANIFEST = ETC / "installed.json"
 SYSUSERS = Path("/etc/sysusers.d/cadence.conf")
 PYTHON_MIN = (3, 11)
-HOSTS_ALL = (*cell.SERVICES, "router")
+HOSTS_ALL = (*SERVICES, "router")
 
 
 class InstallError(InputError):
@@ -146,8 +147,8 @@ def new_bundle(opts: Options) -> Bundle:
 
 def config_toml(opts: Options, bundle: Bundle) -> str:
     """``/etc/cadence/cadence.toml``: the hardware's values set, every other key commented at its default."""
-    from common.bus import BusConfig
-    from common.service import CommonSettings
+    from common.runtime.bus import BusConfig
+    from common.runtime.config import CommonSettings
     from services.decision_maker.__main__ import Settings as DecisionSettings
     from services.ecg_gateway.__main__ import Settings as GatewaySettings
     from services.executor.__main__ import Settings as ExecutorSettings
@@ -164,13 +165,13 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
             "strap": opts.strap,
         }
     )
-    task = {"task": str(TASKS / EXAMPLE_TASK.name)}
+    task: dict[str, object] = {"task": str(TASKS / EXAMPLE_TASK.name)}
     executor: dict[str, object] = task | (
         {"backend": "sim"} if sim else {"backend": "ur_rtde", "host": opts.robot}
     )
     decision: dict[str, object] = {}
     if twin:
-        from common.twin import TwinParams
+        from common.sim.twin import TwinParams
 
         decision["rr_rest_s"] = TwinParams().rr_rest_s  # the twin's resting RR: no `cadence calibrate`
     head = (
@@ -245,7 +246,7 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
             )
         )
     # this host's accounts: its services, and the operator's and the monitor's tools (root reads those)
-    accounts = [s for s in opts.services if s in cell.SERVICES]
+    accounts = [s for s in opts.services if s in SERVICES]
     for account in [*accounts, "operator", "monitor"]:
         leaf = issue(bundle.ca, account, bundle.cell, [account])
         cfg = cell.client_config(
@@ -358,7 +359,8 @@ def ensure_python(opts: Options, uv: str, say: list[str]) -> str:
             say.append(f"python: {found[-1]} (uv, under the prefix)")
             return str(found[-1])
     say.append(f"python: uv could not install one under {where} ({(r.stderr or '').strip()[-120:]})")
-    for cand in (sys._base_executable, "/usr/bin/python3.13", "/usr/bin/python3.12", "/usr/bin/python3.11"):
+    base = getattr(sys, "_base_executable", None)  # the interpreter a venv was made from
+    for cand in (base, "/usr/bin/python3.13", "/usr/bin/python3.12", "/usr/bin/python3.11"):
         if cand and Path(cand).exists() and _runs_as_user(cand) is None:
             say.append(f"python: {os.path.realpath(cand)} (the service user can run it)")
             return os.path.realpath(cand)

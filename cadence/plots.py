@@ -10,9 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from common import bspline as bs
-from common.limits import JOINT_NAMES
-from common.planner import ParetoResult
+from common.trajectory import bspline as bs
+from common.trajectory.limits import JOINT_NAMES
+from common.trajectory.planner import ParetoResult
 
 
 def pareto_figure(result: ParetoResult) -> bytes:
@@ -44,8 +44,9 @@ def pareto_figure(result: ParetoResult) -> bytes:
             a = fig.add_subplot(grid[row, col])
             for j in range(vals.shape[2]):
                 a.plot(t, vals[row, :, j], lw=1.1, label=JOINT_NAMES[j])
-            if lims[row] is not None:
-                top = float(np.max(lims[row]))
+            lim = lims[row]
+            if lim is not None:
+                top = float(np.max(lim))
                 a.axhline(top, ls="--", c="0.4", lw=0.8)
                 a.axhline(-top, ls="--", c="0.4", lw=0.8)
             if row == 0:
@@ -99,13 +100,6 @@ def rr_k_figure(windows: list[dict], selections: list[dict], rr_rest_s: float) -
     return _png(fig)
 
 
-def _boundary(s) -> bs.Boundary:
-    """A ParetoSet's boundary conditions as the spline code takes them."""
-    a = [np.array(x, dtype=float) for x in (s.start.velocity, s.start.acceleration, s.start.jerk)]
-    b = [np.array(x, dtype=float) for x in (s.end.velocity, s.end.acceleration, s.end.jerk)]
-    return bs.Boundary(*a, *b)
-
-
 def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
     """q, q̇, q̈ and jerk of whole cycles, path after path at the k each ran with (motion only; the
     waits between paths are left out). ``cycles``: [{"k": {path: k}, …}], one column each."""
@@ -119,7 +113,7 @@ def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
             s = sets[pid]
             h = np.array(s.solutions[k - 1].h)
             t = np.linspace(0.0, float(h.sum()), max(50, int(h.sum() * 100)))
-            curves = bs.evaluate_dense(h, np.array(s.waypoints), _boundary(s), t)
+            curves = bs.evaluate_dense(h, np.array(s.waypoints), bs.Boundary.from_ends(s.start, s.end), t)
             for row in range(4):
                 ax = axes[row, col]
                 for j in range(curves.shape[2]):

@@ -21,8 +21,8 @@ import zenoh
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from common.bus import Bus
-from common.errors import InputError
+from common.runtime.bus import Bus
+from common.runtime.errors import InputError
 from schemas.topology import decode_any, topic_of
 
 PROFILE = "cadence"

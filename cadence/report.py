@@ -15,9 +15,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from common.errors import InputError
 from common.motion import routine_change
-from common.storage import atomic_write
+from common.runtime.errors import InputError
+from common.runtime.storage import atomic_write
 from schemas import (
     CycleReport,
     EcgChunk,
@@ -94,11 +94,11 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     from cadence.recording import read
 
     msgs = []
-    for m in read(path):
-        if m.encoding != "msgpack":
+    for rec in read(path):
+        if rec.encoding != "msgpack":
             continue
         try:
-            msgs.append(decode_any(m.data))
+            msgs.append(decode_any(rec.data))
         except msgspec.DecodeError:
             continue
     # the run's data time: what the cell did (not plan times, not health's wall clock)

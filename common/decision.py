@@ -12,9 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from decimal import ROUND_CEILING, ROUND_FLOOR, ROUND_HALF_UP, Decimal
-from typing import Literal
 
-Reason = Literal["initial", "stress", "rest", "cumulative", "hold", "low-quality"]
+from schemas.decision import Reason
 
 
 def dec(x: float | str | Decimal) -> Decimal:

@@ -9,7 +9,7 @@ Validation at the edge, once (README "Bad input"): every field carries the bound
 real cell (msgspec ``Meta``), and what relates two fields is checked in ``__post_init__``, which msgspec
 runs at decode and turns into a ``ValidationError``. A message that decodes is therefore possible on its
 face; whether it fits the receiver's state (its data time, what it already answered) is the receiver's
-rule, in ``common/admission.py``.
+rule, in ``common/runtime/admission.py``.
 """
 
 from __future__ import annotations

@@ -27,7 +27,9 @@ class ParetoSolution(msgspec.Struct, frozen=True, kw_only=True):
             raise ValueError(f"solution k = {self.k}: t_f = {self.t_f} is not the sum of its h")
 
 
-class Boundary(msgspec.Struct, frozen=True, kw_only=True):
+class PathEnd(msgspec.Struct, frozen=True, kw_only=True):
+    """One end of a path on the wire; ``Boundary`` (common/trajectory/bspline.py) holds both ends."""
+
     velocity: Vector6
     acceleration: Vector6
     jerk: Vector6
@@ -48,8 +50,8 @@ class ParetoSet(Message, frozen=True, tag="pareto.set.v1"):
     constraints: Literal["exact", "hull"]
     waypoints: Annotated[list[Vector6], msgspec.Meta(min_length=2, max_length=MAX_WAYPOINTS)]
     limits: Limits
-    start: Boundary
-    end: Boundary
+    start: PathEnd
+    end: PathEnd
     front: Annotated[
         list[Annotated[list[Finite], msgspec.Meta(min_length=2, max_length=2)]],
         msgspec.Meta(max_length=100_000),
@@ -79,9 +81,12 @@ class ParetoSolutionReply(Message, frozen=True, tag="pareto.solution.v1"):
             raise ValueError(f"solution k = {self.solution.k} is above n = {self.n}")
 
 
+PlanState = Literal["queued", "running", "done", "failed", "stored"]
+
+
 class PlanProgress(Message, frozen=True, tag="pareto.progress.v1"):
     path_id: Name
-    state: Literal["queued", "running", "done", "failed", "stored"]
+    state: PlanState
     done_paths: NonNegInt
     total_paths: NonNegInt
     message: Text = ""

@@ -41,10 +41,13 @@ class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
     k_per_path: Annotated[dict[Name, SolutionIndex], msgspec.Meta(max_length=1000)]
 
 
+# "state": a change of the executor's safety state (common/motion.py), "from → to: why"
+EventKind = Literal[
+    "refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info", "state"
+]
+
+
 class RobotEvent(Message, frozen=True, tag="robot.event.v1"):
-    # "state": a change of the executor's safety state (common/motion.py), "from → to: why"
-    kind: Literal[
-        "refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info", "state"
-    ]
+    kind: EventKind
     message: Text
     path_id: Name | None = None

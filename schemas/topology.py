@@ -1,12 +1,21 @@
-"""The bus's topology, declared once (DESIGN §3; dora's dataflow.yml): for every key expression under
-``cadence/<cell>/``, the message it carries, who sends it and how. Services, the zenoh-cli decoder and the
-tests all read this table; a test checks that publishers and subscribers agree with it.
+"""The bus's graph, declared once (DESIGN §3; dora's dataflow.yml): for every key expression under
+``cadence/<cell>/``, the message it carries, the roles that publish it, the roles that read it, the
+roles that may ask for it, and how it travels.
+
+Everything else is derived from this table, so nothing can disagree with it:
+- a service's ports (``Bus.publisher``, ``Bus.subscribe``, ``Bus.serve``, ``Bus.get``): a service that
+  opens a port the graph does not give its role gets a ``BusError`` at start, and a message of another
+  type than the key's is a ``TypeError`` at the put;
+- the demo's launch order (``launch_order``);
+- the router's access control (common/runtime/cell.py): each account publishes only its roles' keys;
+- the zenoh-cli decoder (cadence/zenoh_codec.py), which decodes each key with its own type;
+- the graph test (tests/test_graph.py), which runs every service and checks what it opened.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, field, replace
+from typing import Any, Generic, Literal, TypeVar
 
 import msgspec
 
@@ -22,42 +31,100 @@ from schemas.robot import CycleReport, RobotEvent, RobotState
 ROOT = "cadence"
 DEFAULT_CELL = "cell1"
 
+M = TypeVar("M", bound=Message)
+
 Pattern = Literal["topic", "query"]
-QoS = Literal["reliable", "block", "drop"]
+# block: congestion control BLOCK, a slow reader slows the writer rather than lose a message (low rates);
+# drop: a message that cannot be sent now is dropped, the next one replaces it (telemetry, latest wins)
+QoS = Literal["block", "drop"]
 
 
 @dataclass(frozen=True, slots=True)
-class Topic:
-    suffix: str  # under cadence/<cell>/; '*' matches one chunk
-    message: type[Message]
-    publisher: str
-    pattern: Pattern
-    qos: QoS
-    also: tuple[str, ...] = ()  # other services that may publish it (the router's ACL: common/cell.py)
+class Role:
+    """Who opens ports on the bus: a service (its own process and account), a role hosted inside a
+    service's process (the operator twin, inside the ECG gateway when its source is the twin), or a
+    person's tool (``operator``: calibrate, resume, an HMI; ``monitor``: record, zenoh subscribe)."""
+
+    name: str
+    kind: Literal["service", "hosted", "tool"]
+    host: str | None = None  # hosted: the service whose process (and bus account) it runs in
+    reads_all: bool = False  # tools read the whole cell, as the ACL lets everyone
 
 
-TOPICS: tuple[Topic, ...] = (
-    Topic("ecg/samples", EcgChunk, "ecg_gateway", "topic", "reliable"),
-    Topic("ecg/rr", RrIntervals, "ecg_gateway", "topic", "reliable"),
-    Topic("hrv/beats", Beats, "hrv_analyser", "topic", "reliable"),
-    Topic("hrv/window", HrvWindow, "hrv_analyser", "topic", "block"),
-    Topic("operator/calibration", Calibration, "calibrate", "topic", "reliable"),
-    # the operator's HMI, or the operator twin inside the ECG gateway (source = "twin")
-    Topic("operator/signal", OperatorSignal, "operator", "topic", "reliable", also=("ecg_gateway",)),
-    Topic("operator/error", OperatorError, "operator", "topic", "reliable", also=("ecg_gateway",)),
-    Topic("decision/selection", Selection, "decision_maker", "topic", "block"),
-    Topic("pareto/progress", PlanProgress, "pareto_store", "topic", "drop"),
-    Topic("pareto/*", ParetoSet, "pareto_store", "query", "reliable"),
-    Topic("pareto/*/*", ParetoSolutionReply, "pareto_store", "query", "reliable"),
-    Topic("robot/state", RobotState, "executor", "topic", "drop"),
-    Topic("robot/cycle", CycleReport, "executor", "topic", "reliable"),
-    Topic("robot/event", RobotEvent, "executor", "topic", "reliable"),
-    # clear a latched stop (`cadence robot resume`): the reply is the state change it made
-    Topic("robot/resume", RobotEvent, "executor", "query", "reliable"),
-    Topic("health/*", ServiceStatus, "every service", "topic", "drop"),
+ROLES: tuple[Role, ...] = (
+    Role("pareto_store", "service"),
+    Role("decision_maker", "service"),
+    Role("hrv_analyser", "service"),
+    Role("ecg_gateway", "service"),
+    Role("executor", "service"),
+    Role("operator_twin", "hosted", host="ecg_gateway"),
+    Role("operator", "tool", reads_all=True),
+    Role("monitor", "tool", reads_all=True),
+)
+ROLE = {r.name: r for r in ROLES}
+SERVICES = tuple(r.name for r in ROLES if r.kind == "service")
+
+
+@dataclass(frozen=True, slots=True)
+class Topic(Generic[M]):
+    suffix: str  # under cadence/<cell>/; '*' stands for one chunk, filled in when a port is opened
+    message: type[M]
+    publishers: tuple[str, ...]  # for a query: the roles that answer it
+    subscribers: tuple[str, ...] = ()  # the roles that act on it (tools read everything anyway)
+    pattern: Pattern = "topic"
+    qos: QoS = "block"
+    askers: tuple[str, ...] = ()  # roles that may query it (a topic's publisher also answers queries)
+    note: str = field(default="", compare=False)
+
+    def at(self, *chunks: str) -> Topic[M]:
+        """One member of a family (``PARETO_SET.at("b1_to_b2")``): the wildcards filled in order."""
+        return replace(self, suffix=fill(self.suffix, chunks))
+
+
+LOOKERS = ("operator", "monitor")  # people's tools may ask what is only looked at (`cadence get`)
+
+ECG_SAMPLES = Topic("ecg/samples", EcgChunk, ("ecg_gateway",), ("hrv_analyser",))
+ECG_RR = Topic("ecg/rr", RrIntervals, ("ecg_gateway",), ("hrv_analyser",), note="only with input = rr")
+HRV_BEATS = Topic("hrv/beats", Beats, ("hrv_analyser",))
+HRV_WINDOW = Topic("hrv/window", HrvWindow, ("hrv_analyser",), ("decision_maker",))
+CALIBRATION = Topic("operator/calibration", Calibration, ("operator",), ("decision_maker",))
+OPERATOR_SIGNAL = Topic("operator/signal", OperatorSignal, ("operator", "operator_twin"), ("executor",))
+OPERATOR_ERROR = Topic("operator/error", OperatorError, ("operator", "operator_twin"))
+SELECTION = Topic(
+    "decision/selection", Selection, ("decision_maker",), ("executor",), askers=("executor", *LOOKERS)
+)
+PLAN_PROGRESS = Topic("pareto/progress", PlanProgress, ("pareto_store",), qos="drop")
+PARETO_SET = Topic("pareto/*", ParetoSet, ("pareto_store",), pattern="query", askers=("executor", *LOOKERS))
+PARETO_SOLUTION = Topic("pareto/*/*", ParetoSolutionReply, ("pareto_store",), pattern="query", askers=LOOKERS)
+ROBOT_STATE = Topic("robot/state", RobotState, ("executor",), ("operator_twin",), qos="drop")
+ROBOT_CYCLE = Topic("robot/cycle", CycleReport, ("executor",), ("operator_twin",))
+ROBOT_EVENT = Topic("robot/event", RobotEvent, ("executor",))
+# clear a latched stop (`cadence robot resume`): the reply is the state change it made
+ROBOT_RESUME = Topic("robot/resume", RobotEvent, ("executor",), pattern="query", askers=("operator",))
+HEALTH = Topic(
+    "health/*", ServiceStatus, SERVICES, qos="drop", note="health/<service>, plus a liveliness token"
 )
 
-# Every message type, as one tagged union: what a generic reader (the zenoh-cli decoder) accepts.
+TOPICS: tuple[Topic[Any], ...] = (
+    ECG_SAMPLES,
+    ECG_RR,
+    HRV_BEATS,
+    HRV_WINDOW,
+    CALIBRATION,
+    OPERATOR_SIGNAL,
+    OPERATOR_ERROR,
+    SELECTION,
+    PLAN_PROGRESS,
+    PARETO_SET,
+    PARETO_SOLUTION,
+    ROBOT_STATE,
+    ROBOT_CYCLE,
+    ROBOT_EVENT,
+    ROBOT_RESUME,
+    HEALTH,
+)
+
+# Every message type, as one tagged union: what a reader of unknown keys accepts.
 AnyMessage = (
     EcgChunk
     | RrIntervals
@@ -81,13 +148,26 @@ def key(cell: str, suffix: str) -> str:
     return f"{ROOT}/{cell}/{suffix}"
 
 
+def fill(suffix: str, chunks: tuple[str, ...]) -> str:
+    """``pareto/*`` with ("b1_to_b2",) → ``pareto/b1_to_b2``; chunks left out stay wildcards."""
+    parts = suffix.split("/")
+    stars = [i for i, p in enumerate(parts) if p == "*"]
+    if len(chunks) > len(stars):
+        raise ValueError(f"{suffix}: {len(chunks)} chunks for {len(stars)} wildcards")
+    for i, chunk in zip(stars, chunks, strict=False):
+        if not chunk or "/" in chunk or "*" in chunk:
+            raise ValueError(f"{suffix}: bad key chunk {chunk!r}")
+        parts[i] = chunk
+    return "/".join(parts)
+
+
 def _matches(pattern: str, suffix: str) -> bool:
     a, b = pattern.split("/"), suffix.split("/")
     return len(a) == len(b) and all(p in ("*", s) for p, s in zip(a, b, strict=True))
 
 
-def topic_of(key_expr: str) -> Topic | None:
-    """The topic a concrete key (``cadence/<cell>/…``) belongs to; the first exact match wins."""
+def topic_of(key_expr: str) -> Topic[Any] | None:
+    """The topic a concrete key (``cadence/<cell>/…``) belongs to; an exact match wins over a wildcard."""
     parts = key_expr.split("/", 2)
     if len(parts) < 3 or parts[0] != ROOT:
         return None
@@ -96,6 +176,57 @@ def topic_of(key_expr: str) -> Topic | None:
     if exact:
         return exact[0]
     return next((t for t in TOPICS if _matches(t.suffix, suffix)), None)
+
+
+def may_publish(role: str, topic: Topic[Any]) -> bool:
+    return role in topic.publishers
+
+
+def may_subscribe(role: str, topic: Topic[Any]) -> bool:
+    r = ROLE.get(role)
+    return r is not None and (r.reads_all or role in topic.subscribers)
+
+
+def may_ask(role: str, topic: Topic[Any]) -> bool:
+    r = ROLE.get(role)
+    return r is not None and role in topic.askers
+
+
+def roles_in(service: str) -> tuple[str, ...]:
+    """The roles a service's process may act as: its own, and those it hosts."""
+    return (service, *(r.name for r in ROLES if r.host == service))
+
+
+def launch_order() -> tuple[str, ...]:
+    """The services in the order to start them: after every service that answers their queries, and
+    after every service that reads what they publish (Zenoh drops a put with no subscriber yet). Where
+    the two disagree (the executor asks the decision maker, and reads what it publishes), the query
+    wins; hosted roles (the twin's loop with the executor) don't order. Ties keep the declared order."""
+    host = {r.name: r.host or r.name for r in ROLES if r.kind != "tool"}
+    must: set[tuple[str, str]] = set()  # (before, after)
+    for t in TOPICS:
+        for p in t.publishers:
+            for a in t.askers:
+                if a in host and host[a] != host[p] and ROLE[a].kind == "service":
+                    must.add((host[p], host[a]))
+    rather: set[tuple[str, str]] = set()
+    for t in TOPICS:
+        for p in t.publishers:
+            for s in t.subscribers:
+                services = ROLE[p].kind == ROLE[s].kind == "service"
+                if services and s != p and (p, s) not in must:
+                    rather.add((s, p))
+    edges = must | rather
+    order: list[str] = []
+    left = list(SERVICES)
+    while left:
+        ready = [s for s in left if not any(b in left and a == s for b, a in edges if b != s)]
+        if not ready:  # a cycle of preferences: drop them, keep what queries demand
+            edges = must
+            continue
+        order.append(ready[0])
+        left.remove(ready[0])
+    return tuple(order)
 
 
 _ANY_DECODER = msgspec.msgpack.Decoder(AnyMessage)
@@ -108,4 +239,5 @@ def encode(msg: Message) -> bytes:
 
 def decode_any(payload: bytes) -> Message:
     """Decode any Cadence message by its tag; raises ``msgspec.ValidationError``/``DecodeError``."""
-    return _ANY_DECODER.decode(payload)
+    msg: Message = _ANY_DECODER.decode(payload)
+    return msg

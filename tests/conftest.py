@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.bspline import Boundary
-from common.task import PathPlan
+from common.trajectory.bspline import Boundary
+from common.trajectory.task import PathPlan
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE_TASK = REPO / "deploy" / "tasks" / "box_filling.toml"
@@ -41,8 +41,8 @@ def example_task_path() -> Path:
 
 def plan_sets(task_file: Path, db: Path) -> Path:
     """Every path of ``task_file`` planned, in this process, into a store's SQLite file ``db``."""
-    from common.planner import content_hash
-    from common.task import load_task
+    from common.trajectory.planner import content_hash
+    from common.trajectory.task import load_task
     from services.pareto_store.jobs import plan_job
     from services.pareto_store.store import SetStore
 
@@ -81,7 +81,7 @@ def example_sets(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def now_ns() -> int:
     """Data time for a test's messages: now, to the second. Receivers believe a stream's first message
-    when it is near their data clock (common/admission.py), as a live source's is."""
+    when it is near their data clock (common/runtime/admission.py), as a live source's is."""
     import time
 
     return time.time_ns() // 1_000_000_000 * 1_000_000_000
@@ -117,8 +117,9 @@ class InProcessService:
     ) -> None:
         import asyncio
 
-        from common.bus import BusConfig
-        from common.service import CommonSettings, serve
+        from common.runtime.bus import BusConfig
+        from common.runtime.config import CommonSettings
+        from common.runtime.service import serve
 
         self.stop = asyncio.Event()
         self.cell = cell

@@ -1,11 +1,11 @@
-"""The receivers' rule for data time (common/admission.py): one message far from its stream is dropped;
-a run of messages that agree with each other moves the stream there; duplicates never do."""
+"""The receivers' rule for data time (common/runtime/admission.py): one message far from its stream is
+dropped; a run of messages that agree with each other moves the stream there; duplicates never do."""
 
 from __future__ import annotations
 
 import pytest
 
-from common.admission import TimeLine
+from common.runtime.admission import TimeLine
 
 S = 1_000_000_000
 DAY = 86_400 * S

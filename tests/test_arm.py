@@ -1,12 +1,12 @@
-"""The simulated UR16e (common/arm.py): kinematics, servoJ tracking, limits as protective stops."""
+"""The simulated UR16e (common/sim/arm.py): kinematics, servoJ tracking, limits as protective stops."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from common.arm import DT, SimArm, forward_kinematics, move_j_profile
-from common.limits import UR16E
+from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
+from common.trajectory.limits import UR16E
 
 
 def test_forward_kinematics_at_zero_and_with_the_base_turned() -> None:

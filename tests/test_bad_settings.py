@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from common.errors import TaskError
-from common.task import parse_task
+from common.runtime.errors import TaskError
+from common.trajectory.task import parse_task
 from tests.test_task import GOOD
 
 BAD = [
@@ -62,7 +62,7 @@ def test_a_bad_value_from_the_environment_names_the_variable(
 
 def test_the_known_sections_are_the_services_and_the_common_tables() -> None:
     from cadence.cli import SERVICES
-    from common.service import CONFIG_SECTIONS
+    from common.runtime.config import CONFIG_SECTIONS
 
     assert set(CONFIG_SECTIONS) == {"cadence", "bus", *SERVICES}
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline, make_interp_spline
 
-from common import bspline as bs
-from common.task import PathPlan
+from common.trajectory import bspline as bs
+from common.trajectory.task import PathPlan
 from tests.conftest import random_path
 
 

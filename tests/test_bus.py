@@ -11,8 +11,8 @@ import threading
 
 import pytest
 
-from common.bus import Bus, BusConfig, QueryError, Request
-from common.errors import BusError
+from common.runtime.bus import Bus, BusConfig, QueryError, Request
+from common.runtime.errors import BusError
 from schemas import Selection, ServiceStatus
 from schemas.topology import TOPICS
 from tests.conftest import free_port

@@ -1,5 +1,5 @@
-"""A deployed cell's bus (common/cell.py, common/pki.py): the ACL follows the topology, and a real router
-with the generated config holds: mTLS and passwords both required, each account publishes only its keys.
+"""A deployed cell's bus (common/runtime/cell.py, pki.py): the ACL follows the graph, and a real router with
+the generated config holds: mTLS and passwords both required, each account publishes only its keys.
 Also the secure default (a peer listens on loopback only), the install's dry run, and children that die
 with their parent."""
 
@@ -16,28 +16,51 @@ from pathlib import Path
 import pytest
 
 from cadence.install import Bundle, Options, new_bundle, plan
-from common.bus import Bus, BusConfig
-from common.cell import ACCOUNTS, Tls, access_control, client_config, publishers, router_config, users_file
-from common.pki import common_name, issue, make_ca
+from common.runtime.bus import Bus, BusConfig
+from common.runtime.cell import (
+    ACCOUNTS,
+    Tls,
+    access_control,
+    askers,
+    client_config,
+    publishers,
+    router_config,
+    users_file,
+)
+from common.runtime.pki import common_name, issue, make_ca
 from schemas import HrvWindow, Selection
-from schemas.topology import TOPICS
+from schemas.topology import OPERATOR_SIGNAL, SELECTION, TOPICS
 from tests.conftest import REPO, free_port
 
 
-def test_every_topic_has_exactly_its_publishers_in_the_acl() -> None:
+def _includes(rule_key: str, key: str) -> bool:
+    """Zenoh's inclusion for the ACL's keys: exact, or a family ending in ``/**``."""
+    return rule_key == key or (rule_key.endswith("/**") and key.startswith(rule_key[:-2]))
+
+
+def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> None:
     acl = access_control("c1")
     rules = {r["id"]: r for r in acl["rules"]}
+
+    def allowed(rule: str, key: str) -> set[str]:
+        return {
+            a
+            for a in ACCOUNTS
+            if any(_includes(k, key) for k in rules.get(f"{rule} {a}", {}).get("key_exprs", []))
+        }
+
     for t in TOPICS:
-        if t.publisher == "every service":
-            continue
-        key = f"cadence/c1/{t.suffix}".split("*")[0]
-        owners = {a for a in ACCOUNTS if any(k.startswith(key) for k in rules[f"publish {a}"]["key_exprs"])}
-        assert owners == publishers(t), t.suffix
-    assert publishers(next(t for t in TOPICS if t.suffix == "decision/selection")) == {"decision_maker"}
-    # only the operator may ask the executor to resume
-    asks = [p for p in acl["policies"] if "ask operator-only" in p["rules"]]
-    assert [p["subjects"] for p in asks] == [["operator"]]
-    assert all("cadence/c1/robot/resume" not in k for k in rules["ask"]["key_exprs"])
+        key = f"cadence/c1/{t.suffix}".replace("*", "x")
+        assert allowed("publish", key) == publishers(t), t.suffix
+        # the ACL names families (pareto/**), so who may ask a set may ask its members too
+        assert askers(t) <= allowed("ask", key), t.suffix
+    assert publishers(SELECTION) == {"decision_maker"}
+    assert publishers(OPERATOR_SIGNAL) == {"operator", "ecg_gateway"}  # the twin runs in the gateway
+    assert allowed("ask", "cadence/c1/robot/resume") == {"operator"}  # it changes what the robot does
+    assert allowed("ask", "cadence/c1/decision/selection") == {"executor", "operator", "monitor"}
+    assert allowed("ask", "cadence/c1/ecg/samples") == set()
+    for p in acl["policies"]:
+        assert all(rule in rules for rule in p["rules"])
 
 
 def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
@@ -177,7 +200,7 @@ def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Pat
 
 CHILD = """
 import os, sys, time
-from common.lifetime import die_with_parent
+from common.runtime.lifetime import die_with_parent
 parent = os.getpid()
 if os.fork() == 0:  # the child: once it has asked to die with its parent, it says its pid
     die_with_parent(parent)

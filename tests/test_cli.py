@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.task import load_task
-from common.validate import trajectory_problems
+from common.trajectory.task import load_task
+from common.trajectory.validate import trajectory_problems
 from tests.test_task import GOOD
 
 

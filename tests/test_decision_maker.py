@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from common.bus import Bus, BusConfig
 from common.decision import Params, State, step
+from common.runtime.bus import Bus, BusConfig
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main

@@ -1,5 +1,5 @@
 """deploy/: the systemd units verify and score under a security threshold. The router's ACL is generated
-(common/cell.py) and tested against a real router in tests/test_cell.py."""
+(common/runtime/cell.py) and tested against a real router in tests/test_cell.py."""
 
 from __future__ import annotations
 

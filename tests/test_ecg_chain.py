@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.bus import Bus, BusConfig
 from common.decision import Params, State, step
-from common.ecg_records import read_record
-from common.hrv import intervals, windows
-from common.rpeaks import detect
+from common.hrv.calibration import CALIBRATION_FILE
+from common.hrv.records import read_record
+from common.hrv.rpeaks import detect
+from common.hrv.stream import intervals, windows
+from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
@@ -131,7 +132,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     assert cal.rr_rest_s == pytest.approx(np.mean([w.mean_rr_s for w in offline]), abs=1e-6)
     assert cal.sigma_rest_s == 0.14 and cal.subject == "s07"
     assert sent == cal
-    assert msgspec.json.decode((tmp_path / "calibration.json").read_bytes(), type=Calibration) == cal
+    assert msgspec.json.decode((tmp_path / CALIBRATION_FILE).read_bytes(), type=Calibration) == cal
 
 
 @needs_data

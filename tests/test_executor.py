@@ -13,8 +13,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from common.bus import Bus, BusConfig
-from common.task import load_task
+from common.runtime.bus import Bus, BusConfig
+from common.trajectory.task import load_task
 from schemas import CycleReport, OperatorSignal, ParetoSet, RobotEvent, RobotState, Selection, ServiceStatus
 from schemas.topology import encode
 from services.executor.__main__ import Settings

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from common.bus import Bus, BusConfig
+from common.runtime.bus import Bus, BusConfig
 from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatus
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main

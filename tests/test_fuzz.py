@@ -24,8 +24,8 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from common.bus import Bus, BusConfig
 from common.decision import Params, State, step
+from common.runtime.bus import Bus, BusConfig
 from schemas import Calibration, CycleReport, EcgChunk, HrvWindow, ParetoSet, Selection, ServiceStatus
 from schemas.topology import TOPICS, Topic
 from services.decision_maker.__main__ import Settings as DecisionSettings

@@ -14,8 +14,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from common.bus import Bus, BusConfig
 from common.decision import Params, State, step
+from common.hrv.calibration import CALIBRATION_FILE
+from common.runtime.bus import Bus, BusConfig
 from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection, ServiceStatus
 from schemas.topology import encode
 from services.decision_maker.__main__ import Settings as DecisionSettings
@@ -184,11 +185,11 @@ async def test_the_status_says_the_state_file_was_moved_aside(tmp_path: Path, en
 
 
 def test_a_corrupt_calibration_file_is_moved_aside_and_the_config_rr_rest_used(tmp_path: Path) -> None:
-    (tmp_path / "calibration.json").write_text('{"type": "operator.calibration.v1", "rr_rest_s": -0.8}')
+    (tmp_path / CALIBRATION_FILE).write_text('{"type": "operator.calibration.v1", "rr_rest_s": -0.8}')
     decider = Decider(tmp_path, 15)
     (problem,) = start(decider, tmp_path, DecisionSettings(rr_rest_s=0.9))
-    assert "calibration.json" in problem and "rr_rest_s" in problem
-    assert list(tmp_path.glob("calibration.json.corrupt-*"))
+    assert CALIBRATION_FILE in problem and "rr_rest_s" in problem
+    assert list(tmp_path.glob(f"{CALIBRATION_FILE}.corrupt-*"))
     assert decider.record is not None and decider.record.calibration.rr_rest_s == 0.9
 
 
@@ -303,7 +304,8 @@ def test_a_stored_set_that_does_not_decode_is_deleted_so_it_is_planned_again(tmp
 async def test_a_failing_handler_is_counted_logged_once_per_10_s_and_the_next_message_handled(
     endpoint: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from common.service import CommonSettings, ServiceContext
+    from common.runtime.config import CommonSettings
+    from common.runtime.service import ServiceContext
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         handled: list[int] = []

@@ -9,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from common.ecg_records import read_record
-from common.hrv import HrvStream, classify, intervals, windows
-from common.rpeaks import detect
+from common.hrv.records import read_record
+from common.hrv.rpeaks import detect
+from common.hrv.stream import HrvStream, classify, intervals, windows
 from tests.test_rpeaks import ECG, needs_data
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.ecg_records import Annotations
-from common.hrv_scoring import WindowScore, flutter_spans, has_arrhythmia_runs, truth
+from cadence.bench.hrv_scoring import WindowScore, flutter_spans, has_arrhythmia_runs, truth
+from common.hrv.records import Annotations
 
 
 def beats(times: list[float], symbols: str, extra: list[tuple[float, str, str]] = ()) -> Annotations:

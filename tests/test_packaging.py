@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -71,7 +72,7 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _until(cond, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+def _until(cond: Callable[[], object], timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
         if time.monotonic() > deadline:

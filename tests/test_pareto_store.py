@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from common.bus import Bus, BusConfig
+from common.runtime.bus import Bus, BusConfig
 from schemas import ParetoSet, ParetoSolutionReply, ServiceStatus
 from schemas.topology import TOPICS, AnyMessage
 from services.pareto_store.__main__ import Settings, main

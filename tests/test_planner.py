@@ -10,10 +10,10 @@ from pymoo.indicators.hv import HV
 from pymoo.util.nds.non_dominated_sorting import NonDominatedSorting
 from scipy.optimize import minimize
 
-from common import bspline as bs
-from common.limits import UR16E
-from common.naive import evaluate_naive
-from common.planner import (
+from cadence.bench.naive import evaluate_naive
+from common.trajectory import bspline as bs
+from common.trajectory.limits import UR16E
+from common.trajectory.planner import (
     ParetoResult,
     downsample,
     evaluate,
@@ -22,8 +22,8 @@ from common.planner import (
     non_dominated,
     plan_path,
 )
-from common.task import PathPlan, PlannerSettings
-from common.validate import trajectory_problems
+from common.trajectory.task import PathPlan, PlannerSettings
+from common.trajectory.validate import trajectory_problems
 from tests.conftest import random_path
 from tests.test_bspline import scipy_reference
 

@@ -7,7 +7,7 @@ import struct
 
 import pytest
 
-from common.polar import (
+from common.hrv.polar import (
     FrameError,
     ecg_start_request,
     parse_control_response,

@@ -14,7 +14,7 @@ import pytest
 from mcap.reader import make_reader
 
 from cadence.recording import read, record, replay
-from common.bus import Bus, BusConfig
+from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main

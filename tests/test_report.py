@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from cadence.recording import Recorder
-from common.planner import content_hash
-from common.task import parse_task
+from common.trajectory.planner import content_hash
+from common.trajectory.task import parse_task
 from schemas import CycleReport, HrvWindow, OperatorError, RobotEvent, Selection
 from schemas.topology import encode
 from services.pareto_store.jobs import plan_job

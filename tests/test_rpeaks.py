@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.ecg_records import read_record
-from common.hrv import match_beats
-from common.rpeaks import detect
+from common.hrv.records import read_record
+from common.hrv.rpeaks import detect
+from common.hrv.stream import match_beats
 from tests.conftest import SHARED_DATA
 
 ECG = SHARED_DATA / "ecg"

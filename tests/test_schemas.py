@@ -23,7 +23,7 @@ from schemas import (
     Selection,
     ServiceStatus,
 )
-from schemas.pareto import Boundary, Limits
+from schemas.pareto import Limits, PathEnd
 from schemas.topology import TOPICS, AnyMessage, decode_any, encode, topic_of
 
 Z6 = [0.0] * 6
@@ -53,8 +53,8 @@ SAMPLES = [
         constraints="exact",
         waypoints=[Z6, Z6],
         limits=Limits(velocity=Z6, acceleration=Z6, jerk=Z6),
-        start=Boundary(velocity=Z6, acceleration=Z6, jerk=Z6),
-        end=Boundary(velocity=Z6, acceleration=Z6, jerk=Z6),
+        start=PathEnd(velocity=Z6, acceleration=Z6, jerk=Z6),
+        end=PathEnd(velocity=Z6, acceleration=Z6, jerk=Z6),
         front=[[1.0, 2.0]],
         solutions=[SOL],
     ),

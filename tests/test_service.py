@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from common.bus import BusConfig
-from common.errors import ConfigError
-from common.service import CommonSettings, read_config, sd_notify, section, watchdog_period_s
+from common.runtime.bus import BusConfig
+from common.runtime.config import CommonSettings, read_config, section
+from common.runtime.errors import ConfigError
+from common.runtime.service import sd_notify, watchdog_period_s
 
 
 def test_environment_variables_override_the_file(tmp_path: Path) -> None:

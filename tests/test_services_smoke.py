@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cadence.cli import SERVICES
-from common.bus import Bus, BusConfig
+from common.runtime.bus import Bus, BusConfig
 from schemas import ServiceStatus
 
 pytestmark = pytest.mark.asyncio

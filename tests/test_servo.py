@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from common.task import load_task
-from common.validate import validated_samples
+from common.trajectory.task import load_task
+from common.trajectory.validate import validated_samples
 from services.executor.backends import SimBackend
 from services.executor.servo import PERIOD_NS, ServoLoop
 from tests.conftest import EXAMPLE_TASK

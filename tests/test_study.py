@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common.planner import boundary_stretch, interval_bounds
-from common.study import Subject, motions, simulate
-from common.task import load_task
+from cadence.study import Subject, motions, simulate
+from common.trajectory.planner import boundary_stretch, interval_bounds
+from common.trajectory.task import load_task
 from tests.conftest import EXAMPLE_TASK
 
 

@@ -16,13 +16,13 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
-from common.bus import Bus, BusConfig
-from common.task import load_task
+from common.runtime.bus import Bus, BusConfig
+from common.trajectory.task import load_task
 from schemas import CycleReport, HrvWindow, Selection
 from tests.conftest import EXAMPLE_TASK, REPO, free_port
 
@@ -151,7 +151,7 @@ class Machine:
     def main_pid(self, unit: str) -> int:
         return int(self.show(unit, "MainPID")["MainPID"])
 
-    def until(self, what: str, cond, timeout: float) -> float:  # type: ignore[no-untyped-def]
+    def until(self, what: str, cond: Callable[[], object], timeout: float) -> float:
         """Seconds until ``cond()`` holds (polling systemd's own state: no timing is assumed)."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.errors import TaskError
-from common.limits import UR16E
-from common.task import continuity_gaps, load_task, parse_task
+from common.runtime.errors import TaskError
+from common.trajectory.limits import UR16E
+from common.trajectory.task import continuity_gaps, load_task, parse_task
 from tests.conftest import EXAMPLE_TASK
 
 GOOD = """

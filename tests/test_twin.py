@@ -1,11 +1,11 @@
-"""The operator twin (common/twin.py): its ECG is detectable, its heart answers the robot's pace."""
+"""The operator twin (common/sim/twin.py): its ECG is detectable, its heart answers the robot's pace."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from common.hrv import HrvStream, match_beats
-from common.twin import Operator, TwinParams
+from common.hrv.stream import HrvStream, match_beats
+from common.sim.twin import Operator, TwinParams
 
 FS = 130.0
 CHUNK = 73
@@ -28,7 +28,7 @@ def run(op: Operator, seconds: float, qd_norm: float = 0.0, t_start: float = 0.0
 
 
 def test_the_real_detector_finds_the_twins_beats() -> None:
-    from common.rpeaks import detect
+    from common.hrv.rpeaks import detect
 
     op, xs, beats = Operator(TwinParams(seed=3)), [], set()
     for i in range(0, round(300 * FS), CHUNK):

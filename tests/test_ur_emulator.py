@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.task import load_task
-from common.validate import validated_samples
+from common.trajectory.task import load_task
+from common.trajectory.validate import validated_samples
 from services.executor.backends import UrRtdeBackend
 from services.executor.servo import ServoLoop
 from tests.bench.test_bench_executor import check_bench_executor_output
@@ -193,7 +193,7 @@ FIRST_WAYPOINT_DEG = ["-62", "-78", "112", "-124", "-90", "28"]  # box_filling's
 async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_real_client(
     tmp_path: Path, endpoint: str, example_sets: Path
 ) -> None:
-    from common.bus import Bus, BusConfig
+    from common.runtime.bus import Bus, BusConfig
     from schemas import CycleReport, RobotEvent
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
@@ -238,7 +238,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
 async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_reconnects_and_a_resume_clears(
     tmp_path: Path, endpoint: str, example_sets: Path
 ) -> None:
-    from common.bus import Bus, BusConfig
+    from common.runtime.bus import Bus, BusConfig
     from schemas import CycleReport, RobotEvent, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.errors import TrajectoryRejected
-from common.limits import UR16E
-from common.planner import boundary_stretch
-from common.validate import check_trajectory, trajectory_problems
+from common.runtime.errors import TrajectoryRejected
+from common.trajectory.limits import UR16E
+from common.trajectory.planner import boundary_stretch
+from common.trajectory.validate import check_trajectory, trajectory_problems
 from tests.conftest import random_path
 
 

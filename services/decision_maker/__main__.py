@@ -4,7 +4,7 @@ The selection is state, not an event: it is republished every ``republish_s`` an
 publication lost while a router was down is not lost for long. k and RR_{i-1} are written atomically to
 the data folder after every window, before the selection is announced, so a restarted service goes on
 where it stopped. A window it has answered already (a replay, a duplicate) or one far from the windows'
-data time is dropped and counted (common/admission.py). Without a calibration it publishes nothing and
+data time is dropped and counted (common/runtime/admission.py). Without a calibration it publishes nothing and
 says so on its status, rather than guess the subject's resting RR.
 """
 
@@ -19,16 +19,16 @@ from typing import Annotated
 
 import msgspec
 
-from common.bus import QueryError, Request
-from common.service import ServiceContext, service_main
+from common.hrv.calibration import load_calibration as load_stored_calibration
+from common.runtime.bus import QueryError, Request
+from common.runtime.service import ServiceContext, service_main
 from schemas.base import RrSeconds
 from schemas.decision import MAX_N, Selection
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
+from schemas.topology import CALIBRATION, HRV_WINDOW, SELECTION
 from services.decision_maker.state import (
-    CALIBRATION_FILE,
     Decider,
-    load_calibration_file,
     load_record,
     same_calibration,
 )
@@ -46,7 +46,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
 def load_calibration(data_dir: Path, settings: Settings, problems: list[str]) -> Calibration | None:
     """The calibration `cadence calibrate` stored, else one from ``rr_rest_s`` in the config."""
-    loaded = load_calibration_file(data_dir / CALIBRATION_FILE)
+    loaded = load_stored_calibration(data_dir)
     if loaded.problem:
         problems.append(loaded.problem)
     if loaded.value is not None:
@@ -81,7 +81,7 @@ async def main(ctx: ServiceContext) -> None:
     settings: Settings = ctx.settings
     bus = ctx.bus
     decider = Decider(ctx.common.data_path, settings.n)
-    key, window_key = bus.key("decision/selection"), bus.key("hrv/window")
+    selections = bus.publisher(SELECTION)  # numbered by the decider: its seq is persisted state
     problems = await asyncio.to_thread(start, decider, ctx.common.data_path, settings)
     if problems:  # said until the service restarts: the operator should look at the file moved aside
         ctx.detail = "; ".join(problems) + "; started at the initial k, waiting for a fresh window"
@@ -89,16 +89,16 @@ async def main(ctx: ServiceContext) -> None:
 
     def publish() -> None:
         if decider.selection is not None:
-            bus.put(key, decider.selection, block=True)
+            selections.put(decider.selection)
 
-    async def on_window(_: str, w: HrvWindow) -> None:
+    async def on_window(key: str, w: HrvWindow) -> None:
         ctx.counters["windows"] += 1
         if decider.params is None:
             ctx.counters["windows_without_calibration"] += 1
             return
         verdict = decider.line.admit(w.start_ns, w.end_ns, clock_ns=ctx.common.clock.now_ns())
         if not verdict.acted_on:
-            bus.reject(window_key, verdict.code, verdict.detail)
+            bus.reject(key, verdict.code, verdict.detail)
             return
         if verdict.action == "restart":
             log.warning("hrv/window: %s", verdict.detail)
@@ -122,9 +122,9 @@ async def main(ctx: ServiceContext) -> None:
             raise QueryError("no calibration yet: run `cadence calibrate` or set rr_rest_s")
         return decider.selection
 
-    bus.handle(bus.key("operator/calibration"), Calibration, on_calibration)
-    bus.handle(window_key, HrvWindow, on_window)
-    bus.serve(key, on_query)
+    bus.handle(CALIBRATION, on_calibration)
+    bus.handle(HRV_WINDOW, on_window)
+    bus.serve(SELECTION, on_query)
     while not ctx.stop.is_set():
         publish()
         with contextlib.suppress(TimeoutError):

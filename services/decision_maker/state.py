@@ -10,16 +10,15 @@ from typing import Annotated
 
 import msgspec
 
-from common.admission import TimeLine
 from common.decision import Params, State, step
-from common.storage import Loaded, atomic_write, load_checked
+from common.runtime.admission import TimeLine
+from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
 from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
 
 STATE_FILE = "decision_state.json"
-CALIBRATION_FILE = "calibration.json"
 # Windows come every 30 s. One that starts more than this after the last answered is out of line (a
 # broken clock, a hostile message) until a second one agrees with it; one that ends within this before it
 # is a duplicate (a replay, a republish), answered already.
@@ -78,10 +77,6 @@ def same_calibration(a: Calibration, b: Calibration) -> bool:
 
 def load_record(path: Path) -> Loaded[DecisionRecord]:
     return load_checked(path, lambda b: msgspec.json.decode(b, type=DecisionRecord))
-
-
-def load_calibration_file(path: Path) -> Loaded[Calibration]:
-    return load_checked(path, lambda b: msgspec.json.decode(b, type=Calibration))
 
 
 class Decider:

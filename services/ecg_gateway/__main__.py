@@ -9,12 +9,14 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from common.clock import Clock
-from common.errors import ConfigError
-from common.service import CommonSettings, ServiceContext, first_of, service_main
-from common.twin import TwinParams
+from common.runtime.clock import Clock
+from common.runtime.config import CommonSettings
+from common.runtime.errors import ConfigError
+from common.runtime.service import ServiceContext, first_of, service_main
+from common.sim.twin import TwinParams
 from schemas.base import TimeNs
 from schemas.ecg import EcgChunk, RrIntervals
+from schemas.topology import ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
 from services.ecg_gateway.twin import TwinSource
@@ -31,7 +33,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
     speed: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 1.0  # replay: × real time; 0 = at once
     start_ns: TimeNs | None = None  # replay: data time of the first sample (default: now)
-    twin: TwinParams = TwinParams()  # twin: the simulated operator's parameters (common/twin.py)
+    twin: TwinParams = TwinParams()  # twin: the simulated operator's parameters (common/sim/twin.py)
 
 
 def make_source(settings: Settings, clock: Clock) -> EcgSource:
@@ -46,36 +48,35 @@ def make_source(settings: Settings, clock: Clock) -> EcgSource:
 
 async def main(ctx: ServiceContext) -> None:
     source = make_source(ctx.settings, ctx.common.clock)
-    if isinstance(source, TwinSource):
-        source.connect(ctx.bus)
-    key = ctx.bus.key("ecg/samples")
-    rr_key = ctx.bus.key("ecg/rr")
-    seq = rr_seq = 0
+    source.connect(ctx.bus)
+    samples_out, rr_out = ctx.bus.publisher(ECG_SAMPLES), ctx.bus.publisher(ECG_RR)
     if source.waits_for_listener:
         ctx.state = "waiting for a subscriber of ecg/samples"
         try:
-            await first_of(ctx.bus.until_subscribed(key, LISTENER_WAIT_S), ctx.stop.wait())
+            await first_of(samples_out.until_subscribed(LISTENER_WAIT_S), ctx.stop.wait())
         except TimeoutError:
-            log.warning("nobody subscribes to %s after %.0f s: replaying anyway", key, LISTENER_WAIT_S)
+            log.warning(
+                "nobody subscribes to %s after %.0f s: replaying anyway", samples_out.key, LISTENER_WAIT_S
+            )
         if ctx.stop.is_set():
             return
         ctx.state = "running"
     async for chunk in source.chunks():
         if isinstance(chunk, RrChunk):
-            ctx.bus.put(rr_key, RrIntervals(t_ns=chunk.t_ns, seq=rr_seq, rr_s=chunk.rr_s, source=source.name))
-            rr_seq += 1
+            rr_out.put(
+                RrIntervals(t_ns=chunk.t_ns, seq=rr_out.next_seq(), rr_s=chunk.rr_s, source=source.name)
+            )
             continue
         ecg = EcgChunk(
             t_ns=chunk.t_ns,
-            seq=seq,
+            seq=samples_out.next_seq(),
             fs_hz=FS_HZ,
             samples_uv=chunk.samples_uv,
             gap=chunk.gap,
             source=source.name,
         )
-        ctx.bus.put(key, ecg, block=True)
-        seq += 1
-        ctx.counters["chunks"] = seq
+        samples_out.put(ecg)
+        ctx.counters["chunks"] = samples_out.seq
         ctx.counters["gaps"] += int(chunk.gap)
         if ctx.stop.is_set():
             break

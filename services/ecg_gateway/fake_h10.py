@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.polar import HR_MEASUREMENT, PMD_CONTROL, PMD_DATA
+from common.hrv.polar import HR_MEASUREMENT, PMD_CONTROL, PMD_DATA
 from services.ecg_gateway.polar import POLAR_EPOCH_NS
 from services.ecg_gateway.sources import CHUNK, FS_HZ
 

@@ -18,9 +18,9 @@ import contextlib
 import logging
 import re
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Protocol
+from typing import Protocol, cast
 
-from common.polar import (
+from common.hrv.polar import (
     HR_MEASUREMENT,
     PMD_CONTROL,
     PMD_DATA,
@@ -66,11 +66,11 @@ def bleak_connector(strap: str, scan_timeout_s: float = 10.0) -> Connector:
                 device = await BleakScanner.find_device_by_address(strap, timeout=scan_timeout_s)
             else:
                 device = await BleakScanner.find_device_by_filter(
-                    lambda d, _ad: bool(d.name) and strap in d.name, timeout=scan_timeout_s
+                    lambda d, _ad: d.name is not None and strap in d.name, timeout=scan_timeout_s
                 )
             if device is None:
                 raise StrapError(f"no strap matching {strap!r} within {scan_timeout_s:.0f} s of scanning")
-            return await establish_connection(
+            client = await establish_connection(
                 BleakClientWithServiceCache,
                 device,
                 device.name or strap,
@@ -78,6 +78,8 @@ def bleak_connector(strap: str, scan_timeout_s: float = 10.0) -> Connector:
             )
         except BleakError as exc:
             raise StrapError(f"BLE: {exc}") from exc
+        # bleak's client is a GattClient; its callbacks take wider types than the protocol names
+        return cast(GattClient, client)
 
     return connect
 
@@ -102,7 +104,7 @@ class PolarSource(EcgSource):
         self.bad_frames = 0
         self.reconnects = 0
 
-    async def chunks(self) -> AsyncIterator[Chunk | RrChunk]:  # type: ignore[override]
+    async def chunks(self) -> AsyncIterator[Chunk | RrChunk]:
         attempt = 0
         gap = False
         expected_ns: int | None = None

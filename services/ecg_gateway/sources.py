@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.ecg_records import read_record
+from common.hrv.records import read_record
+from common.runtime.bus import Bus
 
 FS_HZ = 130.0
 CHUNK = 73  # samples per H10 PMD notification at 130 Hz
@@ -44,6 +45,9 @@ class EcgSource(abc.ABC):
 
     @abc.abstractmethod
     def chunks(self) -> AsyncIterator[Chunk | RrChunk]: ...
+
+    def connect(self, bus: Bus) -> None:  # noqa: B027 (most sources have no ports of their own)
+        """Open the bus ports of a source that is more than a strap (the twin watches the robot)."""
 
 
 class ReplaySource(EcgSource):

@@ -1,4 +1,4 @@
-"""The ``twin`` source: the simulated operator of common/twin.py, wired to the bus.
+"""The ``twin`` source: the simulated operator of common/sim/twin.py, wired to the bus.
 
 It watches the robot (``robot/state``: joint velocities, what the robot waits for; ``robot/cycle``), and
 produces what a real worker would: an ECG at 130 Hz for the gateway to publish, the parts the task
@@ -14,15 +14,17 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 
-from common.admission import TimeLine
-from common.bus import Bus
-from common.clock import Clock
-from common.twin import Operator, TwinParams
+from common.runtime.admission import TimeLine
+from common.runtime.bus import Bus, Publisher
+from common.runtime.clock import Clock
+from common.sim.twin import Operator, TwinParams
 from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport, RobotState
+from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, ROBOT_CYCLE, ROBOT_STATE
 from services.ecg_gateway.sources import CHUNK, FS_HZ, Chunk, EcgSource
 
 log = logging.getLogger("cadence.ecg_gateway")
+ROLE = "operator_twin"  # schemas/topology.py: the twin's operator, not the gateway, sends its messages
 
 
 STATE_AHEAD_S = 10.0
@@ -36,17 +38,21 @@ class TwinSource(EcgSource):
         self.operator = Operator(params, FS_HZ)
         self.clock = clock
         self.bus: Bus | None = None
+        self.signals_out: Publisher[OperatorSignal] | None = None
+        self.errors_out: Publisher[OperatorError] | None = None
         self.origin_ns = clock.now_ns()
         self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
         self.waiting_for: str | None = None
-        self.seq = {"signal": 0, "error": 0}
-        # robot/state at 50 Hz: one far from the states before it is dropped (common/admission.py)
+        # robot/state at 50 Hz: one far from the states before it is dropped (common/runtime/admission.py)
         self.line = TimeLine(STATE_AHEAD_S, tolerance_s=0.0, confirm=STATE_CONFIRM)
 
     def connect(self, bus: Bus) -> None:
+        """Open the twin's own ports, as the role the graph gives it (hosted in the gateway's process)."""
         self.bus = bus
-        bus.handle(bus.key("robot/state"), RobotState, self.on_state, maxsize=1000)
-        bus.handle(bus.key("robot/cycle"), CycleReport, self.on_cycle)
+        self.signals_out = bus.publisher(OPERATOR_SIGNAL, role=ROLE)
+        self.errors_out = bus.publisher(OPERATOR_ERROR, role=ROLE)
+        bus.handle(ROBOT_STATE, self.on_state, maxsize=1000, role=ROLE)
+        bus.handle(ROBOT_CYCLE, self.on_cycle, role=ROLE)
 
     def _t(self, t_ns: int) -> float:
         return (t_ns - self.origin_ns) / 1e9
@@ -64,31 +70,27 @@ class TwinSource(EcgSource):
         self.waiting_for = state.waiting_for
 
     async def on_cycle(self, _: str, report: CycleReport) -> None:
-        if self.bus is not None and self.operator.makes_error():
-            self.bus.put(
-                self.bus.key("operator/error"),
+        if self.errors_out is not None and self.operator.makes_error():
+            self.errors_out.put(
                 OperatorError(
                     t_ns=report.t_ns,
-                    seq=self.seq["error"],
+                    seq=self.errors_out.next_seq(),
                     cycle=report.cycle,
                     description=f"simulated (stress {self.operator.stress:.2f})",
-                ),
-                block=True,
+                )
             )
-            self.seq["error"] += 1
 
     def _signals_due(self, t: float) -> None:
         due = [p for p in self.pending if p[0] <= t]
-        if not due or self.bus is None:
+        if not due or self.signals_out is None:
             return
         self.pending = [p for p in self.pending if p[0] > t]
         for when, name in due:
-            self.bus.put(
-                self.bus.key("operator/signal"),
-                OperatorSignal(t_ns=self.origin_ns + round(when * 1e9), seq=self.seq["signal"], name=name),
-                block=True,
+            self.signals_out.put(
+                OperatorSignal(
+                    t_ns=self.origin_ns + round(when * 1e9), seq=self.signals_out.next_seq(), name=name
+                )
             )
-            self.seq["signal"] += 1
 
     async def chunks(self) -> AsyncIterator[Chunk]:
         i = 0

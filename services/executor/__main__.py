@@ -22,13 +22,14 @@ from typing import Annotated, Literal
 import msgspec
 import numpy as np
 
-from common.errors import ConfigError
 from common.motion import Event
-from common.resources import EXAMPLE_TASK
-from common.service import CommonSettings, ServiceContext, first_of, service_main
-from common.task import Task, load_task
-from schemas.decision import MAX_N, Selection
-from schemas.operator import OperatorSignal
+from common.runtime.config import CommonSettings
+from common.runtime.errors import ConfigError
+from common.runtime.resources import EXAMPLE_TASK
+from common.runtime.service import ServiceContext, first_of, service_main
+from common.trajectory.task import Task, load_task
+from schemas.decision import MAX_N
+from schemas.topology import OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION
 from services.executor.backends import Backend, RobotUnavailable, SimBackend, UrRtdeBackend
 from services.executor.cores import claim_core, default_lock_dir
 from services.executor.executor import Executor
@@ -136,12 +137,12 @@ async def main(ctx: ServiceContext) -> None:
     ctx.detail = "; ".join(ex.notes)
     if claim.note:
         log.warning("%s", claim.note)
-    else:
+    if claim.core is not None:
         ctx.counters["servo_core"] = claim.core
     bus = ctx.bus
-    bus.handle(bus.key("decision/selection"), Selection, ex.on_selection, maxsize=1)
-    bus.handle(bus.key("operator/signal"), OperatorSignal, ex.signals.on_signal)
-    bus.serve(bus.key("robot/resume"), ex.on_resume)
+    bus.handle(SELECTION, ex.on_selection, maxsize=1)
+    bus.handle(OPERATOR_SIGNAL, ex.signals.on_signal)
+    bus.serve(ROBOT_RESUME, ex.on_resume)
     if loaded.value is not None and loaded.value.cycle_in_progress is not None:
         ex.event(
             "info",

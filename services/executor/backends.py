@@ -1,4 +1,4 @@
-"""The executor's robots behind one interface (DESIGN §8): ``sim``, a simulated UR16e (common/arm.py),
+"""The executor's robots behind one interface (DESIGN §8): ``sim``, a simulated UR16e (common/sim/arm.py),
 and ``ur_rtde``, a UR16e (or URSim, or the emulator) through the real ``ur-rtde`` client.
 
 ``servo``, ``brake`` and ``settled`` run inside the servo loop; the rest runs outside it, in a worker
@@ -10,14 +10,14 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from common.arm import DT, SimArm, forward_kinematics, move_j_profile
-from common.errors import CadenceError
-from common.limits import UR16E, JointLimits
+from common.runtime.errors import CadenceError
+from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
+from common.trajectory.limits import UR16E, JointLimits
 
 Array = NDArray[np.float64]
 
@@ -104,7 +104,7 @@ class SimBackend:
         return list(np.ascontiguousarray(q, dtype=float))  # row views: indexing allocates nothing
 
     def servo(self, target: object) -> bool:
-        return self.arm.servo(target, self.lookahead, self.gain)  # type: ignore[arg-type]
+        return self.arm.servo(cast(Array, target), self.lookahead, self.gain)  # what prepare gave: a row
 
     def brake(self) -> bool:
         return self.arm.brake(self.stop_deceleration)
@@ -159,7 +159,8 @@ class UrRtdeBackend:
         self.stop_deceleration, self.settle_tol = stop_deceleration, settle_tol
         self.watchdog_hz = watchdog_hz
         self.gripper_output = gripper_output
-        self._c = self._r = None
+        self._c: Any = None  # ur_rtde ships no type information
+        self._r: Any = None
         self._lost = ""
         self._watchdog = False
         self._last = {"q": np.zeros(6), "qd": np.zeros(6), "tcp": np.zeros(6)}

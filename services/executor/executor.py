@@ -18,17 +18,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from common.bus import Bus, QueryError, Request
-from common.clock import Clock
 from common.decision import k_for_path
-from common.errors import TrajectoryRejected
 from common.motion import Event, IllegalTransition, Motion, State, transition
-from common.service import ServiceContext, first_of
-from common.task import PathPlan, Task
-from common.validate import validated_samples
+from common.runtime.bus import Bus, QueryError, Request
+from common.runtime.clock import Clock
+from common.runtime.errors import TrajectoryRejected
+from common.runtime.service import ServiceContext, first_of
+from common.trajectory.task import PathPlan, Task
+from common.trajectory.validate import validated_samples
 from schemas.decision import Selection
 from schemas.operator import OperatorSignal
-from schemas.robot import CycleReport, RobotEvent, RobotState
+from schemas.robot import CycleReport, EventKind, RobotEvent, RobotState
+from schemas.topology import ROBOT_CYCLE, ROBOT_EVENT, ROBOT_STATE, SELECTION
 from services.executor.backends import Backend, RobotUnavailable
 from services.executor.persist import ExecutorStore
 from services.executor.servo import MotionResult, ServoLoop
@@ -113,7 +114,9 @@ class Executor:
         self.k: int | None = None
         self.mode = "idle"
         self.waiting_for: str | None = None
-        self.seq = Counter[str]()
+        self.events_out = ctx.bus.publisher(ROBOT_EVENT)
+        self.states_out = ctx.bus.publisher(ROBOT_STATE)
+        self.cycles_out = ctx.bus.publisher(ROBOT_CYCLE)
         self._last_event: tuple[str, str] | None = None
 
     # --- the safety states --------------------------------------------------------------------------
@@ -139,10 +142,16 @@ class Executor:
 
     # --- bus ----------------------------------------------------------------------------------------
 
-    def event(self, kind: str, message: str, path_id: str | None = None, repeat: bool = False) -> RobotEvent:
+    def event(
+        self, kind: EventKind, message: str, path_id: str | None = None, repeat: bool = False
+    ) -> RobotEvent:
         """Publish a RobotEvent (and log it); the same event twice in a row only once, unless asked."""
         msg = RobotEvent(
-            t_ns=self.clock.now_ns(), seq=self._next("event"), kind=kind, message=message, path_id=path_id
+            t_ns=self.clock.now_ns(),
+            seq=self.events_out.next_seq(),
+            kind=kind,
+            message=message,
+            path_id=path_id,
         )
         if not repeat and self._last_event == (kind, message):
             return msg
@@ -150,12 +159,8 @@ class Executor:
         level = logging.INFO if kind in ("started", "connected", "info", "state") else logging.WARNING
         log.log(level, "%s: %s", kind, message)
         self.ctx.counters[f"event_{kind}"] += 1
-        self.bus.put(self.bus.key("robot/event"), msg, block=True)
+        self.events_out.put(msg)
         return msg
-
-    def _next(self, name: str) -> int:
-        self.seq[name] += 1
-        return self.seq[name] - 1
 
     async def on_selection(self, _: str, sel: Selection) -> None:
         if self.selection is None or (sel.t_ns, sel.seq) != (self.selection.t_ns, self.selection.seq):
@@ -165,9 +170,7 @@ class Executor:
 
     async def ask_selection(self) -> bool:
         """Selections are state: ask for the current one at start (DESIGN §11). True when one came."""
-        for r in await self.bus.get(
-            self.bus.key("decision/selection"), Selection, self.settings.query_timeout_s
-        ):
+        for r in await self.bus.get(SELECTION, timeout=self.settings.query_timeout_s):
             if r.message is not None:
                 await self.on_selection(r.key, r.message)
                 return True
@@ -275,21 +278,19 @@ class Executor:
 
     async def publish_state(self) -> None:
         period = 1.0 / self.settings.state_rate_hz
-        key = self.bus.key("robot/state")
         while not self.ctx.stop.is_set():
             try:
-                self._put_state(key)
+                self._put_state()
             except Exception as exc:  # telemetry must outlive a backend's bad moment
-                self.bus.handler_failed(key, exc)
+                self.bus.handler_failed(self.states_out.key, exc)
             await asyncio.sleep(period)
 
-    def _put_state(self, key: str) -> None:
+    def _put_state(self) -> None:
         q, qd = self.backend.actual_q(), self.backend.actual_qd()
-        self.bus.put(
-            key,
+        self.states_out.put(
             RobotState(
                 t_ns=self.clock.now_ns(),
-                seq=self._next("state"),
+                seq=self.states_out.next_seq(),
                 q=q.tolist(),
                 qd=qd.tolist(),
                 tcp=self.backend.tcp_pose().tolist(),
@@ -467,15 +468,13 @@ class Executor:
                     self.fire(Event.OPERATOR)
             end = self.clock.now_ns()
             await asyncio.to_thread(self.store.cycle, None)
-            self.bus.put(
-                self.bus.key("robot/cycle"),
+            self.cycles_out.put(
                 CycleReport(
                     t_ns=end,
-                    seq=self._next("cycle"),
+                    seq=self.cycles_out.next_seq(),
                     cycle=cycle,
                     cycle_time_s=(end - started) / 1e9,
                     k_per_path=ks,
-                ),
-                block=True,
+                )
             )
             self.ctx.counters["cycles"] = cycle = cycle + 1

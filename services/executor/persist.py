@@ -10,7 +10,7 @@ from pathlib import Path
 
 import msgspec
 
-from common.storage import Loaded, atomic_write, load_checked
+from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import NonNegInt, TimeNs
 from schemas.decision import Selection, SolutionIndex
 

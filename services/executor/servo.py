@@ -30,7 +30,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from common.timing import TickSummary, summarise
+from services.executor.timing import TickSummary, summarise
 
 PERIOD_NS = 2_000_000  # 500 Hz: one e-Series controller step
 MCL_CURRENT, MCL_FUTURE = 1, 2

@@ -13,12 +13,12 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from common.bus import Bus
-from common.planner import content_hash
-from common.storage import atomic_write, load_checked
-from common.task import Task
+from common.runtime.bus import Bus
+from common.runtime.storage import atomic_write, load_checked
+from common.trajectory.planner import content_hash
+from common.trajectory.task import Task
 from schemas.pareto import ParetoSet
-from schemas.topology import encode
+from schemas.topology import PARETO_SET, encode
 
 log = logging.getLogger("cadence.executor")
 
@@ -73,7 +73,7 @@ class SetCache:
 
     async def fetch(self, pid: str, timeout: float) -> str | None:
         """Ask the store for one path's set; None when it was taken, else why not."""
-        replies = await self.bus.get(self.bus.key(f"pareto/{pid}"), ParetoSet, timeout)
+        replies = await self.bus.get(PARETO_SET.at(pid), timeout=timeout)
         if not replies:
             return "the Pareto store did not answer"
         r = replies[0]

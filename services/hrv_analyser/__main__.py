@@ -5,7 +5,7 @@
 the H10's own RR leaves out premature beats, so samples are the default and the better input.
 
 A chunk far from the stream's data time, or at another sample rate, is dropped and counted; a run of
-them that agree with each other starts the stream afresh there (common/admission.py)."""
+them that agree with each other starts the stream afresh there (common/runtime/admission.py)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from common.admission import TimeLine
-from common.hrv import RR_RESYNC_S, Beat, HrvStream, Window
-from common.service import ServiceContext, service_main
+from common.hrv.stream import RR_RESYNC_S, Beat, HrvStream, Window, beats_message, window_message
+from common.runtime.admission import TimeLine
+from common.runtime.service import ServiceContext, service_main
 from schemas.ecg import EcgChunk, RrIntervals
-from schemas.hrv import Beats, HrvWindow
+from schemas.topology import ECG_RR, ECG_SAMPLES, HRV_BEATS, HRV_WINDOW
 
 NAME = "hrv_analyser"
 RR_RESOLUTION_HZ = 1024.0  # device RR comes in 1/1024 s; no detector runs on this input
@@ -40,53 +40,21 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 async def main(ctx: ServiceContext) -> None:
     settings: Settings = ctx.settings
     bus = ctx.bus
-    beats_key, window_key = bus.key("hrv/beats"), bus.key("hrv/window")
+    beats_out, windows_out = bus.publisher(HRV_BEATS), bus.publisher(HRV_WINDOW)
     stream: HrvStream | None = None
     origin_ns = 0
-    samples_key, rr_key = bus.key("ecg/samples"), bus.key("ecg/rr")
     line = (
         TimeLine(MAX_GAP_S, tolerance_s=RR_RESYNC_S, confirm=CONFIRM_RR)
         if settings.input == "rr"
         else TimeLine(MAX_GAP_S, tolerance_s=CHUNK_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
     )
-    seq = {"beats": 0, "window": 0}
-
-    def ns(t_s: float) -> int:
-        return origin_ns + round(t_s * 1e9)
 
     def publish(beats: list[Beat], wins: list[Window]) -> None:
-        if beats:  # flagged as the windows use them: the cleaning's verdict on the interval each ends
-            bus.put(
-                beats_key,
-                Beats(
-                    t_ns=ns(beats[-1].t_s),
-                    seq=seq["beats"],
-                    peak_t_ns=[ns(b.t_s) for b in beats],
-                    rr_s=[b.rr_s for b in beats],
-                    excluded=[b.excluded for b in beats],
-                ),
-            )
-            seq["beats"] += 1
+        if beats:
+            beats_out.put(beats_message(beats, origin_ns, beats_out.next_seq()))
             ctx.counters["beats"] += len(beats)
         for w in wins:
-            bus.put(
-                window_key,
-                HrvWindow(
-                    t_ns=ns(w.end_s),
-                    seq=seq["window"],
-                    start_ns=ns(w.start_s),
-                    end_ns=ns(w.end_s),
-                    mean_rr_s=w.mean_rr_s,
-                    n_beats=w.n_beats,
-                    excluded_fraction=w.excluded,
-                    quality=w.quality,
-                    rmssd_s=w.rmssd_s,
-                    sdnn_s=w.sdnn_s,
-                    reason=w.reason,
-                ),
-                block=True,
-            )
-            seq["window"] += 1
+            windows_out.put(window_message(w, origin_ns, windows_out.next_seq()))
             ctx.counters["windows"] += 1
 
     def admitted(key: str, start_ns: int, end_ns: int, fs: float) -> bool:
@@ -123,9 +91,9 @@ async def main(ctx: ServiceContext) -> None:
         publish(*stream.feed_rr((msg.t_ns - origin_ns) / 1e9, msg.rr_s, msg.gap))
 
     if settings.input == "rr":
-        bus.handle(rr_key, RrIntervals, on_rr, maxsize=10_000)
+        bus.handle(ECG_RR, on_rr, maxsize=10_000)
     else:
-        bus.handle(samples_key, EcgChunk, on_chunk, maxsize=10_000)
+        bus.handle(ECG_SAMPLES, on_chunk, maxsize=10_000)
     await ctx.stop.wait()
 
 

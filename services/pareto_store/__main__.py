@@ -4,6 +4,7 @@ the sets in SQLite, and answers ``pareto/<path_id>`` and ``pareto/<path_id>/<k>`
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import multiprocessing
 import os
@@ -14,14 +15,15 @@ from typing import Annotated
 
 import msgspec
 
-from common.bus import QueryError, Request
-from common.lifetime import die_with_parent
-from common.planner import content_hash
-from common.resources import EXAMPLE_TASK
-from common.service import CommonSettings, ServiceContext, service_main
-from common.task import Task, load_task
-from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress
-from schemas.topology import encode
+from common.runtime.bus import QueryError, Request
+from common.runtime.config import CommonSettings
+from common.runtime.lifetime import die_with_parent
+from common.runtime.resources import EXAMPLE_TASK
+from common.runtime.service import ServiceContext, service_main
+from common.trajectory.planner import content_hash
+from common.trajectory.task import Task, load_task
+from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
+from schemas.topology import PARETO_SET, PARETO_SOLUTION, PLAN_PROGRESS, encode, key
 from services.pareto_store.jobs import lower_priority, plan_job
 from services.pareto_store.store import SetStore
 
@@ -35,27 +37,30 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     workers: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
 
 
-def answer(
-    sets: dict[str, ParetoSet], task: Task, cell: str, req: Request, seq: int
-) -> ParetoSet | ParetoSolutionReply:
-    """The reply to a query on ``cadence/<cell>/pareto/…``: a set, one solution, or a QueryError."""
-    rest = req.key.split(f"cadence/{cell}/pareto/", 1)[-1].split("/")
-    path_id = rest[0]
+def _chunks(cell: str, req: Request) -> list[str]:
+    return req.key.removeprefix(key(cell, "pareto/")).split("/")
+
+
+def answer_set(sets: dict[str, ParetoSet], task: Task, path_id: str) -> ParetoSet:
+    """The reply to ``pareto/<path_id>``: the set, or a QueryError that says why not."""
     if path_id not in task.paths:
         raise QueryError(f"unknown path '{path_id}'; this task has {', '.join(task.paths)}")
     if path_id not in sets:
         raise QueryError(f"path '{path_id}' is being computed; subscribe to pareto/progress")
-    s = sets[path_id]
-    if len(rest) == 1:
-        return s
+    return sets[path_id]
+
+
+def answer_solution(
+    sets: dict[str, ParetoSet], task: Task, path_id: str, k_text: str, seq: int
+) -> ParetoSolutionReply:
+    """The reply to ``pareto/<path_id>/<k>``: one solution, numbered from 1 as the selection's k."""
+    s = answer_set(sets, task, path_id)
     try:
-        k = int(rest[1])
+        k = int(k_text)
     except ValueError:
-        raise QueryError(f"k must be an integer, got {rest[1]!r}") from None
-    if not 1 <= k <= len(s.solutions) or len(rest) > 2:
-        raise QueryError(
-            f"path '{path_id}' has solutions k = 1 … {len(s.solutions)}, not {'/'.join(rest[1:])}"
-        )
+        raise QueryError(f"k must be an integer, got {k_text!r}") from None
+    if not 1 <= k <= len(s.solutions):
+        raise QueryError(f"path '{path_id}' has solutions k = 1 … {len(s.solutions)}, not {k_text}")
     return ParetoSolutionReply(
         t_ns=s.t_ns,
         seq=seq,
@@ -79,17 +84,15 @@ async def main(ctx: ServiceContext) -> None:
         stored = await asyncio.to_thread(store.load, pid, digest)
         if stored is not None:
             sets[pid] = stored
-    seq = 0
-    progress_key = ctx.bus.key("pareto/progress")
+    progress_out = ctx.bus.publisher(PLAN_PROGRESS)
+    reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
 
-    def progress(pid: str, state: str, message: str = "") -> None:
-        nonlocal seq
+    def progress(pid: str, state: PlanState, message: str = "") -> None:
         done = sum(1 for p in task.paths if p in sets)
-        ctx.bus.put(
-            progress_key,
+        progress_out.put(
             PlanProgress(
                 t_ns=time.time_ns(),
-                seq=seq,
+                seq=progress_out.next_seq(),
                 path_id=pid,
                 state=state,
                 done_paths=done,
@@ -97,15 +100,18 @@ async def main(ctx: ServiceContext) -> None:
                 message=message,
             ),
         )
-        seq += 1
 
-    async def handler(req: Request) -> ParetoSet | ParetoSolutionReply:
-        nonlocal seq
+    async def on_set(req: Request) -> ParetoSet:
         ctx.counters["queries"] += 1
-        seq += 1
-        return answer(sets, task, ctx.common.cell, req, seq)
+        return answer_set(sets, task, _chunks(ctx.common.cell, req)[0])
 
-    ctx.bus.serve(ctx.bus.key("pareto/**"), handler)
+    async def on_solution(req: Request) -> ParetoSolutionReply:
+        ctx.counters["queries"] += 1
+        path_id, k = _chunks(ctx.common.cell, req)
+        return answer_solution(sets, task, path_id, k, next(reply_seq))
+
+    ctx.bus.serve(PARETO_SET, on_set)
+    ctx.bus.serve(PARETO_SOLUTION, on_solution)
     for pid in sets:
         progress(pid, "stored")
     missing = [pid for pid in task.paths if pid not in sets]

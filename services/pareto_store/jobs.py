@@ -8,9 +8,9 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 
-from common.planner import plan_path
-from common.task import PathPlan, PlannerSettings, Task
-from schemas.pareto import Boundary, Limits, ParetoSet, ParetoSolution
+from common.trajectory.planner import plan_path
+from common.trajectory.task import PathPlan, PlannerSettings, Task
+from schemas.pareto import Limits, ParetoSet, ParetoSolution
 
 _NICE = 10
 
@@ -18,7 +18,7 @@ _NICE = 10
 def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str) -> ParetoSet:
     """Runs in a worker process: plan one path and return it as the wire message."""
     r = plan_path(path, task.limits, settings)
-    b = path.boundary
+    start, end = path.boundary.ends()
     return ParetoSet(
         t_ns=time.time_ns(),
         seq=0,
@@ -27,8 +27,8 @@ def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str)
         constraints=settings.constraints,
         waypoints=path.waypoints.tolist(),
         limits=Limits(**task.limits.as_dict()),
-        start=Boundary(velocity=b.v0.tolist(), acceleration=b.a0.tolist(), jerk=b.j0.tolist()),
-        end=Boundary(velocity=b.v1.tolist(), acceleration=b.a1.tolist(), jerk=b.j1.tolist()),
+        start=start,
+        end=end,
         front=r.front.tolist(),
         solutions=[
             ParetoSolution(k=s.k, h=s.h.tolist(), t_f=s.t_f, f_time=s.f_time, f_jerk=s.f_jerk)

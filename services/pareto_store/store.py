@@ -12,7 +12,7 @@ from pathlib import Path
 
 import msgspec
 
-from common.storage import quarantine
+from common.runtime.storage import quarantine
 from schemas.pareto import ParetoSet
 
 log = logging.getLogger("cadence.pareto_store")

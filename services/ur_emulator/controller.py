@@ -1,4 +1,4 @@
-"""The emulated UR controller's state: the arm (common/arm.py, the same model as the executor's sim
+"""The emulated UR controller's state: the arm (common/sim/arm.py, the same model as the executor's sim
 backend), the registers RTDE reads and writes, and the control script the ur-rtde client uploads, run
 once per 2 ms tick the way shared/reference/ur-rtde-wire.md describes it:
 
@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
-from common.arm import DT, SimArm, forward_kinematics, move_j_profile
+from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
 
 STOPPED, PLAYING = 1, 2
 ROBOT_MODE_RUNNING = 7
@@ -64,7 +65,7 @@ class Controller:
             self.watchdog_hz = 0.0
             self.log.append(f"script uploaded ({len(text)} bytes), program running")
 
-    def write_inputs(self, recipe: int, fields: dict[str, object], control: bool) -> None:
+    def write_inputs(self, recipe: int, fields: dict[str, Any], control: bool) -> None:
         """An RTDE input package: register values by name. The watchdog watches the command register
         (URScript's rtde_set_watchdog is per variable): any package that writes it is a kick, which is
         what kickWatchdog sends (0, on recipe 11). A servoJ's target is taken as it arrives: the script's

@@ -13,11 +13,14 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from common import rtde
-from common.storage import atomic_write
+from common.runtime.storage import atomic_write
+from services.ur_emulator import rtde
 from services.ur_emulator.controller import Controller
+
+Handler = Callable[[socket.socket, str], None]  # one connection of one interface
 
 log = logging.getLogger("cadence.ur_emulator")
 
@@ -78,12 +81,12 @@ class Emulator:
         for c in list(self.connections):
             c.sock.close()
 
-    def _spawn(self, target, *args) -> None:
+    def _spawn(self, target: Callable[..., None], *args: object) -> None:
         t = threading.Thread(target=target, args=args, daemon=True)
         t.start()
         self._threads.append(t)
 
-    def _accept(self, listener: socket.socket, handler) -> None:
+    def _accept(self, listener: socket.socket, handler: Handler) -> None:
         while not self._stop.is_set():
             try:
                 sock, addr = listener.accept()
@@ -92,7 +95,7 @@ class Emulator:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._spawn(self._serve, handler, sock, f"{addr[0]}:{addr[1]}")
 
-    def _serve(self, handler, sock: socket.socket, peer: str) -> None:
+    def _serve(self, handler: Handler, sock: socket.socket, peer: str) -> None:
         try:
             handler(sock, peer)
         except (OSError, ConnectionError, struct.error) as exc:

@@ -4,7 +4,7 @@ straightforward baseline measured in the same run; the assertions are on quality
 from __future__ import annotations
 
 from cadence.bench import bench_plan
-from common.task import load_task
+from common.trajectory.task import load_task
 from tests.conftest import EXAMPLE_TASK
 
 

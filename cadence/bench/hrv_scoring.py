@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from common.ecg_records import BEAT_SYMBOLS, Annotations
-from common.hrv import Window
+from common.hrv.records import BEAT_SYMBOLS, Annotations
+from common.hrv.stream import Window
 
 NN_SYMBOLS = frozenset("NLRej")  # normal beats of MIT-BIH's beat labels
 MIN_NN = 10

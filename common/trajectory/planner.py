@@ -27,10 +27,10 @@ from pymoo.core.repair import Repair
 from pymoo.decomposition.asf import ASF
 from scipy.optimize import minimize
 
-from common import bspline as bs
-from common.errors import PlanningError
-from common.limits import JointLimits
-from common.task import Constraints, PathPlan, PlannerSettings
+from common.runtime.errors import PlanningError
+from common.trajectory import bspline as bs
+from common.trajectory.limits import JointLimits
+from common.trajectory.task import Constraints, PathPlan, PlannerSettings
 
 Array = NDArray[np.float64]
 
@@ -166,7 +166,8 @@ def polish(
 def feasible_stretch(ratio: Array) -> Array:
     """α* per individual: the stretch that brings the worst limit ratio to exactly 1. (P,)."""
     r = ratio.max(axis=2)  # (P, 3): worst joint per derivative order
-    return np.max(np.stack([r[:, 0], np.sqrt(r[:, 1]), np.cbrt(r[:, 2])], axis=1), axis=1)
+    alpha: Array = np.max(np.stack([r[:, 0], np.sqrt(r[:, 1]), np.cbrt(r[:, 2])], axis=1), axis=1)
+    return alpha
 
 
 def stretched(ev: Evaluation, alpha: Array) -> Evaluation:
@@ -181,7 +182,7 @@ def boundary_stretch(h: Array, path: PathPlan, limits: JointLimits, constraints:
     return feasible_stretch(evaluate(h, path, limits, constraints).ratio)
 
 
-class TrajectoryProblem(Problem):
+class TrajectoryProblem(Problem):  # type: ignore[misc]  # pymoo ships no type information
     """pymoo problem of one path; it keeps every feasible point it evaluates in a non-dominated archive."""
 
     def __init__(
@@ -224,7 +225,7 @@ class TrajectoryProblem(Problem):
             self._cache[row.tobytes()] = (f_row, g_row)
         return np.minimum(h2, self.ub)
 
-    def _evaluate(self, x: Array, out: dict, *args: object, **kwargs: object) -> None:
+    def _evaluate(self, x: Array, out: dict[str, Array], *args: object, **kwargs: object) -> None:
         f = np.empty((len(x), 2))
         g = np.empty((len(x), self.n_ieq_constr))
         missing = []
@@ -255,7 +256,7 @@ class TrajectoryProblem(Problem):
         self.archive_h, self.archive_f = hs[keep], fs[keep]
 
 
-class _StretchRepair(Repair):
+class _StretchRepair(Repair):  # type: ignore[misc]  # pymoo ships no type information
     def _do(self, problem: TrajectoryProblem, x: Array, **kwargs: object) -> Array:
         return problem.repair(x)
 
@@ -269,7 +270,8 @@ def non_dominated(f: Array) -> NDArray[np.intp]:
     order = np.lexsort((f[:, 1], f[:, 0]))
     fj = f[order, 1]
     best_before = np.concatenate([[np.inf], np.minimum.accumulate(fj)[:-1]])
-    return order[fj < best_before]
+    front: NDArray[np.intp] = order[fj < best_before]
+    return front
 
 
 def hypervolume(f: Array, ideal: Array, nadir: Array, ref: float = 1.1) -> float:
@@ -308,7 +310,8 @@ def downsample(front: Array, n: int) -> NDArray[np.intp]:
         lo, hi = picks[-1] + 1, m - 1 - (n - k)
         picks.append(lo + int(np.argmin(values[lo : hi + 1])))
     picks.append(m - 1)
-    return by_time_desc[np.array(picks)]
+    chosen: NDArray[np.intp] = by_time_desc[np.array(picks)]
+    return chosen
 
 
 @dataclass(frozen=True, slots=True)
@@ -337,7 +340,7 @@ class ParetoResult:
     n_evaluated: int
     hypervolume_history: list[float] = field(default_factory=list)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, object]:
         """The contract of ``DIR/<path_id>.json`` (planner issue), plus the settings used."""
         b = self.path.boundary
         return {

@@ -10,13 +10,15 @@ that spans a gap in the data is never formed.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.hrv import HoldReason, Quality
+from common.hrv.rpeaks import RPeakDetector
+from schemas.hrv import Beats, HoldReason, HrvWindow, Quality
 
 TOLERANCE = 0.2  # relative departure from the local median that excludes an interval
 PREMATURE, PAUSE = 0.08, 0.05  # a beat this much early, then a pause this much long: premature
@@ -211,6 +213,40 @@ def match_beats(
     return tp, len(found_s) - tp, len(ref_s) - tp
 
 
+# --- to the wire (hrv/beats, hrv/window): data time in ns from the stream's origin ------------------
+
+
+def _ns(origin_ns: int, t_s: float) -> int:
+    return origin_ns + round(t_s * 1e9)
+
+
+def beats_message(beats: Sequence[Beat], origin_ns: int, seq: int) -> Beats:
+    """Flagged as the windows use them: the cleaning's verdict on the interval each ends."""
+    return Beats(
+        t_ns=_ns(origin_ns, beats[-1].t_s),
+        seq=seq,
+        peak_t_ns=[_ns(origin_ns, b.t_s) for b in beats],
+        rr_s=[b.rr_s for b in beats],
+        excluded=[b.excluded for b in beats],
+    )
+
+
+def window_message(w: Window, origin_ns: int, seq: int) -> HrvWindow:
+    return HrvWindow(
+        t_ns=_ns(origin_ns, w.end_s),
+        seq=seq,
+        start_ns=_ns(origin_ns, w.start_s),
+        end_ns=_ns(origin_ns, w.end_s),
+        mean_rr_s=w.mean_rr_s,
+        n_beats=w.n_beats,
+        excluded_fraction=w.excluded,
+        quality=w.quality,
+        rmssd_s=w.rmssd_s,
+        sdnn_s=w.sdnn_s,
+        reason=w.reason,
+    )
+
+
 class HrvStream:
     """The online form of ``intervals`` + ``windows``, on data time: what the HRV analyser runs.
 
@@ -221,13 +257,13 @@ class HrvStream:
     windows that ``windows(intervals(detect(...)))`` gives for it whole.
     """
 
-    def __init__(self, fs: float, window_s: float = 30.0, detector_factory=None) -> None:
-        from common.rpeaks import RPeakDetector
-
+    def __init__(
+        self, fs: float, window_s: float = 30.0, detector_factory: Callable[[], RPeakDetector] | None = None
+    ) -> None:
         self.fs = fs
         self.window_s = window_s
         self._factory = detector_factory or (lambda: RPeakDetector(fs))
-        self._det = None
+        self._det: RPeakDetector | None = None
         self._seg_t0 = 0.0  # data time of the segment's first sample, s
         self._seg_n = 0
         self._next_t: float | None = None  # expected data time of the next sample
@@ -246,7 +282,7 @@ class HrvStream:
         self.segments = 0  # counts the detector's fresh starts (the first, and one after each gap)
 
     def feed(
-        self, t0_s: float, samples: NDArray[np.float64], gap: bool = False
+        self, t0_s: float, samples: NDArray[np.float64] | Sequence[float], gap: bool = False
     ) -> tuple[list[Beat], list[Window]]:
         """Returns (beats now final, windows now final)."""
         samples = np.asarray(samples, dtype=float)
@@ -256,6 +292,7 @@ class HrvStream:
         if self._det is None or gap or jumped:
             if self._det is not None:
                 self._end_segment()
+                assert self._next_t is not None  # set by the segment's first samples
                 self.gaps.append((self._next_t, t0_s))
             self._det, self._seg_t0, self._seg_n = self._factory(), t0_s, 0
             self.segments += 1
@@ -290,6 +327,7 @@ class HrvStream:
             last = t_s - sum(rr_s)
             peaks += self._add_times([last])
         for rr in rr_s:
+            assert last is not None  # a segment was started above for these intervals
             last += rr
             peaks += self._add_times([last])
         self._now = max(self._now, t_s, *peaks)
@@ -351,25 +389,3 @@ class HrvStream:
             del self._done_t[:keep], self._done_rr[:keep], self._done_kind[:keep]
             self.gaps = [g for g in self.gaps if g[1] > self._win_start]
         return out
-
-
-@dataclass(frozen=True, slots=True)
-class RestingLevel:
-    rr_rest_s: float  # mean of the good windows' mean RR
-    sigma_s: float  # spread of RR at rest: the mean of the good windows' SDNN
-    good: int
-    total: int
-
-
-def resting_level(wins: list[Window], min_good_share: float = 0.6) -> RestingLevel:
-    """RR_r for the decision rule from a calibration's windows; ValueError when too few are good."""
-    good = [w for w in wins if w.quality == "good" and w.mean_rr_s is not None]
-    if not wins or len(good) < min_good_share * len(wins):
-        raise ValueError(f"only {len(good)} of {len(wins)} windows are of good quality; check the strap")
-    sdnn = [w.sdnn_s for w in good if w.sdnn_s is not None]
-    return RestingLevel(
-        float(np.mean([w.mean_rr_s for w in good])),
-        float(np.mean(sdnn)) if sdnn else 0.0,
-        len(good),
-        len(wins),
-    )

@@ -7,21 +7,27 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from msgspec import structs
+from numpy.typing import NDArray
 
-from common.hrv_scoring import WindowScore
-from common.limits import JointLimits
-from common.naive import evaluate_naive
-from common.planner import (
+from cadence.bench.ecg_noise import Variant
+from cadence.bench.hrv_scoring import WindowScore
+from cadence.bench.naive import evaluate_naive
+from common.runtime.errors import InputError
+from common.runtime.resources import EXAMPLE_TASK
+from common.trajectory.limits import JointLimits
+from common.trajectory.planner import (
     TrajectoryProblem,
     evaluate,
     hypervolume,
     plan_path,
 )
-from common.resources import EXAMPLE_TASK
-from common.task import PathPlan, PlannerSettings, Task, load_task
+from common.trajectory.task import PathPlan, PlannerSettings, Task, load_task
+
+T = TypeVar("T")
 
 
 def longest_path(task: Task) -> PathPlan:
@@ -64,9 +70,11 @@ def ruckig_stop_at_every_waypoint(path: PathPlan, limits: JointLimits) -> float 
     return total
 
 
-def _best_time(fn, repeat: int) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeat):
+def _best_time(fn: Callable[[], T], repeat: int) -> tuple[float, T]:
+    t0 = time.perf_counter()
+    out = fn()
+    best = time.perf_counter() - t0
+    for _ in range(repeat - 1):
         t0 = time.perf_counter()
         out = fn()
         best = min(best, time.perf_counter() - t0)
@@ -189,7 +197,7 @@ async def bench_store(task_path: str, queries: int = 200) -> StoreBench:
     import sys
     import tempfile
 
-    from common.bus import Bus, BusConfig
+    from common.runtime.bus import Bus, BusConfig
     from schemas.health import ServiceStatus
     from schemas.topology import AnyMessage
 
@@ -264,16 +272,17 @@ class DetectorScore:
         return self.signal_s / self.seconds
 
 
-def _established_detectors(fs: float) -> dict[str, object]:
+def _established_detectors(fs: float) -> dict[str, Callable[[NDArray[np.float64]], object]]:
     """Established detectors, where the optional packages are installed (`uv sync --extra bench`)."""
-    out: dict[str, object] = {}
+    out: dict[str, Callable[[NDArray[np.float64]], object]] = {}
     try:
         import neurokit2 as nk
 
+        def peaks(method: str) -> Callable[[NDArray[np.float64]], object]:
+            return lambda x: nk.ecg_peaks(x, sampling_rate=fs, method=method)[1]["ECG_R_Peaks"]
+
         for method in ("neurokit", "pantompkins1985", "hamilton2002", "elgendi2010"):
-            out[f"neurokit2:{method}"] = lambda x, m=method: nk.ecg_peaks(x, sampling_rate=fs, method=m)[1][
-                "ECG_R_Peaks"
-            ]
+            out[f"neurokit2:{method}"] = peaks(method)
     except ImportError:
         pass
     try:
@@ -294,9 +303,9 @@ def bench_hrv(
     Cadence also the publication latency (data time from the peak to the end of the chunk that released
     it; chunks of 13 samples, 0.1 s) and the window mean-RR error."""
 
-    from common.ecg_records import read_record
-    from common.hrv import intervals, match_beats, windows
-    from common.rpeaks import RPeakDetector
+    from common.hrv.records import read_record
+    from common.hrv.rpeaks import RPeakDetector
+    from common.hrv.stream import intervals, match_beats, windows
 
     records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
     others = _established_detectors(fs)
@@ -306,6 +315,9 @@ def bench_hrv(
     signal_s = 0.0
     for path in records:
         rec = read_record(str(path), fs=fs)
+        if rec.beats_s is None:  # globbed by its annotation file: always annotated
+            raise InputError(f"{path}: no beat annotations")
+        beats_s = rec.beats_s
         signal_s += len(rec.uv) / fs
         t0 = time.perf_counter()
         det, peaks = RPeakDetector(fs), []
@@ -316,20 +328,20 @@ def bench_hrv(
         peaks += det.flush()
         elapsed = time.perf_counter() - t0
         found = np.array(sorted(peaks)) / fs
-        totals["cadence"] += (*match_beats(rec.beats_s, found), elapsed)
+        totals["cadence"] += (*match_beats(beats_s, found), elapsed)
         end = len(rec.uv) / fs
         ours = windows(intervals(found), 30.0, end_s=end)
-        ref = windows(intervals(rec.beats_s), 30.0, end_s=end)
+        ref = windows(intervals(beats_s), 30.0, end_s=end)
         errors += [
             abs(a.mean_rr_s - b.mean_rr_s)
             for a, b in zip(ours, ref, strict=True)
-            if a.quality == "good" and b.mean_rr_s is not None
+            if a.quality == "good" and a.mean_rr_s is not None and b.mean_rr_s is not None
         ]
         for name, fn in others.items():
             t0 = time.perf_counter()
-            idx = np.asarray(fn(rec.uv), dtype=float)  # type: ignore[operator]
+            idx = np.asarray(fn(rec.uv), dtype=np.float64)
             elapsed = time.perf_counter() - t0
-            totals[name] += (*match_beats(rec.beats_s, np.sort(idx) / fs), elapsed)
+            totals[name] += (*match_beats(beats_s, np.sort(idx) / fs), elapsed)
     scores = [
         DetectorScore(n, int(t[0]), int(t[1]), int(t[2]), float(t[3]), signal_s) for n, t in totals.items()
     ]
@@ -348,27 +360,27 @@ def bench_hrv(
 def bench_hrv_windows(
     data_dir: str,
     fs: float = 130.0,
-    variants: tuple[str, ...] = ("clean",),
+    variants: tuple[Variant, ...] = ("clean",),
     records: tuple[str, ...] = (),
     progress: Callable[[str], None] | None = None,
     peers: bool = True,
 ) -> dict[str, dict[str, WindowScore]]:
     """Issue 19's table: per noise variant, how far the windows each pipeline marks good are from the
-    annotated NN mean (``common.hrv_scoring``), for Cadence (its detector, cleaning and quality gate) and
+    annotated NN mean (``hrv_scoring``), for Cadence (its detector, cleaning and quality gate) and
     for NeuroKit2 (its default detector with its own artefact correction, Kubios' ``signal_fixpeaks``,
     and MeanNN over the corrected intervals of each window: it has no quality gate, so every window
-    counts as good), in the same run. Noise is seeded by the record's name (``common.ecg_noise``).
+    counts as good), in the same run. Noise is seeded by the record's name (``cadence.bench.ecg_noise``).
 
     With the clean variant, also ``cadence-rr``: the same cleaning and gate on a strap's own RR (``input =
     "rr"``), simulated as the H10 gives it: the annotated beats less every beat that is not normal (the
     strap leaves premature beats out, so one interval spans each)."""
     import zlib
 
-    from common.ecg_noise import noisy
-    from common.ecg_records import read_annotations, read_record
-    from common.hrv import intervals, windows
-    from common.hrv_scoring import NN_SYMBOLS, has_arrhythmia_runs, truth
-    from common.rpeaks import detect
+    from cadence.bench.ecg_noise import noisy
+    from cadence.bench.hrv_scoring import NN_SYMBOLS, has_arrhythmia_runs, truth
+    from common.hrv.records import read_annotations, read_record
+    from common.hrv.rpeaks import detect
+    from common.hrv.stream import intervals, windows
 
     try:
         import neurokit2 as nk
@@ -378,7 +390,7 @@ def bench_hrv_windows(
     paths = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
     if records:
         paths = [p for p in paths if p.name in records]
-    out = {
+    out: dict[str, dict[str, WindowScore]] = {
         v: {"cadence": WindowScore("cadence"), **({"neurokit2": WindowScore("neurokit2")} if nk else {})}
         for v in variants
     }
@@ -391,7 +403,7 @@ def bench_hrv_windows(
         for v in variants:
             if progress:
                 progress(f"{path.name} {v}")
-            x = noisy(rec.uv, fs, v, seed=zlib.crc32(path.name.encode()))  # type: ignore[arg-type]
+            x = noisy(rec.uv, fs, v, seed=zlib.crc32(path.name.encode()))
             ws = windows(intervals(detect(x, fs, chunk=13) / fs), 30.0, end_s=end)
             tr = truth(ann, [w.start_s for w in ws], 30.0, end)
             out[v]["cadence"].add_windows(path.name, tr, ws, sinus)
@@ -439,8 +451,8 @@ def bench_executor(
     the state publisher does. And the time to turn h into validated 500 Hz samples for that path."""
     import os
 
-    from common.planner import boundary_stretch, interval_bounds
-    from common.validate import validated_samples
+    from common.trajectory.planner import boundary_stretch, interval_bounds
+    from common.trajectory.validate import validated_samples
     from schemas.robot import RobotState
     from schemas.topology import encode
     from services.executor.backends import SimBackend, UrRtdeBackend

@@ -19,7 +19,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from common.limits import JOINT_NAMES, UR16E, JointLimits
+from common.trajectory.limits import JOINT_NAMES, UR16E, JointLimits
 
 Array = NDArray[np.float64]
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from common import bspline as bs
-from common.errors import TrajectoryRejected
-from common.limits import JOINT_NAMES, JointLimits
-from common.task import PathPlan
+from common.runtime.errors import TrajectoryRejected
+from common.trajectory import bspline as bs
+from common.trajectory.limits import JOINT_NAMES, JointLimits
+from common.trajectory.task import PathPlan
 from schemas.pareto import MAX_PATH_S
 
 WAYPOINT_TOL_RAD = 1e-9

@@ -6,7 +6,7 @@ loop (``call_soon_threadsafe``, tolerant of a closed loop); decoding and handlin
 or the querier would wait for its timeout; everything declared is undeclared before the session closes.
 What is dropped is counted and logged at most once per key and kind every 10 s (README "Bad input"):
 a payload that does not decode (``decode_errors``), a message its receiver rejects (``reject``, the rules
-of ``common/admission.py``), a handler that raises (``handler_errors``). None of them stops a service.
+of ``common/runtime/admission.py``), a handler that raises (``handler_errors``). None of them stops a service.
 """
 
 from __future__ import annotations
@@ -19,14 +19,17 @@ import time
 from collections import Counter
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Generic, Literal, TypeVar, overload
 
 import msgspec
 import zenoh
 
-from common.errors import BusError
+from common.runtime.errors import BusError
 from schemas.base import Message
-from schemas.topology import encode
+from schemas.topology import ROLE, Topic, encode, may_ask, may_publish, may_subscribe, topic_of
+from schemas.topology import key as topology_key
+
+M = TypeVar("M", bound=Message)
 
 log = logging.getLogger("cadence.bus")
 
@@ -86,9 +89,9 @@ class Request:
 
 
 @dataclass(frozen=True, slots=True)
-class Reply:
+class Reply(Generic[M]):
     key: str
-    message: Message | None
+    message: M | None
     error: str | None
 
 
@@ -96,20 +99,20 @@ class QueryError(Exception):
     """Raised by a queryable handler: its text goes back to the querier with ``reply_err``."""
 
 
-class Subscription:
+class Subscription(Generic[M]):
     """Decoded messages of one key expression, as an async iterator of (key, message).
 
     The queue is bounded and drops the oldest sample when full (telemetry); ``maxsize=1`` keeps only the
     latest (a selection is state, not an event: DESIGN §11).
     """
 
-    def __init__(self, bus: Bus, key_expr: str, msg_type: type[Message], maxsize: int) -> None:
+    def __init__(self, bus: Bus, key_expr: str, msg_type: type[M], maxsize: int) -> None:
         self._bus = bus
         self._decoder = msgspec.msgpack.Decoder(msg_type)
-        self._queue: asyncio.Queue[tuple[str, Message]] = asyncio.Queue(maxsize)
+        self._queue: asyncio.Queue[tuple[str, M]] = asyncio.Queue(maxsize)
         self.dropped = 0
         loop = bus.loop
-        self._sub = bus.session.declare_subscriber(
+        self._sub: Any = bus.session.declare_subscriber(
             key_expr, lambda s: _call_soon(loop, self._put, str(s.key_expr), s.payload.to_bytes())
         )
 
@@ -128,14 +131,14 @@ class Subscription:
         """Messages received and not yet read."""
         return self._queue.qsize()
 
-    def __aiter__(self) -> AsyncIterator[tuple[str, Message]]:
+    def __aiter__(self) -> AsyncIterator[tuple[str, M]]:
         return self._iterate()
 
-    async def _iterate(self) -> AsyncIterator[tuple[str, Message]]:
+    async def _iterate(self) -> AsyncIterator[tuple[str, M]]:
         while True:
             yield await self._queue.get()
 
-    async def receive(self, timeout: float) -> tuple[str, Message]:
+    async def receive(self, timeout: float) -> tuple[str, M]:
         """The next message, or ``TimeoutError``; unlike a cancelled ``anext``, the subscription goes on."""
         async with asyncio.timeout(timeout):
             return await self._queue.get()
@@ -145,6 +148,33 @@ class Subscription:
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
+
+
+class Publisher(Generic[M]):
+    """One key that the graph gives this process's role: the message type, the QoS and the sequence
+    counter of that key travel together, so a put can be neither of another type nor another QoS."""
+
+    def __init__(self, bus: Bus, topic: Topic[M], key: str) -> None:
+        self._bus = bus
+        self.topic = topic
+        self.key = key
+        self._cc = zenoh.CongestionControl.BLOCK if topic.qos == "block" else zenoh.CongestionControl.DROP
+        self.seq = 0  # what next_seq gives next
+
+    def next_seq(self) -> int:
+        """This key's sequence number for the next message (DESIGN §3: each sender counts per key)."""
+        self.seq += 1
+        return self.seq - 1
+
+    def put(self, msg: M) -> None:
+        """Publish from the loop thread."""
+        if not isinstance(msg, self.topic.message):
+            raise TypeError(f"{self.key} carries {self.topic.message.__name__}, not {type(msg).__name__}")
+        self._bus._check_open()
+        self._bus.session.put(self.key, encode(msg), congestion_control=self._cc)
+
+    async def until_subscribed(self, timeout: float) -> None:
+        await self._bus.until_subscribed(self.key, timeout)
 
 
 class RawSubscription:
@@ -162,10 +192,18 @@ class RawSubscription:
 class Bus:
     """One Zenoh session used from one event loop; an async context manager (httpx's habit)."""
 
-    def __init__(self, session: zenoh.Session, loop: asyncio.AbstractEventLoop, cell: str) -> None:
+    def __init__(
+        self, session: zenoh.Session, loop: asyncio.AbstractEventLoop, cell: str, role: str | None = None
+    ) -> None:
+        if role is not None and role not in ROLE:
+            raise BusError(f"unknown role {role!r}; the graph has {', '.join(ROLE)}")
         self.session = session
         self.loop = loop
         self.cell = cell
+        # Who this process is on the graph (schemas/topology.py); None for a test's or a replay's
+        # session, which speak for nobody and are held to nothing (the router's ACL still is).
+        self.role = role
+        self.ports: list[tuple[str, str, Topic[Any]]] = []  # (kind, role, topic): what was opened
         self.decode_errors: Counter[str] = Counter()
         self.rejected: Counter[tuple[str, str]] = Counter()  # (key, reason)
         self.handler_errors: Counter[tuple[str, str]] = Counter()  # (key, exception type)
@@ -175,7 +213,9 @@ class Bus:
         self._closed = False
 
     @classmethod
-    async def open(cls, cfg: BusConfig, cell: str) -> Bus:
+    async def open(cls, cfg: BusConfig, cell: str, role: str | None = None) -> Bus:
+        if role is not None and role not in ROLE:  # before a session exists that would need closing
+            raise BusError(f"unknown role {role!r}; the graph has {', '.join(ROLE)}")
         conf = zenoh_config(cfg)
         try:
             session = await asyncio.to_thread(zenoh.open, conf)
@@ -183,7 +223,7 @@ class Bus:
             raise BusError(
                 f"cannot open a Zenoh session ({cfg.mode or cfg.config_file or 'peer'}): {exc}"
             ) from exc
-        return cls(session, asyncio.get_running_loop(), cell)
+        return cls(session, asyncio.get_running_loop(), cell, role)
 
     async def __aenter__(self) -> Bus:
         return self
@@ -192,7 +232,55 @@ class Bus:
         await self.close()
 
     def key(self, suffix: str) -> str:
-        return f"cadence/{self.cell}/{suffix}"
+        return topology_key(self.cell, suffix)
+
+    # --- the graph ----------------------------------------------------------------------------------
+
+    def _port(
+        self, kind: Literal["publish", "subscribe", "ask"], topic: Topic[Any], role: str | None
+    ) -> None:
+        """Check a port against the graph and remember it (the graph test reads ``ports``). ``role``
+        is one this process hosts (the twin in the ECG gateway); by default the process's own."""
+        if self.role is None:
+            return
+        acting = role or self.role
+        if acting != self.role and ROLE[acting].host != self.role:
+            raise BusError(f"{self.role} does not host the role {acting}")
+        allowed = {"publish": may_publish, "subscribe": may_subscribe, "ask": may_ask}[kind]
+        if not allowed(acting, topic):
+            raise BusError(f"the graph does not let {acting} {kind} {topic.suffix} (schemas/topology.py)")
+        self.ports.append((kind, acting, topic_of(self.key(topic.suffix)) or topic))  # the family
+
+    def _resolve(
+        self,
+        kind: Literal["publish", "subscribe", "ask"],
+        what: Topic[Any] | str,
+        msg_type: Any,
+        role: str | None,
+    ) -> tuple[str, Any]:
+        """(key expression, message type) of a port on a topic of the graph, or on a key expression for a
+        tool or a test (``msg_type`` then says how to decode; a queryable's replies go unchecked). Checked
+        against the graph either way when this process has a role."""
+        self._check_open()
+        if not isinstance(what, str):
+            self._port(kind, what, role)
+            return self.key(what.suffix), what.message
+        if msg_type is None and kind != "publish":
+            raise TypeError(f"{kind} by key expression needs msg_type")
+        if self.role is not None:
+            topic = topic_of(what.split("?", 1)[0])
+            if topic is None:
+                raise BusError(f"{what} is not a key of the graph (schemas/topology.py)")
+            self._port(kind, topic, role)
+        return what, msg_type
+
+    def publisher(self, topic: Topic[M], *, role: str | None = None) -> Publisher[M]:
+        """The port for one key (a family's member: ``HEALTH.at(name)``)."""
+        self._check_open()
+        if "*" in topic.suffix.split("/"):
+            raise ValueError(f"{topic.suffix}: a publisher needs one key; name it with .at()")
+        self._port("publish", topic, role)
+        return Publisher(self, topic, self.key(topic.suffix))
 
     def _check_open(self) -> None:
         if self._closed:
@@ -208,7 +296,7 @@ class Bus:
             self._last_log[(key, kind)] = now
             log.warning("%s on %s: %s (%d so far)", kind, key, text, count)
 
-    def decode(self, key: str, payload: bytes, decoder: msgspec.msgpack.Decoder) -> Any:
+    def decode(self, key: str, payload: bytes, decoder: msgspec.msgpack.Decoder[Any]) -> Any:
         try:
             return decoder.decode(payload)
         except (msgspec.ValidationError, msgspec.DecodeError) as exc:
@@ -217,7 +305,7 @@ class Bus:
             return None
 
     def reject(self, key: str, reason: str, detail: str = "") -> None:
-        """A message that decoded but that the receiver must not act on (common/admission.py)."""
+        """A message that decoded but that the receiver must not act on (common/runtime/admission.py)."""
         self.rejected[(key, reason)] += 1
         self._log_limited(
             key,
@@ -237,7 +325,7 @@ class Bus:
 
     def drop_counters(self) -> dict[str, int]:
         """What was dropped, for ``ServiceStatus.counters``: keys relative to ``cadence/<cell>/``."""
-        prefix = f"cadence/{self.cell}/"
+        prefix = self.key("")
         out = {"decode_errors": sum(self.decode_errors.values())}
         for name, counter in (("rejected", self.rejected), ("handler_errors", self.handler_errors)):
             for (key, why), n in counter.most_common(_MAX_COUNTERS):
@@ -247,8 +335,11 @@ class Bus:
     # --- topics -------------------------------------------------------------------------------------
 
     def put(self, key: str, msg: Message, block: bool = False) -> None:
-        """Publish from the loop thread. ``block`` (congestion control BLOCK) only for low-rate control."""
+        """Publish on any key, for a session that speaks for nobody (a test); a process with a role
+        publishes through its ``publisher`` ports."""
         self._check_open()
+        if self.role is not None:
+            raise BusError(f"{self.role}: publish {key} through Bus.publisher (schemas/topology.py)")
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.session.put(key, encode(msg), congestion_control=cc)
 
@@ -262,10 +353,10 @@ class Bus:
         """Wait until a subscriber somewhere matches ``key`` (Zenoh's matching status), so that what is
         published next reaches it: a replay, a test. TimeoutError when none appears."""
         self._check_open()
-        pub = self.session.declare_publisher(key)
+        pub: Any = self.session.declare_publisher(key)  # zenoh's stubs type matching_status as a bool
         matched = asyncio.Event()
         loop = self.loop
-        listener = pub.declare_matching_listener(
+        listener: Any = pub.declare_matching_listener(
             lambda status: _call_soon(loop, matched.set) if status.matching else None
         )
         try:
@@ -287,23 +378,55 @@ class Bus:
         self._declared.append(sub)
         return sub
 
-    def subscribe(self, key_expr: str, msg_type: type[Message], maxsize: int = 256) -> Subscription:
-        self._check_open()
+    def subscribe(
+        self,
+        what: Topic[M] | str,
+        msg_type: type[M] | None = None,
+        maxsize: int = 256,
+        *,
+        role: str | None = None,
+    ) -> Subscription[M]:
+        """The messages of a topic of the graph (``HEALTH.at("executor")`` for one key of a family); or of
+        a key expression, decoded as ``msg_type``, for a tool or a test."""
+        key_expr, msg_type = self._resolve("subscribe", what, msg_type, role)
         sub = Subscription(self, key_expr, msg_type, maxsize)
         self._declared.append(sub)
         return sub
 
+    @overload
     def handle(
         self,
-        key_expr: str,
-        msg_type: type[Message],
-        handler: Callable[[str, Any], Awaitable[None]],
+        what: Topic[M],
+        handler: Callable[[str, M], Awaitable[None]],
+        /,
+        *,
         maxsize: int = 256,
-    ) -> Subscription:
+        role: str | None = None,
+    ) -> Subscription[M]: ...
+
+    @overload
+    def handle(
+        self,
+        what: str,
+        msg_type: type[M],
+        handler: Callable[[str, M], Awaitable[None]],
+        /,
+        *,
+        maxsize: int = 256,
+    ) -> Subscription[M]: ...
+
+    def handle(
+        self, what: Topic[Any] | str, /, *args: Any, maxsize: int = 256, role: str | None = None
+    ) -> Any:
         """Subscribe with a handler coroutine, run for each message in order in a task the bus owns.
         A handler that raises is counted and logged (rate-limited) and the next message is handled: bad
         input never stops a service."""
-        sub = self.subscribe(key_expr, msg_type, maxsize)
+        if isinstance(what, str):
+            msg_type, handler = args
+            sub = self.subscribe(what, msg_type, maxsize, role=role)
+        else:
+            (handler,) = args
+            sub = self.subscribe(what, None, maxsize, role=role)
 
         async def pump() -> None:
             async for key, msg in sub:
@@ -317,13 +440,14 @@ class Bus:
 
     # --- queries ------------------------------------------------------------------------------------
 
-    def serve(self, key_expr: str, handler: Callable[[Request], Awaitable[Message]]) -> RawSubscription:
-        """Answer queries on ``key_expr``: the handler returns a message or raises ``QueryError``. The
-        returned handle undeclares the queryable (the bus does at close)."""
-        self._check_open()
+    def serve(self, what: Topic[M] | str, handler: Callable[[Request], Awaitable[M]]) -> RawSubscription:
+        """Answer queries on a topic of the graph (a key expression, for a test): the handler returns
+        the topic's message or raises ``QueryError``. The returned handle undeclares the queryable (the
+        bus does at close)."""
+        key_expr, answers = self._resolve("publish", what, None, None)
 
         def on_query(query: zenoh.Query) -> None:
-            _call_soon(self.loop, self._spawn, self._answer(handler, query))
+            _call_soon(self.loop, self._spawn, self._answer(answers, handler, query))
 
         served = RawSubscription(self.session.declare_queryable(key_expr, on_query))
         self._declared.append(served)
@@ -334,10 +458,14 @@ class Bus:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _answer(self, handler: Callable[[Request], Awaitable[Message]], query: zenoh.Query) -> None:
+    async def _answer(
+        self, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]], query: zenoh.Query
+    ) -> None:
         with query:  # dropping the query tells the querier that no more replies come
             try:
                 msg = await handler(Request(str(query.key_expr), str(query.parameters)))
+                if answers is not None and not isinstance(msg, answers):
+                    raise TypeError(f"{query.key_expr} answers {answers.__name__}, not {type(msg).__name__}")
                 query.reply(query.key_expr, encode(msg))
             except QueryError as exc:
                 query.reply_err(str(exc).encode())
@@ -345,9 +473,29 @@ class Bus:
                 log.exception("query handler failed on %s", query.key_expr)
                 query.reply_err(b"internal error")
 
-    async def get(self, selector: str, msg_type: type[Message], timeout: float = 2.0) -> list[Reply]:
-        """Query and decode every reply; an error reply keeps its text. Never blocks the loop."""
-        self._check_open()
+    @overload
+    async def get(
+        self, what: Topic[M], /, *, timeout: float = 2.0, parameters: str = "", role: str | None = None
+    ) -> list[Reply[M]]: ...
+
+    @overload
+    async def get(self, what: str, msg_type: Any, /, timeout: float = 2.0) -> list[Reply[Any]]: ...
+
+    async def get(
+        self,
+        what: Topic[Any] | str,
+        msg_type: Any = None,
+        timeout: float = 2.0,
+        *,
+        parameters: str = "",
+        role: str | None = None,
+    ) -> list[Reply[Any]]:
+        """Query a topic of the graph (``PARETO_SET.at(path_id)``) and decode every reply; an error reply
+        keeps its text. Never blocks the loop. A selector and ``msg_type`` instead (any type, a union
+        too), for a tool that asks any key (``cadence get``) or a test."""
+        selector, msg_type = self._resolve("ask", what, msg_type, role)
+        if parameters:
+            selector += f"?{parameters}"
         decoder = msgspec.msgpack.Decoder(msg_type)
 
         def run() -> list[Any]:
@@ -357,7 +505,7 @@ class Bus:
             replies = await asyncio.to_thread(run)
         except zenoh.ZError as exc:
             raise BusError(f"query {selector} failed: {exc}") from exc
-        out = []
+        out: list[Reply[Any]] = []
         for r in replies:
             if r.ok is not None:
                 key = str(r.ok.key_expr)

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.pareto import PathEnd
+
 P_DEG = 5  # quintic: C^4, so velocity, acceleration and jerk are continuous (paper §II-A)
 
 # 3-node Gauss–Legendre on [0, 1]: exact for polynomials up to degree 5, and jerk² of a quintic is
@@ -45,6 +47,20 @@ class Boundary:
     def at_rest(cls, d: int) -> Boundary:
         z = np.zeros(d)
         return cls(z, z, z, z, z, z)
+
+    @classmethod
+    def from_ends(cls, start: PathEnd, end: PathEnd) -> Boundary:
+        """From a ``ParetoSet``'s ends: the one converter between the wire and the spline code."""
+        a = [np.array(x, dtype=float) for x in (start.velocity, start.acceleration, start.jerk)]
+        b = [np.array(x, dtype=float) for x in (end.velocity, end.acceleration, end.jerk)]
+        return cls(*a, *b)
+
+    def ends(self) -> tuple[PathEnd, PathEnd]:
+        """For a ``ParetoSet``: (start, end)."""
+        return (
+            PathEnd(velocity=self.v0.tolist(), acceleration=self.a0.tolist(), jerk=self.j0.tolist()),
+            PathEnd(velocity=self.v1.tolist(), acceleration=self.a1.tolist(), jerk=self.j1.tolist()),
+        )
 
     def as_rows(self) -> Array:
         """RHS rows in the order of ``design_matrix``'s derivative rows: (6, D)."""
@@ -160,7 +176,8 @@ def rhs(waypoints: Array, boundary: Boundary) -> Array:
 def control_points(h: Array, waypoints: Array, boundary: Boundary) -> Array:
     """Solve A(h) Θ = B for every individual and every joint at once: (P, n, D)."""
     b = rhs(waypoints, boundary)
-    return np.linalg.solve(design_matrix(h), np.broadcast_to(b, (h.shape[0], *b.shape)))
+    theta = np.linalg.solve(design_matrix(h), np.broadcast_to(b, (h.shape[0], *b.shape)))
+    return np.asarray(theta, dtype=np.float64)
 
 
 def derivative_control_points(h: Array, c: Array) -> list[Array]:
@@ -238,12 +255,14 @@ def jerk_cost(h: Array, taylor: Array) -> Array:
     for node, weight in zip(GL_NODES, GL_WEIGHTS, strict=True):
         tau = (h * node)[:, :, None]
         total += weight * ((j2 * tau + j1) * tau + j0) ** 2
-    return np.einsum("psd,ps->p", total, h)
+    cost: Array = np.einsum("psd,ps->p", total, h)
+    return cost
 
 
 def time_cost(h: Array, n_joints: int) -> Array:
     """f_time = D Σ h (paper eq. 7): (P,)."""
-    return n_joints * h.sum(axis=1)
+    cost: Array = n_joints * h.sum(axis=1)
+    return cost
 
 
 def _quadratic_roots(c0: Array, c1: Array, c2: Array, h: Array) -> tuple[Array, Array]:

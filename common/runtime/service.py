@@ -1,9 +1,7 @@
 """What every service shares (DESIGN §9, §10; uvicorn's server.py for the shutdown).
 
-- Configuration: one TOML file per deployment with a table per service, plus ``[cadence]`` (cell, data
-  folder) and ``[bus]``; every key can be overridden by ``CADENCE_<SECTION>_<KEY>`` (a TOML value, or a
-  bare string). Decoding is strict: an unknown or mistyped key stops the service at start with one line
-  naming the file (or variable) and the key, exit code 2.
+- Configuration (common/runtime/config.py): an unknown or mistyped key stops the service at start with
+  one line naming the file (or variable) and the key, exit code 2.
 - Logging: human-readable on a terminal, JSON lines under systemd (``JOURNAL_STREAM`` set).
 - SIGTERM/SIGINT set the stop event; the service's main coroutine gets a bounded time to finish its
   step, then is cancelled; the bus undeclares everything and closes; exit 0. A second signal exits at
@@ -24,116 +22,24 @@ import signal
 import socket
 import sys
 import time
-import tomllib
 from collections import Counter
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Any
 
 import msgspec
 
-from common.bus import Bus, BusConfig
-from common.clock import Clock
-from common.errors import BusError, ConfigError, InputError
-from common.lifetime import die_with_supervisor
-from schemas.base import TimeNs
+from common.runtime.bus import Bus, BusConfig
+from common.runtime.config import CommonSettings, read_config, section
+from common.runtime.errors import BusError, ConfigError, InputError
+from common.runtime.lifetime import die_with_supervisor
 from schemas.health import ServiceStatus
+from schemas.topology import HEALTH
 
 log = logging.getLogger("cadence.service")
 
-T = TypeVar("T")
-
 DRAIN_S = 5.0
 MAX_STATE_CHARS = 4000  # what ServiceStatus.state may hold (schemas.base.Text)
-
-
-# The tables a deployment config may have: these and a table per service. Anything else is a typo
-# (``[decisionmaker]``) that would otherwise be ignored in silence.
-CONFIG_SECTIONS = frozenset(
-    {
-        "cadence",
-        "bus",
-        "decision_maker",
-        "ecg_gateway",
-        "hrv_analyser",
-        "executor",
-        "pareto_store",
-        "ur_emulator",
-    }
-)
-
-
-class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    cell: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$")] = "cell1"  # a key chunk
-    data_dir: str = "~/.local/share/cadence"
-    log_format: Literal["auto", "text", "json"] = "auto"
-    status_period_s: Annotated[float, msgspec.Meta(ge=0.05, le=3600.0)] = 5.0
-    # data time (common/clock.py): one epoch and speed for every process of a simulated run
-    speed: Annotated[float, msgspec.Meta(gt=0.0, le=1000.0)] = 1.0
-    epoch_ns: TimeNs | None = None
-
-    @property
-    def data_path(self) -> Path:
-        return Path(self.data_dir).expanduser()
-
-    @property
-    def clock(self) -> Clock:
-        return Clock(self.speed, self.epoch_ns)
-
-
-def read_config(path: str | None) -> dict[str, Any]:
-    if path is None:
-        return {}
-    try:
-        with open(path, "rb") as f:
-            raw = tomllib.load(f)
-    except OSError as exc:
-        raise ConfigError(f"{path}: (file): {exc.strerror or exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: (syntax): {exc}") from exc
-    for name, table in raw.items():
-        if name not in CONFIG_SECTIONS:
-            raise ConfigError(
-                f"{path}: [{name}]: unknown section; expected one of {', '.join(sorted(CONFIG_SECTIONS))}"
-            )
-        if not isinstance(table, dict):
-            raise ConfigError(f"{path}: {name}: expected a table [{name}], got {type(table).__name__}")
-    return raw
-
-
-def _env_value(text: str) -> object:
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-def section(
-    raw: Mapping[str, Any],
-    name: str,
-    kind: type[T],
-    source: str = "<defaults>",
-    env: Mapping[str, str] | None = None,
-) -> T:
-    """One table of the config, overridden by ``CADENCE_<NAME>_<KEY>`` variables, decoded strictly."""
-    env = os.environ if env is None else env
-    table = dict(raw.get(name, {}))
-    prefix = f"CADENCE_{name.upper()}_"
-    from_env = {}
-    for var, text in env.items():
-        if var.startswith(prefix):
-            k = var[len(prefix) :].lower()
-            table[k] = _env_value(text)
-            from_env[k] = var
-    try:
-        return msgspec.convert(table, kind, strict=False)
-    except msgspec.ValidationError as exc:
-        text = str(exc)
-        where = text.rsplit(" - at `$.", 1)
-        keyname = where[1].rstrip("`") if len(where) == 2 else ""
-        origin = from_env.get(keyname.split(".")[0].split("[")[0], source)
-        raise ConfigError(f"{origin}: [{name}] {keyname or '(table)'}: {where[0]}") from exc
 
 
 @dataclass
@@ -225,15 +131,13 @@ def setup_logging(fmt: str) -> None:
 
 
 async def _periodic(ctx: ServiceContext) -> None:
-    key = ctx.bus.key(f"health/{ctx.name}")
-    seq = 0
+    health = ctx.bus.publisher(HEALTH.at(ctx.name))
     wd = watchdog_period_s()
     next_status = 0.0
     while True:
         now = time.monotonic()
         if now >= next_status:
-            ctx.bus.put(key, ctx.status(seq))
-            seq += 1
+            health.put(ctx.status(health.next_seq()))
             next_status = now + ctx.common.status_period_s
         if wd is not None:
             sd_notify("WATCHDOG=1")
@@ -268,7 +172,7 @@ def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[], None
 
 async def serve(
     name: str,
-    main: Callable[[ServiceContext], Awaitable[None]],
+    main: Callable[[ServiceContext], Coroutine[Any, Any, None]],
     common: CommonSettings,
     bus_cfg: BusConfig,
     settings: Any,
@@ -291,9 +195,9 @@ async def serve(
             stop.set()
 
         on_stop_signals(loop, on_signal)
-    async with await Bus.open(bus_cfg, common.cell) as bus:
+    async with await Bus.open(bus_cfg, common.cell, role=name) as bus:
         ctx = ServiceContext(name, bus, common, settings, stop)
-        bus.token(bus.key(f"health/{name}"))
+        bus.token(bus.key(HEALTH.at(name).suffix))
         ctx.state = "running"  # before main starts, so that main's own word on its state stands
         periodic = asyncio.create_task(_periodic(ctx))
         work = asyncio.create_task(main(ctx))
@@ -318,7 +222,7 @@ async def serve(
 def service_main(
     name: str,
     settings_type: type[Any],
-    main: Callable[[ServiceContext], Awaitable[None]],
+    main: Callable[[ServiceContext], Coroutine[Any, Any, None]],
     argv: list[str] | None = None,
     prepare: Callable[[Any, CommonSettings], None] | None = None,
 ) -> int:

@@ -26,20 +26,25 @@ from typing import Any
 
 import msgspec
 
-from schemas.topology import ROOT, TOPICS, Topic
+from schemas.topology import ROLE, ROLES, ROOT, TOPICS, Topic
 
-SERVICES = ("ecg_gateway", "hrv_analyser", "decision_maker", "pareto_store", "executor")
-ACCOUNTS = (*SERVICES, "operator", "monitor")
+# One account per process that joins the bus: a service's (its hosted roles use it too) or a tool's.
+ACCOUNTS = tuple(r.name for r in ROLES if r.host is None)
 ROUTER_PORT = 7447
-# the topology's publishers that are people's tools, not services: they use the operator account
-_TOOLS = {"calibrate": "operator", "operator": "operator"}
-OPERATOR_ONLY_QUERIES = ("robot/resume",)  # a query here changes the robot's state
 
 
-def publishers(topic: Topic) -> set[str]:
+def account(role: str) -> str:
+    return ROLE[role].host or role
+
+
+def publishers(topic: Topic[Any]) -> set[str]:
     """The accounts that may publish ``topic`` (and answer queries for it)."""
-    names = {_TOOLS.get(topic.publisher, topic.publisher), *topic.also}
-    return names & set(ACCOUNTS)
+    return {account(r) for r in topic.publishers}
+
+
+def askers(topic: Topic[Any]) -> set[str]:
+    """The accounts that may query ``topic``."""
+    return {account(r) for r in topic.askers}
 
 
 def _acl_key(cell: str, suffix: str) -> str:
@@ -51,9 +56,8 @@ def _acl_key(cell: str, suffix: str) -> str:
 
 
 def access_control(cell: str) -> dict[str, Any]:
-    """The router's ``access_control`` section: default deny, every rule derived from ``TOPICS``."""
+    """The router's ``access_control`` section: default deny, every rule derived from the graph."""
     everything = f"{ROOT}/{cell}/**"
-    queries = sorted({_acl_key(cell, t.suffix) for t in TOPICS if t.suffix not in OPERATOR_ONLY_QUERIES})
     rules: list[dict[str, Any]] = [
         {
             "id": "read",
@@ -69,46 +73,43 @@ def access_control(cell: str) -> dict[str, Any]:
             "messages": ["put", "delete", "reply", "query", "declare_queryable", "liveliness_token"],
             "key_exprs": [everything],
         },
-        {
-            "id": "ask",
-            "permission": "allow",
-            "flows": ["ingress"],
-            "messages": ["query"],
-            "key_exprs": queries,
-        },
-        {
-            "id": "ask operator-only",
-            "permission": "allow",
-            "flows": ["ingress"],
-            "messages": ["query"],
-            "key_exprs": [f"{ROOT}/{cell}/{s}" for s in OPERATOR_ONLY_QUERIES],
-        },
     ]
-    policies: list[dict[str, Any]] = [
-        {"rules": ["read", "receive", "ask"], "subjects": list(ACCOUNTS)},
-        {"rules": ["ask operator-only"], "subjects": ["operator"]},
-    ]
-    for account in ACCOUNTS:
-        keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if account in publishers(t)})
+    policies: list[dict[str, Any]] = [{"rules": ["read", "receive"], "subjects": list(ACCOUNTS)}]
+    for name in ACCOUNTS:
+        health = f"{ROOT}/{cell}/health/{name}"
+        keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in publishers(t)})
+        asks = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in askers(t)})
         rules.append(
             {
-                "id": f"publish {account}",
+                "id": f"publish {name}",
                 "permission": "allow",
                 "flows": ["ingress"],
                 "messages": ["put", "delete", "declare_queryable", "reply"],
-                "key_exprs": [*keys, f"{ROOT}/{cell}/health/{account}"],
+                "key_exprs": [*keys, health],
             }
         )
         rules.append(
             {
-                "id": f"presence {account}",
+                "id": f"presence {name}",
                 "permission": "allow",
                 "flows": ["ingress"],
                 "messages": ["liveliness_token"],
-                "key_exprs": [f"{ROOT}/{cell}/health/{account}"],
+                "key_exprs": [health],
             }
         )
-        policies.append({"rules": [f"publish {account}", f"presence {account}"], "subjects": [account]})
+        own = [f"publish {name}", f"presence {name}"]
+        if asks:  # a query changes what an answerer does (robot/resume): only those the graph names ask
+            rules.append(
+                {
+                    "id": f"ask {name}",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["query"],
+                    "key_exprs": asks,
+                }
+            )
+            own.append(f"ask {name}")
+        policies.append({"rules": own, "subjects": [name]})
     # both properties: a subject matches only a session with this certificate AND this username
     subjects = [{"id": a, "cert_common_names": [a], "usernames": [a]} for a in ACCOUNTS]
     return {
@@ -204,7 +205,8 @@ def _field_comments(kind: type) -> dict[str, str]:
     assert isinstance(cls, ast.ClassDef)
     for node in cls.body:
         if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            above, row = [], node.lineno - 1
+            above: list[str] = []
+            row = node.lineno - 1
             while row in alone:
                 above.insert(0, alone[row])
                 row -= 1

@@ -1,7 +1,7 @@
 """The paper's evaluation (§III-C, §IV) on simulated operators: conditions (a) minimum time (k = N
 throughout), (b) minimum jerk (k = 1) and (c) tuned online (Alg. 1 on the operator's 30 s windows).
 
-A simulation, labelled as such wherever it is shown: each subject is an operator twin (common/twin.py)
+A simulation, labelled as such wherever it is shown: each subject is an operator twin (common/sim/twin.py)
 with its own seed, resting RR and tolerance. Simulated time runs as fast as the machine allows: the robot's
 cycle is played from the Pareto sets' exact trajectories (joint velocities at ``OBSERVE_HZ``), and the
 operator's beats are windowed directly (the closed-loop demo covers ECG synthesis and detection).
@@ -14,11 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from common import bspline as bs
 from common.decision import Params, State, k_for_path, step
-from common.hrv import intervals, window_stats
-from common.task import Task
-from common.twin import Operator, TwinParams
+from common.hrv.stream import intervals, window_stats
+from common.sim.twin import Operator, TwinParams
+from common.trajectory import bspline as bs
+from common.trajectory.task import Task
 
 OBSERVE_HZ = 20.0  # how often the operator "sees" the robot's joint velocities
 WINDOW_S = 30.0
@@ -167,7 +167,7 @@ def compare(outcomes: list[Outcome]) -> dict:
         return [float(np.mean(values)), float(np.std(values, ddof=1)) if len(values) > 1 else 0.0]
 
     table = {c: {m: mean_sd([getattr(o, m) for o in by[c]]) for m in METRICS} for c in CONDITIONS}
-    tests = {}
+    tests: dict[str, dict[str, object]] = {}
     for a, b in (("a", "b"), ("a", "c"), ("b", "c")):
         tests[f"{a}-{b}"] = {}
         for m in METRICS:

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import resample_poly
 
-from common.errors import InputError
+from common.runtime.errors import InputError
 
 # WFDB annotation symbols that mark beats (not rhythm, noise or comment annotations).
 BEAT_SYMBOLS = frozenset("NLRBAaJSVrFejnE/fQ?")
@@ -39,7 +39,8 @@ def resample(x: NDArray[np.float64], fs_in: float, fs_out: float) -> NDArray[np.
     if fs_in == fs_out:
         return x
     ratio = Fraction(fs_out / fs_in).limit_denominator(1000)
-    return resample_poly(x, ratio.numerator, ratio.denominator)
+    out: NDArray[np.float64] = resample_poly(x, ratio.numerator, ratio.denominator)
+    return out
 
 
 def read_record(path: str, fs: float | None = None, lead: int = 0) -> Recording:

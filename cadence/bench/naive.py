@@ -2,7 +2,7 @@
 
 One ``scipy.interpolate.make_interp_spline`` per individual, jerk² sampled at 1000 points and integrated
 with the trapezoidal rule, limits from the derivative splines' control points (hull) or from the same
-1000 samples (exact). This is what ``common.bspline`` replaces; ``cadence bench plan`` times both.
+1000 samples (exact). This is what ``common.trajectory.bspline`` replaces; ``cadence bench plan`` times both.
 """
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import make_interp_spline
 
-from common import bspline as bs
-from common.limits import JointLimits
-from common.planner import Evaluation
-from common.task import Constraints, PathPlan
+from common.trajectory import bspline as bs
+from common.trajectory.limits import JointLimits
+from common.trajectory.planner import Evaluation
+from common.trajectory.task import Constraints, PathPlan
 
 N_SAMPLES = 1000
 

@@ -1,0 +1,52 @@
+"""`cadence`: the one console script (DESIGN §10). Every subcommand has --help; bad input exits 2 with
+one line naming the file and field; nothing is written when the input is bad. One module per family of
+commands; each adds its parsers with ``add``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from cadence.cli import bench, cell, deploy, hrv, lab, plan
+from cadence.cli._common import SERVICES, err
+from cadence.cli.hrv import calibrate
+from common.runtime.errors import BusError, CadenceError, InputError
+
+__all__ = ["SERVICES", "build_parser", "calibrate", "main"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cadence",
+        description="Cadence: a cobot that keeps a pace its human co-worker can sustain.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for family in (plan, bench, cell, lab, hrv, deploy):
+        family.add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except InputError as exc:
+        err.print(f"cadence: error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 2
+    except BusError as exc:
+        err.print(f"cadence: bus error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 1
+    except CadenceError as exc:
+        err.print(f"cadence: error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 1
+    except KeyboardInterrupt:
+        err.print("cadence: interrupted")
+        return 130
+    except BrokenPipeError:  # `cadence hrv peaks … | head`: the reader has had enough
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

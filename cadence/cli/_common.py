@@ -1,0 +1,84 @@
+"""What the command families share: the consoles, argument types, the planner's flags, the bus options."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+from dataclasses import replace
+from typing import Literal
+
+from msgspec import structs
+from rich.console import Console
+
+from common.runtime.bus import BusConfig
+from common.runtime.resources import EXAMPLE_TASK
+from common.trajectory.task import Task, load_task
+from schemas.topology import SERVICES as GRAPH_SERVICES
+
+out = Console()
+err = Console(stderr=True)
+
+# `cadence run NAME`: the services of the graph, and the UR emulator that stands in for a robot
+SERVICES = {name: f"services.{name}.__main__" for name in (*GRAPH_SERVICES, "ur_emulator")}
+
+
+def positive_int(minimum: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from exc
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def task_with_overrides(args: argparse.Namespace) -> Task:
+    task = load_task(args.task)
+    overrides = {
+        "seed": args.seed,
+        "n_solutions": args.n,
+        "population": args.pop,
+        "generations": args.generations,
+        "constraints": args.constraints,
+    }
+    settings = structs.replace(task.planner, **{k: v for k, v in overrides.items() if v is not None})
+    return replace(task, planner=settings)
+
+
+def add_planner_flags(p: argparse.ArgumentParser, task_option: bool = False) -> None:
+    if task_option:
+        p.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    p.add_argument("--seed", type=int, help="NSGA-II seed (default: the task's, else 1)")
+    p.add_argument("--n", type=positive_int(2), help="number of solutions N (default 15)")
+    p.add_argument("--pop", type=positive_int(8), help="NSGA-II population (default 90)")
+    p.add_argument(
+        "--generations", type=positive_int(1), help="NSGA-II generations (default: tuned, see README)"
+    )
+    p.add_argument(
+        "--constraints",
+        choices=("exact", "hull"),
+        help="limits on the curve itself (exact, default) or on the control points (hull, the paper's)",
+    )
+
+
+def bus_config(args: argparse.Namespace, mode: Literal["peer", "client", "router"]) -> BusConfig:
+
+    return BusConfig(
+        mode=None if args.zenoh_config else mode,  # a config file says its own mode
+        connect=args.connect or [],
+        listen=getattr(args, "listen", None) or [],
+        config_file=args.zenoh_config,
+    )
+
+
+def stop_on_signals():
+    """An event set by SIGTERM or SIGINT (Ctrl-C), for the commands that run until stopped."""
+
+    from common.runtime.service import on_stop_signals
+
+    stop = asyncio.Event()
+    on_stop_signals(asyncio.get_running_loop(), stop.set)
+    return stop

@@ -1,0 +1,326 @@
+"""`cadence bench …`: benchmarks that print their figures, and the ratio to a baseline measured in the
+same run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rich.progress import Progress
+from rich.table import Table
+
+from cadence.cli._common import add_planner_flags, err, out, positive_int, task_with_overrides
+from common.runtime.errors import InputError
+from common.runtime.resources import EXAMPLE_TASK
+
+if TYPE_CHECKING:
+    pass
+
+
+def cmd_bench_plan(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_plan
+
+    task = task_with_overrides(args)
+    r = bench_plan(task, task.planner, repeat=args.repeat)
+    table = Table(
+        title=f"bench plan: {task.name}, path '{r.path_id}' (W = {r.n_waypoints}), "
+        f"pop {r.population}, {r.generations} generations"
+    )
+    table.add_column("figure")
+    table.add_column("Cadence", justify="right")
+    table.add_column("straightforward", justify="right")
+    table.add_column("ratio", justify="right")
+    table.add_row("full planning [s]", f"{r.plan_s:.3f}", f"{r.naive_plan_s:.3f}", f"{r.plan_ratio:.1f}×")
+    table.add_row(
+        "one generation's evaluation [ms]",
+        f"{r.eval_ms:.2f}",
+        f"{r.naive_eval_ms:.1f}",
+        f"{r.eval_ratio:.1f}×",
+    )
+    table.add_row(
+        "hypervolume (same normalisation)", f"{r.hv:.4f}", f"{r.naive_hv:.4f}", f"{r.hv / r.naive_hv:.4f}"
+    )
+    out.print(table)
+    limits = Table(title="fastest t_f of the same path")
+    limits.add_column("method")
+    limits.add_column("t_f [s]", justify="right")
+    limits.add_row("hull limits (paper's control-point bounds)", f"{r.tf_hull:.3f}")
+    limits.add_row("exact limits (Cadence default)", f"{r.tf_exact:.3f}")
+    ruckig = "ruckig not installed (uv sync --extra bench)" if r.tf_ruckig is None else f"{r.tf_ruckig:.3f}"
+    limits.add_row("Ruckig, stopping at every waypoint", ruckig)
+    out.print(limits)
+    out.print(
+        "straightforward = the same NSGA-II (population, generations, seed, repair) with one "
+        "make_interp_spline per individual and jerk² sampled at 1000 points; end polishing shared."
+    )
+    figures = {
+        "path_id": r.path_id,
+        "plan_s": r.plan_s,
+        "naive_plan_s": r.naive_plan_s,
+        "plan_ratio": r.plan_ratio,
+        "eval_ms": r.eval_ms,
+        "naive_eval_ms": r.naive_eval_ms,
+        "eval_ratio": r.eval_ratio,
+        "hv": r.hv,
+        "naive_hv": r.naive_hv,
+        "tf_hull": r.tf_hull,
+        "tf_exact": r.tf_exact,
+        "tf_ruckig": r.tf_ruckig,
+    }
+    print(json.dumps(figures))
+    return 0
+
+
+def cmd_bench_convergence(args: argparse.Namespace) -> int:
+    from cadence.bench import convergence
+    from common.trajectory.planner import DEFAULT_GENERATIONS
+
+    task = task_with_overrides(args)
+    checkpoints = [10, 20, 40, 60, 80, 120, 200]
+    seeds = list(range(1, args.seeds + 1))
+    with err.status(f"reference run: {args.reference} generations …"):
+        c = convergence(task, task.planner, seeds, args.reference, checkpoints)
+    table = Table(
+        title=f"hypervolume as a share of a {c.reference_generations}-generation run's, path '{c.path_id}' "
+        f"({task.planner.constraints} limits)"
+    )
+    table.add_column("seed")
+    for g in checkpoints:
+        table.add_column(f"gen {g}", justify="right")
+    table.add_column(
+        f"default ({task.planner.generations or DEFAULT_GENERATIONS}, polished)", justify="right"
+    )
+    for seed in seeds:
+        table.add_row(str(seed), *(f"{x:.4f}" for x in c.shares[seed]), f"{c.final[seed]:.4f}")
+    out.print(table)
+    print(
+        json.dumps({"path_id": c.path_id, "checkpoints": checkpoints, "shares": c.shares, "final": c.final})
+    )
+    return 0
+
+
+def cmd_bench_store(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.bench import StoreBench, bench_store
+
+    r = asyncio.run(bench_store(args.task, args.queries))
+    p = StoreBench.pct
+    table = Table(title="pareto_store query latency on loopback (store as a process)")
+    for col in ("queries", "n", "p50 [ms]", "p99 [ms]", "p99.9 [ms]", "max [ms]"):
+        table.add_column(col, justify="right" if col != "queries" else "left")
+    for name, v in (("stored set", r.stored_ms), ("while planning", r.during_planning_ms)):
+        table.add_row(
+            name, str(len(v)), f"{p(v, 50):.2f}", f"{p(v, 99):.2f}", f"{p(v, 99.9):.2f}", f"{max(v):.2f}"
+        )
+    out.print(table)
+    return 0
+
+
+def cmd_bench_executor(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_executor
+    from services.executor.backends import RobotUnavailable
+
+    if not args.json:
+        out.print(f"[dim]servo loop on the {args.backend} backend for {args.seconds:g} s …[/dim]")
+    try:
+        r = bench_executor(args.backend, args.seconds, args.host, args.core, args.fifo_priority, args.task)
+    except RobotUnavailable as exc:
+        print(f"cadence bench executor: {exc}", file=sys.stderr)
+        return 1
+    if not args.json:
+        for w in r.warnings:
+            out.print(f"[yellow]warning:[/yellow] {w}")
+        t = r.timing
+        table = Table(title=f"servo loop, {r.backend} backend, {t['ticks']} ticks ({r.motions} motions)")
+        for col in ("period", "p50", "p99", "p99.9", "max", "overruns", "prepare"):
+            table.add_column(col, justify="right")
+        table.add_row(
+            f"{t['period_us']} µs",
+            *(f"{t[k]:.1f} µs" for k in ("p50_err_us", "p99_err_us", "p999_err_us", "max_err_us")),
+            str(t["overruns"]),
+            f"{r.prepare_ms:.2f} ms",
+        )
+        out.print(table)
+    print(json.dumps(r.as_json()))
+    if r.aborted:
+        print(f"cadence bench executor: {r.aborted}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _bench_hrv_windows(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_hrv_windows
+    from cadence.bench.ecg_noise import VARIANTS
+
+    asked = args.variants.split(",") if args.variants else list(VARIANTS)
+    unknown = [v for v in asked if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+    variants = tuple(v for v in VARIANTS if v in asked)
+    records = tuple(r for r in (args.records or "").split(",") if r)
+    with Progress(console=err, transient=True) as bar:
+        task = bar.add_task("scoring windows", total=None)
+        scores = bench_hrv_windows(
+            args.data, args.fs, variants, records, progress=lambda what: bar.update(task, description=what)
+        )
+    table = Table(title=f"30 s windows marked good vs the annotated NN mean, {args.fs:g} Hz; errors in ms")
+    for col in ("variant", "pipeline", "good", "held", "held %*", "p95", ">10", ">20", "worst"):
+        table.add_column(col, justify="left" if col in ("variant", "pipeline") else "right", no_wrap=True)
+    figures: dict[str, dict[str, dict[str, float | int | str]]] = {}
+    notes = []
+    for v, by_name in scores.items():
+        for name, sc in by_name.items():
+            f = figures.setdefault(v, {})[name] = sc.figures()
+            table.add_row(
+                v,
+                name,
+                str(f["good"]),
+                str(f["held"]),
+                f"{float(f['held_share_sinus']) * 100:.1f}",
+                f"{f['p95_ms']:.2f}",
+                str(f["over_10_ms"]),
+                str(f["over_20_ms"]),
+                f"{f['worst_ms']}",
+            )
+            if f["worst_records"] and name == "cadence":
+                notes.append(f"{v}: {f['worst_records']}")
+    out.print(table)
+    out.print("* the share held on the records without arrhythmia runs")
+    if notes:
+        out.print("Cadence's windows over 10 ms, worst first: " + "; ".join(notes))
+    print(json.dumps(figures))
+    return 0
+
+
+def cmd_bench_hrv(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_hrv
+
+    if not Path(args.data).is_dir():
+        raise InputError(f"{args.data}: no such folder (the annotated recordings, e.g. ../shared/data/ecg)")
+    if args.windows:
+        return _bench_hrv_windows(args)
+    with err.status("detecting beats on every record …"):
+        scores, extra = bench_hrv(args.data, args.fs)
+    table = Table(
+        title=f"R-peak detection at {args.fs:g} Hz, {int(extra['records'])} annotated records, 150 ms"
+    )
+    for col in ("detector", "Se %", "PPV %", "F1 %", "FP", "FN", "× real time"):
+        table.add_column(col, justify="left" if col == "detector" else "right")
+    for sc in sorted(scores, key=lambda x: -x.f1):
+        table.add_row(
+            sc.name,
+            f"{sc.se * 100:.2f}",
+            f"{sc.ppv * 100:.2f}",
+            f"{sc.f1 * 100:.2f}",
+            str(sc.fp),
+            str(sc.fn),
+            f"{sc.realtime:.0f}",
+        )
+    out.print(table)
+    out.print(
+        f"Cadence: a peak is published p99 {extra['latency_p99_s']:.3f} s after it occurs (max "
+        f"{extra['latency_max_s']:.2f} s; {extra['latency_over_0_5_s'] * 100:.2f} % later than 0.5 s: "
+        "search-back and the first 2 s); "
+        f"30 s window mean-RR error vs annotations over {int(extra['good_windows'])} good windows: median "
+        f"{extra['window_err_median_ms']:.2f} ms, p95 {extra['window_err_p95_ms']:.2f} ms"
+    )
+    best = max((s for s in scores if s.name != "cadence"), key=lambda x: x.f1, default=None)
+    ours = next(s for s in scores if s.name == "cadence")
+    print(
+        json.dumps(
+            {
+                "cadence_f1": ours.f1,
+                "best_other": best.name if best else None,
+                "best_other_f1": best.f1 if best else None,
+                "cadence_realtime": ours.realtime,
+                **extra,
+            }
+        )
+    )
+    return 0
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    bench = sub.add_parser("bench", help="benchmarks that print their figures and ratios to baselines")
+    bench_sub = bench.add_subparsers(dest="bench", required=True, metavar="BENCH")
+    bp = bench_sub.add_parser(
+        "plan",
+        help="planning time vs the straightforward evaluation; hull vs exact vs Ruckig",
+        description="On the longest path of TASK: full planning time, the same NSGA-II generations "
+        "evaluated the straightforward way, both hypervolumes, and the fastest t_f under hull and exact "
+        "limits and as Ruckig stop-at-every-waypoint moves. The last line is the figures as JSON.",
+    )
+    bp.add_argument("--repeat", type=positive_int(1), default=3, help="timed repetitions (best is kept)")
+    add_planner_flags(bp, task_option=True)
+    bp.set_defaults(func=cmd_bench_plan)
+    bc = bench_sub.add_parser(
+        "convergence",
+        help="hypervolume against generations, as a share of a long reference run's",
+        description="How the default number of NSGA-II generations was chosen: for the longest path of "
+        "TASK, the archive's hypervolume after each checkpoint for several seeds, as a share of a long "
+        "reference run's, under the reference front's normalisation.",
+    )
+    bc.add_argument("--seeds", type=positive_int(1), default=5, help="number of seeds (default 5)")
+    bc.add_argument("--reference", type=positive_int(10), default=1500, help="reference generations (1500)")
+    add_planner_flags(bc, task_option=True)
+    bc.set_defaults(func=cmd_bench_convergence)
+    bs = bench_sub.add_parser(
+        "store",
+        help="query latency of the Pareto store on loopback, stored and while planning",
+        description="Starts pareto_store as a process on a fresh data folder, queries it while it plans "
+        "TASK's paths and then for a stored set; prints the latency percentiles.",
+    )
+    bs.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    bs.add_argument("--queries", type=positive_int(1), default=500, help="queries of the stored set")
+    bs.set_defaults(func=cmd_bench_store)
+
+    be = bench_sub.add_parser(
+        "executor",
+        help="tick timing of the 500 Hz servo loop, and the time to prepare a path's samples",
+        description="Runs the executor's servo loop (pinned, SCHED_FIFO when permitted) on a backend for "
+        "SECONDS, servoing the longest path of TASK forward and back while the state is read at 50 Hz, and "
+        "prints the tick error percentiles (|tick time - deadline|), the overruns and prepare_ms (h to "
+        "validated 500 Hz samples for the slowest trajectory of that path). The last line is JSON.",
+    )
+    be.add_argument("--backend", choices=("sim", "ur_rtde"), default="sim")
+    be.add_argument("--seconds", type=float, default=20.0, help="how long to servo (default 20)")
+    be.add_argument("--host", default="127.0.0.1", help="ur_rtde: the controller's address")
+    be.add_argument("--core", type=int, default=None, help="core for the servo thread (default: the last)")
+    be.add_argument("--fifo-priority", type=int, default=80, help="SCHED_FIFO priority; 0 for none")
+    be.add_argument("--task", default=None, metavar="TASK.toml", help="default: box_filling")
+    be.add_argument("--json", action="store_true", help="print only the JSON line")
+    be.set_defaults(func=cmd_bench_executor)
+
+    bh = bench_sub.add_parser(
+        "hrv",
+        help="R-peak detection vs established detectors on the annotated recordings",
+        description="On every annotated record of DATA, resampled to --fs: sensitivity, PPV and F1 (150 ms) "
+        "of Cadence's detector and of NeuroKit2's and py-ecg-detectors' (optional: uv sync --extra bench), "
+        "throughput, Cadence's publication latency and its 30 s window mean-RR error.",
+    )
+    bh.add_argument(
+        "--data",
+        default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "ecg"),
+        metavar="DIR",
+        help="annotated WFDB records (default ../shared/data/ecg)",
+    )
+    bh.add_argument(
+        "--fs", type=float, default=130.0, help="sample rate to resample to (default 130, the H10's)"
+    )
+    bh.add_argument(
+        "--windows",
+        action="store_true",
+        help="score the 30 s windows instead: how far each window marked good is from the annotated NN "
+        "mean (p95, over 10 and 20 ms, the share held), for Cadence and NeuroKit2, per noise variant",
+    )
+    bh.add_argument(
+        "--variants",
+        metavar="V,…",
+        help="with --windows: noise variants (clean, white12, white6, wander, motion; default all)",
+    )
+    bh.add_argument("--records", metavar="R,…", help="with --windows: only these records (default all)")
+    bh.set_defaults(func=cmd_bench_hrv)

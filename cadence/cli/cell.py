@@ -1,0 +1,217 @@
+"""Commands on a running cell: `cadence run`, `router`, `record`, `replay`, `get`, `robot resume`."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from cadence.cli._common import SERVICES, bus_config, err, stop_on_signals
+
+if TYPE_CHECKING:
+    pass
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import importlib
+
+    module = importlib.import_module(SERVICES[args.service])
+    return int(module.run(args.args))
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from common.runtime.bus import Bus
+    from common.runtime.service import sd_notify, watchdog_period_s
+
+    async def go() -> None:
+        stop = stop_on_signals()
+        async with await Bus.open(bus_config(args, "router"), "cell1"):
+            err.print(f"Zenoh router listening on {', '.join(args.listen or ['its config file'])}")
+            sd_notify("READY=1")  # under systemd (Type=notify); a no-op elsewhere
+            period = watchdog_period_s()
+            while not stop.is_set():
+                if period is not None:
+                    sd_notify("WATCHDOG=1")
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), period or 3600.0)
+
+    asyncio.run(go())
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.recording import record
+    from common.runtime.bus import Bus
+
+    async def go() -> int:
+        stop = stop_on_signals()
+        if args.duration is not None:
+            asyncio.get_running_loop().call_later(args.duration, stop.set)
+        async with await Bus.open(bus_config(args, "peer"), args.cell) as bus:
+            keys = args.keys or [bus.key("**")]
+            err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
+            bus.token(bus.key("health/recorder"))  # a recorder is running (zenoh liveliness)
+            rec = await record(
+                bus,
+                Path(args.output),
+                keys,
+                stop,
+                json=args.json,
+                on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
+            )
+        err.print(f"{rec.count} messages written to {args.output}")
+        return 0
+
+    return asyncio.run(go())
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.recording import replay
+    from common.runtime.bus import Bus
+
+    async def go() -> int:
+        async with await Bus.open(bus_config(args, "peer"), "cell1") as bus:
+            if args.wait is not None:
+                await asyncio.sleep(args.wait)  # let subscribers on other hosts discover this session
+            n = await replay(bus, Path(args.recording), args.speed, args.keys)
+        err.print(f"{n} messages replayed from {args.recording}")
+        return 0
+
+    return asyncio.run(go())
+
+
+def cmd_get(args: argparse.Namespace) -> int:
+    import asyncio
+
+    import msgspec
+
+    from common.runtime.bus import Bus
+    from schemas.topology import AnyMessage
+
+    async def go() -> int:
+        async with await Bus.open(bus_config(args, "peer" if not args.connect else "client"), "cell1") as bus:
+            replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
+        ok = 0
+        for r in replies:
+            if r.message is not None:
+                ok += 1
+                print(msgspec.json.encode(r.message).decode())
+            else:
+                err.print(f"{r.key}: error: {r.error}", markup=False, highlight=False)
+        if not replies:
+            err.print(f"no reply for {args.key} within {args.timeout} s", markup=False)
+        return 0 if ok else 1
+
+    return asyncio.run(go())
+
+
+def cmd_robot_resume(args: argparse.Namespace) -> int:
+    """Clear a latched stop: ask the executor of the cell on ``robot/resume`` and print what it did."""
+    import asyncio
+    import getpass
+
+    from common.runtime.bus import Bus
+    from schemas.topology import ROBOT_RESUME
+
+    by = args.by or getpass.getuser()
+
+    async def go() -> int:
+        async with await Bus.open(
+            bus_config(args, "peer" if not args.connect else "client"), args.cell, role="operator"
+        ) as bus:
+            replies = await bus.get(ROBOT_RESUME, timeout=args.timeout, parameters=f"by={by}")
+        for r in replies:
+            if r.message is not None:
+                print(r.message.message)
+                return 1 if r.message.message.startswith("stopped") else 0
+            err.print(f"cadence robot resume: {r.error}", markup=False, highlight=False)
+            return 1
+        err.print(
+            f"cadence robot resume: no executor answered on cadence/{args.cell}/robot/resume within "
+            f"{args.timeout:g} s (is it running, and is this host on its bus? --connect ENDPOINT)",
+            markup=False,
+        )
+        return 1
+
+    return asyncio.run(go())
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    rec = sub.add_parser(
+        "record",
+        help="record bus traffic into an MCAP file",
+        description="Records every message under the key expressions (default cadence/<cell>/**) into "
+        "FILE.mcap, one channel per key with the message type's JSON schema. Stops on Ctrl-C, SIGTERM or "
+        "after --duration; the file is complete in every case.",
+    )
+    rec.add_argument("keys", nargs="*", metavar="KEYEXPR", help="key expressions (default cadence/<cell>/**)")
+    rec.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
+    rec.add_argument("--duration", type=float, help="stop after this many seconds")
+    rec.add_argument(
+        "--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack"
+    )
+    rec.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    rec.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    rec.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    rec.set_defaults(func=cmd_record)
+    rep = sub.add_parser(
+        "replay",
+        help="republish a recording with its original data time",
+        description="Republishes the recorded payloads on their keys, paced by the recorded arrival times "
+        "divided by --speed. Services work on data time, so they give what they gave live.",
+    )
+    rep.add_argument("recording", metavar="FILE.mcap")
+    rep.add_argument("--speed", type=float, default=1.0, help="× the recorded pace; 0 as fast as possible")
+    rep.add_argument("--keys", nargs="+", metavar="KEYEXPR", help="replay only these key expressions")
+    rep.add_argument("--wait", type=float, help="seconds to wait after joining the bus before replaying")
+    rep.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    rep.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    rep.set_defaults(func=cmd_replay)
+    run = sub.add_parser("run", help="run one service (production: one systemd unit each)")
+    run.add_argument("service", choices=sorted(SERVICES))
+    run.add_argument(
+        "args", nargs=argparse.REMAINDER, help="the service's options (--config, --data-dir, --cell)"
+    )
+    run.set_defaults(func=cmd_run)
+
+    get = sub.add_parser("get", help="query a key (e.g. cadence/cell1/pareto/b1_to_b2) and print JSON")
+    get.add_argument("key", help="key expression or selector")
+    get.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    get.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
+    get.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    get.set_defaults(func=cmd_get)
+
+    robot = sub.add_parser("robot", help="the robot's executor: clear a latched stop")
+    robot_sub = robot.add_subparsers(dest="robot_command", required=True)
+    resume = robot_sub.add_parser(
+        "resume",
+        help="clear a latched stop (protective stop, overruns, lost controller) once its cause is seen to",
+        description="Ask the cell's executor to clear its latched stop. On a real UR16e this also unlocks "
+        "the controller's protective stop (its dashboard refuses within 5 s of the stop). Prints the "
+        "state it reached; exit 1 when the robot is still stopped after it.",
+    )
+    resume.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    resume.add_argument("--by", help="who resumes, for the record (default: your user name)")
+    resume.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    resume.add_argument("--timeout", type=float, default=15.0, help="seconds (default 15)")
+    resume.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    resume.set_defaults(func=cmd_robot_resume)
+
+    router = sub.add_parser("router", help="run a Zenoh router (no zenohd binary needed)")
+    router.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="default: the config file's, else tcp/127.0.0.1:7447 (loopback only)",
+    )
+    router.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers")
+    router.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    router.set_defaults(func=cmd_router)

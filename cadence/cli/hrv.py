@@ -1,0 +1,207 @@
+"""Heart-rate commands: `cadence hrv peaks|windows` on a recording, `cadence decide` (Alg. 1 on numbers),
+`cadence calibrate` (a subject's resting level, from the bus)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rich.progress import BarColumn, Progress, TextColumn
+
+from cadence.cli._common import err, out, positive_int
+from common.runtime.errors import InputError
+
+if TYPE_CHECKING:
+    from common.hrv.calibration import RestingLevel
+    from common.runtime.bus import Bus
+    from schemas import Calibration, HrvWindow
+
+
+def _record_peaks(args: argparse.Namespace):
+    from common.hrv.records import read_record
+    from common.hrv.rpeaks import detect
+
+    rec = read_record(args.record, fs=args.fs)
+    return rec, detect(rec.uv, rec.fs, chunk=round(rec.fs)) / rec.fs
+
+
+def cmd_hrv_peaks(args: argparse.Namespace) -> int:
+    rec, peaks = _record_peaks(args)
+    print(json.dumps({"fs": rec.fs, "peaks_s": [round(float(t), 6) for t in peaks]}))
+    return 0
+
+
+def cmd_hrv_windows(args: argparse.Namespace) -> int:
+    from common.hrv.stream import intervals, windows
+
+    rec, peaks = _record_peaks(args)
+    for w in windows(intervals(peaks), args.window, end_s=len(rec.uv) / rec.fs):
+        print(
+            json.dumps(
+                {
+                    "start_s": w.start_s,
+                    "end_s": w.end_s,
+                    "mean_rr_s": w.mean_rr_s,
+                    "n_beats": w.n_beats,
+                    "excluded": w.excluded,
+                    "quality": w.quality,
+                    "reason": w.reason,
+                }
+            )
+        )
+    return 0
+
+
+def cmd_decide(args: argparse.Namespace) -> int:
+    from common.decision import Params, State, dec, step
+
+    try:
+        params = Params.of(args.rr_rest, args.n, args.sigma_r, args.rr_s_offset, args.sigma_s)
+    except (ValueError, ArithmeticError) as exc:
+        raise InputError(f"decide: {exc}") from exc
+    values = []
+    for lineno, line in enumerate(sys.stdin, start=1):
+        text = line.strip()
+        try:
+            value = dec(text)
+            ok = value.is_finite() and value > 0
+        except ArithmeticError:
+            ok = False
+        if not ok:
+            raise InputError(f"<stdin>:{lineno}: expected a positive number of seconds, got {text!r}")
+        values.append(value)
+    state = State.initial(params)
+    lines = []
+    for value in values:
+        state = step(params, state, value).state
+        lines.append(str(state.k))
+    sys.stdout.write("".join(f"{x}\n" for x in lines))
+    return 0
+
+
+async def calibrate(
+    bus: Bus,
+    minutes: float,
+    subject: str,
+    data_dir: Path,
+    measured_sigma: bool,
+    progress: Callable[[float, float], object] | None = None,
+) -> tuple[Calibration, RestingLevel]:
+    """Collect `minutes` of data time of resting windows from the bus; store and publish the calibration."""
+
+    from common.hrv.calibration import calibration, store_calibration
+    from schemas.topology import CALIBRATION, HRV_WINDOW
+
+    calibrations = bus.publisher(CALIBRATION)
+    wins: list[HrvWindow] = []
+    async for _, w in bus.subscribe(HRV_WINDOW, maxsize=1000):
+        wins.append(w)
+        covered = (w.end_ns - wins[0].start_ns) / 60e9
+        if progress is not None:
+            progress(min(covered, minutes), minutes)
+        if covered >= minutes - 1e-9:
+            break
+    try:
+        cal, level = calibration(wins, subject, time.time_ns(), measured_sigma)
+    except ValueError as exc:
+        raise InputError(f"calibrate: {exc}") from exc
+    store_calibration(data_dir, cal)
+    calibrations.put(cal)
+    return cal, level
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from common.hrv.calibration import calibration_path
+    from common.runtime.bus import Bus, BusConfig
+    from common.runtime.config import CommonSettings, read_config, section
+
+    raw = read_config(args.config)
+    common = section(raw, "cadence", CommonSettings, args.config or "<defaults>")
+    bus_cfg = section(raw, "bus", BusConfig, args.config or "<defaults>")
+    data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or common.data_path).expanduser()
+    cell = args.cell or common.cell
+
+    async def go() -> tuple[Calibration, RestingLevel]:
+        async with await Bus.open(bus_cfg, cell, role="operator") as bus:
+            with Progress(
+                TextColumn("resting windows"),
+                BarColumn(),
+                TextColumn("{task.completed:.1f}/{task.total:.1f} min"),
+                console=err,
+            ) as prog:
+                bar = prog.add_task("", total=args.minutes)
+                return await calibrate(
+                    bus,
+                    args.minutes,
+                    args.subject,
+                    data_dir,
+                    args.measured_sigma,
+                    lambda done, total: prog.update(bar, completed=done),
+                )
+
+    cal, level = asyncio.run(go())
+    out.print(
+        f"subject {cal.subject}: RR_r = {cal.rr_rest_s:.3f} s over {level.good}/{level.total} good windows; "
+        f"σ_r = {cal.sigma_rest_s:.3f} s ({'measured' if args.measured_sigma else 'the paper default'}); "
+        f"stored in {calibration_path(data_dir)} and published on operator/calibration"
+    )
+    return 0
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    hrv = sub.add_parser("hrv", help="offline heart-rate tools on a recording")
+    hrv_sub = hrv.add_subparsers(dest="hrv", required=True, metavar="TOOL")
+    for name, func, what in (
+        ("peaks", cmd_hrv_peaks, 'one JSON object {"fs", "peaks_s"}: R-peak times from the record start'),
+        ("windows", cmd_hrv_windows, "one JSON line per tumbling window: mean RR, beats, excluded, quality"),
+    ):
+        p = hrv_sub.add_parser(name, help=what, description=f"Prints {what}.")
+        p.add_argument(
+            "record", metavar="RECORD", help="WFDB record path without extension, or a CSV (s, µV)"
+        )
+        p.add_argument("--fs", type=float, default=None, help="resample to this rate first (130: as the H10)")
+        if name == "windows":
+            p.add_argument("--window", type=float, default=30.0, help="window length [s] (default 30)")
+        p.set_defaults(func=func)
+
+    cal = sub.add_parser(
+        "calibrate",
+        help="record resting windows, compute RR_r, store and publish the subject's calibration",
+        description="Listens to hrv/window for MINUTES of data time (the ECG gateway and HRV analyser must "
+        "run), averages the good windows' mean RR into RR_r, writes DATA_DIR/calibration.json and publishes "
+        "it on operator/calibration.",
+    )
+    cal.add_argument("--minutes", type=float, default=5.0, help="resting time to record (default 5)")
+    cal.add_argument("--subject", default="subject", help="who is calibrated")
+    cal.add_argument(
+        "--measured-sigma",
+        action="store_true",
+        help="use the measured RR spread as σ_r instead of the paper's 0.14 s (moves the initial k)",
+    )
+    cal.add_argument("--config", metavar="FILE.toml", help="deployment config ([cadence], [bus])")
+    cal.add_argument("--data-dir", help="data folder (default from the config or CADENCE_DATA_DIR)")
+    cal.add_argument("--cell", help="robot cell name")
+    cal.set_defaults(func=cmd_calibrate)
+
+    decide = sub.add_parser(
+        "decide",
+        help="the decision rule (paper Alg. 1) on mean RR values read from standard input",
+        description="Reads one mean RR per line (seconds) from standard input and prints the selected k "
+        "after each window, one per line. RR_s = RR_r - offset. Exact on decimal values.",
+    )
+    decide.add_argument(
+        "--rr-rest", required=True, type=str, metavar="S", help="RR_r: the resting mean RR [s]"
+    )
+    decide.add_argument("--n", type=positive_int(1), default=15, help="number of solutions N (default 15)")
+    decide.add_argument("--sigma-r", type=str, default="0.14", metavar="S", help="σ_r [s] (default 0.14)")
+    decide.add_argument("--rr-s-offset", type=str, default="0.08", metavar="S", help="RR_r − RR_s [s] (0.08)")
+    decide.add_argument("--sigma-s", type=str, default="0.08", metavar="S", help="σ_s [s] (default 0.08)")
+    decide.set_defaults(func=cmd_decide)

@@ -1,0 +1,97 @@
+"""`cadence plan`: the Pareto sets of a task program, as files and figures."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from cadence.cli._common import add_planner_flags, err, out, task_with_overrides
+from common.trajectory.task import continuity_gaps
+
+if TYPE_CHECKING:
+    pass
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    from cadence.plots import pareto_figure
+    from common.runtime.storage import atomic_write
+    from common.trajectory.planner import plan_path
+
+    task = task_with_overrides(args)
+    for gap in continuity_gaps(task):
+        err.print(f"[yellow]warning[/]: {task.source}: cycle: {gap} (the executor will refuse this cycle)")
+    s = task.planner
+    results = []
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err,
+        transient=False,
+    ) as progress:
+        for path in task.paths.values():
+            bar = progress.add_task(f"{path.id:<14} NSGA-II ({s.constraints})", total=None)
+            t0 = time.perf_counter()
+
+            def advance(g: int, n: int, b: TaskID = bar) -> None:
+                progress.update(b, completed=g, total=n)
+
+            result = plan_path(path, task.limits, s, progress=advance)
+            results.append((result, time.perf_counter() - t0))
+
+    # Everything is computed before anything is written: a failure leaves DIR as it was.
+    outdir = Path(args.out)
+    for result, _ in results:
+        atomic_write(outdir / f"{result.path.id}.json", json.dumps(result.to_json(), indent=1).encode())
+        if not args.no_plots:
+            atomic_write(outdir / f"{result.path.id}.png", pareto_figure(result))
+
+    table = Table(title=f"{task.name}: Pareto sets ({s.constraints} limits) → {outdir}")
+    for col in (
+        "path",
+        "W",
+        "front",
+        "N",
+        "t_f k=1 [s]",
+        f"t_f k={s.n_solutions} [s]",
+        "f_jerk k=1",
+        "time [s]",
+    ):
+        table.add_column(col, justify="right" if col != "path" else "left")
+    for result, secs in results:
+        sols = result.solutions
+        if len(sols) < s.n_solutions:
+            err.print(f"[yellow]warning[/]: path '{result.path.id}': only {len(sols)} distinct solutions")
+        table.add_row(
+            result.path.id,
+            str(len(result.path.waypoints)),
+            str(len(result.front)),
+            str(len(sols)),
+            f"{sols[0].t_f:.3f}",
+            f"{sols[-1].t_f:.3f}",
+            f"{sols[0].f_jerk:.4g}",
+            f"{secs:.2f}",
+        )
+    out.print(table)
+    return 0
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    plan = sub.add_parser(
+        "plan",
+        help="compute the time/jerk Pareto set of every path of a task program",
+        description="For every path of TASK: NSGA-II over the time intervals, ASF downsampling to N "
+        "solutions; writes DIR/<path_id>.json and DIR/<path_id>.png.",
+    )
+    plan.add_argument("task", metavar="TASK.toml", help="task program (see deploy/tasks/box_filling.toml)")
+    plan.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+    plan.add_argument("--no-plots", action="store_true", help="write the JSON files only")
+    add_planner_flags(plan)
+    plan.set_defaults(func=cmd_plan)
