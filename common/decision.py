@@ -115,6 +115,24 @@ def step(p: Params, s: State, rr: float | str | Decimal | None, good_quality: bo
     return Step(State(clamp(s.k + delta, 1, p.n), rr_i), delta, reason)
 
 
+# The paper's conditions that hold k (§III-B): (a) minimum time is the fastest solution, k = N; (b)
+# minimum jerk the smoothest, k = 1. Condition (c) is Alg. 1 itself.
+FIXED_PRESETS = ("a", "b")
+
+
+def fixed_k(preset: int | str, n: int) -> int:
+    """The k a fixed condition holds: a preset's (``"a"``, ``"b"``) or a number within 1 … n."""
+    if preset == "a":
+        return n
+    if preset == "b":
+        return 1
+    if isinstance(preset, str):
+        raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(FIXED_PRESETS)} or a k")
+    if not 1 <= preset <= n:
+        raise ValueError(f"k = {preset} is outside 1 … n = {n}")
+    return preset
+
+
 def k_for_path(k: int, n_path: int) -> int:
     """The selection for a path whose set has n_path solutions (sets may differ in size)."""
     return clamp(k, 1, n_path)

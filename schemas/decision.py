@@ -8,7 +8,8 @@ import msgspec
 
 from schemas.base import Message, TimeNs
 
-Reason = Literal["initial", "stress", "rest", "cumulative", "hold", "low-quality"]
+# "fixed": a condition that holds one k (the study's a and b: decision_maker mode = "fixed")
+Reason = Literal["initial", "stress", "rest", "cumulative", "hold", "low-quality", "fixed"]
 MAX_N = 1000  # solutions per Pareto set; the paper's N is 15
 
 SolutionIndex = Annotated[int, msgspec.Meta(ge=1, le=MAX_N)]

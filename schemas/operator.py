@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 
@@ -33,6 +33,11 @@ class OperatorSignal(Message, frozen=True, tag="operator.signal.v1"):
     (``wait_for`` in the task program): ``name`` is that step's name, e.g. ``part_a2``."""
 
     name: SignalName
+    source: Name | None = None  # who said it: "twin", "cli" (`cadence signal`), an HMI's name
+
+
+# wrong_object: the wrong part placed; late: a part not there in time to be picked; other: anything else
+ErrorKind = Literal["wrong_object", "late", "other"]
 
 
 class OperatorError(Message, frozen=True, tag="operator.error.v1"):
@@ -41,3 +46,5 @@ class OperatorError(Message, frozen=True, tag="operator.error.v1"):
 
     cycle: NonNegInt | None = None
     description: Text = ""
+    kind: ErrorKind = "other"
+    source: Name | None = None  # who saw it: "twin", "experimenter" (`cadence mark error`)

@@ -75,3 +75,36 @@ def test_an_unplannable_path_is_one_line_naming_it(tmp_path: Path) -> None:
     lines = proc.stderr.strip().splitlines()
     assert "path 'p1'" in lines[-1] and "kappa" in lines[-1]
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.asyncio
+async def test_a_person_signals_a_part_and_marks_an_error_only_when_something_listens(endpoint: str) -> None:
+    """`cadence signal` and `cadence mark error`: the message reaches a reader of its key with its source;
+    with nobody reading, the command says so instead of losing it (Zenoh drops such a put)."""
+    from cadence.cli.cell import tell
+    from common.runtime.bus import Bus, BusConfig
+    from common.runtime.errors import BusError
+    from schemas import OperatorError, OperatorSignal
+    from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL
+
+    async with (
+        await Bus.open(BusConfig(listen=[endpoint]), "cell1") as cell,
+        await Bus.open(BusConfig(connect=[endpoint]), "cell1", role="operator") as person,
+    ):
+        signals = cell.subscribe(cell.key("operator/signal"), OperatorSignal)
+        sent = OperatorSignal(t_ns=1, seq=0, name="part_a2", source="cli")
+        assert await tell(person, OPERATOR_SIGNAL, sent, 10.0) == "cadence/cell1/operator/signal"
+        assert (await signals.receive(10))[1] == sent
+        with pytest.raises(BusError, match="nothing on the bus reads cadence/cell1/operator/error"):
+            await tell(person, OPERATOR_ERROR, OperatorError(t_ns=1, seq=0, kind="late"), 0.5)
+        errors = cell.subscribe(cell.key("operator/error"), OperatorError)
+        mark = OperatorError(t_ns=2, seq=0, kind="wrong_object", source="experimenter")
+        await tell(person, OPERATOR_ERROR, mark, 10.0)
+        assert (await errors.receive(10))[1] == mark
+
+
+def test_a_signal_name_the_schema_refuses_is_an_input_error(capsys: pytest.CaptureFixture[str]) -> None:
+    from cadence.cli import main
+
+    assert main(["signal", "x" * 65, "--timeout", "0.1"]) == 2
+    assert "Expected `str` of length <= 64" in capsys.readouterr().err

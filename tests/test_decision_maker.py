@@ -8,6 +8,7 @@ import contextlib
 import random
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from common.decision import Params, State, step
@@ -131,3 +132,33 @@ async def test_without_calibration_it_publishes_nothing_until_one_arrives(
         drop = await answer(bus, sub, window(1, 0.86))  # ΔRR = -0.04 from RR_r = 0.90: one step
         assert (drop.k, drop.delta, drop.reason) == (7, -1, "stress")
         await svc.close()
+
+
+@pytest.mark.parametrize(("fixed_k", "k"), [("a", 15), ("b", 1), (4, 4)])
+async def test_a_fixed_condition_holds_its_k_whatever_the_windows_say(
+    tmp_path: Path, endpoint: str, fixed_k: int | str, k: int
+) -> None:
+    """The study's conditions (a) and (b): one k, published as any selection is, with its own reason;
+    windows are counted, not answered, and the adaptive state on disk is not touched."""
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        svc = start_decider(
+            tmp_path, endpoint, Settings(republish_s=0.1, rr_rest_s=0.9, mode="fixed", fixed_k=fixed_k)
+        )
+        await svc.listening(bus, "hrv/window")
+        sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        first = await first_selection(sub)
+        assert (first.k, first.n, first.delta, first.reason) == (k, 15, 0, "fixed")
+        for i, rr in enumerate((0.6, 0.55, 1.1)):  # stress, more stress, rest: Alg. 1 would move k
+            bus.put(bus.key("hrv/window"), window(i, rr), block=True)
+        async with asyncio.timeout(10):
+            while svc.ctx.counters["windows"] < 3:
+                await first_selection(sub)  # each republish is a chance to see the count rise
+        replies = await bus.get(bus.key("decision/selection"), Selection, timeout=5.0)
+        assert replies and replies[0].message == first  # the same selection: nothing moved it
+        await svc.close()
+    assert not (tmp_path / "decision_state.json").exists()
+
+
+async def test_a_fixed_k_above_n_is_refused_at_start() -> None:
+    with pytest.raises(msgspec.ValidationError, match="outside 1"):
+        msgspec.convert({"n": 15, "mode": "fixed", "fixed_k": 16}, Settings)

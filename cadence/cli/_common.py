@@ -64,6 +64,14 @@ def add_planner_flags(p: argparse.ArgumentParser, task_option: bool = False) -> 
     )
 
 
+def add_bus_flags(p: argparse.ArgumentParser, timeout_s: float) -> None:
+    """The options of a command that joins a cell's bus for one exchange."""
+    p.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    p.add_argument("--timeout", type=float, default=timeout_s, help=f"seconds (default {timeout_s:g})")
+
+
 def bus_config(args: argparse.Namespace, mode: Literal["peer", "client", "router"]) -> BusConfig:
 
     return BusConfig(

@@ -7,7 +7,6 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from rich.progress import Progress
 from rich.table import Table
@@ -15,9 +14,6 @@ from rich.table import Table
 from cadence.cli._common import add_planner_flags, err, out, positive_int, task_with_overrides
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
-
-if TYPE_CHECKING:
-    pass
 
 
 def cmd_bench_plan(args: argparse.Namespace) -> int:

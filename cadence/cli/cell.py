@@ -1,16 +1,26 @@
-"""Commands on a running cell: `cadence run`, `router`, `record`, `replay`, `get`, `robot resume`."""
+"""Commands on a running cell: `cadence run`, `router`, `record`, `replay`, `get`, `robot resume`, and a
+person's inputs: `signal`, `mark error`."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
-from cadence.cli._common import SERVICES, bus_config, err, stop_on_signals
+import msgspec
+
+from cadence.cli._common import SERVICES, add_bus_flags, bus_config, err, out, stop_on_signals
+from common.runtime.errors import BusError, InputError
+from schemas.base import Message
+from schemas.operator import OperatorError, OperatorSignal
+from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, Topic, encode
 
 if TYPE_CHECKING:
-    pass
+    from common.runtime.bus import Bus
+
+M = TypeVar("M", bound=Message)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -143,6 +153,64 @@ def cmd_robot_resume(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+async def tell(bus: Bus, topic: Topic[M], msg: M, timeout: float) -> str:
+    """Put one message of a person's once something reads its key (Zenoh drops a put that nobody
+    subscribes to): the key, or a BusError that says nobody listens."""
+    out = bus.publisher(topic)
+    try:
+        await out.until_subscribed(timeout)
+    except TimeoutError:
+        raise BusError(
+            f"nothing on the bus reads {out.key} within {timeout:g} s (is the cell running, and is this "
+            "host on its bus? --connect ENDPOINT)"
+        ) from None
+    out.put(msg)
+    return out.key
+
+
+def _checked(msg: M) -> M:
+    """What a receiver would accept: a message that fails the schema's bounds is an input error here."""
+    try:
+        return msgspec.msgpack.decode(encode(msg), type=type(msg))
+    except msgspec.ValidationError as exc:
+        raise InputError(str(exc)) from exc
+
+
+def _tell_once(args: argparse.Namespace, topic: Topic[M], msg: M) -> int:
+    import asyncio
+
+    from common.runtime.bus import Bus
+
+    async def go() -> str:
+        async with await Bus.open(
+            bus_config(args, "peer" if not args.connect else "client"), args.cell, role="operator"
+        ) as bus:
+            return await tell(bus, topic, _checked(msg), args.timeout)
+
+    key = asyncio.run(go())
+    out.print(f"{msgspec.json.encode(msg).decode()} → {key}", markup=False, highlight=False)
+    return 0
+
+
+def cmd_signal(args: argparse.Namespace) -> int:
+    """A part placed (or any step's signal), from a person at a terminal: what a button would send."""
+    signal = OperatorSignal(t_ns=time.time_ns(), seq=0, name=args.name, source=args.source)
+    return _tell_once(args, OPERATOR_SIGNAL, signal)
+
+
+def cmd_mark_error(args: argparse.Namespace) -> int:
+    """The experimenter's mark: an error of the operator's, for the error rate ε."""
+    error = OperatorError(
+        t_ns=time.time_ns(),
+        seq=0,
+        cycle=args.cycle,
+        description=args.note,
+        kind=args.kind,
+        source="experimenter",
+    )
+    return _tell_once(args, OPERATOR_ERROR, error)
+
+
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rec = sub.add_parser(
         "record",
@@ -215,3 +283,27 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     router.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers")
     router.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     router.set_defaults(func=cmd_router)
+
+    signal = sub.add_parser(
+        "signal",
+        help="say what a task step waits for (a part placed): publish operator/signal NAME",
+        description="Publishes NAME on operator/signal, as a push-button would: the executor's wait_for "
+        "step of that name goes on. Waits until something reads the key (exit 1 if nothing does).",
+    )
+    signal.add_argument("name", metavar="NAME", help="the wait_for name in the task program, e.g. part_a2")
+    signal.add_argument("--source", default="cli", help="who says it, for the record (default cli)")
+    add_bus_flags(signal, 10.0)
+    signal.set_defaults(func=cmd_signal)
+    mark = sub.add_parser("mark", help="the experimenter's marks on a running session")
+    mark_sub = mark.add_subparsers(dest="mark", required=True, metavar="MARK")
+    error = mark_sub.add_parser(
+        "error",
+        help="an error of the operator's (for ε): publish operator/error, source experimenter",
+        description="Publishes an OperatorError with the kind and note given. Something must read "
+        "operator/error (a recording or a session), or the mark would be lost: exit 1 if nothing does.",
+    )
+    error.add_argument("--kind", choices=("wrong_object", "late", "other"), default="other")
+    error.add_argument("--cycle", type=int, help="the robot's cycle it happened in, if known")
+    error.add_argument("--note", default="", help="what happened")
+    add_bus_flags(error, 10.0)
+    error.set_defaults(func=cmd_mark_error)

@@ -4,13 +4,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from cadence.cli._common import positive_int
 from schemas.topology import SERVICES as GRAPH_SERVICES
-
-if TYPE_CHECKING:
-    pass
 
 
 def cmd_install(args: argparse.Namespace) -> int:

@@ -6,7 +6,6 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -15,9 +14,6 @@ from cadence.cli._common import SERVICES, err, out, positive_int
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import load_task
-
-if TYPE_CHECKING:
-    pass
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -6,16 +6,12 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from cadence.cli._common import add_planner_flags, err, out, task_with_overrides
 from common.trajectory.task import continuity_gaps
-
-if TYPE_CHECKING:
-    pass
 
 
 def cmd_plan(args: argparse.Namespace) -> int:

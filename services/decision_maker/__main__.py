@@ -15,10 +15,11 @@ import contextlib
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 
+from common.decision import fixed_k
 from common.hrv.calibration import load_calibration as load_stored_calibration
 from common.runtime.bus import QueryError, Request
 from common.runtime.service import ServiceContext, service_main
@@ -42,6 +43,20 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     republish_s: Annotated[float, msgspec.Meta(ge=0.1, le=3600.0)] = 2.0
     # For a cell without `cadence calibrate`: the subject's resting mean RR, in seconds.
     rr_rest_s: RrSeconds | None = None
+    # The study's conditions (paper §III-B): "adaptive" is Alg. 1, condition (c); "fixed" holds one k,
+    # fixed_k: "a" (minimum time, k = n), "b" (minimum jerk, k = 1) or a number. Windows are then
+    # counted and not answered, and the adaptive state on disk is left as it was for the next (c).
+    mode: Literal["adaptive", "fixed"] = "adaptive"
+    fixed_k: Annotated[int, msgspec.Meta(ge=1, le=MAX_N)] | Literal["a", "b"] = "a"
+
+    def __post_init__(self) -> None:
+        fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start
+
+
+def fixed_selection(settings: Settings, t_ns: int) -> Selection:
+    """A fixed condition's selection: one k, stated once, republished like any other."""
+    k = fixed_k(settings.fixed_k, settings.n)
+    return Selection(t_ns=t_ns, seq=0, k=k, n=settings.n, delta=0, reason="fixed")
 
 
 def load_calibration(data_dir: Path, settings: Settings, problems: list[str]) -> Calibration | None:
@@ -82,17 +97,26 @@ async def main(ctx: ServiceContext) -> None:
     bus = ctx.bus
     decider = Decider(ctx.common.data_path, settings.n)
     selections = bus.publisher(SELECTION)  # numbered by the decider: its seq is persisted state
-    problems = await asyncio.to_thread(start, decider, ctx.common.data_path, settings)
-    if problems:  # said until the service restarts: the operator should look at the file moved aside
-        ctx.detail = "; ".join(problems) + "; started at the initial k, waiting for a fresh window"
-    ctx.state = "running" if decider.params else "waiting for calibration"
+    fixed = fixed_selection(settings, ctx.common.clock.now_ns()) if settings.mode == "fixed" else None
+    if fixed is not None:
+        ctx.state = f"fixed at k = {fixed.k} of {fixed.n} (fixed_k = {settings.fixed_k!r})"
+    else:
+        problems = await asyncio.to_thread(start, decider, ctx.common.data_path, settings)
+        if problems:  # said until the service restarts: the operator should look at the file moved aside
+            ctx.detail = "; ".join(problems) + "; started at the initial k, waiting for a fresh window"
+        ctx.state = "running" if decider.params else "waiting for calibration"
+
+    def current() -> Selection | None:
+        return fixed or decider.selection
 
     def publish() -> None:
-        if decider.selection is not None:
-            selections.put(decider.selection)
+        if (sel := current()) is not None:
+            selections.put(sel)
 
     async def on_window(key: str, w: HrvWindow) -> None:
         ctx.counters["windows"] += 1
+        if fixed is not None:
+            return
         if decider.params is None:
             ctx.counters["windows_without_calibration"] += 1
             return
@@ -109,6 +133,9 @@ async def main(ctx: ServiceContext) -> None:
         publish()
 
     async def on_calibration(_: str, cal: Calibration) -> None:
+        if fixed is not None:
+            log.info("calibration for %s: not used while k is fixed", cal.subject)
+            return
         record = decider.calibrated(cal, cal.t_ns)
         if record is not None:
             log.info("calibration for %s: RR_r = %.3f s", cal.subject, cal.rr_rest_s)
@@ -118,9 +145,9 @@ async def main(ctx: ServiceContext) -> None:
             publish()
 
     async def on_query(req: Request) -> Selection:
-        if decider.selection is None:
+        if (sel := current()) is None:
             raise QueryError("no calibration yet: run `cadence calibrate` or set rr_rest_s")
-        return decider.selection
+        return sel
 
     bus.handle(CALIBRATION, on_calibration)
     bus.handle(HRV_WINDOW, on_window)

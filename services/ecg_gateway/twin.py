@@ -77,6 +77,7 @@ class TwinSource(EcgSource):
                     seq=self.errors_out.next_seq(),
                     cycle=report.cycle,
                     description=f"simulated (stress {self.operator.stress:.2f})",
+                    source="twin",
                 )
             )
 
@@ -88,7 +89,10 @@ class TwinSource(EcgSource):
         for when, name in due:
             self.signals_out.put(
                 OperatorSignal(
-                    t_ns=self.origin_ns + round(when * 1e9), seq=self.signals_out.next_seq(), name=name
+                    t_ns=self.origin_ns + round(when * 1e9),
+                    seq=self.signals_out.next_seq(),
+                    name=name,
+                    source="twin",
                 )
             )
 
