@@ -14,7 +14,7 @@ Everything else is derived from this table, so nothing can disagree with it:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Generic, Literal, TypeVar
 
 import msgspec
@@ -74,7 +74,6 @@ class Topic(Generic[M]):
     pattern: Pattern = "topic"
     qos: QoS = "block"
     askers: tuple[str, ...] = ()  # roles that may query it (a topic's publisher also answers queries)
-    note: str = field(default="", compare=False)
 
     def at(self, *chunks: str) -> Topic[M]:
         """One member of a family (``PARETO_SET.at("b1_to_b2")``): the wildcards filled in order."""
@@ -84,7 +83,7 @@ class Topic(Generic[M]):
 LOOKERS = ("operator", "monitor")  # people's tools may ask what is only looked at (`cadence get`)
 
 ECG_SAMPLES = Topic("ecg/samples", EcgChunk, ("ecg_gateway",), ("hrv_analyser",))
-ECG_RR = Topic("ecg/rr", RrIntervals, ("ecg_gateway",), ("hrv_analyser",), note="only with input = rr")
+ECG_RR = Topic("ecg/rr", RrIntervals, ("ecg_gateway",), ("hrv_analyser",))  # read only with input = rr
 HRV_BEATS = Topic("hrv/beats", Beats, ("hrv_analyser",))
 HRV_WINDOW = Topic("hrv/window", HrvWindow, ("hrv_analyser",), ("decision_maker",))
 CALIBRATION = Topic("operator/calibration", Calibration, ("operator",), ("decision_maker",))
@@ -102,7 +101,10 @@ ROBOT_EVENT = Topic("robot/event", RobotEvent, ("executor",))
 # clear a latched stop (`cadence robot resume`): the reply is the state change it made
 ROBOT_RESUME = Topic("robot/resume", RobotEvent, ("executor",), pattern="query", askers=("operator",))
 HEALTH = Topic(
-    "health/*", ServiceStatus, SERVICES, qos="drop", note="health/<service>, plus a liveliness token"
+    "health/*",
+    ServiceStatus,
+    SERVICES,
+    qos="drop",  # health/<service>, plus a liveliness token
 )
 
 TOPICS: tuple[Topic[Any], ...] = (
@@ -202,25 +204,21 @@ def launch_order() -> tuple[str, ...]:
     after every service that reads what they publish (Zenoh drops a put with no subscriber yet). Where
     the two disagree (the executor asks the decision maker, and reads what it publishes), the query
     wins; hosted roles (the twin's loop with the executor) don't order. Ties keep the declared order."""
-    host = {r.name: r.host or r.name for r in ROLES if r.kind != "tool"}
-    must: set[tuple[str, str]] = set()  # (before, after)
-    for t in TOPICS:
-        for p in t.publishers:
-            for a in t.askers:
-                if a in host and host[a] != host[p] and ROLE[a].kind == "service":
-                    must.add((host[p], host[a]))
-    rather: set[tuple[str, str]] = set()
-    for t in TOPICS:
-        for p in t.publishers:
-            for s in t.subscribers:
-                services = ROLE[p].kind == ROLE[s].kind == "service"
-                if services and s != p and (p, s) not in must:
-                    rather.add((s, p))
+    services = set(SERVICES)
+    # (before, after) pairs of two services
+    must = {(p, a) for t in TOPICS for p in t.publishers for a in t.askers if p != a and {p, a} <= services}
+    rather = {
+        (s, p)
+        for t in TOPICS
+        for p in t.publishers
+        for s in t.subscribers
+        if p != s and {p, s} <= services and (p, s) not in must
+    }
     edges = must | rather
     order: list[str] = []
     left = list(SERVICES)
     while left:
-        ready = [s for s in left if not any(b in left and a == s for b, a in edges if b != s)]
+        ready = [s for s in left if not any(b in left and a == s for b, a in edges)]
         if not ready:  # a cycle of preferences: drop them, keep what queries demand
             edges = must
             continue
@@ -235,6 +233,13 @@ _ENCODER = msgspec.msgpack.Encoder()
 
 def encode(msg: Message) -> bytes:
     return _ENCODER.encode(msg)
+
+
+def validated(msg: M) -> M:
+    """The message as any receiver will decode it: building a Struct checks nothing, so what a process
+    makes itself and sends or stores passes the schema's bounds here first (``msgspec.ValidationError``)."""
+    decoded: M = msgspec.msgpack.decode(encode(msg), type=type(msg))
+    return decoded
 
 
 def decode_any(payload: bytes) -> Message:

@@ -15,7 +15,7 @@ from cadence.cli._common import SERVICES, add_bus_flags, bus_config, err, out, s
 from common.runtime.errors import BusError, InputError
 from schemas.base import Message
 from schemas.operator import OperatorError, OperatorSignal
-from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, Topic, encode
+from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, Topic, validated
 
 if TYPE_CHECKING:
     from common.runtime.bus import Bus
@@ -171,7 +171,7 @@ async def tell(bus: Bus, topic: Topic[M], msg: M, timeout: float) -> str:
 def _checked(msg: M) -> M:
     """What a receiver would accept: a message that fails the schema's bounds is an input error here."""
     try:
-        return msgspec.msgpack.decode(encode(msg), type=type(msg))
+        return validated(msg)
     except msgspec.ValidationError as exc:
         raise InputError(str(exc)) from exc
 
@@ -265,11 +265,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "the controller's protective stop (its dashboard refuses within 5 s of the stop). Prints the "
         "state it reached; exit 1 when the robot is still stopped after it.",
     )
-    resume.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
     resume.add_argument("--by", help="who resumes, for the record (default: your user name)")
-    resume.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    resume.add_argument("--timeout", type=float, default=15.0, help="seconds (default 15)")
-    resume.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
+    add_bus_flags(resume, 15.0)
     resume.set_defaults(func=cmd_robot_resume)
 
     router = sub.add_parser("router", help="run a Zenoh router (no zenohd binary needed)")

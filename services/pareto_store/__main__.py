@@ -23,13 +23,12 @@ from common.runtime.service import ServiceContext, service_main
 from common.trajectory.planner import content_hash
 from common.trajectory.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
-from schemas.topology import PARETO_SET, PARETO_SOLUTION, PLAN_PROGRESS, encode, key
+from schemas.topology import PARETO_SET, PARETO_SOLUTION, PLAN_PROGRESS, key, validated
 from services.pareto_store.jobs import lower_priority, plan_job
 from services.pareto_store.store import SetStore
 
 log = logging.getLogger("cadence.pareto_store")
 NAME = "pareto_store"
-_SET_DECODER = msgspec.msgpack.Decoder(ParetoSet)
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -131,7 +130,7 @@ async def main(ctx: ServiceContext) -> None:
                 lower_priority(pool)
                 msg = await asyncio.wrap_future(future)
                 # what is stored and served passes the schema's checks, as any receiver will apply them
-                msg = _SET_DECODER.decode(encode(msg))
+                msg = validated(msg)
             except Exception as exc:  # a path that cannot be planned must not stop the others
                 log.exception("planning %s failed", pid)
                 ctx.counters["plan_failures"] += 1
