@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from common.trajectory import bspline as bs
 from common.trajectory.limits import JOINT_NAMES
@@ -168,15 +169,100 @@ def front_usage_figure(sets: dict, used: dict[str, dict[int, int]]) -> bytes:
     return _png(fig)
 
 
-def study_figure(values: dict[str, dict[str, list[float]]], names: dict[str, str]) -> bytes:
-    """Box plots per condition of normalised mean RR, φ and ε (like the paper's Fig. 7), simulated."""
-    metrics = (("mean_rr_norm", "mean RR / resting RR"), ("productivity_per_min", "φ [cycles/min]"),
+def study_figure(
+    values: dict[str, dict[str, list[float]]],
+    names: dict[str, str],
+    marks: dict[str, dict[str, str]],
+    simulated: bool,
+) -> bytes:
+    """Per condition, one point per subject over a box: normalised mean RR (the paper's Fig. 7), φ and ε,
+    with a bracket per pair of conditions marked with its Wilcoxon result (``marks["a-b"][metric]``)."""
+    metrics = (("mean_rr_norm", "mean RR / RR_r"), ("productivity_per_min", "φ [cycles/min]"),
                ("error_rate", "ε [errors/cycle]"))  # fmt: skip
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.6), constrained_layout=True)
     conds = list(values)
     for ax, (m, label) in zip(axes, metrics, strict=True):
-        ax.boxplot([values[c][m] for c in conds], tick_labels=[f"({c}) {names[c]}" for c in conds])
+        data = [[v for v in values[c][m] if np.isfinite(v)] for c in conds]
+        ax.boxplot(data, tick_labels=[f"({c}) {names[c]}" for c in conds], showfliers=False)
+        for i, d in enumerate(data, start=1):
+            jitter = np.linspace(-0.08, 0.08, len(d)) if len(d) > 1 else np.zeros(len(d))
+            ax.plot(i + jitter, d, "o", ms=3.5, alpha=0.6, c="tab:blue")
+        finite = [v for d in data for v in d]
+        if finite:
+            lo, hi = min(finite), max(finite)
+            step = (hi - lo) * 0.09 or 0.05 * abs(hi) or 0.05
+            level = hi + step
+            for pair, ms in marks.items():
+                a, b = pair.split("-")
+                if a in conds and b in conds and m in ms:
+                    xa, xb = conds.index(a) + 1, conds.index(b) + 1
+                    top = level + step / 3
+                    ax.plot([xa, xa, xb, xb], [level, top, top, level], c="0.3", lw=0.9)
+                    ax.text((xa + xb) / 2, level + step / 2.5, ms[m], ha="center", va="bottom", fontsize=8)
+                    level += step * 1.3
+            ax.set_ylim(lo - step, level + step)
         ax.set_ylabel(label)
         ax.tick_params(axis="x", labelsize=8)
-    fig.suptitle("Simulated operators (operator twin), not a study of people")
+    fig.suptitle(
+        "Simulated operators (operator twins), not a study of people" if simulated else "Study sessions"
+    )
+    return _png(fig)
+
+
+def subject_figure(sessions: list) -> bytes:
+    """One subject, one row per condition (like the paper's Fig. 6): each window's mean RR (good filled,
+    held hollow) against minutes into the session, RR_r and the decision thresholds RR_s and RR_s^max,
+    the selected k on the right axis (integer ticks), cycle ends as ticks along the bottom and errors as
+    red crosses. ``sessions``: cadence.session.Session objects of one subject."""
+    from common.decision import Params
+    from schemas.session import CONDITION_NAMES
+
+    fig, axes = plt.subplots(
+        len(sessions), 1, figsize=(11, 2.9 * len(sessions)), squeeze=False, constrained_layout=True
+    )
+    for ax, s in zip(axes[:, 0], sessions, strict=True):
+        t0 = s.info.start_ns
+
+        def minutes(ns: int, t0: int = t0) -> float:
+            return (ns - t0) / 60e9
+
+        cal = s.info.calibration
+        p = Params.of(cal.rr_rest_s, 1, cal.sigma_rest_s, cal.rr_stress_offset_s, cal.sigma_stress_s)
+        for w in s.windows:
+            if w.mean_rr_s is None or not s.inside(w.end_ns):
+                continue
+            good = w.quality == "good"
+            ax.plot(minutes(w.end_ns), w.mean_rr_s, "o", ms=4, c="tab:red",
+                    mfc="tab:red" if good else "none")  # fmt: skip
+        for y, what, style in ((float(p.rr_rest), "RR_r", "-"), (float(p.rr_stress), "RR_s", "--"),
+                               (float(p.rr_stress_max), "RR_s^max", ":")):  # fmt: skip
+            ax.axhline(y, c="0.35", ls=style, lw=0.9)
+            ax.annotate(what, (0.0, y), xycoords=("axes fraction", "data"), xytext=(2, 2),
+                        textcoords="offset points", fontsize=7, color="0.3")  # fmt: skip
+        ax.set_ylabel("window mean RR [s]", color="tab:red")
+        ax.set_xlim(0.0, s.minutes)
+        for c in s.cycles:
+            if s.inside(c.t_ns):
+                ax.axvline(minutes(c.t_ns), ymin=0.0, ymax=0.04, c="0.2", lw=0.8)
+        ax2 = ax.twinx()
+        sel = [x for x in s.selections if x.t_ns <= s.end.end_ns]
+        if sel:
+            ts = [max(0.0, minutes(x.t_ns)) for x in sel] + [s.minutes]
+            ks = [x.k for x in sel] + [sel[-1].k]
+            ax2.step(ts, ks, where="post", c="tab:blue", lw=1.4)
+            top = max(x.n for x in sel)
+            ax2.set_ylim(0.5, top + 0.5)
+            ax2.yaxis.set_major_locator(MaxNLocator(integer=True))
+        errs = [minutes(e.t_ns) for e in s.errors if s.inside(e.t_ns)]
+        if errs:
+            ax2.plot(errs, [ax2.get_ylim()[1] - 0.3] * len(errs), "x", c="red", ms=7)
+        ax2.set_ylabel("k (1 smoothest … N fastest)", color="tab:blue")
+        ax.set_title(
+            f"subject {s.info.subject}, ({s.info.condition}) {CONDITION_NAMES[s.info.condition]}: "
+            f"{s.n_cycles} cycles, "
+            f"{s.n_errors} errors, φ = {s.productivity_per_min:.2f}/min"
+            + ("" if s.end.complete else f" — cut short: {s.end.reason}"),
+            fontsize=9,
+        )
+    axes[-1, 0].set_xlabel("minutes into the session (data time)")
     return _png(fig)

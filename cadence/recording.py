@@ -61,7 +61,13 @@ class Recorder:
         self._channels[key] = self._writer.register_channel(key, enc, schema_id, {"cadence": "v1"})
         return self._channels[key]
 
-    def write(self, key: str, payload: bytes) -> None:
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        """An MCAP metadata record (a session's description): MCAP tools list them beside the channels."""
+        if not self.closed:
+            self._writer.add_metadata(name, data)
+
+    def write(self, key: str, payload: bytes, log_time_ns: int | None = None) -> None:
+        """``log_time_ns``: when it arrived; the wall clock now unless a simulation gives its own."""
         if self.closed:
             return
         try:
@@ -74,7 +80,7 @@ class Recorder:
         self._seq[key] = seq + 1
         self._writer.add_message(
             self._channel(key),
-            log_time=time.time_ns(),
+            log_time=time.time_ns() if log_time_ns is None else log_time_ns,
             data=data,
             publish_time=msg.t_ns if msg is not None else 0,
             sequence=seq,

@@ -10,15 +10,22 @@ operator's beats are windowed directly (the closed-loop demo covers ECG synthesi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cadence.session import SessionWriter, software, task_digest
 from common.decision import Params, State, k_for_path, step
-from common.hrv.stream import intervals, window_stats
+from common.hrv.calibration import calibration
+from common.hrv.stream import intervals, window_message, window_stats, windows
 from common.sim.twin import Operator, TwinParams
 from common.trajectory import bspline as bs
 from common.trajectory.task import Task
+from schemas import Calibration, CycleReport, Message, OperatorError, Selection
+from schemas.decision import Reason
+from schemas.session import Condition, SessionEnd, SessionInfo
+from schemas.topology import HRV_WINDOW, OPERATOR_ERROR, ROBOT_CYCLE, SELECTION, validated
 
 OBSERVE_HZ = 20.0  # how often the operator "sees" the robot's joint velocities
 WINDOW_S = 30.0
@@ -86,6 +93,23 @@ def motions(task: Task, solutions: dict[str, list[NDArray[np.float64]]]) -> dict
     return out
 
 
+# where simulated data time starts (2026-01-01T00:00Z): any fixed origin would do
+ORIGIN_NS = 1_767_225_600 * 10**9
+
+
+def calibrate_twin(subject: Subject, minutes: float) -> Calibration:
+    """The subject at rest for ``minutes``, windowed and made into a calibration as `cadence calibrate`
+    makes one: RR_r is measured, not the twin's parameter."""
+    op = Operator(subject.twin())
+    end = minutes * 60.0
+    for x in np.arange(0.0, end + 15.0, 1.0 / OBSERVE_HZ):
+        op.observe(float(x), np.zeros(6))
+    op.advance(end + 15.0)
+    iv = intervals(np.array(op.beats_until(end + 15.0)))
+    wins = windows(iv, WINDOW_S, 0.0, end)
+    return calibration(wins, f"twin-{subject.index}", ORIGIN_NS, measured_sigma=False)[0]
+
+
 def simulate(
     task: Task,
     moves: dict[tuple[str, int], Motion],
@@ -93,16 +117,38 @@ def simulate(
     subject: Subject,
     condition: str,
     minutes: float,
+    cal: Calibration | None = None,
+    out: SessionWriter | None = None,
 ) -> Outcome:
+    """One subject in one condition. ``out``: the messages a live cell would carry (windows, selections,
+    cycles, errors), on data time from ``ORIGIN_NS``, go into that session file."""
     op = Operator(subject.twin())
-    params = Params.of(subject.rr_rest_s, max(n_per_path.values()))
-    state = State.initial(params)
+    rr_rest = cal.rr_rest_s if cal is not None else subject.rr_rest_s
     n = max(n_per_path.values())
+    params = Params.of(rr_rest, n)
+    state = State.initial(params)
     fixed = {"a": n, "b": 1}.get(condition)
     t, end = 0.0, minutes * 60.0
     cycles = errors = 0
     beats: list[float] = [op.beats[-1]]
     win_start, rr_norm, ks = 0.0, [], []
+    seq = dict.fromkeys(("window", "selection", "cycle", "error"), 0)
+
+    def emit(suffix: str, what: str, msg: Message) -> None:
+        if out is not None:
+            out.put(suffix, validated(msg), msg.t_ns)
+        seq[what] += 1
+
+    def ns(t_s: float) -> int:
+        return ORIGIN_NS + round(t_s * 1e9)
+
+    def select(t_s: float, delta: int, reason: Reason, window_end: int | None) -> None:
+        k = fixed if fixed is not None else state.k
+        sel = Selection(t_ns=ns(t_s), seq=seq["selection"], k=k, n=n, delta=delta, reason=reason,
+                        window_end_ns=window_end)  # fmt: skip
+        emit(SELECTION.suffix, "selection", sel)
+
+    select(0.0, 0, "fixed" if fixed is not None else "initial", None)
 
     def idle(seconds: float) -> None:
         nonlocal t
@@ -119,16 +165,23 @@ def simulate(
             )
             w = window_stats(win_start, win_start + WINDOW_S, iv)
             if w.mean_rr_s is not None and w.quality == "good":
-                rr_norm.append(w.mean_rr_s / subject.rr_rest_s)
-            state = step(params, state, w.mean_rr_s, w.quality == "good").state
+                rr_norm.append(w.mean_rr_s / rr_rest)
+            emit(HRV_WINDOW.suffix, "window", window_message(w, ORIGIN_NS, seq["window"]))
+            if fixed is None:
+                r = step(params, state, w.mean_rr_s, w.quality == "good")
+                state = r.state
+                select(w.end_s, r.delta, r.reason, ns(w.end_s))
             win_start += WINDOW_S
             del beats[: max(0, next((i for i, b in enumerate(beats) if b >= win_start - 10.0), 0))]
 
     while t < end:
+        start = t
+        used: dict[str, int] = {}
         for s in task.cycle:
             if s.move is not None:
                 k = k_for_path(fixed if fixed is not None else state.k, n_per_path[s.move])
                 ks.append(k)
+                used[s.move] = k
                 t_f, qd = moves[(s.move, k)]
                 for i, v in enumerate(qd):
                     op.observe(t + i / OBSERVE_HZ, v)
@@ -140,8 +193,16 @@ def simulate(
                 idle(op.handling_time())
             close_windows()
         cycles += 1
+        report = CycleReport(
+            t_ns=ns(t), seq=seq["cycle"], cycle=cycles, cycle_time_s=t - start, k_per_path=used
+        )
+        emit(ROBOT_CYCLE.suffix, "cycle", report)
         op.advance(t)
-        errors += int(op.makes_error())
+        if op.makes_error():
+            errors += 1
+            emit(OPERATOR_ERROR.suffix, "error",
+                 OperatorError(t_ns=ns(t), seq=seq["error"], cycle=cycles, kind="wrong_object", source="twin",
+                               description=f"simulated (stress {op.stress:.2f})"))  # fmt: skip
     return Outcome(
         subject.index,
         condition,
@@ -153,27 +214,43 @@ def simulate(
     )
 
 
-METRICS = ("productivity_per_min", "error_rate", "mean_rr_norm")
+def session_info(
+    subject: Subject, condition: Condition, cal: Calibration, minutes: float, task_path: Path
+) -> SessionInfo:
+    return SessionInfo(
+        subject=f"twin-{subject.index:02d}",
+        condition=condition,
+        cell="simulated",
+        calibration=cal,
+        start_ns=ORIGIN_NS,
+        minutes=minutes,
+        task=task_path.name,
+        task_sha256=task_digest(task_path),
+        software=software(),
+        simulated=True,
+        notes=f"operator twin: seed {subject.seed}, resting RR {subject.rr_rest_s:.3f} s, "
+        f"tolerance {subject.tolerance:.2f}",
+    )
 
 
-def compare(outcomes: list[Outcome]) -> dict:
-    """Per condition mean ± sd of φ, ε and normalised mean RR; Wilcoxon signed-rank p-values (paired by
-    subject) for a–b, a–c and b–c, as in the paper's Table I."""
-    from scipy.stats import wilcoxon
-
-    by = {c: sorted((o for o in outcomes if o.condition == c), key=lambda o: o.subject) for c in CONDITIONS}
-
-    def mean_sd(values: list[float]) -> list[float]:
-        return [float(np.mean(values)), float(np.std(values, ddof=1)) if len(values) > 1 else 0.0]
-
-    table = {c: {m: mean_sd([getattr(o, m) for o in by[c]]) for m in METRICS} for c in CONDITIONS}
-    tests: dict[str, dict[str, object]] = {}
-    for a, b in (("a", "b"), ("a", "c"), ("b", "c")):
-        tests[f"{a}-{b}"] = {}
-        for m in METRICS:
-            x = np.array([getattr(o, m) for o in by[a]])
-            y = np.array([getattr(o, m) for o in by[b]])
-            diff = float(np.median(y - x))
-            p = float(wilcoxon(x, y).pvalue) if np.any(x != y) else 1.0
-            tests[f"{a}-{b}"][m] = {"p": p, "median_difference": diff}
-    return {"means_sd": table, "wilcoxon": tests}
+def simulate_session(
+    task: Task,
+    task_path: Path,
+    moves: dict[tuple[str, int], Motion],
+    n_per_path: dict[str, int],
+    subject: Subject,
+    cal: Calibration,
+    condition: Condition,
+    minutes: float,
+    path: Path,
+) -> Outcome:
+    """One session file, as a live `cadence session` writes it, for a twin subject."""
+    writer = SessionWriter(path, session_info(subject, condition, cal, minutes, task_path))
+    try:
+        outcome = simulate(task, moves, n_per_path, subject, condition, minutes, cal, writer)
+    except BaseException:
+        writer.close(SessionEnd(end_ns=ORIGIN_NS + 1, complete=False, reason="the simulation failed"))
+        raise
+    end_ns = ORIGIN_NS + round(outcome.minutes * 60e9)
+    writer.close(SessionEnd(end_ns=end_ns, complete=True, reason="on time"))
+    return outcome

@@ -16,36 +16,45 @@ from common.trajectory.task import load_task
 from tests.conftest import EXAMPLE_TASK
 
 
-def test_study_orders_the_conditions_and_labels_them_simulated(tmp_path: Path) -> None:
+def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_would(tmp_path: Path) -> None:
     r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "cadence",
-            "study",
-            "--subjects",
-            "4",
-            "--minutes",
-            "4",
-            "--out",
-            str(tmp_path),
-        ],
+        [sys.executable, "-m", "cadence", "study", "simulate", "--subjects", "4", "--minutes", "4",
+         "--calibrate", "2", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=300,
-    )
+    )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "SIMULATED" in r.stdout and "Wilcoxon" in r.stdout
+    files = sorted((tmp_path / "sessions").glob("*.mcap"))
+    assert len(files) == 4 * 3
     doc = json.loads((tmp_path / "study.json").read_text())
-    assert doc["simulated"] is True and len(doc["per_subject"]) == 4 * 3
-    m = {c: {k: v[0] for k, v in doc["means_sd"][c].items()} for c in "abc"}
+    assert doc["simulated"] is True and len(doc["sessions"]) == 4 * 3
+    m = {c: {k: v["mean"] for k, v in doc["table"][c].items()} for c in "abc"}
     # (a) fastest and most stressful, (b) slowest and most relaxed, (c) in between on all three
     assert m["a"]["productivity_per_min"] > m["c"]["productivity_per_min"] > m["b"]["productivity_per_min"]
     assert m["a"]["mean_rr_norm"] < m["c"]["mean_rr_norm"] < m["b"]["mean_rr_norm"]
     assert m["a"]["error_rate"] >= m["c"]["error_rate"] >= m["b"]["error_rate"]
     for pair in ("a-b", "a-c", "b-c"):
-        assert 0 < doc["wilcoxon"][pair]["productivity_per_min"]["p"] <= 1
-    assert (tmp_path / "study.png").read_bytes()[:4] == b"\x89PNG"
+        t = doc["wilcoxon"][pair]["productivity_per_min"]
+        assert 0 < t["p"] <= 1 and t["n"] == 4 and t["method"] in ("exact", "normal approximation")
+    for name in ("conditions.png", "subject_twin-01.png"):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+    page = (tmp_path / "index.html").read_text()
+    assert "SIMULATED" in page and "subject_twin-04.png" in page and "Table I" in page
+
+    # the same files through `cadence study analyse` give the same study
+    again = tmp_path / "again"
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "study", "analyse", str(tmp_path / "sessions"), "--out",
+         str(again)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    redo = json.loads((again / "study.json").read_text())
+    assert redo["table"] == doc["table"] and redo["wilcoxon"] == doc["wilcoxon"]
 
 
 def test_online_tuning_lowers_k_for_an_intolerant_subject_and_keeps_it_high_for_a_tolerant_one() -> None:

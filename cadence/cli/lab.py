@@ -1,11 +1,11 @@
-"""The lab's commands: `cadence demo`, `cadence report`, `cadence study`."""
+"""The lab's commands: `cadence demo`, `cadence report`, `cadence study analyse|simulate`."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -14,6 +14,9 @@ from cadence.cli._common import SERVICES, err, out, positive_int
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import load_task
+
+if TYPE_CHECKING:
+    from cadence.analysis import Study
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -102,15 +105,71 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_study(args: argparse.Namespace) -> int:
-    from cadence.plots import study_figure
-    from cadence.study import CONDITIONS, METRICS, NAMES, compare, motions, simulate, subjects
-    from common.runtime.storage import atomic_write
-    from common.trajectory.planner import plan_path
+def print_study(study: Study) -> None:
+    from cadence.analysis import LABELS, METRICS, stars
+    from schemas.session import CONDITION_NAMES
 
-    task = load_task(args.task)
+    what = "SIMULATED study (operator twins, not people)" if study.simulated else "study"
+    subjects = len({s.info.subject for s in study.sessions})
+    table = Table(title=f"{what}: {subjects} subjects, {len(study.sessions)} sessions (like Table I)")
+    table.add_column("condition")
+    for m in METRICS:
+        table.add_column(LABELS[m], justify="right")
+    for c in study.conditions:
+        cells = (f"{mean:.3f} ± {sd:.3f}" for mean, sd, _ in study.table[c].values())
+        table.add_row(f"({c}) {CONDITION_NAMES[c]}", *cells)
+    out.print(table)
+    tests = Table(title="Wilcoxon signed-rank, paired by subject: p (n, method)")
+    tests.add_column("pair")
+    for m in METRICS:
+        tests.add_column(LABELS[m], justify="right")
+    for pair, row in study.tests.items():
+        tests.add_row(
+            pair, *(f"{t.p:.2g} {stars(t.p)} (n {t.n}, {'exact' if t.method == 'exact' else 'approx'})"
+                    for t in row.values())
+        )  # fmt: skip
+    out.print(tests)
+
+
+def session_files(sources: list[str]) -> list[Path]:
+    """Files as given, and a folder's ``*.mcap`` files."""
+    files: list[Path] = []
+    for src in map(Path, sources):
+        if src.is_dir():
+            found = sorted(src.glob("*.mcap"))
+            if not found:
+                raise InputError(f"{src}: a folder with no session files (*.mcap)")
+            files += found
+        else:
+            files.append(src)
+    return files
+
+
+def cmd_study_analyse(args: argparse.Namespace) -> int:
+    from cadence.analysis import analyse, write_study
+    from cadence.session import load_session
+
+    study = analyse([load_session(f) for f in session_files(args.sessions)])
+    print_study(study)
+    written = write_study(study, Path(args.out))
+    out.print(f"written to {args.out}: {', '.join(written)}")
+    return 0
+
+
+def cmd_study_simulate(args: argparse.Namespace) -> int:
+    from cadence.analysis import analyse, write_study
+    from cadence.session import load_session
+    from cadence.study import calibrate_twin, motions, simulate_session, subjects
+    from common.trajectory.planner import plan_path
+    from schemas.session import CONDITION_NAMES, Condition
+
+    CONDITIONS: tuple[Condition, ...] = ("a", "b", "c")
+    task_path = Path(args.task)
+    task = load_task(task_path)
     cohort = subjects(args.subjects, args.seed)
-    outcomes = []
+    folder = Path(args.out) / "sessions"
+    folder.mkdir(parents=True, exist_ok=True)
+    files = []
     with Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=err
     ) as progress:
@@ -121,49 +180,18 @@ def cmd_study(args: argparse.Namespace) -> int:
             progress.advance(plan)
         moves = motions(task, sols)
         n_per_path = {pid: len(v) for pid, v in sols.items()}
-        runs = progress.add_task("simulating subjects × conditions", total=len(cohort) * len(CONDITIONS))
+        runs = progress.add_task("simulating subjects × conditions", total=len(cohort) * len(CONDITION_NAMES))
         for sub in cohort:
+            cal = calibrate_twin(sub, args.calibrate)
             for c in CONDITIONS:
-                outcomes.append(simulate(task, moves, n_per_path, sub, c, args.minutes))
+                f = folder / f"twin-{sub.index:02d}_{c}.mcap"
+                simulate_session(task, task_path, moves, n_per_path, sub, cal, c, args.minutes, f)
+                files.append(f)
                 progress.advance(runs)
-    result = compare(outcomes)
-    table = Table(
-        title=f"SIMULATED study: {len(cohort)} operator twins × {args.minutes:g} min (like Table I)"
-    )
-    for col in ("condition", "φ [cycles/min]", "ε [errors/cycle]", "mean RR / rest"):
-        table.add_column(col, justify="right" if col != "condition" else "left")
-    for c in CONDITIONS:
-        ms = result["means_sd"][c]
-        table.add_row(f"({c}) {NAMES[c]}", *(f"{ms[m][0]:.3f} ± {ms[m][1]:.3f}" for m in METRICS))
-    out.print(table)
-    tests = Table(title="Wilcoxon signed-rank, paired by subject (simulated): p (median difference)")
-    tests.add_column("pair")
-    for col in ("φ", "ε", "mean RR / rest"):
-        tests.add_column(col, justify="right")
-    for pair, row in result["wilcoxon"].items():
-        tests.add_row(pair, *(f"{row[m]['p']:.2g} ({row[m]['median_difference']:+.3f})" for m in METRICS))
-    out.print(tests)
-    dest = Path(args.out)
-    dest.mkdir(parents=True, exist_ok=True)
-    doc = {
-        "simulated": True,
-        "subjects": len(cohort),
-        "minutes": args.minutes,
-        "seed": args.seed,
-        "conditions": NAMES,
-        **result,
-        "per_subject": [
-            {"subject": o.subject, "condition": o.condition, "cycles": o.cycles, "errors": o.errors,
-             **{m: getattr(o, m) for m in METRICS}}
-            for o in outcomes
-        ],
-    }  # fmt: skip
-    atomic_write(dest / "study.json", json.dumps(doc, indent=1).encode())
-    values = {
-        c: {m: [getattr(o, m) for o in outcomes if o.condition == c] for m in METRICS} for c in CONDITIONS
-    }
-    atomic_write(dest / "study.png", study_figure(values, NAMES))
-    out.print(f"written: {dest}/study.json, {dest}/study.png")
+    study = analyse([load_session(f) for f in files])
+    print_study(study)
+    written = write_study(study, Path(args.out))
+    out.print(f"written: {len(files)} session files in {folder}; {', '.join(written)} in {args.out}")
     return 0
 
 
@@ -186,18 +214,42 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
     study = sub.add_parser(
         "study",
-        help="the paper's comparison of conditions on simulated operators (labelled as simulated)",
-        description="Conditions (a) minimum time, (b) minimum jerk and (c) tuned online, each run for every "
-        "simulated subject (an operator twin with its own seed, resting RR and tolerance) in simulated time "
-        "as fast as the machine allows. Prints a table like the paper's Table I (φ, ε, normalised mean RR) "
-        "and Wilcoxon signed-rank p-values for a-b, a-c, b-c; writes DIR/study.json and DIR/study.png.",
+        help="the paper's study: analyse session files; simulate one with operator twins",
+        description="`analyse` reads session files (from `cadence session`) and writes the paper's Table I, "
+        "Wilcoxon signed-rank tests paired by subject, figures and index.html; `simulate` writes session "
+        "files for simulated subjects (labelled so) and analyses them the same way.",
     )
-    study.add_argument("--subjects", type=positive_int(2), default=12, help="simulated subjects (default 12)")
-    study.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
-    study.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
-    study.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
-    study.add_argument("--out", default="study-out", metavar="DIR", help="output folder (default study-out)")
-    study.set_defaults(func=cmd_study)
+    study_sub = study.add_subparsers(dest="study", required=True, metavar="STEP")
+    analyse = study_sub.add_parser(
+        "analyse",
+        help="Table I, Wilcoxon tests, figures and index.html from session files",
+        description="Per subject and condition: φ (cycles per minute), ε (errors per cycle), mean RR of the "
+        "good windows and mean RR over the subject's RR_r, between the session's start and end. Per "
+        "condition their mean ± sd over subjects; per pair of conditions and measure a Wilcoxon "
+        "signed-rank test paired by subject (scipy; exact where possible, else the normal approximation, "
+        "said beside the p-value). Writes DIR/study.json, DIR/conditions.png (like Fig. 7), one "
+        "DIR/subject_<id>.png per subject (like Fig. 6) and DIR/index.html. A file that was not closed, has "
+        "no calibration, mixes cells or mixes clocks is refused with the reason.",
+    )
+    analyse.add_argument("sessions", nargs="+", metavar="SESSION.mcap|FOLDER")
+    analyse.add_argument("--out", required=True, metavar="DIR")
+    analyse.set_defaults(func=cmd_study_analyse)
+    sim = study_sub.add_parser(
+        "simulate",
+        help="session files for simulated subjects (operator twins), then their analysis",
+        description="Each subject is an operator twin with its own seed, resting RR and tolerance. It is "
+        "calibrated at rest, then runs conditions (a) minimum time, (b) minimum jerk and (c) tuned online "
+        "in simulated time, as fast as the machine allows; each run is written as a session file (the "
+        "message types and metadata of a live session, marked simulated) to DIR/sessions and analysed "
+        "as `cadence study analyse` would.",
+    )
+    sim.add_argument("--subjects", type=positive_int(2), default=12, help="simulated subjects (default 12)")
+    sim.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
+    sim.add_argument("--calibrate", type=float, default=5.0, help="minutes at rest per subject (default 5)")
+    sim.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
+    sim.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    sim.add_argument("--out", default="study-out", metavar="DIR", help="output folder (default study-out)")
+    sim.set_defaults(func=cmd_study_simulate)
 
     demo = sub.add_parser(
         "demo",

@@ -1,0 +1,144 @@
+"""Session files (cadence/session.py) and their analysis (cadence/analysis.py): the measures are taken
+between the session's start and end, a file that cannot stand for its session is refused with the reason,
+and each pair of conditions gets the Wilcoxon test scipy can give, with its method said."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadence.analysis import analyse, paired_test
+from cadence.recording import Recorder
+from cadence.session import SessionWriter, load_session
+from common.runtime.errors import InputError
+from schemas import Calibration, CycleReport, HrvWindow, OperatorError, RobotState, Selection
+from schemas.session import SessionEnd, SessionInfo
+from schemas.topology import encode
+
+T0 = 1_800_000_000 * 10**9
+S = 10**9
+CAL = Calibration(t_ns=T0, seq=0, subject="s1", rr_rest_s=0.9)
+
+
+def info(subject: str = "s1", condition: str = "a", cal: Calibration | None = CAL, cell: str = "cell1"):
+    return SessionInfo(
+        subject=subject, condition=condition, cell=cell, calibration=cal, start_ns=T0, minutes=2.0,
+        task="box_filling.toml", task_sha256="0" * 64, software="cadence test",
+    )  # fmt: skip
+
+
+def window(end_s: float, rr: float | None, quality: str = "good") -> HrvWindow:
+    return HrvWindow(
+        t_ns=T0 + round(end_s * S), seq=0, start_ns=T0 + round((end_s - 30) * S),
+        end_ns=T0 + round(end_s * S), mean_rr_s=rr, n_beats=30, excluded_fraction=0.0, quality=quality,  # type: ignore[arg-type]
+        reason=None if quality == "good" else "excluded",
+    )  # fmt: skip
+
+
+def state(t_s: float) -> RobotState:
+    return RobotState(t_ns=T0 + round(t_s * S), seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
+
+
+def write(path: Path, i: SessionInfo, *, end_s: float = 120.0, rr: float = 0.8, cycles: int = 10,
+          errors: int = 3) -> Path:  # fmt: skip
+    """A two-minute session: cycles spread over it, one before its start and one after its end (neither
+    counts), windows every 30 s (one held), the robot's state every second."""
+    w = SessionWriter(path, i)
+    for t in range(0, int(end_s) + 1):
+        w.put("robot/state", state(t), T0 + t * S)
+    for n, t in enumerate([-5.0, *np.linspace(10, end_s - 1, cycles), end_s + 5]):
+        w.put("robot/cycle", CycleReport(t_ns=T0 + round(t * S), seq=n, cycle=n, cycle_time_s=5.0,
+                                         k_per_path={"p": 3}), T0 + round(t * S))  # fmt: skip
+    for n in range(errors):
+        t_ns = T0 + (20 + n) * S
+        w.put("operator/error", OperatorError(t_ns=t_ns, seq=n, source="twin"), t_ns)
+    for end in (30.0, 60.0, 90.0, 120.0):
+        w.put("hrv/window", window(end, rr if end != 60.0 else 0.5, "good" if end != 60.0 else "low"),
+              T0 + round(end * S))  # fmt: skip
+    w.put("decision/selection", Selection(t_ns=T0, seq=0, k=15, n=15, delta=0, reason="fixed"), T0)
+    w.close(SessionEnd(end_ns=T0 + round(end_s * S), complete=True, reason="on time"))
+    return path
+
+
+def test_a_session_counts_what_happened_between_its_start_and_end(tmp_path: Path) -> None:
+    s = load_session(write(tmp_path / "s.mcap", info()))
+    assert s.minutes == pytest.approx(2.0)
+    assert s.n_cycles == 10 and s.n_errors == 3
+    assert s.productivity_per_min == pytest.approx(5.0) and s.error_rate == pytest.approx(0.3)
+    assert s.mean_rr_s == pytest.approx(0.8)  # the held window (0.5 s) does not count
+    assert s.mean_rr_norm == pytest.approx(0.8 / 0.9)
+
+
+def test_a_file_that_cannot_stand_for_its_session_is_refused_with_the_reason(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no calibration"):
+        load_session(write(tmp_path / "nocal.mcap", info(cal=None)))
+
+    # killed mid-session: the writer never finished the file
+    w = SessionWriter(tmp_path / "killed.mcap", info())
+    w.put("robot/state", state(1.0), T0 + S)
+    w.recorder._file.flush()
+    with pytest.raises(InputError, match="incomplete or damaged"):
+        load_session(tmp_path / "killed.mcap")
+
+    plain = Recorder(tmp_path / "plain.mcap")  # `cadence record`, not a session
+    plain.write("cadence/cell1/robot/state", encode(state(1.0)))
+    plain.close()
+    with pytest.raises(InputError, match="not a session file"):
+        load_session(tmp_path / "plain.mcap")
+
+    w = SessionWriter(tmp_path / "cells.mcap", info())
+    w.put("robot/state", state(1.0), T0 + S)
+    w.recorder.write("cadence/cell2/robot/state", encode(state(2.0)), T0 + 2 * S)
+    w.close(SessionEnd(end_ns=T0 + 60 * S, complete=True))
+    with pytest.raises(InputError, match="mixes cells: keys of cell1, cell2"):
+        load_session(tmp_path / "cells.mcap")
+
+
+def test_publishers_on_different_clocks_are_a_mixed_clock_error(tmp_path: Path) -> None:
+    # a 10× replay of the strap beside a live executor at 1×: log time is the wall clock here
+    w = SessionWriter(tmp_path / "rates.mcap", info())
+    for t in range(0, 40):
+        w.put("robot/state", state(t), T0 + t * S)
+        w.put("hrv/window", window(30 + 10 * t, 0.8), T0 + t * S)
+    w.close(SessionEnd(end_ns=T0 + 40 * S, complete=True))
+    with pytest.raises(InputError, match=r"mixes clocks: data time runs at 10× .* but 1× on robot"):
+        load_session(tmp_path / "rates.mcap")
+
+    # the same rate, but an old recording replayed: its data time is a day behind the executor's
+    w = SessionWriter(tmp_path / "offset.mcap", info())
+    for t in range(0, 40):
+        w.put("robot/state", state(t), T0 + t * S)
+        w.put("hrv/window", window(t - 86_400, 0.8), T0 + t * S)
+    w.close(SessionEnd(end_ns=T0 + 40 * S, complete=True))
+    with pytest.raises(InputError, match="mixes clocks: robot/state's data time is 86400 s ahead of hrv/"):
+        load_session(tmp_path / "offset.mcap")
+
+
+def test_analysis_pairs_by_subject_and_refuses_two_sessions_of_one_condition(tmp_path: Path) -> None:
+    files = []
+    for i, subject in enumerate(("s1", "s2", "s3")):
+        a, b = info(subject, "a"), info(subject, "b")
+        files.append(write(tmp_path / f"{subject}_a.mcap", a, rr=0.7 + 0.01 * i, cycles=10 + i))
+        files.append(write(tmp_path / f"{subject}_b.mcap", b, rr=0.85 + 0.02 * i, cycles=3))
+    study = analyse([load_session(f) for f in files])
+    assert study.conditions == ["a", "b"] and not study.simulated
+    mean, sd, n = study.table["a"]["productivity_per_min"]
+    assert (mean, n) == (pytest.approx(5.5), 3) and sd == pytest.approx(0.5)
+    t = study.tests["a-b"]["mean_rr_s"]
+    assert t.n == 3 and t.method == "exact" and t.p == pytest.approx(0.25)  # 2 / 2³, all three go up
+    assert t.median_difference == pytest.approx(0.16)
+    with pytest.raises(InputError, match="two sessions of subject s1 in condition a"):
+        analyse([load_session(f) for f in files] + [load_session(files[0])])
+
+
+def test_the_wilcoxon_method_is_the_one_scipy_can_give() -> None:
+    x = np.arange(12.0)
+    exact = paired_test(x, x + np.linspace(0.1, 1.2, 12))
+    assert exact.method == "exact" and exact.p == pytest.approx(2 / 2**12)
+    tied = paired_test(x, x + 0.5)  # every difference the same: ties, so no exact distribution
+    assert tied.method == "normal approximation" and tied.p < 0.01
+    zero = paired_test(x, x.copy())
+    assert zero.p == 1.0 and zero.method.startswith("none")
+    assert paired_test(np.array([]), np.array([])).n == 0
