@@ -92,6 +92,11 @@ OPERATOR_ERROR = Topic("operator/error", OperatorError, ("operator", "operator_t
 SELECTION = Topic(
     "decision/selection", Selection, ("decision_maker",), ("executor",), askers=("executor", *LOOKERS)
 )
+# the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the
+# initial k); the reply is the selection it starts with, stamped with the data time it took effect
+DECISION_CONDITION = Topic(
+    "decision/condition", Selection, ("decision_maker",), pattern="query", askers=("operator",)
+)
 PLAN_PROGRESS = Topic("pareto/progress", PlanProgress, ("pareto_store",), qos="drop")
 PARETO_SET = Topic("pareto/*", ParetoSet, ("pareto_store",), pattern="query", askers=("executor", *LOOKERS))
 PARETO_SOLUTION = Topic("pareto/*/*", ParetoSolutionReply, ("pareto_store",), pattern="query", askers=LOOKERS)
@@ -116,6 +121,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     OPERATOR_SIGNAL,
     OPERATOR_ERROR,
     SELECTION,
+    DECISION_CONDITION,
     PLAN_PROGRESS,
     PARETO_SET,
     PARETO_SOLUTION,

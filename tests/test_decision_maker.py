@@ -162,3 +162,34 @@ async def test_a_fixed_condition_holds_its_k_whatever_the_windows_say(
 async def test_a_fixed_k_above_n_is_refused_at_start() -> None:
     with pytest.raises(msgspec.ValidationError, match="outside 1"):
         msgspec.convert({"n": 15, "mode": "fixed", "fixed_k": 16}, Settings)
+
+
+async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: Path, endpoint: str) -> None:
+    """`cadence session` switches conditions on a running decision maker (decision/condition); the reply is
+    the selection the condition starts with, stamped with the data time it took effect; condition (c)
+    starts Alg. 1 again from the initial k; a restarted service keeps the condition, not the config's."""
+    settings = Settings(republish_s=0.1, rr_rest_s=0.9)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        svc = start_decider(tmp_path, endpoint, settings)
+        await svc.listening(bus, "hrv/window")
+        sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        assert (await answer(bus, sub, window(0, 0.80))).k == 4  # stressed: k moved from the initial 8
+
+        async def ask(parameters: str) -> Selection | str:
+            replies = await bus.get(bus.key("decision/condition") + f"?{parameters}", Selection, timeout=5.0)
+            assert len(replies) == 1
+            return replies[0].message or str(replies[0].error)
+
+        before = now_ns()
+        a = await ask("mode=fixed;k=a;by=session s1/a")
+        assert isinstance(a, Selection) and (a.k, a.reason) == (15, "fixed") and a.t_ns >= before
+        assert "k=16" in str(await ask("mode=fixed;k=16")) and "mode='turbo'" in str(await ask("mode=turbo"))
+        await svc.close()
+
+        svc = start_decider(tmp_path, endpoint, settings)  # restarted mid-session: still (a)
+        await svc.listening(bus, "hrv/window")
+        assert (await first_selection(sub)).reason == "fixed"
+        c = await ask("mode=adaptive;by=session s1/c")
+        assert isinstance(c, Selection) and (c.k, c.reason) == (8, "initial")  # from the initial k again
+        assert (await answer(bus, sub, window(1, 0.90))).reason != "fixed"
+        await svc.close()

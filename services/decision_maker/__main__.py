@@ -27,11 +27,15 @@ from schemas.base import RrSeconds
 from schemas.decision import MAX_N, Selection
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
-from schemas.topology import CALIBRATION, HRV_WINDOW, SELECTION
+from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, SELECTION
 from services.decision_maker.state import (
+    CONDITION_FILE,
+    Condition,
     Decider,
+    load_condition,
     load_record,
     same_calibration,
+    store_condition,
 )
 
 log = logging.getLogger("cadence.decision_maker")
@@ -45,7 +49,8 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     rr_rest_s: RrSeconds | None = None
     # The study's conditions (paper §III-B): "adaptive" is Alg. 1, condition (c); "fixed" holds one k,
     # fixed_k: "a" (minimum time, k = n), "b" (minimum jerk, k = 1) or a number. Windows are then
-    # counted and not answered, and the adaptive state on disk is left as it was for the next (c).
+    # counted and not answered. A session's condition (`cadence session`, on decision/condition) wins over
+    # these and is kept in condition.json, so that a restart mid-session stays in it.
     mode: Literal["adaptive", "fixed"] = "adaptive"
     fixed_k: Annotated[int, msgspec.Meta(ge=1, le=MAX_N)] | Literal["a", "b"] = "a"
 
@@ -53,10 +58,24 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start
 
 
-def fixed_selection(settings: Settings, t_ns: int) -> Selection:
+def fixed_selection(preset: int | str, n: int, t_ns: int) -> Selection:
     """A fixed condition's selection: one k, stated once, republished like any other."""
-    k = fixed_k(settings.fixed_k, settings.n)
-    return Selection(t_ns=t_ns, seq=0, k=k, n=settings.n, delta=0, reason="fixed")
+    return Selection(t_ns=t_ns, seq=0, k=fixed_k(preset, n), n=n, delta=0, reason="fixed")
+
+
+def parse_condition(parameters: str, n: int, t_ns: int) -> Condition:
+    """``mode=fixed;k=a`` (``a``, ``b`` or a number) or ``mode=adaptive``, with ``by=<who>``: a QueryError
+    says what is wrong, so the session that asked can tell its user."""
+    p = dict(part.split("=", 1) for part in parameters.split(";") if "=" in part)
+    mode, k, by = p.get("mode", ""), p.get("k", "a"), p.get("by", "")[:200]
+    if mode not in ("adaptive", "fixed"):
+        raise QueryError(f"mode={mode!r}: expected mode=adaptive or mode=fixed;k=a|b|<1…{n}>")
+    preset: int | str = int(k) if k.isdecimal() else k
+    try:
+        fixed_k(preset, n)
+    except ValueError as exc:
+        raise QueryError(f"k={k}: {exc}") from None
+    return Condition(mode=mode, fixed_k=preset, t_ns=t_ns, by=by)  # type: ignore[arg-type]
 
 
 def load_calibration(data_dir: Path, settings: Settings, problems: list[str]) -> Calibration | None:
@@ -95,16 +114,36 @@ def start(decider: Decider, data: Path, settings: Settings) -> list[str]:
 async def main(ctx: ServiceContext) -> None:
     settings: Settings = ctx.settings
     bus = ctx.bus
-    decider = Decider(ctx.common.data_path, settings.n)
+    data = ctx.common.data_path
+    decider = Decider(data, settings.n)
     selections = bus.publisher(SELECTION)  # numbered by the decider: its seq is persisted state
-    fixed = fixed_selection(settings, ctx.common.clock.now_ns()) if settings.mode == "fixed" else None
-    if fixed is not None:
-        ctx.state = f"fixed at k = {fixed.k} of {fixed.n} (fixed_k = {settings.fixed_k!r})"
-    else:
-        problems = await asyncio.to_thread(start, decider, ctx.common.data_path, settings)
-        if problems:  # said until the service restarts: the operator should look at the file moved aside
-            ctx.detail = "; ".join(problems) + "; started at the initial k, waiting for a fresh window"
-        ctx.state = "running" if decider.params else "waiting for calibration"
+    problems = await asyncio.to_thread(start, decider, data, settings)
+    stored = await asyncio.to_thread(load_condition, data)
+    if stored.problem:
+        problems.append(stored.problem)
+    condition = Condition(mode=settings.mode, fixed_k=settings.fixed_k)
+    if stored.value is not None:
+        try:
+            fixed_k(stored.value.fixed_k, settings.n)
+            condition = stored.value
+            log.info("condition %s from %s (set by %r), over the config's", condition.mode, CONDITION_FILE,
+                     condition.by)  # fmt: skip
+        except ValueError as exc:
+            problems.append(f"{CONDITION_FILE}: {exc} (n = {settings.n}); the config's condition holds")
+    if problems:  # said until the service restarts: the operator should look at the file moved aside
+        ctx.detail = "; ".join(problems) + "; started at the initial k, waiting for a fresh window"
+    fixed: Selection | None = None
+
+    def apply(c: Condition, t_ns: int) -> None:
+        nonlocal condition, fixed
+        condition = c
+        fixed = fixed_selection(c.fixed_k, settings.n, t_ns) if c.mode == "fixed" else None
+        if fixed is not None:
+            ctx.state = f"fixed at k = {fixed.k} of {fixed.n} (fixed_k = {c.fixed_k!r})"
+        else:
+            ctx.state = "running" if decider.params else "waiting for calibration"
+
+    apply(condition, ctx.common.clock.now_ns())
 
     def current() -> Selection | None:
         return fixed or decider.selection
@@ -133,15 +172,13 @@ async def main(ctx: ServiceContext) -> None:
         publish()
 
     async def on_calibration(_: str, cal: Calibration) -> None:
-        if fixed is not None:
-            log.info("calibration for %s: not used while k is fixed", cal.subject)
-            return
         record = decider.calibrated(cal, cal.t_ns)
         if record is not None:
             log.info("calibration for %s: RR_r = %.3f s", cal.subject, cal.rr_rest_s)
             await asyncio.to_thread(decider.persist, record)
             decider.commit(record)
-            ctx.state = "running"
+            if fixed is None:
+                ctx.state = "running"
             publish()
 
     async def on_query(req: Request) -> Selection:
@@ -149,9 +186,31 @@ async def main(ctx: ServiceContext) -> None:
             raise QueryError("no calibration yet: run `cadence calibrate` or set rr_rest_s")
         return sel
 
+    async def on_condition(req: Request) -> Selection:
+        """A session sets its condition: stored, then in force, then announced; the reply is the
+        selection it starts with, whose t_ns is the data time the condition took effect."""
+        now = ctx.common.clock.now_ns()
+        c = parse_condition(req.parameters, settings.n, now)
+        if c.mode == "adaptive":
+            cal = decider.record.calibration if decider.record is not None else None
+            if cal is None:
+                raise QueryError("no calibration yet: condition (c) needs RR_r (`cadence calibrate`)")
+            record = decider.calibrated(cal, now, again=True)  # Alg. 1 from the initial k
+            assert record is not None
+            await asyncio.to_thread(decider.persist, record)
+            decider.commit(record)
+        await asyncio.to_thread(store_condition, data, c)
+        apply(c, now)
+        log.info("condition %s%s set by %r", c.mode, f" (k {c.fixed_k})" if c.mode == "fixed" else "", c.by)
+        publish()
+        sel = current()
+        assert sel is not None
+        return sel
+
     bus.handle(CALIBRATION, on_calibration)
     bus.handle(HRV_WINDOW, on_window)
     bus.serve(SELECTION, on_query)
+    bus.serve(DECISION_CONDITION, on_condition)
     while not ctx.stop.is_set():
         publish()
         with contextlib.suppress(TimeoutError):

@@ -6,19 +6,20 @@ from __future__ import annotations
 
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 
 from common.decision import Params, State, step
 from common.runtime.admission import TimeLine
 from common.runtime.storage import Loaded, atomic_write, load_checked
-from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
+from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, Name, NonNegInt, TimeNs
 from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
 
 STATE_FILE = "decision_state.json"
+CONDITION_FILE = "condition.json"  # the condition a session set (`cadence session`), over the config's
 # Windows come every 30 s. One that starts more than this after the last answered is out of line (a
 # broken clock, a hostile message) until a second one agrees with it; one that ends within this before it
 # is a duplicate (a replay, a republish), answered already.
@@ -67,6 +68,24 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         )
 
 
+class Condition(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """``condition.json``: the study condition in force, as a session set it on ``decision/condition``;
+    kept so that a restart mid-session goes on in the same condition."""
+
+    mode: Literal["adaptive", "fixed"]
+    fixed_k: Annotated[int, msgspec.Meta(ge=1, le=MAX_N)] | Literal["a", "b"] = "a"
+    t_ns: TimeNs = 0
+    by: Name = ""
+
+
+def load_condition(data_dir: Path) -> Loaded[Condition]:
+    return load_checked(data_dir / CONDITION_FILE, lambda b: msgspec.json.decode(b, type=Condition))
+
+
+def store_condition(data_dir: Path, condition: Condition) -> None:
+    atomic_write(data_dir / CONDITION_FILE, msgspec.json.format(msgspec.json.encode(condition), indent=1))
+
+
 def params_of(cal: Calibration, n: int) -> Params:
     return Params.of(cal.rr_rest_s, n, cal.sigma_rest_s, cal.rr_stress_offset_s, cal.sigma_stress_s)
 
@@ -94,9 +113,10 @@ class Decider:
     def selection(self) -> Selection | None:
         return self.record.selection if self.record is not None else None
 
-    def calibrated(self, cal: Calibration, t_ns: int) -> DecisionRecord | None:
-        """The record that starts a calibration at the initial k; None when it is the one in use."""
-        if self.record is not None and same_calibration(self.record.calibration, cal):
+    def calibrated(self, cal: Calibration, t_ns: int, again: bool = False) -> DecisionRecord | None:
+        """The record that starts a calibration at the initial k; None when it is the one in use, unless
+        ``again`` (a session of condition (c) starts from the initial k)."""
+        if not again and self.record is not None and same_calibration(self.record.calibration, cal):
             return None
         initial = State.initial(params_of(cal, self.n))
         seq = self.record.seq + 1 if self.record is not None else 1
