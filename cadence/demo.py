@@ -72,6 +72,7 @@ class DemoOptions:
     task: Path = EXAMPLE_TASK
     kill: tuple[tuple[str, float], ...] = ()  # (service, data time s): SIGKILL it then
     live: bool = True
+    listen: str | None = None  # the router's endpoint; a free loopback port when None
 
 
 def free_port() -> int:
@@ -229,7 +230,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
     logs.mkdir(parents=True, exist_ok=True)
     for stale in (STATE_FILE, CALIBRATION_FILE):  # a demo starts from a rested operator
         (data / stale).unlink(missing_ok=True)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = opts.listen or f"tcp/127.0.0.1:{free_port()}"
     stopping = asyncio.Event()
     procs: dict[str, Supervised] = {}
     tasks: list[asyncio.Task] = []
@@ -253,6 +254,10 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         tasks.append(asyncio.create_task(p.supervise(stopping, on_restart)))
 
     async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), "cell1", role="monitor") as bus:
+        console.print(
+            f"the demo cell's router: {endpoint}; join it with --connect {endpoint} "
+            f"(`cadence record -o run.mcap --connect {endpoint}`, `cadence session --connect {endpoint} …`)"
+        )
         # 1. the store first: it plans what it lacks, before the operator's clock starts
         health = aiter(bus.subscribe(HEALTH.at("pareto_store"), maxsize=1))
         with console.status("planning the task's Pareto sets (once; they are stored) …") as status:

@@ -13,7 +13,11 @@ disagree (a replay at 10× beside an executor at 1× makes every rate a fiction)
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hashlib
+import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -24,10 +28,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cadence.recording import Recorder, read
-from common.runtime.errors import InputError
-from schemas import CycleReport, HrvWindow, Message, OperatorError, Selection
-from schemas.session import SESSION_END_RECORD, SESSION_RECORD, SessionEnd, SessionInfo
-from schemas.topology import ROOT, decode_any, encode
+from common.runtime.bus import Bus
+from common.runtime.errors import CadenceError, InputError
+from schemas import (
+    Calibration,
+    CycleReport,
+    HrvWindow,
+    Message,
+    OperatorError,
+    RobotState,
+    Selection,
+    ServiceStatus,
+)
+from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
+from schemas.topology import ROOT, SERVICES, decode_any, encode
 
 # keys whose t_ns is the publisher's data time at publishing: they tell its clock's rate and offset
 # (a selection or a status is republished with an old t_ns and says nothing about the clock)
@@ -59,17 +73,20 @@ def _record(struct: msgspec.Struct) -> dict[str, str]:
 
 
 class SessionWriter:
-    """Opens the file with its description; ``close`` writes the end record and finishes it."""
+    """The file from its first message on (a session records its health check and calibration too);
+    ``begin`` writes the description once the condition is in force, ``close`` the end record."""
 
-    def __init__(self, path: Path, info: SessionInfo) -> None:
+    def __init__(self, path: Path, cell: str) -> None:
         self.path = path
-        self.info = info
+        self.cell = cell
         self.recorder = Recorder(path)
+
+    def begin(self, info: SessionInfo) -> None:
         self.recorder.metadata(SESSION_RECORD, _record(info))
 
     def put(self, suffix: str, msg: Message, log_time_ns: int | None = None) -> None:
         """A message as it would have come on ``cadence/<cell>/<suffix>`` (the simulated study)."""
-        self.recorder.write(f"{ROOT}/{self.info.cell}/{suffix}", encode(msg), log_time_ns)
+        self.recorder.write(f"{ROOT}/{self.cell}/{suffix}", encode(msg), log_time_ns)
 
     def close(self, end: SessionEnd) -> None:
         self.recorder.metadata(SESSION_END_RECORD, _record(end))
@@ -235,3 +252,217 @@ def clock_problem(clocks: dict[str, list[tuple[int, int]]]) -> str | None:
             "(an old recording replayed beside a live cell?)"
         )
     return None
+
+
+# --- a live session (`cadence session`) ------------------------------------------------------------------
+
+# the executor's states in which the robot works or is about to: anything else, and the cell is not ready
+ROBOT_READY = ("ready", "moving", "waiting_for_operator", "waiting_for_selection")
+STALE_S = 10.0  # wall seconds without a clocked message: the live view says the cell went quiet
+
+
+@dataclass(frozen=True, slots=True)
+class SessionOptions:
+    subject: str
+    condition: Condition
+    minutes: float
+    out: Path
+    data_dir: Path  # where `cadence calibrate` stored the calibration, and where a new one is stored
+    task: Path
+    cell: str = "cell1"
+    calibrate_minutes: float | None = None
+    measured_sigma: bool = False
+    ready_timeout_s: float = 120.0
+    notes: str = ""
+
+
+@dataclass
+class Watch:
+    """What the session sees of the cell, updated on the loop thread as messages are written."""
+
+    statuses: dict[str, ServiceStatus] = field(default_factory=dict)
+    robot: RobotState | None = None
+    window: HrvWindow | None = None
+    selection: Selection | None = None
+    data_ns: int = 0  # the latest data time a clocked key carried
+    data_wall: float = 0.0  # when it came (monotonic)
+    start_ns: int | None = None
+    cycles: int = 0
+    errors: int = 0
+    changed: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def on(self, key: str, payload: bytes) -> None:
+        try:
+            msg = decode_any(payload)
+        except msgspec.DecodeError:
+            return
+        suffix = key.split("/", 2)[-1]
+        if suffix in CLOCKED and msg.t_ns > self.data_ns:
+            self.data_ns, self.data_wall = msg.t_ns, time.monotonic()
+        counting = self.start_ns is not None and msg.t_ns > self.start_ns
+        if isinstance(msg, ServiceStatus):
+            self.statuses[msg.service] = msg
+        elif isinstance(msg, RobotState):
+            self.robot = msg
+        elif isinstance(msg, HrvWindow):
+            self.window = msg
+        elif isinstance(msg, Selection):
+            self.selection = msg
+        elif isinstance(msg, CycleReport) and counting:
+            self.cycles += 1
+        elif isinstance(msg, OperatorError) and counting:
+            self.errors += 1
+        self.changed.set()
+
+    def readiness(self) -> dict[str, str | None]:
+        """Each check and what is wrong with it (None: fine)."""
+        missing = [s for s in SERVICES if s not in self.statuses]
+        robot, w = self.robot, self.window
+        return {
+            "services": f"no status yet from {', '.join(missing)}" if missing else None,
+            "robot": "no robot/state yet"
+            if robot is None
+            else None
+            if robot.state in ROBOT_READY
+            else f"the executor is {robot.state}: {robot.reason}",
+            "strap": "no HRV window yet"
+            if w is None
+            else None
+            if w.quality == "good"
+            else f"the last window is of {w.quality} quality ({w.reason or 'no beats'}): check the strap",
+        }
+
+
+def check_ready(readiness: dict[str, str | None]) -> str | None:
+    problems = [f"{what}: {why}" for what, why in readiness.items() if why is not None]
+    return "; ".join(problems) or None
+
+
+async def ask_condition(bus: Bus, opts: SessionOptions, timeout: float) -> Selection:
+    from schemas.topology import DECISION_CONDITION
+
+    mode = "mode=adaptive" if opts.condition == "c" else f"mode=fixed;k={opts.condition}"
+    replies = await bus.get(
+        DECISION_CONDITION, timeout=timeout, parameters=f"{mode};by=session {opts.subject}/{opts.condition}"
+    )
+    for r in replies:
+        if r.message is not None:
+            return r.message
+        raise CadenceError(f"the decision maker refused condition {opts.condition}: {r.error}")
+    raise CadenceError(
+        f"no decision maker answered on cadence/{opts.cell}/decision/condition within {timeout:g} s"
+    )
+
+
+def stored_calibration(opts: SessionOptions) -> Calibration:
+    from common.hrv.calibration import calibration_path, load_calibration
+
+    loaded = load_calibration(opts.data_dir)
+    cal = loaded.value
+    if cal is None:
+        raise InputError(
+            f"no calibration in {calibration_path(opts.data_dir)}"
+            + (f" ({loaded.problem})" if loaded.problem else "")
+            + ": run the session with --calibrate MINUTES, or `cadence calibrate` first"
+        )
+    if cal.subject != opts.subject:
+        raise InputError(
+            f"{calibration_path(opts.data_dir)} is subject {cal.subject}'s, not {opts.subject}'s: "
+            "calibrate this subject (--calibrate MINUTES)"
+        )
+    return cal
+
+
+async def run_session(
+    bus: Bus,
+    opts: SessionOptions,
+    stop: asyncio.Event,
+    show: Callable[[str, Watch, SessionOptions], None],
+    calibrate: Callable[[], Awaitable[Calibration]],
+) -> SessionEnd:
+    """Check the cell, calibrate (``calibrate``: `cadence calibrate`'s, bound to this bus) or take the
+    stored calibration, set the condition, and record until ``minutes`` of data time have passed or
+    ``stop``. ``show(phase, watch, opts)`` is called as things change (the live view)."""
+    cal = None if opts.calibrate_minutes else stored_calibration(opts)
+    writer = SessionWriter(opts.out, opts.cell)
+    watch = Watch()
+
+    def on(key: str, payload: bytes) -> None:
+        writer.recorder.write(key, payload)
+        watch.on(key, payload)
+
+    sub = bus.subscribe_raw(f"{ROOT}/{opts.cell}/**", on)
+    wall0 = time.monotonic()
+    end = SessionEnd(end_ns=1, complete=False, reason="stopped before the condition took effect")
+    began = False
+    try:
+        # 1. the cell is ready: every service's status, the robot, the strap
+        deadline = wall0 + opts.ready_timeout_s
+        while (problem := check_ready(watch.readiness())) is not None and not stop.is_set():
+            show("checking the cell", watch, opts)
+            if time.monotonic() > deadline:
+                raise CadenceError(f"the cell is not ready after {opts.ready_timeout_s:g} s: {problem}")
+            watch.changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(watch.changed.wait(), 0.5)
+        # 2. at rest, if asked
+        if opts.calibrate_minutes and not stop.is_set():
+            show("calibrating at rest", watch, opts)
+            cal = await _until(stop, calibrate())
+        # 3. the condition, and from then on the session counts
+        if not stop.is_set() and cal is not None:
+            first = await ask_condition(bus, opts, timeout=10.0)
+            watch.start_ns = first.t_ns
+            writer.begin(
+                SessionInfo(
+                    subject=opts.subject,
+                    condition=opts.condition,
+                    cell=opts.cell,
+                    calibration=cal,
+                    start_ns=first.t_ns,
+                    minutes=opts.minutes,
+                    task=opts.task.name,
+                    task_sha256=task_digest(opts.task),
+                    software=software(),
+                    notes=opts.notes,
+                )
+            )
+            began = True
+            planned = first.t_ns + round(opts.minutes * 60e9)
+            while watch.data_ns < planned and not stop.is_set():
+                show("running", watch, opts)
+                watch.changed.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(watch.changed.wait(), 0.25)
+            if stop.is_set():
+                end = SessionEnd(end_ns=max(watch.data_ns, first.t_ns + 1), complete=False,
+                                 reason="interrupted (Ctrl-C or a stop signal)")  # fmt: skip
+            else:
+                end = SessionEnd(end_ns=planned, complete=True, reason="on time")
+    except BaseException as exc:
+        if began:
+            end = SessionEnd(end_ns=max(watch.data_ns, (watch.start_ns or 0) + 1), complete=False,
+                             reason=f"{type(exc).__name__}: {exc}"[:4000])  # fmt: skip
+        raise
+    finally:
+        sub.undeclare()
+        await asyncio.sleep(0)  # what Zenoh handed over before the undeclare is written
+        if began:
+            end = msgspec.structs.replace(end, wall_s=round(time.monotonic() - wall0, 3))
+            writer.close(end)
+        else:
+            writer.recorder.close()
+            opts.out.unlink(missing_ok=True)  # no condition took effect: not a session
+    show("done", watch, opts)
+    return end
+
+
+async def _until(stop: asyncio.Event, work: Awaitable[Calibration]) -> Calibration | None:
+    """``work``'s result, or None when ``stop`` comes first."""
+    task = asyncio.ensure_future(work)
+    stopper = asyncio.ensure_future(stop.wait())
+    done, _ = await asyncio.wait({task, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    for t in (task, stopper):
+        if t not in done:
+            t.cancel()
+    return task.result() if task in done else None

@@ -245,7 +245,9 @@ def simulate_session(
     path: Path,
 ) -> Outcome:
     """One session file, as a live `cadence session` writes it, for a twin subject."""
-    writer = SessionWriter(path, session_info(subject, condition, cal, minutes, task_path))
+    info = session_info(subject, condition, cal, minutes, task_path)
+    writer = SessionWriter(path, info.cell)
+    writer.begin(info)
     try:
         outcome = simulate(task, moves, n_per_path, subject, condition, minutes, cal, writer)
     except BaseException:

@@ -37,6 +37,12 @@ def window(end_s: float, rr: float | None, quality: str = "good") -> HrvWindow:
     )  # fmt: skip
 
 
+def writer(path: Path, i: SessionInfo) -> SessionWriter:
+    w = SessionWriter(path, i.cell)
+    w.begin(i)
+    return w
+
+
 def state(t_s: float) -> RobotState:
     return RobotState(t_ns=T0 + round(t_s * S), seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
 
@@ -45,7 +51,7 @@ def write(path: Path, i: SessionInfo, *, end_s: float = 120.0, rr: float = 0.8, 
           errors: int = 3) -> Path:  # fmt: skip
     """A two-minute session: cycles spread over it, one before its start and one after its end (neither
     counts), windows every 30 s (one held), the robot's state every second."""
-    w = SessionWriter(path, i)
+    w = writer(path, i)
     for t in range(0, int(end_s) + 1):
         w.put("robot/state", state(t), T0 + t * S)
     for n, t in enumerate([-5.0, *np.linspace(10, end_s - 1, cycles), end_s + 5]):
@@ -76,7 +82,7 @@ def test_a_file_that_cannot_stand_for_its_session_is_refused_with_the_reason(tmp
         load_session(write(tmp_path / "nocal.mcap", info(cal=None)))
 
     # killed mid-session: the writer never finished the file
-    w = SessionWriter(tmp_path / "killed.mcap", info())
+    w = writer(tmp_path / "killed.mcap", info())
     w.put("robot/state", state(1.0), T0 + S)
     w.recorder._file.flush()
     with pytest.raises(InputError, match="incomplete or damaged"):
@@ -88,7 +94,7 @@ def test_a_file_that_cannot_stand_for_its_session_is_refused_with_the_reason(tmp
     with pytest.raises(InputError, match="not a session file"):
         load_session(tmp_path / "plain.mcap")
 
-    w = SessionWriter(tmp_path / "cells.mcap", info())
+    w = writer(tmp_path / "cells.mcap", info())
     w.put("robot/state", state(1.0), T0 + S)
     w.recorder.write("cadence/cell2/robot/state", encode(state(2.0)), T0 + 2 * S)
     w.close(SessionEnd(end_ns=T0 + 60 * S, complete=True))
@@ -98,7 +104,7 @@ def test_a_file_that_cannot_stand_for_its_session_is_refused_with_the_reason(tmp
 
 def test_publishers_on_different_clocks_are_a_mixed_clock_error(tmp_path: Path) -> None:
     # a 10× replay of the strap beside a live executor at 1×: log time is the wall clock here
-    w = SessionWriter(tmp_path / "rates.mcap", info())
+    w = writer(tmp_path / "rates.mcap", info())
     for t in range(0, 40):
         w.put("robot/state", state(t), T0 + t * S)
         w.put("hrv/window", window(30 + 10 * t, 0.8), T0 + t * S)
@@ -107,7 +113,7 @@ def test_publishers_on_different_clocks_are_a_mixed_clock_error(tmp_path: Path) 
         load_session(tmp_path / "rates.mcap")
 
     # the same rate, but an old recording replayed: its data time is a day behind the executor's
-    w = SessionWriter(tmp_path / "offset.mcap", info())
+    w = writer(tmp_path / "offset.mcap", info())
     for t in range(0, 40):
         w.put("robot/state", state(t), T0 + t * S)
         w.put("hrv/window", window(t - 86_400, 0.8), T0 + t * S)

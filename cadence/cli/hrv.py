@@ -7,7 +7,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -108,7 +107,7 @@ async def calibrate(
         if covered >= minutes - 1e-9:
             break
     try:
-        cal, level = calibration(wins, subject, time.time_ns(), measured_sigma)
+        cal, level = calibration(wins, subject, wins[-1].end_ns, measured_sigma)  # the cell's data time
     except ValueError as exc:
         raise InputError(f"calibrate: {exc}") from exc
     store_calibration(data_dir, cal)

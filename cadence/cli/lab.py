@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -10,13 +11,16 @@ from typing import TYPE_CHECKING
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cadence.cli._common import SERVICES, err, out, positive_int
+from cadence.cli._common import SERVICES, add_bus_flags, err, out, positive_int
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import load_task
 
 if TYPE_CHECKING:
     from cadence.analysis import Study
+    from cadence.session import SessionOptions, Watch
+    from schemas import Calibration
+    from schemas.session import SessionEnd
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -40,6 +44,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         task=Path(args.task),
         kill=tuple(kills),
         live=not args.no_live,
+        listen=args.listen,
     )
     t0 = time.monotonic()
     summary = asyncio.run(run_demo(opts, out))
@@ -195,6 +200,100 @@ def cmd_study_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
+    """The experimenter's view: the checks until the cell is ready, then RR, k, cycles, errors, time left."""
+    from cadence.session import STALE_S
+
+    t = Table(title=f"cadence session — subject {opts.subject}, condition ({opts.condition}): {phase}")
+    if w.start_ns is None:
+        t.add_column("check")
+        t.add_column("state")
+        for what, why in w.readiness().items():
+            t.add_row(what, "[green]ok[/green]" if why is None else why)
+        return t
+    for col in ("time left", "mean RR (last window)", "k", "cycles", "φ so far", "errors", "robot"):
+        t.add_column(col, justify="right")
+    done_s = max(0.0, (w.data_ns - w.start_ns) / 1e9)
+    win = w.window
+    quiet = time.monotonic() - w.data_wall
+    t.add_row(
+        f"{max(0.0, opts.minutes * 60 - done_s):.0f} s" + (f" [red](no data for {quiet:.0f} s)[/red]"
+                                                           if quiet > STALE_S else ""),
+        f"{win.mean_rr_s:.3f} s ({win.quality})" if win and win.mean_rr_s else "—",
+        str(w.selection.k) if w.selection else "—",
+        str(w.cycles),
+        f"{w.cycles / (done_s / 60):.2f}/min" if done_s > 0 else "—",
+        str(w.errors),
+        w.robot.state if w.robot else "—",
+    )  # fmt: skip
+    return t
+
+
+def cmd_session(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from rich.live import Live
+
+    from cadence.cli._common import bus_config, stop_on_signals
+    from cadence.cli.hrv import calibrate
+    from cadence.session import SessionOptions, load_session, run_session, task_digest
+    from common.runtime.bus import Bus
+
+    out_path = Path(args.out) if args.out else Path(f"{args.subject}_{args.condition}.mcap")
+    if out_path.exists():
+        raise InputError(f"{out_path}: exists; a session file is evidence and is never overwritten")
+    data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or "~/.local/share/cadence")
+    opts = SessionOptions(
+        subject=args.subject,
+        condition=args.condition,
+        minutes=args.minutes,
+        out=out_path,
+        data_dir=data_dir.expanduser(),
+        task=Path(args.task),
+        cell=args.cell,
+        calibrate_minutes=args.calibrate,
+        measured_sigma=args.measured_sigma,
+        ready_timeout_s=args.timeout,
+        notes=args.note,
+    )
+    task_digest(opts.task)  # a task file that is not there is said before the session starts
+
+    async def go() -> SessionEnd:
+        stop = stop_on_signals()
+        mode = "peer" if not args.connect else "client"
+        async with await Bus.open(bus_config(args, mode), args.cell, role="operator") as bus:
+            with Live(console=err, refresh_per_second=4, transient=False) as live:
+
+                def show(phase: str, w: Watch, o: SessionOptions) -> None:
+                    live.update(session_view(phase, w, o))
+
+                async def calib() -> Calibration:
+                    minutes = args.calibrate
+                    cal, _ = await calibrate(bus, minutes, args.subject, opts.data_dir, args.measured_sigma)
+                    return cal
+
+                return await run_session(bus, opts, stop, show, calib)
+
+    end = asyncio.run(go())
+    if not out_path.exists():
+        err.print("stopped before the condition took effect: no session file written")
+        return 1
+    s = load_session(out_path)
+    table = Table(title=f"session {out_path}: {'complete' if end.complete else 'CUT SHORT: ' + end.reason}")
+    for col in ("minutes", "cycles", "φ [cycles/min]", "errors", "ε [errors/cycle]", "mean RR / RR_r"):
+        table.add_column(col, justify="right")
+    table.add_row(
+        f"{s.minutes:.2f}",
+        str(s.n_cycles),
+        f"{s.productivity_per_min:.3f}",
+        str(s.n_errors),
+        f"{s.error_rate:.3f}",
+        f"{s.mean_rr_s:.3f} / {s.rr_rest_s:.3f} s",
+    )
+    out.print(table)
+    return 0 if end.complete else 1
+
+
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     report = sub.add_parser(
         "report",
@@ -251,6 +350,32 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sim.add_argument("--out", default="study-out", metavar="DIR", help="output folder (default study-out)")
     sim.set_defaults(func=cmd_study_simulate)
 
+    session = sub.add_parser(
+        "session",
+        help="one subject's session in one condition on a running cell, recorded to one MCAP",
+        description="Checks the cell first (a status from every service, the robot ready, a good HRV "
+        "window), calibrates the subject at rest if asked (--calibrate; stored and published as `cadence "
+        "calibrate` does) or takes the stored calibration, sets the condition on the decision maker "
+        "((a) minimum time: k = N; (b) minimum jerk: k = 1; (c) tuned online: Alg. 1 from the initial k), "
+        "and records the cell's traffic for MINUTES of data time, with a live view. The file carries the "
+        "session's description (subject, condition, calibration, task hash, software, start and end in "
+        "data time); Ctrl-C ends it early, complete and marked cut short (exit 1). For the study: "
+        "`cadence study analyse`.",
+    )
+    session.add_argument("--subject", required=True, help="the subject's ID (as in the calibration)")
+    session.add_argument("--condition", required=True, choices=("a", "b", "c"))
+    session.add_argument("--minutes", type=float, default=10.0, help="data time to record (default 10)")
+    session.add_argument(
+        "--calibrate", type=float, metavar="MINUTES", help="calibrate at rest first (the paper: 5)"
+    )
+    session.add_argument("--measured-sigma", action="store_true", help="as `cadence calibrate`")
+    session.add_argument("--out", metavar="FILE.mcap", help="default: SUBJECT_CONDITION.mcap")
+    session.add_argument("--data-dir", help="where the calibration is stored (default CADENCE_DATA_DIR)")
+    session.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="the executor's task")
+    session.add_argument("--note", default="", help="free text kept in the file (e.g. the experimenter)")
+    add_bus_flags(session, 120.0)
+    session.set_defaults(func=cmd_session)
+
     demo = sub.add_parser(
         "demo",
         help="the whole closed loop on this machine: operator twin, every service, simulated UR16e",
@@ -273,4 +398,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="SIGKILL a service at data time S (repeatable): shows the supervisor restarting it",
     )
     demo.add_argument("--no-live", action="store_true", help="no live view (for logs and CI)")
+    demo.add_argument(
+        "--listen", metavar="ENDPOINT", help="the router's endpoint (default: a free port on 127.0.0.1)"
+    )
     demo.set_defaults(func=cmd_demo)

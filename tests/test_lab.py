@@ -1,0 +1,184 @@
+"""A lab's whole procedure, as the README gives it, on the demo cell with its operator twin as the subject:
+`cadence session` calibrates and runs conditions (a), (b), (c) one after the other on the running cell,
+then `cadence study analyse` reads the three files. The analysis must equal what the recorded messages
+give when counted here independently (raw MCAP, messages decoded as plain dicts), each condition must have
+been in force (the selections and the k the robot moved with), and a session stopped early must leave a
+complete file that says so."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import queue
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from tests.conftest import free_port
+
+SPEED = "8"
+
+
+def lines_of(proc: subprocess.Popen[str]) -> queue.Queue[str]:
+    """The process's output, line by line, without blocking the test on a read."""
+    q: queue.Queue[str] = queue.Queue()
+
+    def pump() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            q.put(line)
+
+    threading.Thread(target=pump, daemon=True).start()
+    return q
+
+
+def wait_for_line(q: queue.Queue[str], text: str, timeout: float) -> None:
+    seen = []
+    while True:
+        try:
+            line = q.get(timeout=timeout)
+        except queue.Empty:
+            raise AssertionError(f"no {text!r} within {timeout} s; output so far: {''.join(seen)}") from None
+        seen.append(line)
+        if text in line:
+            return
+
+
+def counted(path: Path) -> dict:
+    """The session's measures from the raw file: metadata as JSON, messages as plain msgpack dicts."""
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        meta = {m.name: json.loads(m.metadata["json"]) for m in reader.iter_metadata()}
+        msgs = [msgspec.msgpack.decode(m.data) for _, _, m in reader.iter_messages()]
+    start, end = meta["cadence.session"]["start_ns"], meta["cadence.session.end"]["end_ns"]
+
+    def inside(m: dict) -> bool:
+        return start < m["t_ns"] <= end
+
+    cycles = [m for m in msgs if m.get("type") == "robot.cycle.v1" and inside(m)]
+    errors = [m for m in msgs if m.get("type") == "operator.error.v1" and inside(m)]
+    good = [m["mean_rr_s"] for m in msgs if m.get("type") == "hrv.window.v1" and m["quality"] == "good"
+            and start < m["end_ns"] <= end]  # fmt: skip
+    selections = [m for m in msgs if m.get("type") == "decision.selection.v1" and m["t_ns"] >= start]
+    minutes = (end - start) / 60e9
+    return {
+        "meta": meta,
+        "cycles": len(cycles),
+        "errors": len(errors),
+        "productivity_per_min": len(cycles) / minutes,
+        "mean_rr_s": float(np.mean(good)),
+        "selections": selections,
+        # the k the robot moved with from the first cycle that began once the condition was in force
+        "ks": {
+            m["k"]
+            for m in msgs
+            if m.get("type") == "robot.state.v1"
+            and m.get("k") is not None
+            and cycles
+            and cycles[0]["t_ns"] < m["t_ns"] <= end
+        },
+    }
+
+
+def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", "--duration", "3000", "--speed", SPEED, "--no-live",
+         "--listen", endpoint, "--out", str(tmp_path / "demo")],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    sessions = tmp_path / "sessions"
+    sessions.mkdir()
+    try:
+        wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
+        for condition, calibrate in (("a", ["--calibrate", "1"]), ("b", []), ("c", [])):
+            r = subprocess.run(
+                [sys.executable, "-m", "cadence", "session", "--subject", "twin-1", "--condition", condition,
+                 "--minutes", "1", *calibrate, "--connect", endpoint, "--data-dir", str(tmp_path / "lab"),
+                 "--out", str(sessions / f"twin-1_{condition}.mcap"), "--timeout", "240"],
+                capture_output=True, text=True, timeout=400,
+            )  # fmt: skip
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert "complete" in r.stdout
+        cut = asyncio.run(cut_short(endpoint, tmp_path))
+    finally:
+        demo.terminate()
+        demo.wait(timeout=60)
+
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cadence",
+            "study",
+            "analyse",
+            str(sessions),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    study = json.loads((tmp_path / "out" / "study.json").read_text())
+    assert study["simulated"] is False and study["subjects"] == 1 and len(study["sessions"]) == 3
+    by = {row["condition"]: row for row in study["sessions"]}
+    mine = {c: counted(sessions / f"twin-1_{c}.mcap") for c in "abc"}
+    for c in "abc":
+        row, raw = by[c], mine[c]
+        assert row["complete"] is True and row["minutes"] == pytest.approx(1.0)
+        assert (row["cycles"], row["errors"]) == (raw["cycles"], raw["errors"]) and raw["cycles"] >= 1
+        assert row["productivity_per_min"] == pytest.approx(raw["productivity_per_min"])
+        assert row["mean_rr_s"] == pytest.approx(raw["mean_rr_s"])
+        cal = raw["meta"]["cadence.session"]["calibration"]
+        assert cal["subject"] == "twin-1" and row["mean_rr_norm"] == pytest.approx(
+            raw["mean_rr_s"] / cal["rr_rest_s"]
+        )
+        assert raw["meta"]["cadence.session"]["condition"] == c
+    # each condition was in force: its selections, and the k the robot moved with
+    assert {(s["k"], s["reason"]) for s in mine["a"]["selections"]} == {(15, "fixed")}
+    assert {(s["k"], s["reason"]) for s in mine["b"]["selections"]} == {(1, "fixed")}
+    assert mine["c"]["selections"][0]["reason"] == "initial"
+    assert all(s["reason"] != "fixed" for s in mine["c"]["selections"])
+    assert mine["b"]["ks"] == {1} and mine["a"]["ks"] and min(mine["a"]["ks"]) > 1
+    for name in ("index.html", "conditions.png", "subject_twin-1.png"):
+        assert (tmp_path / "out" / name).exists()
+
+    # stopped early: the file is complete and says so
+    assert cut.complete is False and "interrupted" in cut.reason
+    from cadence.session import load_session
+
+    s = load_session(tmp_path / "cut.mcap")
+    assert s.end == cut and 0 < s.minutes < 5
+
+
+async def cut_short(endpoint: str, tmp_path: Path):
+    """A session whose experimenter stops it as soon as it runs (what Ctrl-C does)."""
+    from cadence.session import SessionOptions, run_session
+    from common.runtime.bus import Bus, BusConfig
+    from common.runtime.resources import EXAMPLE_TASK
+
+    stop = asyncio.Event()
+    opts = SessionOptions(subject="twin-1", condition="b", minutes=5.0, out=tmp_path / "cut.mcap",
+                          data_dir=tmp_path / "lab", task=EXAMPLE_TASK, ready_timeout_s=240)  # fmt: skip
+    seen = 0
+
+    def show(phase: str, watch, _) -> None:
+        nonlocal seen
+        if phase == "running" and watch.cycles + watch.errors >= 0:
+            seen += 1
+            if seen > 20:  # a few updates into the condition
+                stop.set()
+
+    async def never():
+        raise AssertionError("this session does not calibrate")
+
+    async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1", role="operator") as bus:
+        return await run_session(bus, opts, stop, show, never)
