@@ -144,8 +144,9 @@ def simulate(
 
     def select(t_s: float, delta: int, reason: Reason, window_end: int | None) -> None:
         k = fixed if fixed is not None else state.k
-        sel = Selection(t_ns=ns(t_s), seq=seq["selection"], k=k, n=n, delta=delta, reason=reason,
-                        window_end_ns=window_end)  # fmt: skip
+        sel = Selection(
+            t_ns=ns(t_s), seq=seq["selection"], k=k, n=n, delta=delta, reason=reason, window_end_ns=window_end
+        )
         emit(SELECTION.suffix, "selection", sel)
 
     select(0.0, 0, "fixed" if fixed is not None else "initial", None)
@@ -190,19 +191,40 @@ def simulate(
                 idle(s.wait)
             elif s.wait_for is not None:
                 op.advance(t)
-                idle(op.handling_time())
+                handling = op.handling_time()
+                if s.deadline is not None and handling > s.deadline:  # the executor's late error
+                    errors += 1
+                    then = "kept waiting" if s.on_late == "wait" else "went on without it"
+                    late = OperatorError(
+                        t_ns=ns(t + s.deadline),
+                        seq=seq["error"],
+                        cycle=cycles,
+                        kind="late",
+                        source="executor",
+                        description=f"'{s.wait_for}' late: {then}",
+                    )
+                    emit(OPERATOR_ERROR.suffix, "error", late)
+                    if s.on_late == "go_on":
+                        handling = s.deadline
+                idle(handling)
             close_windows()
-        cycles += 1
         report = CycleReport(
             t_ns=ns(t), seq=seq["cycle"], cycle=cycles, cycle_time_s=t - start, k_per_path=used
         )
         emit(ROBOT_CYCLE.suffix, "cycle", report)
         op.advance(t)
-        if op.makes_error():
+        if op.makes_error():  # as the twin in the ECG gateway does at each cycle's report
             errors += 1
-            emit(OPERATOR_ERROR.suffix, "error",
-                 OperatorError(t_ns=ns(t), seq=seq["error"], cycle=cycles, kind="wrong_object", source="twin",
-                               description=f"simulated (stress {op.stress:.2f})"))  # fmt: skip
+            wrong = OperatorError(
+                t_ns=ns(t),
+                seq=seq["error"],
+                cycle=cycles,
+                kind="wrong_object",
+                source="twin",
+                description=f"simulated (stress {op.stress:.2f})",
+            )
+            emit(OPERATOR_ERROR.suffix, "error", wrong)
+        cycles += 1
     return Outcome(
         subject.index,
         condition,

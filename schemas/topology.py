@@ -87,8 +87,12 @@ ECG_RR = Topic("ecg/rr", RrIntervals, ("ecg_gateway",), ("hrv_analyser",))  # re
 HRV_BEATS = Topic("hrv/beats", Beats, ("hrv_analyser",))
 HRV_WINDOW = Topic("hrv/window", HrvWindow, ("hrv_analyser",), ("decision_maker",))
 CALIBRATION = Topic("operator/calibration", Calibration, ("operator",), ("decision_maker",))
-OPERATOR_SIGNAL = Topic("operator/signal", OperatorSignal, ("operator", "operator_twin"), ("executor",))
-OPERATOR_ERROR = Topic("operator/error", OperatorError, ("operator", "operator_twin"))
+# the executor publishes a button on one of the controller's digital inputs (a task step's ``input``)
+OPERATOR_SIGNAL = Topic(
+    "operator/signal", OperatorSignal, ("operator", "operator_twin", "executor"), ("executor",)
+)
+# the executor publishes a part not there by its wait_for step's deadline (kind "late")
+OPERATOR_ERROR = Topic("operator/error", OperatorError, ("operator", "operator_twin", "executor"))
 SELECTION = Topic(
     "decision/selection", Selection, ("decision_maker",), ("executor",), askers=("executor", *LOOKERS)
 )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import atexit
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -129,7 +130,11 @@ class InProcessService:
             self.ctx = ctx
             await main(ctx)
 
-        common = CommonSettings(cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed)
+        # a faster clock needs an epoch, or its data time would be the wall's while its sleeps are shorter
+        epoch = time.time_ns() if speed != 1.0 else None
+        common = CommonSettings(
+            cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed, epoch_ns=epoch
+        )
         self.task = asyncio.ensure_future(
             serve(
                 name,

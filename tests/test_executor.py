@@ -15,7 +15,16 @@ import pytest
 
 from common.runtime.bus import Bus, BusConfig
 from common.trajectory.task import load_task
-from schemas import CycleReport, OperatorSignal, ParetoSet, RobotEvent, RobotState, Selection, ServiceStatus
+from schemas import (
+    CycleReport,
+    OperatorError,
+    OperatorSignal,
+    ParetoSet,
+    RobotEvent,
+    RobotState,
+    Selection,
+    ServiceStatus,
+)
 from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
@@ -167,6 +176,41 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
     # mostly the wait for the test's signal, which a loaded machine stretches by more than the difference)
     ran = msgspec.msgpack.decode((tmp_path / "ex" / "executor" / "back.msgpack").read_bytes(), type=ParetoSet)
     assert ran.solutions[4].t_f < ran.solutions[1].t_f
+
+
+@pytest.mark.parametrize("on_late", ["wait", "go_on"])
+async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_says_what_follows(
+    tmp_path: Path, endpoint: str, on_late: str
+) -> None:
+    """The paper's "not placed in time to be picked": past a wait_for step's deadline (data time) the
+    executor publishes an operator error of kind late, then keeps waiting (the part that comes ends the
+    wait) or goes on without the part, as the task program says."""
+    task_file = tmp_path / "late.toml"
+    task_file.write_text(
+        TASK.replace('wait_for = "part"', f'wait_for = "part"\ndeadline = 2.0\non_late = "{on_late}"')
+    )
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        errors = aiter(bus.subscribe(bus.key("operator/error"), OperatorError))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        settings = sim_settings(task_file, wait_for_signals=True)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        waiting = await next_of(states, lambda s: s.mode == "waiting")
+        late = await next_of(errors)
+        assert (late.kind, late.source, late.cycle) == ("late", "executor", 0)
+        assert "'part' not there 2 s after the robot came" in late.description
+        assert late.t_ns - waiting.t_ns >= 2.0e9 - 0.2e9  # not before its deadline (state sampling aside)
+        if on_late == "wait":
+            assert "kept waiting" in late.description
+            await next_of(states, lambda s: s.mode == "waiting" and s.t_ns > late.t_ns)  # still waits
+            bus.put(bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=0, name="part"), block=True)
+        else:
+            assert "went on without it" in late.description
+        report = await next_of(cycles)
+        await asyncio.wait_for(ex.task, 15)
+        await store.close()
+    assert report.cycle == 0 and ex.ctx.counters["late"] == 1
 
 
 async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused_without_moving(

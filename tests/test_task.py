@@ -92,6 +92,20 @@ BAD = [
     ("unknown planner key", GOOD + "\n[planner]\npopsize = 30\n", "", "popsize"),
     ("planner value", GOOD + "\n[planner]\nkappa = 0.5\n", "", "planner.kappa"),
     ("unknown path in the cycle", GOOD + '\n[[cycle]]\nmove = "p9"\n', "", "cycle[0].move"),
+    ("deadline not on a wait_for", GOOD + '\n[[cycle]]\nmove = "p1"\ndeadline = 2.0\n', "", "cycle[0]"),
+    (
+        "negative deadline",
+        GOOD + '\n[[cycle]]\nmove = "p1"\n[[cycle]]\nwait_for = "part"\ndeadline = -1.0\n',
+        "",
+        "cycle[1].deadline",
+    ),
+    (
+        "no such digital input",
+        GOOD + '\n[[cycle]]\nmove = "p1"\n[[cycle]]\nwait_for = "part"\ninput = 8\n',
+        "",
+        "cycle[1].input",
+    ),
+    ("unknown on_late", GOOD + '\n[[cycle]]\nwait_for = "part"\non_late = "skip"\n', "", "on_late"),
 ]
 
 

@@ -54,7 +54,9 @@ class EmulatorProcess:
             cmd += ["--recipes-out", str(recipes)]
         if q0_deg is not None:
             cmd += ["--q0-deg", *map(str, q0_deg)]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         self.lines: list[str] = []
         ready = threading.Event()
 
@@ -77,6 +79,12 @@ class EmulatorProcess:
                     return line
             time.sleep(0.02)  # polling the reader thread's list; bounded by the timeout
         raise AssertionError(f"no line with {text!r} in {self.lines}")
+
+    def press(self, n: int, on: bool = True) -> None:
+        """A button on standard digital input ``n`` (the emulator's stdin command)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(f"di {n} {int(on)}\n")
+        self.proc.stdin.flush()
 
     def stop(self, sig: int = signal.SIGTERM) -> int:
         self.proc.send_signal(sig)
@@ -287,3 +295,46 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
         "lost" in held.reason and resumed.message is not None and resumed.message.message.startswith("ready")
     )
     assert report.cycle == 0 and set(report.k_per_path) == set(load_task(EXAMPLE_TASK).paths)
+
+
+@pytest.mark.asyncio
+async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
+    tmp_path: Path, endpoint: str
+) -> None:
+    """A part placed, signalled by a button wired to the controller's DI 2 (the task step's ``input = 2``):
+    read through the real client, published on operator/signal with its source, and it ends the wait."""
+    from common.runtime.bus import Bus, BusConfig
+    from schemas import CycleReport, OperatorSignal, RobotState
+    from services.executor.__main__ import Settings
+    from services.executor.__main__ import main as executor_main
+    from tests.conftest import InProcessService
+    from tests.test_executor import CALM, TASK, next_of, operator_resumes, store_serving
+
+    task_file = tmp_path / "shuttle.toml"
+    task_file.write_text(TASK.replace('wait_for = "part"', 'wait_for = "part"\ninput = 2'))
+    emu = EmulatorProcess(free_loopback())
+    try:
+        async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+            store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+            signals = aiter(bus.subscribe(bus.key("operator/signal"), OperatorSignal))
+            cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+            states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+            settings = Settings(
+                task=str(task_file), backend="ur_rtde", host=emu.host, fifo_priority=0, overrun_limit=CALM,
+                cycles=1, watchdog_hz=WATCHDOG_HZ, start_selection="initial", initial_k=1,
+            )  # fmt: skip
+            ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+            operator = asyncio.ensure_future(operator_resumes(bus))
+            await next_of(states, lambda s: s.waiting_for == "part", timeout=90)
+            emu.press(2)
+            sig = await next_of(signals)
+            report = await next_of(cycles, timeout=90)
+            emu.press(2, on=False)
+            await asyncio.wait_for(ex.task, 20)
+            operator.cancel()
+            await store.close()
+    finally:
+        emu.stop()
+    assert (sig.name, sig.source) == ("part", "ur DI2")
+    assert report.cycle == 0 and ex.ctx.counters["buttons"] == 1
+    assert any("digital input 2 on" in line for line in emu.lines)

@@ -260,8 +260,8 @@ def cmd_session(args: argparse.Namespace) -> int:
 
     async def go() -> SessionEnd:
         stop = stop_on_signals()
-        mode = "peer" if not args.connect else "client"
-        async with await Bus.open(bus_config(args, mode), args.cell, role="operator") as bus:
+        cfg = bus_config(args, "peer" if not args.connect else "client")
+        async with await Bus.open(cfg, args.cell, role="operator") as bus:
             with Live(console=err, refresh_per_second=4, transient=False) as live:
 
                 def show(phase: str, w: Watch, o: SessionOptions) -> None:

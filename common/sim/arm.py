@@ -68,6 +68,7 @@ class SimArm:
         self.qd = np.zeros(6)
         self.target = self.q.copy()
         self.digital_out = 0
+        self.digital_in = 0  # standard digital inputs 0–7, a bit each: the cell's buttons
         self.fault = ""  # why the arm is in a protective stop; "" while it runs
         self.steps = 0
         self._d = np.zeros(6)

@@ -33,6 +33,7 @@ Constraints = Literal["hull", "exact"]
 _LIMIT_RTOL = 1e-9
 CONTINUITY_TOL_RAD = 1e-6
 MAX_WAIT_S = 3600.0
+MAX_INPUT = 7  # the UR controller's standard digital inputs: DI 0–7
 MIN_LIMIT_SHARE = 1e-3  # a limit lowered further than this is a typo, and would plan hour-long paths
 
 
@@ -78,6 +79,11 @@ class _StepSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     gripper: Literal["on", "off"] | None = None
     wait: float | None = None
     wait_for: str | None = None
+    # with wait_for only: the seconds the operator has once the robot waits, and what the robot does then
+    deadline: float | None = None
+    on_late: Literal["wait", "go_on"] = "wait"
+    # with wait_for only: the UR's standard digital input (0–7) whose rising edge is this signal
+    input: int | None = None
 
 
 class _TaskMeta(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -114,6 +120,11 @@ class Step:
     gripper: Literal["on", "off"] | None = None
     wait: float | None = None
     wait_for: str | None = None
+    # a wait_for's deadline: past it, the part is late (an operator error, kind "late"); the robot then
+    # keeps waiting ("wait") or goes on without it ("go_on")
+    deadline: float | None = None
+    on_late: Literal["wait", "go_on"] = "wait"
+    input: int | None = None  # a wait_for met by this UR standard digital input's rising edge
 
 
 @dataclass(frozen=True, slots=True)
@@ -293,7 +304,19 @@ def _cycle(file: str, steps: list[_StepSpec] | None, paths: dict[str, PathPlan])
             raise TaskError(
                 file, f"cycle[{i}].wait_for", f"{st.wait_for!r} must be 1–64 letters, digits, '_' or '-'"
             )
-        out.append(Step(st.move, st.gripper, st.wait, st.wait_for))
+        extra = [k for k in ("deadline", "input") if getattr(st, k) is not None]
+        if st.on_late != "wait":
+            extra.append("on_late")
+        if extra and st.wait_for is None:
+            raise TaskError(file, f"cycle[{i}]", f"{', '.join(extra)} belong to a wait_for step")
+        if st.deadline is not None and not (math.isfinite(st.deadline) and 0 < st.deadline <= MAX_WAIT_S):
+            raise TaskError(
+                file, f"cycle[{i}].deadline", f"must be seconds in (0, {MAX_WAIT_S:g}], got {st.deadline}"
+            )
+        if st.input is not None and not 0 <= st.input <= MAX_INPUT:
+            why = f"a UR standard digital input is 0–{MAX_INPUT}, got {st.input}"
+            raise TaskError(file, f"cycle[{i}].input", why)
+        out.append(Step(st.move, st.gripper, st.wait, st.wait_for, st.deadline, st.on_late, st.input))
     if not any(s.move for s in out):
         raise TaskError(file, "cycle", "the cycle moves along no path")
     return out

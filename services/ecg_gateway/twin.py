@@ -77,6 +77,7 @@ class TwinSource(EcgSource):
                     seq=self.errors_out.next_seq(),
                     cycle=report.cycle,
                     description=f"simulated (stress {self.operator.stress:.2f})",
+                    kind="wrong_object",
                     source="twin",
                 )
             )

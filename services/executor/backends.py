@@ -46,6 +46,7 @@ class Backend(Protocol):
     def motion_ended(self) -> None: ...  # after a servo motion, whatever its outcome
     def stop_move(self) -> None: ...  # from another thread: end a move_j now, decelerating
     def set_gripper(self, on: bool) -> None: ...
+    def digital_inputs(self) -> int: ...  # the standard digital inputs 0–7 as bits (the cell's buttons)
 
 
 class SimBackend:
@@ -129,6 +130,9 @@ class SimBackend:
     def stop_move(self) -> None:
         self._abort = True
 
+    def digital_inputs(self) -> int:
+        return self.arm.digital_in
+
     def set_gripper(self, on: bool) -> None:
         bit = 1 << self.gripper_output
         self.arm.digital_out = (self.arm.digital_out | bit) if on else (self.arm.digital_out & ~bit)
@@ -164,6 +168,7 @@ class UrRtdeBackend:
         self._lost = ""
         self._watchdog = False
         self._last = {"q": np.zeros(6), "qd": np.zeros(6), "tcp": np.zeros(6)}
+        self._inputs = 0
 
     def connect(self) -> None:
         import rtde_control
@@ -297,6 +302,13 @@ class UrRtdeBackend:
         if self._c is not None:
             with contextlib.suppress(RuntimeError):
                 self._c.stopJ(self.stop_deceleration, False)
+
+    def digital_inputs(self) -> int:
+        r = self._r
+        if r is not None:
+            with contextlib.suppress(RuntimeError):
+                self._inputs = int(r.getActualDigitalInputBits()) & 0xFF
+        return self._inputs
 
     def set_gripper(self, on: bool) -> None:
         """Through an IO interface opened for this call only: ur-rtde 1.6.5's RTDEIOInterface ends the

@@ -14,7 +14,7 @@ import asyncio
 import logging
 import time
 from collections import Counter, deque
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -24,12 +24,19 @@ from common.runtime.bus import Bus, QueryError, Request
 from common.runtime.clock import Clock
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.service import ServiceContext, first_of
-from common.trajectory.task import PathPlan, Task
+from common.trajectory.task import PathPlan, Step, Task
 from common.trajectory.validate import validated_samples
 from schemas.decision import Selection
-from schemas.operator import OperatorSignal
+from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport, EventKind, RobotEvent, RobotState
-from schemas.topology import ROBOT_CYCLE, ROBOT_EVENT, ROBOT_STATE, SELECTION
+from schemas.topology import (
+    OPERATOR_ERROR,
+    OPERATOR_SIGNAL,
+    ROBOT_CYCLE,
+    ROBOT_EVENT,
+    ROBOT_STATE,
+    SELECTION,
+)
 from services.executor.backends import Backend, RobotUnavailable
 from services.executor.persist import ExecutorStore
 from services.executor.servo import MotionResult, ServoLoop
@@ -61,14 +68,22 @@ class Signals:
         self.received[sig.name] += 1
         self.arrived.set()
 
-    async def wait(self, name: str, stop: asyncio.Event) -> bool:
+    async def wait(
+        self, name: str, stop: asyncio.Event, timeout_s: float | None = None
+    ) -> Literal["arrived", "stopped", "late"]:
+        """``timeout_s``: wall seconds to wait at most (a step's deadline at the clock's speed)."""
+        end = None if timeout_s is None else time.monotonic() + timeout_s
         while self.received[name] <= self.consumed[name]:
             if stop.is_set():
-                return False
+                return "stopped"
+            left = None if end is None else end - time.monotonic()
+            if left is not None and left <= 0:
+                return "late"
             self.arrived.clear()
-            await first_of(self.arrived.wait(), stop.wait())
+            timer = [asyncio.sleep(left)] if left is not None else []
+            await first_of(self.arrived.wait(), stop.wait(), *timer)
         self.consumed[name] += 1
-        return True
+        return "arrived"
 
 
 class AutoResume:
@@ -117,6 +132,12 @@ class Executor:
         self.events_out = ctx.bus.publisher(ROBOT_EVENT)
         self.states_out = ctx.bus.publisher(ROBOT_STATE)
         self.cycles_out = ctx.bus.publisher(ROBOT_CYCLE)
+        self.errors_out = ctx.bus.publisher(OPERATOR_ERROR)  # a part not there by its step's deadline
+        # a button on a digital input of the controller: its rising edge is that step's signal, published
+        # as any signal is (the executor counts it when it comes back, as it would one from elsewhere)
+        self.signals_out = ctx.bus.publisher(OPERATOR_SIGNAL)
+        self.buttons = {s.input: s.wait_for for s in task.cycle if s.input is not None and s.wait_for}
+        self._inputs = 0
         self._last_event: tuple[str, str] | None = None
 
     # --- the safety states --------------------------------------------------------------------------
@@ -285,7 +306,20 @@ class Executor:
                 self.bus.handler_failed(self.states_out.key, exc)
             await asyncio.sleep(period)
 
+    def _read_buttons(self) -> None:
+        if not self.buttons:
+            return
+        now = self.backend.digital_inputs()
+        rising, self._inputs = now & ~self._inputs, now
+        for n, name in self.buttons.items():
+            if rising >> n & 1:
+                self.ctx.counters["buttons"] += 1
+                seq = self.signals_out.next_seq()
+                pressed = OperatorSignal(t_ns=self.clock.now_ns(), seq=seq, name=name, source=f"ur DI{n}")
+                self.signals_out.put(pressed)
+
     def _put_state(self) -> None:
+        self._read_buttons()  # at the state rate: a press lasts far longer than a state period
         q, qd = self.backend.actual_q(), self.backend.actual_qd()
         self.states_out.put(
             RobotState(
@@ -441,6 +475,31 @@ class Executor:
             self.ctx.counters["protective_stops"] += 1
         return None
 
+    async def wait_for(self, step: Step, cycle: int) -> Literal["arrived", "stopped", "late"]:
+        """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),
+        then the robot keeps waiting or goes on without it, as the task program says."""
+        assert step.wait_for is not None
+        timeout = None if step.deadline is None else step.deadline / self.clock.speed
+        got = await self.signals.wait(step.wait_for, self.ctx.stop, timeout)
+        if got != "late":
+            return got
+        assert step.deadline is not None
+        then = "kept waiting" if step.on_late == "wait" else "went on without it"
+        self.ctx.counters["late"] += 1
+        self.errors_out.put(
+            OperatorError(
+                t_ns=self.clock.now_ns(),
+                seq=self.errors_out.next_seq(),
+                cycle=cycle,
+                kind="late",
+                description=f"'{step.wait_for}' not there {step.deadline:g} s after the robot came: {then}",
+                source="executor",
+            )
+        )
+        if step.on_late == "wait":
+            return await self.signals.wait(step.wait_for, self.ctx.stop)
+        return "late"
+
     async def run(self) -> None:
         cycle = 0
         while not self.ctx.stop.is_set() and (self.settings.cycles == 0 or cycle < self.settings.cycles):
@@ -461,9 +520,9 @@ class Executor:
                 elif step.wait_for is not None and self.settings.wait_for_signals:
                     self.fire(Event.WAIT_OPERATOR, f"waiting for '{step.wait_for}'")
                     self.mode, self.waiting_for = "waiting", step.wait_for
-                    ok = await self.signals.wait(step.wait_for, self.ctx.stop)
+                    got = await self.wait_for(step, cycle)
                     self.mode, self.waiting_for = "idle", None
-                    if not ok:
+                    if got == "stopped":
                         return
                     self.fire(Event.OPERATOR)
             end = self.clock.now_ns()

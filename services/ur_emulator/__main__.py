@@ -3,7 +3,9 @@
 
 It prints ``ready <host>`` once its three ports listen, and, with ``--verbose``, what the client asked.
 SIGUSR1 is a bump against the arm: a protective stop, as the real arm's force limit gives, which only the
-dashboard's ``unlock protective stop`` clears (and not within 5 s of it).
+dashboard's ``unlock protective stop`` clears (and not within 5 s of it). A line ``di N 1`` (``0``) on its
+standard input sets (clears) standard digital input N, as a button wired to the controller would: what the
+executor reads as an operator's signal (a task step's ``input = N``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,21 @@ import numpy as np
 
 from services.ur_emulator.controller import Controller
 from services.ur_emulator.server import Emulator
+
+
+def read_inputs(controller: Controller) -> None:
+    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs."""
+    for line in sys.stdin:
+        parts = line.split()
+        if len(parts) == 3 and parts[0] == "di" and parts[1].isdecimal() and parts[2] in ("0", "1"):
+            n = int(parts[1])
+            if n <= 7:
+                with controller.lock:
+                    bits = controller.digital_in & ~(1 << n)
+                    controller.digital_in = bits | (int(parts[2]) << n)
+                print(f"digital input {n} {'on' if parts[2] == '1' else 'off'}", flush=True)
+                continue
+        print(f"ignored {line.strip()!r}: expected 'di N 0|1' with N 0–7", flush=True)
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -52,6 +69,7 @@ def run(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     signal.signal(signal.SIGUSR1, lambda *_: controller.bump())
+    threading.Thread(target=read_inputs, args=(controller,), daemon=True).start()
     print(f"ready {args.host}", flush=True)
     seen_log = recipes_logged = 0
     while not stop.wait(0.2):

@@ -44,6 +44,7 @@ class Controller:
         self.out_int = [0] * 48
         self.out_double = [0.0] * 48
         self.digital_out = 0
+        self.digital_in = 0  # standard digital inputs, a bit each: set with `di N 1` on the emulator's stdin
         self.watchdog_hz = 0.0
         self.last_kick = 0.0
         self._running: int | None = None  # the non-realtime command being run
@@ -216,6 +217,8 @@ class Controller:
             return 1.0
         if name == "actual_digital_output_bits":
             return self.digital_out
+        if name == "actual_digital_input_bits":
+            return self.digital_in
         if name.startswith("output_int_register_"):
             return self.out_int[int(name.rsplit("_", 1)[1])]
         if name.startswith("output_double_register_"):
