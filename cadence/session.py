@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from cadence.recording import Recorder, read
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
+from common.trajectory.task import load_task
 from schemas import (
     Calibration,
     CycleReport,
@@ -40,8 +41,9 @@ from schemas import (
     Selection,
     ServiceStatus,
 )
+from schemas.operator import ErrorKind, OperatorSignal
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
-from schemas.topology import ROOT, SERVICES, decode_any, encode
+from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, ROOT, SERVICES, decode_any, encode
 
 # keys whose t_ns is the publisher's data time at publishing: they tell its clock's rate and offset
 # (a selection or a status is republished with an old t_ns and says nothing about the clock)
@@ -373,17 +375,44 @@ def stored_calibration(opts: SessionOptions) -> Calibration:
     return cal
 
 
+ERROR_KEYS: dict[str, ErrorKind] = {"e": "wrong_object", "l": "late", "o": "other"}
+
+
+def key_message(key: str, signals: list[str], t_ns: int) -> OperatorError | OperatorSignal | None:
+    """What a key in the live view means: ``e``/``l``/``o`` the experimenter marks an error (wrong object,
+    late, other); ``1``…``9`` a part placed, the task's n-th ``wait_for`` signal; anything else nothing."""
+    if key in ERROR_KEYS:
+        return OperatorError(t_ns=t_ns, seq=0, kind=ERROR_KEYS[key], source="experimenter",
+                             description="marked in the session's live view")  # fmt: skip
+    if key.isdecimal() and 1 <= int(key) <= len(signals):
+        return OperatorSignal(t_ns=t_ns, seq=0, name=signals[int(key) - 1], source="keyboard")
+    return None
+
+
 async def run_session(
     bus: Bus,
     opts: SessionOptions,
     stop: asyncio.Event,
     show: Callable[[str, Watch, SessionOptions], None],
     calibrate: Callable[[], Awaitable[Calibration]],
+    keys: asyncio.Queue[str] | None = None,
 ) -> SessionEnd:
     """Check the cell, calibrate (``calibrate``: `cadence calibrate`'s, bound to this bus) or take the
     stored calibration, set the condition, and record until ``minutes`` of data time have passed or
-    ``stop``. ``show(phase, watch, opts)`` is called as things change (the live view)."""
+    ``stop``. ``show(phase, watch, opts)`` is called as things change (the live view); ``keys`` are the
+    experimenter's keys in it (``key_message``), acted on while the condition runs."""
     cal = None if opts.calibrate_minutes else stored_calibration(opts)
+    signals = list(dict.fromkeys(s.wait_for for s in load_task(opts.task).cycle if s.wait_for))
+    errors_out, signals_out = bus.publisher(OPERATOR_ERROR), bus.publisher(OPERATOR_SIGNAL)
+
+    def act(key: str) -> None:
+        # now, on the cell's clock: the latest data time seen, and never before the session began
+        msg = key_message(key, signals, max(watch.data_ns, (watch.start_ns or 0) + 1))
+        if isinstance(msg, OperatorError):
+            errors_out.put(msgspec.structs.replace(msg, seq=errors_out.next_seq()))
+        elif isinstance(msg, OperatorSignal):
+            signals_out.put(msgspec.structs.replace(msg, seq=signals_out.next_seq()))
+
     writer = SessionWriter(opts.out, opts.cell)
     watch = Watch()
 
@@ -430,6 +459,8 @@ async def run_session(
             began = True
             planned = first.t_ns + round(opts.minutes * 60e9)
             while watch.data_ns < planned and not stop.is_set():
+                while keys is not None and not keys.empty():
+                    act(keys.get_nowait())
                 show("running", watch, opts)
                 watch.changed.clear()
                 with contextlib.suppress(TimeoutError):

@@ -157,6 +157,17 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
 
     s = load_session(tmp_path / "cut.mcap")
     assert s.end == cut and 0 < s.minutes < 5
+    # the keys: e an error marked by the experimenter, x nothing, 1 the task's first signal (b2_clear)
+    assert [e.kind for e in s.errors if e.source == "experimenter"] == ["wrong_object"]
+    assert s.n_errors >= 1  # counted: inside the session
+    signals = [m for m in read_signals(tmp_path / "cut.mcap") if m["source"] == "keyboard"]
+    assert [m["name"] for m in signals] == ["b2_clear"]
+
+
+def read_signals(path: Path) -> list[dict]:
+    with path.open("rb") as f:
+        msgs = [msgspec.msgpack.decode(m.data) for _, _, m in make_reader(f).iter_messages()]
+    return [m for m in msgs if m.get("type") == "operator.signal.v1"]
 
 
 async def cut_short(endpoint: str, tmp_path: Path):
@@ -170,15 +181,20 @@ async def cut_short(endpoint: str, tmp_path: Path):
                           data_dir=tmp_path / "lab", task=EXAMPLE_TASK, ready_timeout_s=240)  # fmt: skip
     seen = 0
 
+    keys: asyncio.Queue[str] = asyncio.Queue()
+
     def show(phase: str, watch, _) -> None:
         nonlocal seen
-        if phase == "running" and watch.cycles + watch.errors >= 0:
+        if phase == "running":
             seen += 1
-            if seen > 20:  # a few updates into the condition
+            if seen == 5:  # the experimenter marks an error and signals the task's first wait by key
+                for key in "ex1":
+                    keys.put_nowait(key)
+            if seen > 40:  # a few updates into the condition
                 stop.set()
 
     async def never():
         raise AssertionError("this session does not calibrate")
 
     async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1", role="operator") as bus:
-        return await run_session(bus, opts, stop, show, never)
+        return await run_session(bus, opts, stop, show, never, keys)

@@ -148,3 +148,15 @@ def test_the_wilcoxon_method_is_the_one_scipy_can_give() -> None:
     zero = paired_test(x, x.copy())
     assert zero.p == 1.0 and zero.method.startswith("none")
     assert paired_test(np.array([]), np.array([])).n == 0
+
+
+def test_the_live_views_keys_mark_errors_and_signal_parts() -> None:
+    from cadence.session import key_message
+    from schemas import OperatorSignal
+
+    names = ["b2_clear", "part_a2", "part_c2"]
+    late = key_message("l", names, T0)
+    assert isinstance(late, OperatorError) and (late.kind, late.source, late.t_ns) == ("late", "experimenter", T0)
+    part = key_message("2", names, T0)
+    assert isinstance(part, OperatorSignal) and (part.name, part.source) == ("part_a2", "keyboard")
+    assert key_message("4", names, T0) is None and key_message("q", names, T0) is None

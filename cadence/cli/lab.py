@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import os
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -24,8 +27,6 @@ if TYPE_CHECKING:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    import asyncio
-
     from cadence.demo import DemoOptions, run_demo
 
     kills = []
@@ -200,11 +201,36 @@ def cmd_study_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def tty_keys(q: asyncio.Queue[str]) -> Callable[[], None] | None:
+    """Single keys from the terminal into ``q`` (cbreak mode: no Enter needed); the returned function
+    gives the terminal back. None when standard input is not a terminal."""
+    import termios
+    import threading
+    import tty
+
+    if not sys.stdin.isatty():
+        return None
+    loop = asyncio.get_running_loop()
+    fd = sys.stdin.fileno()
+    saved = termios.tcgetattr(fd)
+    tty.setcbreak(fd)
+
+    def read() -> None:
+        while ch := sys.stdin.read(1):
+            loop.call_soon_threadsafe(q.put_nowait, ch)
+
+    threading.Thread(target=read, daemon=True).start()
+    return lambda: termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
 def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
     """The experimenter's view: the checks until the cell is ready, then RR, k, cycles, errors, time left."""
     from cadence.session import STALE_S
 
-    t = Table(title=f"cadence session — subject {opts.subject}, condition ({opts.condition}): {phase}")
+    t = Table(
+        title=f"cadence session — subject {opts.subject}, condition ({opts.condition}): {phase}",
+        caption="keys: e wrong object, l late, o other error · 1…9 the task's n-th signal · Ctrl-C ends",
+    )
     if w.start_ns is None:
         t.add_column("check")
         t.add_column("state")
@@ -230,8 +256,6 @@ def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
 
 
 def cmd_session(args: argparse.Namespace) -> int:
-    import asyncio
-
     from rich.live import Live
 
     from cadence.cli._common import bus_config, stop_on_signals
@@ -272,7 +296,13 @@ def cmd_session(args: argparse.Namespace) -> int:
                     cal, _ = await calibrate(bus, minutes, args.subject, opts.data_dir, args.measured_sigma)
                     return cal
 
-                return await run_session(bus, opts, stop, show, calib)
+                keys: asyncio.Queue[str] = asyncio.Queue()
+                restore = tty_keys(keys)
+                try:
+                    return await run_session(bus, opts, stop, show, calib, keys)
+                finally:
+                    if restore is not None:
+                        restore()
 
     end = asyncio.run(go())
     if not out_path.exists():
