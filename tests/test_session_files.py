@@ -156,7 +156,8 @@ def test_the_live_views_keys_mark_errors_and_signal_parts() -> None:
 
     names = ["b2_clear", "part_a2", "part_c2"]
     late = key_message("l", names, T0)
-    assert isinstance(late, OperatorError) and (late.kind, late.source, late.t_ns) == ("late", "experimenter", T0)
+    assert isinstance(late, OperatorError)
+    assert (late.kind, late.source, late.t_ns) == ("late", "experimenter", T0)
     part = key_message("2", names, T0)
     assert isinstance(part, OperatorSignal) and (part.name, part.source) == ("part_a2", "keyboard")
     assert key_message("4", names, T0) is None and key_message("q", names, T0) is None
