@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
@@ -29,6 +30,7 @@ from schemas.topology import HRV_WINDOW, OPERATOR_ERROR, ROBOT_CYCLE, SELECTION,
 
 OBSERVE_HZ = 20.0  # how often the operator "sees" the robot's joint velocities
 WINDOW_S = 30.0
+Model = dict[str, float]  # TwinParams fields shared by a cohort, e.g. a fit's handling_s
 CONDITIONS = ("a", "b", "c")
 NAMES = {"a": "minimum time", "b": "minimum jerk", "c": "tuned online"}
 
@@ -40,8 +42,10 @@ class Subject:
     rr_rest_s: float
     tolerance: float
 
-    def twin(self) -> TwinParams:
-        return TwinParams(seed=self.seed, rr_rest_s=self.rr_rest_s, tolerance=self.tolerance)
+    def twin(self, model: Model | None = None) -> TwinParams:
+        """This subject's twin; ``model`` overrides the parameters all subjects share (a fit's)."""
+        p = TwinParams(seed=self.seed, rr_rest_s=self.rr_rest_s, tolerance=self.tolerance)
+        return msgspec.convert(msgspec.structs.asdict(p) | (model or {}), TwinParams)
 
 
 def subjects(n: int, seed: int) -> list[Subject]:
@@ -97,10 +101,10 @@ def motions(task: Task, solutions: dict[str, list[NDArray[np.float64]]]) -> dict
 ORIGIN_NS = 1_767_225_600 * 10**9
 
 
-def calibrate_twin(subject: Subject, minutes: float) -> Calibration:
+def calibrate_twin(subject: Subject, minutes: float, model: Model | None = None) -> Calibration:
     """The subject at rest for ``minutes``, windowed and made into a calibration as `cadence calibrate`
     makes one: RR_r is measured, not the twin's parameter."""
-    op = Operator(subject.twin())
+    op = Operator(subject.twin(model))
     end = minutes * 60.0
     for x in np.arange(0.0, end + 15.0, 1.0 / OBSERVE_HZ):
         op.observe(float(x), np.zeros(6))
@@ -119,10 +123,11 @@ def simulate(
     minutes: float,
     cal: Calibration | None = None,
     out: SessionWriter | None = None,
+    model: Model | None = None,
 ) -> Outcome:
     """One subject in one condition. ``out``: the messages a live cell would carry (windows, selections,
     cycles, errors), on data time from ``ORIGIN_NS``, go into that session file."""
-    op = Operator(subject.twin())
+    op = Operator(subject.twin(model))
     rr_rest = cal.rr_rest_s if cal is not None else subject.rr_rest_s
     n = max(n_per_path.values())
     params = Params.of(rr_rest, n)
@@ -237,7 +242,7 @@ def simulate(
 
 
 def session_info(
-    subject: Subject, condition: Condition, cal: Calibration, minutes: float, task_path: Path
+    subject: Subject, condition: Condition, cal: Calibration, minutes: float, task_path: Path, model: Model
 ) -> SessionInfo:
     return SessionInfo(
         subject=f"twin-{subject.index:02d}",
@@ -251,7 +256,7 @@ def session_info(
         software=software(),
         simulated=True,
         notes=f"operator twin: seed {subject.seed}, resting RR {subject.rr_rest_s:.3f} s, "
-        f"tolerance {subject.tolerance:.2f}",
+        f"tolerance {subject.tolerance:.2f}" + "".join(f", {k} {v:.4g}" for k, v in model.items()),
     )
 
 
@@ -265,13 +270,14 @@ def simulate_session(
     condition: Condition,
     minutes: float,
     path: Path,
+    model: Model | None = None,
 ) -> Outcome:
     """One session file, as a live `cadence session` writes it, for a twin subject."""
-    info = session_info(subject, condition, cal, minutes, task_path)
+    info = session_info(subject, condition, cal, minutes, task_path, model or {})
     writer = SessionWriter(path, info.cell)
     writer.begin(info)
     try:
-        outcome = simulate(task, moves, n_per_path, subject, condition, minutes, cal, writer)
+        outcome = simulate(task, moves, n_per_path, subject, condition, minutes, cal, writer, model)
     except BaseException:
         writer.close(SessionEnd(end_ns=ORIGIN_NS + 1, complete=False, reason="the simulation failed"))
         raise

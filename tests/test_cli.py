@@ -21,7 +21,19 @@ def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-@pytest.mark.parametrize("argv", [[], ["plan"], ["bench"], ["bench", "plan"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        [],
+        ["plan"],
+        ["bench"],
+        ["bench", "plan"],
+        ["session"],
+        ["study"],
+        ["study", "analyse"],
+        ["study", "fit"],
+    ],
+)
 def test_every_command_has_help(argv: list[str]) -> None:
     proc = run_cli(*argv, "--help")
     assert proc.returncode == 0

@@ -71,3 +71,24 @@ def test_online_tuning_lowers_k_for_an_intolerant_subject_and_keeps_it_high_for_
     tolerant = simulate(task, moves, n, Subject(2, 7, 0.85, 3.0), "c", 8)
     assert np.mean(intolerant.ks[-6:]) < np.mean(tolerant.ks[-6:])
     assert tolerant.ks[-1] == 3  # never stressed: the rest rule takes it to the fastest
+
+
+def test_the_twin_fit_moves_the_error_model_toward_table_i_and_predicts_c(tmp_path: Path) -> None:
+    """`cadence study fit` on a tiny cohort: the fitted ε_a and ε_b are closer to the paper's than the
+    twin's defaults give, and the prediction for (c) and the RR tests is written beside the paper's."""
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "study", "fit", "--subjects", "3", "--fit-subjects", "3",
+         "--minutes", "4", "--calibrate", "2", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "SIMULATED" in r.stdout and "predicted" in r.stdout
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["simulated"] is True and set(doc["fitted"]) == {"handling_s", "error_base", "error_stress"}
+    first = next(s for s in doc["steps"] if "error_base" in s["model"])  # the twin's default error model
+    miss = lambda s: abs(s["eps_a"] - 0.537) + abs(s["eps_b"] - 0.028)  # noqa: E731
+    assert miss(doc["steps"][-1]) < miss(first)
+    assert set(doc["prediction"]) == {"a", "b", "c"} and set(doc["rr_p"]["twin"]) == {"a-b", "a-c", "b-c"}
+    assert doc["paper"]["c"] == {"phi": 1.025, "eps": 0.196}
+    assert (tmp_path / "fit.png").read_bytes()[:4] == b"\x89PNG"
+    assert len(list((tmp_path / "sessions").glob("*.mcap"))) == 9

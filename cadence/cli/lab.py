@@ -1,4 +1,4 @@
-"""The lab's commands: `cadence demo`, `cadence report`, `cadence study analyse|simulate`."""
+"""The lab's commands: `cadence demo`, `report`, `session`, `study analyse|simulate|fit`."""
 
 from __future__ import annotations
 
@@ -21,7 +21,9 @@ from common.trajectory.task import load_task
 
 if TYPE_CHECKING:
     from cadence.analysis import Study
+    from cadence.fit import Fit
     from cadence.session import SessionOptions, Watch
+    from cadence.study import Model
     from schemas import Calibration
     from schemas.session import SessionEnd
 
@@ -162,20 +164,25 @@ def cmd_study_analyse(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_study_simulate(args: argparse.Namespace) -> int:
+def _simulated_study(
+    args: argparse.Namespace, model: Model | None = None, fit_subjects: int = 0
+) -> tuple[Study, Fit | None]:
+    """Plan, then (with ``fit_subjects``) fit the twin on a cohort of that size, then write a session file
+    per subject and condition under ``--out``/sessions and analyse them as `study analyse` does."""
     from cadence.analysis import analyse, write_study
+    from cadence.fit import cohort_for, fit
     from cadence.session import load_session
     from cadence.study import calibrate_twin, motions, simulate_session, subjects
     from common.trajectory.planner import plan_path
-    from schemas.session import CONDITION_NAMES, Condition
+    from schemas.session import Condition
 
-    CONDITIONS: tuple[Condition, ...] = ("a", "b", "c")
+    conditions: tuple[Condition, ...] = ("a", "b", "c")
     task_path = Path(args.task)
     task = load_task(task_path)
     cohort = subjects(args.subjects, args.seed)
     folder = Path(args.out) / "sessions"
     folder.mkdir(parents=True, exist_ok=True)
-    files = []
+    files, fitted = [], None
     with Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=err
     ) as progress:
@@ -186,18 +193,57 @@ def cmd_study_simulate(args: argparse.Namespace) -> int:
             progress.advance(plan)
         moves = motions(task, sols)
         n_per_path = {pid: len(v) for pid, v in sols.items()}
-        runs = progress.add_task("simulating subjects × conditions", total=len(cohort) * len(CONDITION_NAMES))
+        if fit_subjects:
+            bar = progress.add_task("fitting the twin to Table I (a), (b)", total=None)
+            few = cohort[:fit_subjects]
+            fit_cohort = cohort_for(task, moves, n_per_path, few, args.minutes, args.calibrate)
+            fitted = fit(fit_cohort, lambda what: progress.update(bar, description=f"fitting: {what}"))
+            progress.update(bar, description="fitted the twin to Table I (a), (b)", total=1, completed=1)
+            model = fitted.model
+        runs = progress.add_task("simulating subjects × conditions", total=len(cohort) * len(conditions))
         for sub in cohort:
-            cal = calibrate_twin(sub, args.calibrate)
-            for c in CONDITIONS:
+            cal = calibrate_twin(sub, args.calibrate, model)
+            for c in conditions:
                 f = folder / f"twin-{sub.index:02d}_{c}.mcap"
-                simulate_session(task, task_path, moves, n_per_path, sub, cal, c, args.minutes, f)
+                simulate_session(task, task_path, moves, n_per_path, sub, cal, c, args.minutes, f, model)
                 files.append(f)
                 progress.advance(runs)
     study = analyse([load_session(f) for f in files])
     print_study(study)
     written = write_study(study, Path(args.out))
     out.print(f"written: {len(files)} session files in {folder}; {', '.join(written)} in {args.out}")
+    return study, fitted
+
+
+def cmd_study_simulate(args: argparse.Namespace) -> int:
+    _simulated_study(args)
+    return 0
+
+
+def cmd_study_fit(args: argparse.Namespace) -> int:
+    from cadence.fit import PAPER, PAPER_RR_P, write_fit
+
+    study, fitted = _simulated_study(args, fit_subjects=args.fit_subjects)
+    assert fitted is not None
+    twin = {c: (study.table[c]["productivity_per_min"][0], study.table[c]["error_rate"][0]) for c in "abc"}
+    rr_p = {pair: t["mean_rr_norm"].p for pair, t in study.tests.items()}
+    write_fit(fitted, twin, rr_p, Path(args.out))
+    table = Table(title="The operator twin fitted to Table I on (a) and (b), SIMULATED; (c) and RR predicted")
+    for col in ("measure", "paper (people)", "twin", ""):
+        table.add_column(col, justify="right" if col else "left")
+    rows = [
+        ("φ_b / φ_a", PAPER["b"][0] / PAPER["a"][0], twin["b"][0] / twin["a"][0], "fitted"),
+        ("ε_a", PAPER["a"][1], twin["a"][1], "fitted"),
+        ("ε_b", PAPER["b"][1], twin["b"][1], "fitted"),
+        ("φ_c / φ_a", PAPER["c"][0] / PAPER["a"][0], twin["c"][0] / twin["a"][0], "predicted"),
+        ("ε_c", PAPER["c"][1], twin["c"][1], "predicted"),
+        *((f"RR p, {pair}", PAPER_RR_P[pair], rr_p[pair], "predicted") for pair in ("a-b", "a-c", "b-c")),
+    ]
+    for name, paper, got, what in rows:
+        table.add_row(name, f"{paper:.3g}", f"{got:.3g}", what)
+    out.print(table)
+    out.print(f"fitted: {', '.join(f'{k} = {v:.4g}' for k, v in fitted.model.items())}; "
+              f"written: {args.out}/fit.json, {args.out}/fit.png")  # fmt: skip
     return 0
 
 
@@ -324,6 +370,15 @@ def cmd_session(args: argparse.Namespace) -> int:
     return 0 if end.complete else 1
 
 
+def add_cohort_flags(p: argparse.ArgumentParser, out_default: str) -> None:
+    p.add_argument("--subjects", type=positive_int(2), default=12, help="simulated subjects (default 12)")
+    p.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
+    p.add_argument("--calibrate", type=float, default=5.0, help="minutes at rest per subject (default 5)")
+    p.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
+    p.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    p.add_argument("--out", default=out_default, metavar="DIR", help=f"output folder (default {out_default})")
+
+
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     report = sub.add_parser(
         "report",
@@ -372,13 +427,19 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "message types and metadata of a live session, marked simulated) to DIR/sessions and analysed "
         "as `cadence study analyse` would.",
     )
-    sim.add_argument("--subjects", type=positive_int(2), default=12, help="simulated subjects (default 12)")
-    sim.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
-    sim.add_argument("--calibrate", type=float, default=5.0, help="minutes at rest per subject (default 5)")
-    sim.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
-    sim.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
-    sim.add_argument("--out", default="study-out", metavar="DIR", help="output folder (default study-out)")
+    add_cohort_flags(sim, "study-out")
     sim.set_defaults(func=cmd_study_simulate)
+    fit_p = study_sub.add_parser(
+        "fit",
+        help="fit the operator twin to the paper's Table I on (a) and (b); predict (c) and the RR tests",
+        description="Fits the twin's handling time to φ_b/φ_a and its error model (error_base, "
+        "error_stress) to ε_a and ε_b of the paper's Table I, on a cohort of --fit-subjects, then runs "
+        "`study simulate` with the fitted twin and sets its (c) and RR tests beside the paper's. Writes "
+        "DIR/fit.json, DIR/fit.png and the simulated study. A simulation, labelled so.",
+    )
+    add_cohort_flags(fit_p, "fit-out")
+    fit_p.add_argument("--fit-subjects", type=positive_int(1), default=6, help="of them, fit on (default 6)")
+    fit_p.set_defaults(func=cmd_study_fit)
 
     session = sub.add_parser(
         "session",
