@@ -19,7 +19,6 @@ import hashlib
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import TypeVar
 
@@ -27,6 +26,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
+from cadence import version
 from cadence.recording import Recorder, read
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
@@ -54,10 +54,7 @@ S = TypeVar("S", bound=msgspec.Struct)
 
 
 def software() -> str:
-    try:
-        return f"cadence {version('cadence')}"
-    except PackageNotFoundError:
-        return "cadence (not installed)"
+    return f"cadence {version()}"
 
 
 def task_digest(path: Path) -> str:

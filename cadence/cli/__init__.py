@@ -8,6 +8,7 @@ import argparse
 import os
 import sys
 
+from cadence import version
 from cadence.cli import bench, cell, deploy, hrv, lab, plan
 from cadence.cli._common import SERVICES, err
 from cadence.cli.hrv import calibrate
@@ -21,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="cadence",
         description="Cadence: a cobot that keeps a pace its human co-worker can sustain.",
     )
+    parser.add_argument("--version", action="version", version=f"cadence {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for family in (plan, bench, cell, lab, hrv, deploy):
         family.add(sub)
