@@ -2,10 +2,10 @@
 
 A recording keeps every payload as it travelled (MessagePack), one channel per key, with the message
 type's JSON schema attached (msgspec's), so the file opens in MCAP tools; ``json=True`` writes JSON
-channels instead, which Foxglove's viewer can decode. Log time is the wall clock at arrival, publish
-time the message's own data time. A replay republishes the payloads unchanged (so with their original
-data time) on their keys, paced by the recorded log times divided by ``speed``; services on data time
-then give exactly what they gave live.
+channels instead, which Foxglove's viewer can decode, and which report and replay read as well. Log
+time is the wall clock at arrival, publish time the message's own data time. A replay republishes the
+payloads unchanged (so with their original data time) on their keys, paced by the recorded log times
+divided by ``speed``; services on data time then give exactly what they gave live.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from mcap.writer import CompressionType, Writer
 
 from common.runtime.bus import Bus
 from common.runtime.errors import InputError
-from schemas.topology import decode_any, topic_of
+from schemas.topology import AnyMessage, decode_any, encode, topic_of
 
 PROFILE = "cadence"
 
@@ -131,15 +131,31 @@ class Recorded:
     encoding: str
 
 
+_JSON_ANY = msgspec.json.Decoder(AnyMessage)
+
+
+def as_msgpack(encoding: str, data: bytes) -> tuple[str, bytes]:
+    """A JSON channel's message (``record --json``, for Foxglove) as the bus carries it, so that report
+    and replay read both forms; what does not decode as a Cadence message stays as it was."""
+    if encoding != "json":
+        return encoding, data
+    try:
+        return "msgpack", encode(_JSON_ANY.decode(data))
+    except msgspec.DecodeError:
+        return encoding, data
+
+
 def read(path: Path, keys: list[str] | None = None) -> Iterator[Recorded]:
-    """A recording's messages in log-time order, those under ``keys`` (key expressions) only."""
+    """A recording's messages in log-time order, those under ``keys`` (key expressions) only; JSON
+    channels' messages come as MessagePack, as on the bus."""
     exprs = [zenoh.KeyExpr(k) for k in keys or []]
     try:
         with path.open("rb") as f:
             for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
                 if exprs and not any(e.includes(zenoh.KeyExpr(channel.topic)) for e in exprs):
                     continue
-                yield Recorded(channel.topic, message.log_time, message.data, channel.message_encoding)
+                encoding, data = as_msgpack(channel.message_encoding, message.data)
+                yield Recorded(channel.topic, message.log_time, data, encoding)
     except FileNotFoundError:
         raise InputError(f"{path}: no such recording") from None
     except Exception as exc:  # the mcap package raises many kinds on a damaged file
@@ -153,7 +169,7 @@ async def replay(bus: Bus, path: Path, speed: float, keys: list[str] | None = No
     t0_wall, t0_log, n = time.monotonic(), None, 0
     for m in read(path, keys):
         if m.encoding != "msgpack":
-            raise InputError(f"{path}: channel {m.key} is {m.encoding}; only msgpack recordings replay")
+            raise InputError(f"{path}: a message on {m.key} ({m.encoding}) is not a Cadence message")
         if t0_log is None:
             t0_log = m.log_time
         if speed > 0:

@@ -181,3 +181,42 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
     count = int(re.search(r"(\d+) messages written", said).group(1))
     seqs = [msgspec.msgpack.decode(m.data, type=Selection).seq for m in read(path)]
     assert count == len(seqs) > 0 and seqs == list(range(1, count + 1))
+
+
+def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_path: Path) -> None:
+    """`record --json` (what Foxglove decodes) and the default MessagePack file give the same messages to
+    `cadence report` and `cadence replay`."""
+    from cadence.recording import Recorder, read
+    from cadence.report import from_mcap
+    from schemas import CycleReport, HrvWindow
+    from schemas.topology import decode_any, encode
+
+    s = 10**9
+    window = HrvWindow(
+        t_ns=30 * s, seq=0, start_ns=s, end_ns=30 * s, mean_rr_s=0.8, n_beats=37, excluded_fraction=0.0,
+        quality="good",
+    )  # fmt: skip
+    msgs = [
+        (
+            "cadence/cell1/decision/selection",
+            Selection(t_ns=5 * s, seq=0, k=8, n=15, delta=0, reason="initial"),
+        ),
+        ("cadence/cell1/hrv/window", window),
+        (
+            "cadence/cell1/robot/cycle",
+            CycleReport(t_ns=40 * s, seq=0, cycle=0, cycle_time_s=12.5, k_per_path={"p": 8}),
+        ),
+    ]
+    for name, as_json in (("m.mcap", False), ("j.mcap", True)):
+        rec = Recorder(tmp_path / name, json=as_json)
+        for key, m in msgs:
+            rec.write(key, encode(m))
+        rec.close()
+    got = {
+        n: [(r.key, r.encoding, decode_any(r.data)) for r in read(tmp_path / n)] for n in ("m.mcap", "j.mcap")
+    }
+    assert got["j.mcap"] == got["m.mcap"] == [(k, "msgpack", m) for k, m in msgs]
+    runs = [from_mcap(tmp_path / n) for n in ("m.mcap", "j.mcap")]
+    assert (
+        runs[0].cycles == runs[1].cycles and runs[0].windows == runs[1].windows and len(runs[1].cycles) == 1
+    )
