@@ -19,7 +19,7 @@ import numpy as np
 
 from cadence.session import Session
 from common.runtime.errors import InputError
-from common.runtime.storage import atomic_write
+from common.runtime.storage import write_readable
 from schemas.session import CONDITION_NAMES
 
 METRICS = ("productivity_per_min", "error_rate", "mean_rr_s", "mean_rr_norm")
@@ -153,20 +153,20 @@ def write_study(study: Study, out: Path) -> list[str]:
     from cadence.plots import study_figure, subject_figure
 
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / "study.json", json.dumps(to_json(study), indent=1).encode())
+    write_readable(out / "study.json", json.dumps(to_json(study), indent=1).encode())
     written = ["study.json"]
     values = {c: {m: [metric(s, m) for s in study.sessions if s.info.condition == c] for m in METRICS}
               for c in study.conditions}  # fmt: skip
     marks = {pair: {m: stars(t.p) for m, t in ms.items()} for pair, ms in study.tests.items()}
-    atomic_write(out / "conditions.png", study_figure(values, CONDITION_NAMES, marks, study.simulated))
+    write_readable(out / "conditions.png", study_figure(values, CONDITION_NAMES, marks, study.simulated))
     written.append("conditions.png")
     for subject in sorted({s.info.subject for s in study.sessions}):
         mine = [s for s in study.sessions if s.info.subject == subject]
         mine.sort(key=lambda s: s.info.condition)
         name = f"subject_{_safe(subject)}.png"
-        atomic_write(out / name, subject_figure(mine))
+        write_readable(out / name, subject_figure(mine))
         written.append(name)
-    atomic_write(out / "index.html", _html(study, written).encode())
+    write_readable(out / "index.html", _html(study, written).encode())
     written.append("index.html")
     return written
 

@@ -33,7 +33,7 @@ from common.runtime.clock import Clock
 from common.runtime.errors import CadenceError
 from common.runtime.lifetime import PARENT_ENV
 from common.runtime.resources import EXAMPLE_TASK
-from common.runtime.storage import atomic_write
+from common.runtime.storage import write_readable
 from common.sim.twin import TwinParams
 from common.trajectory.task import load_task
 from schemas import (
@@ -355,7 +355,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "cycle_k": [dict(c.k_per_path) for c in obs.cycles],
         "events": obs.events,
     }
-    atomic_write(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
+    write_readable(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
     run = from_demo(opts.out)  # the report of the run (cadence/report.py) into the demo's own folder
     run.sets.update(sets)
     write_report(run, opts.out, TwinParams().rr_rest_s)

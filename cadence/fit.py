@@ -133,7 +133,7 @@ Rates = dict[str, tuple[float, float]]  # condition → (φ, ε)
 def write_fit(result: Fit, predicted: Rates, rr_p: dict[str, float], out: Path) -> dict:
     import json
 
-    from common.runtime.storage import atomic_write
+    from common.runtime.storage import write_readable
 
     doc = {
         "simulated": True,
@@ -147,6 +147,6 @@ def write_fit(result: Fit, predicted: Rates, rr_p: dict[str, float], out: Path) 
         "steps": result.steps,
     }  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / "fit.json", json.dumps(doc, indent=1).encode())
-    atomic_write(out / "fit.png", fit_figure(PAPER, predicted))
+    write_readable(out / "fit.json", json.dumps(doc, indent=1).encode())
+    write_readable(out / "fit.png", fit_figure(PAPER, predicted))
     return doc

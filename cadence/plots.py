@@ -68,8 +68,18 @@ def _png(fig: plt.Figure) -> bytes:
     return buf.getvalue()
 
 
-def rr_k_figure(windows: list[dict], selections: list[dict], rr_rest_s: float) -> bytes:
-    """Mean RR per window and the selected k over data time, like the paper's Fig. 6."""
+def rr_k_figure(
+    windows: list[dict],
+    selections: list[dict],
+    rr_rest_s: float,
+    rest_label: str = "RR_r",
+    cycle_ends_s: list[float] | None = None,
+) -> bytes:
+    """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
+    decision thresholds RR_s, RR_s^max (the paper's defaults about RR_r) as lines, k on integer ticks,
+    cycle ends as ticks along the bottom."""
+    from common.decision import Params
+
     fig, ax = plt.subplots(figsize=(11, 4.5), constrained_layout=True)
     good = [w for w in windows if w["mean_rr_s"] is not None and w["quality"] == "good"]
     low = [w for w in windows if w["mean_rr_s"] is not None and w["quality"] != "good"]
@@ -84,8 +94,13 @@ def rr_k_figure(windows: list[dict], selections: list[dict], rr_rest_s: float) -
             c="0.5",
             label="mean RR (low quality)",
         )
-    ax.axhline(rr_rest_s, ls="--", c="tab:red", lw=0.8, label="RR at rest")
-    ax.set_xlabel("data time [s]")
+    p = Params.of(rr_rest_s)
+    ax.axhline(rr_rest_s, ls="--", c="tab:red", lw=0.8, label=rest_label)
+    ax.axhline(float(p.rr_stress), ls="-.", c="0.4", lw=0.8, label="RR_s = RR_r − 0.08 s")
+    ax.axhline(float(p.rr_stress_max), ls=":", c="0.4", lw=0.8, label="RR_s^max = RR_s − σ_s")
+    for end in cycle_ends_s or []:
+        ax.axvline(end, ymin=0.0, ymax=0.03, c="0.2", lw=0.8)
+    ax.set_xlabel("data time [s]" + (" (ticks at the bottom: cycle ends)" if cycle_ends_s else ""))
     ax.set_ylabel("mean RR per window [s]", color="tab:red")
     ax2 = ax.twinx()
     if selections:
@@ -93,6 +108,7 @@ def rr_k_figure(windows: list[dict], selections: list[dict], rr_rest_s: float) -
         k = [s["k"] for s in selections]
         end = max([*t, *(w["end_s"] for w in windows)])
         ax2.step([*t, end], [*k, k[-1]], where="post", c="tab:blue", label="selected k")
+    ax2.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax2.set_ylabel("k (1 smoothest … N fastest)", color="tab:blue")
     lines = ax.get_legend_handles_labels()
     lines2 = ax2.get_legend_handles_labels()

@@ -17,7 +17,7 @@ import numpy as np
 
 from common.motion import routine_change
 from common.runtime.errors import InputError
-from common.runtime.storage import atomic_write
+from common.runtime.storage import write_readable
 from schemas import (
     CycleReport,
     EcgChunk,
@@ -148,8 +148,13 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
     out.mkdir(parents=True, exist_ok=True)
     written = []
     good = [w["mean_rr_s"] for w in run.windows if w["mean_rr_s"] is not None and w["quality"] == "good"]
-    rest = rr_rest_s if rr_rest_s is not None else (float(np.max(good)) if good else 0.85)
-    atomic_write(out / "rr_k.png", rr_k_figure(run.windows, run.selections, rest))
+    if rr_rest_s is not None:
+        rest, label = rr_rest_s, "RR_r (the subject's calibration)"
+    else:  # no calibration given: a stand-in, and the figure says so rather than call it rest
+        rest = float(np.max(good)) if good else 0.85
+        label = "no RR_r given (--rr-rest): the highest good window's, in its place"
+    ends = [c["end_s"] for c in run.cycles]
+    write_readable(out / "rr_k.png", rr_k_figure(run.windows, run.selections, rest, label, ends))
     written.append("rr_k.png")
     if run.sets:
         used: dict[str, dict[int, int]] = {}
@@ -157,7 +162,7 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
             for pid, k in c["k"].items():
                 used.setdefault(pid, {}).setdefault(k, 0)
                 used[pid][k] += 1
-        atomic_write(out / "pareto.png", front_usage_figure(run.sets, used))
+        write_readable(out / "pareto.png", front_usage_figure(run.sets, used))
         written.append("pareto.png")
         with_k = [
             {**c, "label": f"cycle {i + 1}"}
@@ -166,9 +171,9 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
         ]
         if with_k:
             pick = [with_k[0], with_k[-1]] if len(with_k) > 1 else with_k[:1]
-            atomic_write(out / "cycles.png", cycle_kinematics_figure(run.sets, pick))
+            write_readable(out / "cycles.png", cycle_kinematics_figure(run.sets, pick))
             written.append("cycles.png")
-    atomic_write(out / "index.html", _html(run, written).encode())
+    write_readable(out / "index.html", _html(run, written).encode())
     written.append("index.html")
     return written
 

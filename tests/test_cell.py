@@ -55,8 +55,10 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
         # the ACL names families (pareto/**), so who may ask a set may ask its members too
         assert askers(t) <= allowed("ask", key), t.suffix
     assert publishers(SELECTION) == {"decision_maker"}
-    assert publishers(OPERATOR_SIGNAL) == {"operator", "ecg_gateway"}  # the twin runs in the gateway
+    # the twin runs in the gateway; the executor publishes the buttons on its controller's inputs
+    assert publishers(OPERATOR_SIGNAL) == {"operator", "ecg_gateway", "executor"}
     assert allowed("ask", "cadence/c1/robot/resume") == {"operator"}  # it changes what the robot does
+    assert allowed("ask", "cadence/c1/decision/condition") == {"operator"}  # a study session's switch
     assert allowed("ask", "cadence/c1/decision/selection") == {"executor", "operator", "monitor"}
     assert allowed("ask", "cadence/c1/ecg/samples") == set()
     for p in acl["policies"]:

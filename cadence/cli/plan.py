@@ -16,7 +16,7 @@ from common.trajectory.task import continuity_gaps
 
 def cmd_plan(args: argparse.Namespace) -> int:
     from cadence.plots import pareto_figure
-    from common.runtime.storage import atomic_write
+    from common.runtime.storage import write_readable
     from common.trajectory.planner import plan_path
 
     task = task_with_overrides(args)
@@ -45,9 +45,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
     # Everything is computed before anything is written: a failure leaves DIR as it was.
     outdir = Path(args.out)
     for result, _ in results:
-        atomic_write(outdir / f"{result.path.id}.json", json.dumps(result.to_json(), indent=1).encode())
+        write_readable(outdir / f"{result.path.id}.json", json.dumps(result.to_json(), indent=1).encode())
         if not args.no_plots:
-            atomic_write(outdir / f"{result.path.id}.png", pareto_figure(result))
+            write_readable(outdir / f"{result.path.id}.png", pareto_figure(result))
 
     table = Table(title=f"{task.name}: Pareto sets ({s.constraints} limits) → {outdir}")
     for col in (

@@ -15,12 +15,15 @@ import msgspec
 T = TypeVar("T")
 
 
-def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
-    """Write to a temporary file in the same folder, fsync, rename over the target."""
+def atomic_write(path: str | os.PathLike[str], data: bytes, mode: int = 0o600) -> None:
+    """Write to a temporary file in the same folder, fsync, rename over the target. ``mode``: private
+    by default (a service's state); 0o644 for what people open (reports, figures)."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
     try:
+        if mode != 0o600:  # mkstemp's
+            os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -29,6 +32,11 @@ def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_readable(path: str | os.PathLike[str], data: bytes) -> None:
+    """What people open (reports, figures, plans, summaries): atomic, and readable by everyone."""
+    atomic_write(path, data, 0o644)
 
 
 def quarantine(path: str | os.PathLike[str], now_ns: int | None = None) -> Path:
