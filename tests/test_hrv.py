@@ -197,3 +197,43 @@ def test_the_beats_the_stream_flags_are_the_intervals_its_windows_exclude() -> N
         inside = [b for b in beats[1:] if w.start_s <= b.t_s < w.end_s]
         assert w.excluded == pytest.approx(np.mean([b.excluded for b in inside]))
         assert (w.reason is None) == (w.quality == "good")
+
+
+POLAR = ECG / "polar_h10"
+
+
+def _windows_of(path: str) -> list[dict]:
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "hrv", "windows", path], capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0, r.stderr
+    return [json.loads(line) for line in r.stdout.splitlines()]
+
+
+@needs_data
+def test_the_polar_sensor_logger_exports_read_and_their_ecg_and_rr_agree(tmp_path) -> None:
+    """The H10's most common saved form: the app's ECG export (µV, the sensor's clock) and its RR export
+    of the same session; windows of each, with RMSSD and SDNN, agree where both are good."""
+    ecg = _windows_of(str(POLAR / "Polar_H10_55354125_20210516_080846_ECG.txt"))
+    rr = _windows_of(str(POLAR / "Polar_H10_55354125_20210516_080845_RR.txt"))
+    assert len(ecg) >= 4 and len(rr) >= 4
+    assert all({"rmssd_s", "sdnn_s"} <= w.keys() for w in ecg + rr)
+    both = [(a, b) for a, b in zip(ecg, rr, strict=False) if a["quality"] == b["quality"] == "good"]
+    assert both  # the two clocks start 1 s apart: a window's mean RR differs by little
+    assert all(abs(a["mean_rr_s"] - b["mean_rr_s"]) < 0.03 for a, b in both)
+    assert read_record(str(POLAR / "Polar_H10_55354125_20210516_080846_ECG.txt")).fs == pytest.approx(
+        130, rel=0.01
+    )
+
+    # a plain RR file, one interval per line in ms, is read the same way
+    plain = tmp_path / "rr.txt"
+    plain.write_text("".join(f"{800 + 10 * (i % 5)}\n" for i in range(120)))
+    (w,) = [w for w in _windows_of(str(plain)) if w["end_s"] <= 90][:1]
+    assert w["mean_rr_s"] == pytest.approx(0.82, abs=0.005) and w["quality"] == "good"
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "hrv", "peaks", str(plain)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and "no ECG" in r.stderr

@@ -31,16 +31,31 @@ def _record_peaks(args: argparse.Namespace):
 
 
 def cmd_hrv_peaks(args: argparse.Namespace) -> int:
+    from common.hrv.records import is_rr_file
+
+    if is_rr_file(args.record):
+        raise InputError(f"{args.record}: RR intervals only, no ECG to find peaks in (`cadence hrv windows`)")
     rec, peaks = _record_peaks(args)
     print(json.dumps({"fs": rec.fs, "peaks_s": [round(float(t), 6) for t in peaks]}))
     return 0
 
 
 def cmd_hrv_windows(args: argparse.Namespace) -> int:
+    """Windows of an ECG (its detected beats) or of an RR-only file (beats at the intervals' running sum,
+    as the H10's own RR output is read with ``input = "rr"``)."""
+    import numpy as np
+
+    from common.hrv.records import is_rr_file, read_rr
     from common.hrv.stream import intervals, windows
 
-    rec, peaks = _record_peaks(args)
-    for w in windows(intervals(peaks), args.window, end_s=len(rec.uv) / rec.fs):
+    if is_rr_file(args.record):
+        rr = read_rr(args.record)
+        peaks = np.concatenate([[0.0], np.cumsum(rr)])
+        end_s = float(peaks[-1])
+    else:
+        rec, peaks = _record_peaks(args)
+        end_s = len(rec.uv) / rec.fs
+    for w in windows(intervals(peaks), args.window, end_s=end_s):
         print(
             json.dumps(
                 {
@@ -51,6 +66,8 @@ def cmd_hrv_windows(args: argparse.Namespace) -> int:
                     "excluded": w.excluded,
                     "quality": w.quality,
                     "reason": w.reason,
+                    "rmssd_s": w.rmssd_s,
+                    "sdnn_s": w.sdnn_s,
                 }
             )
         )
@@ -160,11 +177,18 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     hrv_sub = hrv.add_subparsers(dest="hrv", required=True, metavar="TOOL")
     for name, func, what in (
         ("peaks", cmd_hrv_peaks, 'one JSON object {"fs", "peaks_s"}: R-peak times from the record start'),
-        ("windows", cmd_hrv_windows, "one JSON line per tumbling window: mean RR, beats, excluded, quality"),
+        (
+            "windows",
+            cmd_hrv_windows,
+            "one JSON line per tumbling window: mean RR, RMSSD, SDNN, beats, excluded, quality",
+        ),
     ):
         p = hrv_sub.add_parser(name, help=what, description=f"Prints {what}.")
         p.add_argument(
-            "record", metavar="RECORD", help="WFDB record path without extension, or a CSV (s, µV)"
+            "record",
+            metavar="RECORD",
+            help="WFDB record path without extension, a CSV (s, µV), a Polar Sensor Logger export "
+            "(…_ECG.txt; for windows also …_RR.txt), or RR intervals one per line (s or ms)",
         )
         p.add_argument("--fs", type=float, default=None, help="resample to this rate first (130: as the H10)")
         if name == "windows":

@@ -1,6 +1,7 @@
 """Reading ECG recordings for replay and offline checks: WFDB records (with their reference beat
-annotations) and CSV files (time, µV), resampled to the strap's rate. A broken file is an InputError
-naming it."""
+annotations), CSV files (time, µV), the Polar Sensor Logger app's exports (the most common way H10 data
+is saved: ``…_ECG.txt``, ``;``-separated, µV, and ``…_RR.txt``, RR in ms) and plain RR files (one
+interval per line, in s or ms), resampled to the strap's rate. A broken file is an InputError naming it."""
 
 from __future__ import annotations
 
@@ -43,15 +44,66 @@ def resample(x: NDArray[np.float64], fs_in: float, fs_out: float) -> NDArray[np.
     return out
 
 
-def read_record(path: str, fs: float | None = None, lead: int = 0) -> Recording:
-    """A WFDB record path without extension, or a CSV of (time [s], µV); resampled to ``fs`` if given."""
+def _header(p: Path) -> str:
+    try:
+        with p.open(encoding="utf-8", errors="replace") as f:
+            return f.readline().strip()
+    except OSError:
+        return ""
+
+
+def is_rr_file(path: str) -> bool:
+    """An RR-only file: the Polar Sensor Logger's RR export, or numbers one per line."""
     p = Path(path)
-    if p.suffix.lower() == ".csv":
+    if not p.is_file():
+        return False
+    head = _header(p)
+    if "RR-interval [ms]" in head:
+        return True
+    try:
+        float(head)
+        return True
+    except ValueError:
+        return False
+
+
+def read_rr(path: str) -> NDArray[np.float64]:
+    """RR intervals in seconds from an RR-only file; values above 10 are taken as milliseconds."""
+    p = Path(path)
+    polar = "RR-interval [ms]" in _header(p)
+    try:
+        if polar:
+            rr = np.loadtxt(p, delimiter=";", skiprows=1, usecols=1, ndmin=1, dtype=float) / 1000.0
+        else:
+            rr = np.loadtxt(p, ndmin=1, dtype=float, comments="#")
+            rr = rr / 1000.0 if np.median(rr) > 10 else rr
+    except (OSError, ValueError) as exc:
+        raise InputError(
+            f"{p}: cannot read as RR intervals ({'Polar RR export' if polar else 'one per line'}): {exc}"
+        ) from None
+    if len(rr) < 2 or not np.all(np.isfinite(rr)) or np.any(rr <= 0):
+        raise InputError(f"{p}: expected at least 2 positive RR intervals")
+    return rr.astype(np.float64)
+
+
+def read_record(path: str, fs: float | None = None, lead: int = 0) -> Recording:
+    """A WFDB record path without extension, a CSV of (time [s], µV) or (time_ns, ecg_mV, …), or a Polar
+    Sensor Logger ECG export; resampled to ``fs`` if given."""
+    p = Path(path)
+    head = _header(p) if p.is_file() else ""
+    if "ecg [uV]" in head:
+        rec = _read_polar_ecg(p)
+    elif head.startswith("time_ns,ecg_mV"):
+        rec = _read_ns_mv(p)
+    elif p.suffix.lower() == ".csv":
         rec = _read_csv(p)
     elif p.with_suffix(".hea").exists():
         rec = _read_wfdb(p, lead)
     else:
-        raise InputError(f"{path}: not a CSV file and no WFDB header {p.with_suffix('.hea').name} beside it")
+        raise InputError(
+            f"{path}: not a CSV file, a Polar Sensor Logger export, nor a WFDB record (no "
+            f"{p.with_suffix('.hea').name} beside it)"
+        )
     if fs is None or fs == rec.fs:
         return rec
     return Recording(fs, resample(rec.uv, rec.fs, fs), rec.beats_s)
@@ -88,6 +140,36 @@ def read_annotations(path: str) -> Annotations:
         raise InputError(f"{p}.atr: cannot read the annotations: {exc}") from exc
     aux = list(a.aux_note) if a.aux_note is not None else [""] * len(a.sample)
     return Annotations(np.asarray(a.sample, dtype=float) / float(a.fs), list(a.symbol), aux)
+
+
+def _from_times(p: Path, t_s: NDArray[np.float64], uv: NDArray[np.float64]) -> Recording:
+    if len(t_s) < 3:
+        raise InputError(f"{p}: expected at least 3 samples")
+    dt = np.diff(t_s)
+    if np.any(dt <= 0):
+        raise InputError(f"{p}: row {int(np.argmax(dt <= 0)) + 2}: time does not increase")
+    return Recording(float(1.0 / np.median(dt)), uv.astype(float), None)
+
+
+def _read_polar_ecg(p: Path) -> Recording:
+    """Phone timestamp;sensor timestamp [ns];timestamp [ms];ecg [uV]: the sensor's own clock."""
+    try:
+        data = np.loadtxt(p, delimiter=";", skiprows=1, usecols=(1, 3), ndmin=2, dtype=float)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{p}: cannot read as a Polar Sensor Logger ECG export: {exc}") from None
+    return _from_times(p, (data[:, 0] - data[0, 0]) / 1e9, data[:, 1])
+
+
+def _read_ns_mv(p: Path) -> Recording:
+    """time_ns,ecg_mV[,…]: rows without an ECG value (HR-only rows) are left out."""
+    try:
+        data = np.genfromtxt(p, delimiter=",", skip_header=1, usecols=(0, 1), dtype=float)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{p}: cannot read as a CSV of (time_ns, ecg_mV): {exc}") from None
+    data = data[np.isfinite(data).all(axis=1)] if data.ndim == 2 else np.zeros((0, 2))
+    if len(data) < 3:
+        raise InputError(f"{p}: expected at least 3 rows of (time_ns, ecg_mV)")
+    return _from_times(p, (data[:, 0] - data[0, 0]) / 1e9, data[:, 1] * 1000.0)
 
 
 def _read_csv(p: Path) -> Recording:
