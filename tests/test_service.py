@@ -53,3 +53,36 @@ def test_the_watchdog_pings_at_half_its_period() -> None:
     assert watchdog_period_s({"WATCHDOG_USEC": "4000000"}) == 2.0
     assert watchdog_period_s({}) is None
     assert watchdog_period_s({"WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"}) is None
+
+
+@pytest.mark.asyncio
+async def test_a_service_that_reaches_no_router_and_no_peer_says_so_in_its_status(tmp_path: Path) -> None:
+    """Zenoh says nothing when a session's endpoints are all unreachable: the service does, in its log
+    and its status, within a few seconds."""
+    import asyncio
+
+    from services.decision_maker.__main__ import Settings, main
+    from tests.conftest import InProcessService, free_port
+
+    nowhere = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    svc = InProcessService("decision_maker", main, Settings(), tmp_path, nowhere)
+    async with asyncio.timeout(20):
+        while svc.ctx is None or not svc.ctx.link:
+            await asyncio.sleep(0.1)
+    assert svc.ctx.link == f"connected to no router and no peer (connect: {nowhere})"
+    assert svc.ctx.status(0).detail.startswith("connected to no router and no peer")
+    svc.stop.set()
+    await svc.task
+
+
+def test_cadence_get_alone_on_the_bus_says_why_no_reply_came() -> None:
+    import subprocess
+    import sys
+
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "get", "cadence/cell1/decision/selection", "--timeout", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1 and "connected to no router and no peer" in r.stderr, r.stderr

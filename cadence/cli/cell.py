@@ -57,6 +57,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     from cadence.recording import record
     from common.runtime.bus import Bus
+    from common.runtime.service import ISOLATED_SAY_S
 
     async def go() -> int:
         stop = stop_on_signals()
@@ -66,6 +67,12 @@ def cmd_record(args: argparse.Namespace) -> int:
             keys = args.keys or [bus.key("**")]
             err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
             bus.token(bus.key("health/recorder"))  # a recorder is running (zenoh liveliness)
+
+            def say_if_alone() -> None:
+                if (why := bus.isolation()) is not None:
+                    err.print(f"cadence record: {why}: nothing will come", markup=False, soft_wrap=True)
+
+            asyncio.get_running_loop().call_later(ISOLATED_SAY_S, say_if_alone)
             rec = await record(
                 bus,
                 Path(args.output),
@@ -74,7 +81,11 @@ def cmd_record(args: argparse.Namespace) -> int:
                 json=args.json,
                 on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
             )
+            alone = bus.isolation()
         err.print(f"{rec.count} messages written to {args.output}")
+        if rec.count == 0:
+            why = alone or "nothing was published on these keys"
+            err.print(f"nothing came: {why}", markup=False, soft_wrap=True)
         return 0
 
     return asyncio.run(go())
@@ -108,6 +119,7 @@ def cmd_get(args: argparse.Namespace) -> int:
     async def go() -> int:
         async with await Bus.open(bus_config(args, "peer" if not args.connect else "client"), "cell1") as bus:
             replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
+            alone = bus.isolation()
         ok = 0
         for r in replies:
             if r.message is not None:
@@ -116,7 +128,8 @@ def cmd_get(args: argparse.Namespace) -> int:
             else:
                 err.print(f"{r.key}: error: {r.error}", markup=False, highlight=False)
         if not replies:
-            err.print(f"no reply for {args.key} within {args.timeout} s", markup=False)
+            why = alone or "nothing that answers it is on this bus (is the cell running? --connect ENDPOINT)"
+            err.print(f"no reply for {args.key} within {args.timeout} s: {why}", markup=False, soft_wrap=True)
         return 0 if ok else 1
 
     return asyncio.run(go())

@@ -280,7 +280,7 @@ def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
     if w.start_ns is None:
         t.add_column("check")
         t.add_column("state")
-        for what, why in w.readiness().items():
+        for what, why in w.readiness(w.isolation).items():
             t.add_row(what, "[green]ok[/green]" if why is None else why)
         return t
     for col in ("time left", "mean RR (last window)", "k", "cycles", "φ so far", "errors", "robot"):

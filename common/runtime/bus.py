@@ -193,9 +193,15 @@ class Bus:
     """One Zenoh session used from one event loop; an async context manager (httpx's habit)."""
 
     def __init__(
-        self, session: zenoh.Session, loop: asyncio.AbstractEventLoop, cell: str, role: str | None = None
+        self,
+        session: zenoh.Session,
+        loop: asyncio.AbstractEventLoop,
+        cell: str,
+        role: str | None = None,
+        cfg: BusConfig | None = None,
     ) -> None:
         self.session = session
+        self.cfg = cfg or BusConfig()
         self.loop = loop
         self.cell = cell
         # Who this process is on the graph (schemas/topology.py); None for a test's or a replay's
@@ -221,7 +227,7 @@ class Bus:
             raise BusError(
                 f"cannot open a Zenoh session ({cfg.mode or cfg.config_file or 'peer'}): {exc}"
             ) from exc
-        return cls(session, asyncio.get_running_loop(), cell, role)
+        return cls(session, asyncio.get_running_loop(), cell, role, cfg)
 
     async def __aenter__(self) -> Bus:
         return self
@@ -231,6 +237,17 @@ class Bus:
 
     def key(self, suffix: str) -> str:
         return topology_key(self.cell, suffix)
+
+    def isolation(self) -> str | None:
+        """Why nothing can reach this session: None while it has a router or a peer (or is a router,
+        which others come to); else what it tried, for a person to act on. Zenoh itself says nothing."""
+        if self.cfg.mode == "router":
+            return None
+        info = self.session.info
+        if any(True for _ in info.routers_zid()) or any(True for _ in info.peers_zid()):
+            return None
+        tried = ", ".join(self.cfg.connect) or "no endpoint to connect to, and multicast scouting is off"
+        return f"connected to no router and no peer (connect: {tried})"
 
     # --- the graph ----------------------------------------------------------------------------------
 

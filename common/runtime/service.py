@@ -54,6 +54,7 @@ class ServiceContext:
     counters: Counter[str] = field(default_factory=Counter)
     state: str = "starting"
     detail: str = ""  # what an operator should know beyond the state (a damaged file moved aside)
+    link: str = ""  # set while the bus reaches no router and no peer (``Bus.isolation``)
     started: float = field(default_factory=time.monotonic)
 
     def status(self, seq: int) -> ServiceStatus:
@@ -66,7 +67,7 @@ class ServiceContext:
             state=self.state[:MAX_STATE_CHARS],
             uptime_s=time.monotonic() - self.started,
             counters=counters,
-            detail=self.detail[:MAX_STATE_CHARS],
+            detail="; ".join(x for x in (self.link, self.detail) if x)[:MAX_STATE_CHARS],
         )
 
 
@@ -130,18 +131,32 @@ def setup_logging(fmt: str) -> None:
 # --- running a service ----------------------------------------------------------------------------
 
 
+ISOLATED_SAY_S = 3.0  # a session needs a moment to find its router; after this, alone is said
+
+
 async def _periodic(ctx: ServiceContext) -> None:
     health = ctx.bus.publisher(HEALTH.at(ctx.name))
     wd = watchdog_period_s()
     next_status = 0.0
+    alone_since: float | None = None
     while True:
         now = time.monotonic()
+        problem = ctx.bus.isolation()
+        if problem is None:
+            if ctx.link:
+                log.info("the bus reaches a router or a peer again")
+            alone_since, ctx.link = None, ""
+        else:
+            alone_since = alone_since if alone_since is not None else now
+            if now - alone_since >= ISOLATED_SAY_S and not ctx.link:
+                log.warning("%s: nothing this service publishes reaches anyone", problem)
+                ctx.link = problem
         if now >= next_status:
             health.put(ctx.status(health.next_seq()))
             next_status = now + ctx.common.status_period_s
         if wd is not None:
             sd_notify("WATCHDOG=1")
-        await asyncio.sleep(min(ctx.common.status_period_s, wd or ctx.common.status_period_s))
+        await asyncio.sleep(min(ctx.common.status_period_s, wd or ctx.common.status_period_s, 1.0))
 
 
 async def first_of(*aws: Awaitable[object]) -> None:
