@@ -135,6 +135,38 @@ def cmd_get(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+def cmd_top(args: argparse.Namespace) -> int:
+    """The cell's keys and services, live; with --once S, one table after S seconds (for scripts)."""
+    import asyncio
+
+    from rich.live import Live
+
+    from cadence.top import Top
+    from common.runtime.bus import Bus
+    from common.runtime.service import first_of
+
+    top = Top(args.cell)
+
+    async def go() -> int:
+        stop = stop_on_signals()
+        cfg = bus_config(args, "peer" if not args.connect else "client")
+        async with await Bus.open(cfg, args.cell) as bus:
+            bus.subscribe_raw(bus.key("**"), top.on)
+            if args.once is not None:
+                await first_of(stop.wait(), asyncio.sleep(args.once))
+                out.print(top.view(args.status_period))
+                if (why := bus.isolation()) is not None:
+                    err.print(f"cadence top: {why}", markup=False, soft_wrap=True)
+                return 0
+            with Live(top.view(args.status_period), console=out, refresh_per_second=2) as live:
+                while not stop.is_set():
+                    await first_of(stop.wait(), asyncio.sleep(0.5))
+                    live.update(top.view(args.status_period))
+        return 0
+
+    return asyncio.run(go())
+
+
 def cmd_robot_resume(args: argparse.Namespace) -> int:
     """Clear a latched stop: ask the executor of the cell on ``robot/resume`` and print what it did."""
     import asyncio
@@ -268,6 +300,21 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     get.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
     get.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     get.set_defaults(func=cmd_get)
+
+    top = sub.add_parser(
+        "top",
+        help="the cell's keys (type, publishers, rate, last message) and services (alive, state, drops)",
+        description="Watches every key under cadence/<cell>/: per key its message type, its publishers and "
+        "readers from the graph, its rate over the last 10 s, the age of its last message, and what did not "
+        "decode; per service whether its status still comes, its state, uptime, dropped messages "
+        "(decode errors, rejections) and handler errors. Ctrl-C ends it.",
+    )
+    add_bus_flags(top, 5.0)
+    top.add_argument("--once", type=float, metavar="S", help="print one view after S seconds and exit")
+    top.add_argument(
+        "--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)"
+    )
+    top.set_defaults(func=cmd_top)
 
     robot = sub.add_parser("robot", help="the robot's executor: clear a latched stop")
     robot_sub = robot.add_subparsers(dest="robot_command", required=True)

@@ -1,0 +1,71 @@
+"""`cadence top`: the graph, live. The aggregator counts rates, ages and what did not decode per key, and
+says which service's status stopped coming; the command shows a running service's keys."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from cadence.top import Top
+from schemas import Selection, ServiceStatus
+from schemas.topology import encode
+
+
+def render(top: Top, now: float) -> str:
+    console = Console(width=250, record=True)
+    console.print(top.view(status_period_s=1.0, now=now))
+    return console.export_text()
+
+
+def test_rates_ages_bad_payloads_and_gone_services_are_counted() -> None:
+    top = Top("cell1")
+    sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial")
+    for i in range(21):  # 2 Hz for 10 s
+        top.on("cadence/cell1/decision/selection", encode(sel), now=100.0 + i * 0.5)
+    top.on("cadence/cell1/decision/selection", b"\xc1 not msgpack", now=110.0)
+    status = ServiceStatus(t_ns=1, seq=0, service="executor", state="moving", uptime_s=5.0, counters={
+        "decode_errors": 2, "rejected/cadence/cell1/decision/selection/stale": 1,
+        "handler_errors/cadence/cell1/operator/signal/ValueError": 4})  # fmt: skip
+    top.on("cadence/cell1/health/executor", encode(status), now=101.0)
+    k = top.keys["cadence/cell1/decision/selection"]
+    assert (k.count, k.undecodable, k.type_name) == (22, 1, "decision.selection.v1")
+    assert k.rate_hz(110.0) == pytest.approx(2.1, abs=0.15)
+    text = render(top, now=110.0)
+    assert "decision/selection" in text and "decision_maker → executor" in text
+    row = next(line for line in text.splitlines() if line.startswith("│ executor "))
+    assert "gone 9 s" in row and "moving" in row and " 3 " in row and " 4 " in row  # dropped 3, failed 4
+    assert "no status" in next(line for line in text.splitlines() if line.startswith("│ pareto_store "))
+    assert "executor → (tools)" in text  # health/executor: its own publisher
+
+
+@pytest.mark.asyncio
+async def test_cadence_top_shows_a_running_services_keys(tmp_path: Path, endpoint: str) -> None:
+    from common.runtime.bus import Bus, BusConfig
+    from services.decision_maker.__main__ import Settings, main
+    from tests.conftest import InProcessService
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1"):
+        svc = InProcessService(
+            "decision_maker", main, Settings(republish_s=0.1, rr_rest_s=0.9), tmp_path, endpoint
+        )
+        argv = ["top", "--connect", endpoint, "--once", "3", "--status-period", "0.1"]
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "cadence", *argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            env={**os.environ, "COLUMNS": "250"},
+        )  # fmt: skip
+        out, err = await asyncio.wait_for(proc.communicate(), 120)
+        svc.stop.set()
+        await svc.task
+    text = out.decode()
+    assert proc.returncode == 0, err.decode()
+    assert (
+        "decision/selection" in text and "decision.selection.v1" in text and "health/decision_maker" in text
+    )
+    row = next(line for line in text.splitlines() if "decision_maker" in line and "yes" in line)
+    assert "running" in row
