@@ -167,6 +167,45 @@ def cmd_top(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    """The cell in Foxglove: a WebSocket server that bridges every key (cadence/view.py)."""
+    import asyncio
+
+    import foxglove
+
+    from cadence.view import Bridge
+    from common.runtime.bus import Bus
+    from common.runtime.resources import FOXGLOVE_LAYOUT
+    from common.runtime.service import ISOLATED_SAY_S, first_of
+
+    async def go() -> int:
+        stop = stop_on_signals()
+        bridge = Bridge(args.cell)
+        try:
+            server = foxglove.start_server(name=f"cadence {args.cell}", host=args.host, port=args.port,
+                                           context=bridge.context)  # fmt: skip
+        except Exception as exc:  # the SDK raises its own kinds for a port in use
+            raise InputError(f"cannot serve Foxglove on {args.host}:{args.port}: {exc}") from None
+        try:
+            cfg = bus_config(args, "peer" if not args.connect else "client")
+            async with await Bus.open(cfg, args.cell) as bus:
+                bus.subscribe_raw(bus.key("**"), bridge.on)
+                out.print(
+                    f"Foxglove: open a connection to ws://{args.host}:{server.port} "
+                    f"({len(bridge.channels) + 2} channels so far); layout: {FOXGLOVE_LAYOUT}; Ctrl-C ends",
+                    markup=False, soft_wrap=True,
+                )  # fmt: skip
+                await first_of(stop.wait(), asyncio.sleep(ISOLATED_SAY_S))
+                if (why := bus.isolation()) is not None:
+                    err.print(f"cadence view: {why}", markup=False, soft_wrap=True)
+                await stop.wait()
+        finally:
+            server.stop()
+        return 0
+
+    return asyncio.run(go())
+
+
 def cmd_robot_resume(args: argparse.Namespace) -> int:
     """Clear a latched stop: ask the executor of the cell on ``robot/resume`` and print what it did."""
     import asyncio
@@ -315,6 +354,19 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)"
     )
     top.set_defaults(func=cmd_top)
+
+    view = sub.add_parser(
+        "view",
+        help="the cell in Foxglove: every key as a channel, the arm in 3D (WebSocket server)",
+        description="Runs the Foxglove SDK's WebSocket server: every key of the graph is a channel (JSON, "
+        "with its message type's JSON schema), robot/state also as /robot/joint_states "
+        "(foxglove.JointStates) and /tf (foxglove.FrameTransforms of the UR16e's links, from its DH "
+        "table). Open ws://HOST:PORT in Foxglove and import the layout deploy/foxglove/cadence.layout.json.",
+    )
+    add_bus_flags(view, 5.0)
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    view.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free one)")
+    view.set_defaults(func=cmd_view)
 
     robot = sub.add_parser("robot", help="the robot's executor: clear a latched stop")
     robot_sub = robot.add_subparsers(dest="robot_command", required=True)

@@ -9,3 +9,4 @@ from pathlib import Path
 _ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = next((p for p in (_ROOT / "cadence" / "deploy", _ROOT / "deploy") if p.is_dir()), _ROOT / "deploy")
 EXAMPLE_TASK = DEPLOY / "tasks" / "box_filling.toml"
+FOXGLOVE_LAYOUT = DEPLOY / "foxglove" / "cadence.layout.json"
