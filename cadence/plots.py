@@ -118,9 +118,14 @@ def rr_k_figure(
 
 
 def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
-    """q, q̇, q̈ and jerk of whole cycles, path after path at the k each ran with (motion only; the
-    waits between paths are left out). ``cycles``: [{"k": {path: k}, …}], one column each."""
-    labels = ("q [deg]", "q̇ [deg/s]", "q̈ [deg/s²]", "jerk [deg/s³]")
+    """q, q̇, q̈ and jerk of whole cycles as commanded (the planned trajectories, not the arm's
+    measurement), path after path at the k each ran with (motion only; the waits between paths are left
+    out), in radians as the plans are, with the UR16e's limits as dashed lines (a task may only lower
+    them). ``cycles``: [{"k": {path: k}, …}], one column each."""
+    from common.trajectory.limits import UR16E
+
+    labels = ("q [rad]", "q̇ [rad/s]", "q̈ [rad/s²]", "jerk [rad/s³]")
+    limits = (None, UR16E.velocity, UR16E.acceleration, UR16E.jerk)
     fig, axes = plt.subplots(
         4, len(cycles), figsize=(6.5 * len(cycles), 10), constrained_layout=True, squeeze=False
     )
@@ -135,7 +140,7 @@ def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
                 ax = axes[row, col]
                 for j in range(curves.shape[2]):
                     label = JOINT_NAMES[j] if i == 0 and row == 0 else None
-                    ax.plot(t0 + t, np.degrees(curves[row][:, j]), c=f"C{j}", lw=1.0, label=label)
+                    ax.plot(t0 + t, curves[row][:, j], c=f"C{j}", lw=1.0, label=label)
                 ax.axvline(t0, c="0.85", lw=0.8)
             top = axes[0, col]
             top.text(
@@ -147,10 +152,16 @@ def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
                 fontsize=6,
             )
             t0 += float(t[-1])
-        axes[0, col].set_title(cycle.get("label", f"cycle {col + 1}"), pad=22)
+        axes[0, col].set_title(f"{cycle.get('label', f'cycle {col + 1}')} (commanded)", pad=22)
         axes[3, col].set_xlabel("motion time [s]")
+        for row in range(1, 4):
+            lim = limits[row]
+            assert lim is not None
+            for sign in (1, -1):
+                axes[row, col].axhline(sign * float(np.max(lim)), ls="--", c="0.4", lw=0.8)
     for row in range(4):
         axes[row, 0].set_ylabel(labels[row])
+    fig.suptitle("As commanded (the plans the executor ran, not measured); dashed: the UR16e's limits")
     axes[0, 0].legend(ncol=3, fontsize=7, loc="lower right")
     return _png(fig)
 
@@ -175,10 +186,16 @@ def front_usage_figure(sets: dict, used: dict[str, dict[int, int]]) -> bytes:
         for k, c in counts.items():
             x, y = chosen[k - 1]
             ax.scatter([x], [y], s=40 + 25 * c, facecolors="none", edgecolors="tab:red", lw=1.5)
-            ax.annotate(f"k={k} ×{c}", (x, y), textcoords="offset points", xytext=(6, 4), fontsize=7)
-        ax.set_title(pid, fontsize=9)
-        ax.set_xlabel("time (normalised)")
-        ax.set_ylabel("jerk (normalised)")
+        # the k used, each on its own line from its circle up to a label row: neighbours on the front
+        # sit a few pixels apart, so labels beside them would overlap
+        for i, (k, c) in enumerate(sorted(counts.items(), key=lambda kc: chosen[kc[0] - 1][0])):
+            x, y = chosen[k - 1]
+            ax.annotate(f"k={k} ×{c}", (x, y), xytext=(0.35 + 0.2 * (i % 3), 0.55 + 0.12 * (i // 3)),
+                        textcoords="axes fraction", fontsize=7,
+                        arrowprops={"arrowstyle": "-", "lw": 0.6, "color": "tab:red"})  # fmt: skip
+        ax.set_title(f"{pid}: f_time {ideal[0]:.2f}–{nadir[0]:.2f} s", fontsize=9)
+        ax.set_xlabel("f_time = t_f, normalised: 0 fastest … 1 slowest")
+        ax.set_ylabel("f_jerk, normalised: 0 smoothest … 1")
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     axes[0, 0].legend(fontsize=7)

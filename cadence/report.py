@@ -141,6 +141,18 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     return run
 
 
+CAPTIONS = {
+    "rr_k.png": "Each window's mean RR (red; crosses: held windows) against data time, with RR_r and the "
+    "decision thresholds RR_s and RR_s^max; the selected k on the right axis (blue); cycle ends as ticks "
+    "along the bottom. Like the paper's Fig. 6.",
+    "pareto.png": "Each path's Pareto front, normalised (grey), its N chosen solutions (blue) and the k the "
+    "robot ran with, circled by how often (red).",
+    "cycles.png": "Joint positions, velocities, accelerations and jerk of the first and last cycle as "
+    "commanded (the planned trajectories, not the arm's measurement), in radians, path after path; "
+    "dashed: the UR16e's limits.",
+}
+
+
 def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[str]:
     """The figures and index.html; returns the names of the files written."""
     from cadence.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure
@@ -205,11 +217,16 @@ def _html(run: Run, figures: list[str]) -> str:
         f"<td>{html.escape(e['message'])}</td></tr>"
         for e in run.events
     )
-    imgs = "\n".join(f'<figure><img src="{f}" alt="{f}"></figure>' for f in figures if f.endswith(".png"))
+    imgs = "\n".join(
+        f'<figure><img src="{f}" alt="{f}"><figcaption>{html.escape(CAPTIONS.get(f, f))}</figcaption>'
+        "</figure>"
+        for f in figures
+        if f.endswith(".png")
+    )
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>Cadence report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}} img{{max-width:100%}}
-table{{border-collapse:collapse;margin:1em 0}}
+table{{border-collapse:collapse;margin:1em 0}} figcaption{{color:#444;font-size:90%}}
 td,th{{border:1px solid #ccc;padding:4px 8px;text-align:left}}</style>
 </head><body>
 <h1>Cadence report</h1>

@@ -61,5 +61,6 @@ def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path)
     for fig in ("rr_k.png", "pareto.png", "cycles.png"):
         assert (out / fig).read_bytes()[:4] == b"\x89PNG"
         assert f'src="{fig}"' in page
+    assert page.count("<figcaption>") == 3 and "commanded" in page and "radians" in page
     for f in out.iterdir():  # what people open is readable by everyone (state files stay private)
         assert f.stat().st_mode & 0o777 == 0o644, f
