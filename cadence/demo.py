@@ -220,6 +220,12 @@ def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, S
     ev = Table(show_header=False, box=None)
     for e in obs.events[-5:]:
         ev.add_row(f"{e['t_s']:7.1f} s", e["source"], e["kind"], e["message"][:90])
+    stops = sum(e["kind"] == "protective_stop" for e in obs.events)
+    if stops:  # what a person sees first and should not misread as the method's doing
+        t.caption = (
+            f"{stops} protective stop(s): the servo loop missed its deadlines, as a busy machine "
+            f"does at {opts.speed:g}× (try a lower --speed); the demo resumes by itself, a real cell does not"
+        )
     return Group(t, ev)
 
 

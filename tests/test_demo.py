@@ -76,3 +76,23 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     for fig in ("rr_k.png", "cycles.png", "pareto.png"):
         assert (out / fig).read_bytes()[:4] == b"\x89PNG"
     assert "φ, production rate" in (out / "index.html").read_text()
+
+
+def test_the_live_view_explains_a_protective_stop_of_a_busy_machine() -> None:
+    """At 8× on a small machine the servo loop can miss deadlines: the view says what that is, so that a
+    person does not take it for the method's doing."""
+    from rich.console import Console
+
+    from cadence.demo import DemoOptions, Observed, live_view
+
+    obs = Observed(epoch_ns=0)
+
+    def shown() -> str:
+        console = Console(width=200, record=True)
+        console.print(live_view(obs, DemoOptions(speed=8.0), 10.0, {}))
+        return console.export_text()
+
+    assert "protective stop" not in shown()
+    obs.on_event("executor", "protective_stop", "25 servo overruns in a row during 'b1_to_b2'", 5 * 10**9)
+    text = shown()
+    assert "1 protective stop(s): the servo loop missed its deadlines" in text and "8×" in text
