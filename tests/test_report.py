@@ -18,7 +18,8 @@ from tests.test_executor import TASK
 T0 = 1_800_000_000_000_000_000
 
 
-def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path) -> None:
+def write_run(tmp_path: Path) -> Path:
+    """A recording of a short run: sets, four windows and selections, three cycles, an error, an event."""
     task = parse_task(TASK, "shuttle.toml")
     sets = {
         pid: plan_job(p, task, task.planner, content_hash(p, task.limits, task.planner))
@@ -46,7 +47,11 @@ def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path)
         encode(RobotEvent(t_ns=T0 + 60 * 10**9, seq=0, kind="overrun", message="1 <overrun>")),
     )
     rec.close()
+    return path
 
+
+def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path) -> None:
+    path = write_run(tmp_path)
     out = tmp_path / "report"
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "report", str(path), "--out", str(out)],
