@@ -4,8 +4,9 @@ Every topic of the graph is a channel: its key (with a leading ``/``), JSON mess
 type's JSON schema (msgspec's), so every field can be plotted. The topics that are not families are
 advertised at start, so a client sees the whole graph before any traffic; a family's members
 (``health/<service>``) appear with their first message. ``robot/state`` is also given in Foxglove's own
-schemas: ``/robot/joint_states`` (foxglove.JointStates) and ``/tf`` (foxglove.FrameTransforms, the
-UR16e's links from its DH table), so the 3D panel shows the arm move. Log time is the message's data
+schemas: ``/robot/joint_states`` (foxglove.JointStates), ``/tf`` (foxglove.FrameTransforms, the UR16e's
+links from its DH table) and ``/robot/model`` (foxglove.SceneUpdate, a line per link locked to its frame),
+so the 3D panel shows the arm move. Log time is the message's data
 time. ``deploy/foxglove/cadence.layout.json`` is a layout for it: RR and k over time, the joints, the
 events and the services' health.
 """
@@ -13,6 +14,7 @@ events and the services' health.
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import foxglove
@@ -26,6 +28,8 @@ from schemas.topology import TOPICS, decode_any, topic_of
 
 JOINT_STATES = "/robot/joint_states"
 TF = "/tf"
+SCENE = "/robot/model"  # the arm's links as lines, locked to their frames
+SCENE_PERIOD_S = 1.0
 # the UR16e's frames, base to flange, as ur_description names them
 FRAMES = ("base_link", "shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link",
           "wrist_3_link")  # fmt: skip
@@ -105,6 +109,39 @@ def frame_transforms(q: list[float], t_ns: int) -> dict[str, Any]:
     return {"transforms": out}
 
 
+def link_points() -> list[tuple[float, float, float]]:
+    """Where each link's parent frame origin lies in the link's own frame. With standard DH this does not
+    depend on the joint angle (the inverse of Rz(θ)·Tz(d)·Tx(a)·Rx(α) maps the origin to Rx(−α)·(−a, 0, −d)),
+    so the arm's segments are drawn once, locked to their frames, and move with /tf."""
+    out = []
+    for d, a, alpha in zip(DH_D, DH_A, DH_ALPHA, strict=True):
+        ca, sa = math.cos(-alpha), math.sin(-alpha)
+        out.append((float(-a), float(sa * d), float(-d * ca)))
+    return out
+
+
+def arm_scene(t_ns: int) -> dict[str, Any]:
+    """foxglove.SceneUpdate: one line per link, from its parent's origin to its own, in its own frame."""
+    entities = []
+    for i, (child, p) in enumerate(zip(FRAMES[1:], link_points(), strict=True)):
+        entities.append({
+            "timestamp": _stamp(t_ns), "frame_id": child, "id": f"ur16e_link_{i + 1}", "frame_locked": True,
+            "lifetime": {"sec": 0, "nsec": 0},
+            "lines": [{"type": 0, "thickness": 0.07, "scale_invariant": False,
+                       "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                       "points": [{"x": 0.0, "y": 0.0, "z": 0.0}, {"x": p[0], "y": p[1], "z": p[2]}],
+                       "color": {"r": 0.2, "g": 0.45, "b": 0.8, "a": 1.0}}],
+        })  # fmt: skip
+    return {"deletions": [], "entities": entities}
+
+
+SCENE_SCHEMA = {
+    "type": "object",
+    "properties": {"entities": {"type": "array"}, "deletions": {"type": "array"}},
+}
+
+
 def _json_channel(topic: str, name: str, schema: Any, context: foxglove.Context) -> foxglove.Channel:
     return foxglove.Channel(
         topic,
@@ -123,6 +160,8 @@ class Bridge:
         self.channels: dict[str, foxglove.Channel] = {}
         self.joints = _json_channel(JOINT_STATES, "foxglove.JointStates", JOINT_STATES_SCHEMA, self.context)
         self.tf = _json_channel(TF, "foxglove.FrameTransforms", FRAME_TRANSFORMS_SCHEMA, self.context)
+        self.scene = _json_channel(SCENE, "foxglove.SceneUpdate", SCENE_SCHEMA, self.context)
+        self._scene_at = 0.0
         self.undecodable = 0
         for t in TOPICS:
             if t.pattern == "topic" and "*" not in t.suffix:
@@ -151,3 +190,6 @@ class Bridge:
         if isinstance(msg, RobotState):
             self.joints.log(msgspec.json.encode(joint_states(msg)), log_time=msg.t_ns)
             self.tf.log(msgspec.json.encode(frame_transforms(msg.q, msg.t_ns)), log_time=msg.t_ns)
+            if time.monotonic() - self._scene_at >= SCENE_PERIOD_S:  # for a client that joins late
+                self._scene_at = time.monotonic()
+                self.scene.log(msgspec.json.encode(arm_scene(msg.t_ns)), log_time=msg.t_ns)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import websockets
 
-from cadence.view import FRAMES, dh_transforms
+from cadence.view import FRAMES, JOINT_STATES, SCENE, TF, arm_scene, dh_transforms, link_points
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import FOXGLOVE_LAYOUT
 from common.sim.arm import forward_kinematics
@@ -70,12 +70,12 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
                     for t in TOPICS
                     if t.pattern == "topic" and "*" not in t.suffix
                 }
-                channels = await advertised(ws, graph | {"/robot/joint_states", "/tf"})
+                channels = await advertised(ws, graph | {"/robot/joint_states", "/tf", "/robot/model"})
                 window_ch = channels["/cadence/cell1/hrv/window"]
                 assert (window_ch["encoding"], window_ch["schemaName"]) == ("json", "hrv.window.v1")
                 assert "mean_rr_s" in json.loads(window_ch["schema"])["$defs"]["HrvWindow"]["properties"]
                 print("channels:", ", ".join(sorted(channels)))
-                wanted = ["/cadence/cell1/hrv/window", "/robot/joint_states", "/tf"]
+                wanted = ["/cadence/cell1/hrv/window", JOINT_STATES, TF, SCENE]
                 sub_ids = {i: topic for i, topic in enumerate(wanted, start=1)}
                 await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                     {"id": i, "channelId": channels[t]["id"]} for i, t in sub_ids.items()]}))  # fmt: skip
@@ -85,7 +85,7 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
 
                 async def cell() -> None:
                     """The server takes a subscription on its own time and says nothing when it has: the
-                    cell goes on publishing, as a running one does, until the client has all three."""
+                    cell goes on publishing, as a running one does, until the client has them all."""
                     while True:
                         bus.put(bus.key("hrv/window"), w, block=True)
                         bus.put(bus.key("robot/state"), state)
@@ -94,7 +94,7 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
                 publishing = asyncio.ensure_future(cell())
                 got: dict[str, dict] = {}
                 try:
-                    while len(got) < 3:
+                    while len(got) < len(wanted):
                         topic, payload = await next_message(ws, sub_ids)
                         got[topic] = json.loads(payload)
                 finally:
@@ -106,6 +106,7 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
     assert got["/cadence/cell1/hrv/window"]["mean_rr_s"] == 0.81
     joints = got["/robot/joint_states"]["joints"]
     assert [j["position"] for j in joints] == pytest.approx(q) and joints[0]["name"] == "base"
+    assert [e["frame_id"] for e in got[SCENE]["entities"]] == list(FRAMES[1:])  # the arm's links
     tf = got["/tf"]["transforms"]
     assert [t["child_frame_id"] for t in tf] == list(FRAMES[1:])
     # the links' chain ends where the arm's forward kinematics puts the flange
@@ -116,12 +117,20 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
     assert [tf[0]["translation"][k] for k in "xyz"] == pytest.approx([0.0, 0.0, 0.1807])
 
 
+def test_the_arm_model_s_links_join_their_frames_at_every_pose() -> None:
+    """Each link's line, drawn once in its own frame, ends at its parent's origin whatever the joints."""
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        for t, p in zip(dh_transforms(rng.uniform(-np.pi, np.pi, 6)), link_points(), strict=True):
+            assert (t @ np.array([*p, 1.0]))[:3] == pytest.approx(np.zeros(3), abs=1e-12)
+    scene = arm_scene(10**9)
+    assert [e["frame_id"] for e in scene["entities"]] == list(FRAMES[1:])
+
+
 def test_the_shipped_layout_names_only_channels_the_bridge_gives() -> None:
     layout = json.loads(Path(FOXGLOVE_LAYOUT).read_text())
-    topics = {f"/cadence/cell1/{t.suffix}" for t in TOPICS if t.pattern == "topic"} | {
-        "/robot/joint_states",
-        "/tf",
-    }
+    topics = {f"/cadence/cell1/{t.suffix}" for t in TOPICS if t.pattern == "topic"}
+    topics |= {JOINT_STATES, TF, SCENE}
     named = set()
     for config in layout["configById"].values():
         for path in [p["value"] for p in config.get("paths", [])] + [config.get("topicPath", "")]:
