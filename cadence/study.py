@@ -25,6 +25,7 @@ from common.trajectory import bspline as bs
 from common.trajectory.task import Task
 from schemas import Calibration, CycleReport, Message, OperatorError, Selection
 from schemas.decision import Reason
+from schemas.operator import ErrorKind
 from schemas.session import Condition, SessionEnd, SessionInfo
 from schemas.topology import HRV_WINDOW, OPERATOR_ERROR, ROBOT_CYCLE, SELECTION, validated
 
@@ -156,6 +157,13 @@ def simulate(
 
     select(0.0, 0, "fixed" if fixed is not None else "initial", None)
 
+    def error(t_s: float, kind: ErrorKind, source: str, description: str) -> None:
+        nonlocal errors
+        errors += 1
+        msg = OperatorError(t_ns=ns(t_s), seq=seq["error"], cycle=cycles, kind=kind, source=source,
+                            description=description)  # fmt: skip
+        emit(OPERATOR_ERROR.suffix, "error", msg)
+
     def idle(seconds: float) -> None:
         nonlocal t
         for x in np.arange(t, t + seconds, 1.0 / OBSERVE_HZ):
@@ -198,17 +206,8 @@ def simulate(
                 op.advance(t)
                 handling = op.handling_time()
                 if s.deadline is not None and handling > s.deadline:  # the executor's late error
-                    errors += 1
                     then = "kept waiting" if s.on_late == "wait" else "went on without it"
-                    late = OperatorError(
-                        t_ns=ns(t + s.deadline),
-                        seq=seq["error"],
-                        cycle=cycles,
-                        kind="late",
-                        source="executor",
-                        description=f"'{s.wait_for}' late: {then}",
-                    )
-                    emit(OPERATOR_ERROR.suffix, "error", late)
+                    error(t + s.deadline, "late", "executor", f"'{s.wait_for}' late: {then}")
                     if s.on_late == "go_on":
                         handling = s.deadline
                 idle(handling)
@@ -219,16 +218,7 @@ def simulate(
         emit(ROBOT_CYCLE.suffix, "cycle", report)
         op.advance(t)
         if op.makes_error():  # as the twin in the ECG gateway does at each cycle's report
-            errors += 1
-            wrong = OperatorError(
-                t_ns=ns(t),
-                seq=seq["error"],
-                cycle=cycles,
-                kind="wrong_object",
-                source="twin",
-                description=f"simulated (stress {op.stress:.2f})",
-            )
-            emit(OPERATOR_ERROR.suffix, "error", wrong)
+            error(t, "wrong_object", "twin", f"simulated (stress {op.stress:.2f})")
         cycles += 1
     return Outcome(
         subject.index,

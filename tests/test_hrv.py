@@ -12,6 +12,7 @@ import pytest
 from common.hrv.records import read_record
 from common.hrv.rpeaks import detect
 from common.hrv.stream import HrvStream, classify, intervals, windows
+from tests.test_cli import run_cli
 from tests.test_rpeaks import ECG, needs_data
 
 
@@ -203,9 +204,7 @@ POLAR = ECG / "polar_h10"
 
 
 def _windows_of(path: str) -> list[dict]:
-    r = subprocess.run(
-        [sys.executable, "-m", "cadence", "hrv", "windows", path], capture_output=True, text=True, timeout=120
-    )
+    r = run_cli("hrv", "windows", path)
     assert r.returncode == 0, r.stderr
     return [json.loads(line) for line in r.stdout.splitlines()]
 
@@ -230,10 +229,5 @@ def test_the_polar_sensor_logger_exports_read_and_their_ecg_and_rr_agree(tmp_pat
     plain.write_text("".join(f"{800 + 10 * (i % 5)}\n" for i in range(120)))
     (w,) = [w for w in _windows_of(str(plain)) if w["end_s"] <= 90][:1]
     assert w["mean_rr_s"] == pytest.approx(0.82, abs=0.005) and w["quality"] == "good"
-    r = subprocess.run(
-        [sys.executable, "-m", "cadence", "hrv", "peaks", str(plain)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    r = run_cli("hrv", "peaks", str(plain))
     assert r.returncode == 2 and "no ECG" in r.stderr
