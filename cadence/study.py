@@ -43,6 +43,11 @@ class Subject:
     rr_rest_s: float
     tolerance: float
 
+    @property
+    def name(self) -> str:
+        """The subject's ID in session files and their calibration."""
+        return f"twin-{self.index:02d}"
+
     def twin(self, model: Model | None = None) -> TwinParams:
         """This subject's twin; ``model`` overrides the parameters all subjects share (a fit's)."""
         p = TwinParams(seed=self.seed, rr_rest_s=self.rr_rest_s, tolerance=self.tolerance)
@@ -112,7 +117,7 @@ def calibrate_twin(subject: Subject, minutes: float, model: Model | None = None)
     op.advance(end + 15.0)
     iv = intervals(np.array(op.beats_until(end + 15.0)))
     wins = windows(iv, WINDOW_S, 0.0, end)
-    return calibration(wins, f"twin-{subject.index}", ORIGIN_NS, measured_sigma=False)[0]
+    return calibration(wins, subject.name, ORIGIN_NS, measured_sigma=False)[0]
 
 
 def simulate(
@@ -235,7 +240,7 @@ def session_info(
     subject: Subject, condition: Condition, cal: Calibration, minutes: float, task_path: Path, model: Model
 ) -> SessionInfo:
     return SessionInfo(
-        subject=f"twin-{subject.index:02d}",
+        subject=subject.name,
         condition=condition,
         cell="simulated",
         calibration=cal,

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cadence.session import load_session
 from cadence.study import Subject, motions, simulate
 from common.trajectory.planner import boundary_stretch, interval_bounds
 from common.trajectory.task import load_task
@@ -54,6 +55,9 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     redo = json.loads((again / "study.json").read_text())
+    for f in files:  # each file's calibration is its own subject's
+        info = load_session(f).info
+        assert info.calibration is not None and info.calibration.subject == info.subject
     assert redo["table"] == doc["table"] and redo["wilcoxon"] == doc["wilcoxon"]
 
 

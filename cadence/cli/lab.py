@@ -204,7 +204,7 @@ def _simulated_study(
         for sub in cohort:
             cal = calibrate_twin(sub, args.calibrate, model)
             for c in conditions:
-                f = folder / f"twin-{sub.index:02d}_{c}.mcap"
+                f = folder / f"{sub.name}_{c}.mcap"
                 simulate_session(task, task_path, moves, n_per_path, sub, cal, c, args.minutes, f, model)
                 files.append(f)
                 progress.advance(runs)
