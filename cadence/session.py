@@ -340,20 +340,30 @@ def check_ready(readiness: dict[str, str | None]) -> str | None:
     return "; ".join(problems) or None
 
 
-async def ask_condition(bus: Bus, opts: SessionOptions, timeout: float) -> Selection:
-    from schemas.topology import DECISION_CONDITION
+async def ask_condition(
+    bus: Bus, opts: SessionOptions, timeout: float, calibrated_ns: int | None = None
+) -> Selection:
+    """Set the condition; ``calibrated_ns``: the calibration this session just published, which the
+    decision maker must have before it starts (c) from it (it says "not received yet" until then)."""
+    from schemas.topology import CALIBRATION_NOT_YET, DECISION_CONDITION
 
     mode = "mode=adaptive" if opts.condition == "c" else f"mode=fixed;k={opts.condition}"
-    replies = await bus.get(
-        DECISION_CONDITION, timeout=timeout, parameters=f"{mode};by=session {opts.subject}/{opts.condition}"
-    )
-    for r in replies:
+    params = f"{mode};by=session {opts.subject}/{opts.condition}"
+    if calibrated_ns is not None:
+        params += f";calibration={calibrated_ns}"
+    give_up = time.monotonic() + timeout
+    while True:
+        replies = await bus.get(DECISION_CONDITION, timeout=timeout, parameters=params)
+        if not replies:
+            raise CadenceError(
+                f"no decision maker answered on cadence/{opts.cell}/decision/condition within {timeout:g} s"
+            )
+        r = replies[0]
         if r.message is not None:
             return r.message
-        raise CadenceError(f"the decision maker refused condition {opts.condition}: {r.error}")
-    raise CadenceError(
-        f"no decision maker answered on cadence/{opts.cell}/decision/condition within {timeout:g} s"
-    )
+        if CALIBRATION_NOT_YET not in (r.error or "") or time.monotonic() > give_up:
+            raise CadenceError(f"the decision maker refused condition {opts.condition}: {r.error}")
+        await asyncio.sleep(0.2)  # the calibration is on its way; ask again
 
 
 def stored_calibration(opts: SessionOptions) -> Calibration:
@@ -440,7 +450,8 @@ async def run_session(
             cal = await _until(stop, calibrate())
         # 3. the condition, and from then on the session counts
         if not stop.is_set() and cal is not None:
-            first = await ask_condition(bus, opts, timeout=10.0)
+            fresh = cal.t_ns if opts.calibrate_minutes else None
+            first = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
             watch.start_ns = first.t_ns
             writer.begin(
                 SessionInfo(

@@ -98,6 +98,8 @@ SELECTION = Topic(
 )
 # the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the
 # initial k); the reply is the selection it starts with, stamped with the data time it took effect
+# its error reply while a calibration the asker names has not reached the decision maker: ask again
+CALIBRATION_NOT_YET = "not received yet"
 DECISION_CONDITION = Topic(
     "decision/condition", Selection, ("decision_maker",), pattern="query", askers=("operator",)
 )

@@ -189,7 +189,14 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
         svc = start_decider(tmp_path, endpoint, settings)  # restarted mid-session: still (a)
         await svc.listening(bus, "hrv/window")
         assert (await first_selection(sub)).reason == "fixed"
-        c = await ask("mode=adaptive;by=session s1/c")
+        # a session that has just calibrated names its calibration; until it arrives: "not received yet"
+        fresh = Calibration(t_ns=now_ns(), seq=0, subject="s1", rr_rest_s=0.95)
+        assert "not received yet" in str(await ask(f"mode=adaptive;calibration={fresh.t_ns}"))
+        bus.put(bus.key("operator/calibration"), fresh, block=True)
+        async with asyncio.timeout(10):  # the topic and the query travel apart: ask until it has come
+            while isinstance(c := await ask(f"mode=adaptive;calibration={fresh.t_ns};by=session s1/c"), str):
+                assert "not received yet" in c
         assert isinstance(c, Selection) and (c.k, c.reason) == (8, "initial")  # from the initial k again
+        assert '"rr_rest_s": 0.95' in (tmp_path / "decision_state.json").read_text()  # of the new RR_r
         assert (await answer(bus, sub, window(1, 0.90))).reason != "fixed"
         await svc.close()

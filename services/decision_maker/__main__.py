@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import sys
+from collections import deque
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -27,7 +28,7 @@ from schemas.base import RrSeconds
 from schemas.decision import MAX_N, Selection
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
-from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, SELECTION
+from schemas.topology import CALIBRATION, CALIBRATION_NOT_YET, DECISION_CONDITION, HRV_WINDOW, SELECTION
 from services.decision_maker.state import (
     CONDITION_FILE,
     Condition,
@@ -171,6 +172,8 @@ async def main(ctx: ServiceContext) -> None:
         decider.commit(record)
         publish()
 
+    calibrations_seen: deque[int] = deque(maxlen=16)  # their t_ns: a session asks after its own
+
     async def on_calibration(_: str, cal: Calibration) -> None:
         record = decider.calibrated(cal, cal.t_ns)
         if record is not None:
@@ -180,6 +183,7 @@ async def main(ctx: ServiceContext) -> None:
             if fixed is None:
                 ctx.state = "running"
             publish()
+        calibrations_seen.append(cal.t_ns)  # once in force: a session's (c) starts from it
 
     async def on_query(req: Request) -> Selection:
         if (sel := current()) is None:
@@ -191,6 +195,11 @@ async def main(ctx: ServiceContext) -> None:
         selection it starts with, whose t_ns is the data time the condition took effect."""
         now = ctx.common.clock.now_ns()
         c = parse_condition(req.parameters, settings.n, now)
+        # a session that has just calibrated names its calibration: the topic and this query travel
+        # apart, and condition (c) must start from the new RR_r, not the one before
+        wanted = dict(p.split("=", 1) for p in req.parameters.split(";") if "=" in p).get("calibration")
+        if wanted is not None and (not wanted.isdecimal() or int(wanted) not in calibrations_seen):
+            raise QueryError(f"{CALIBRATION_NOT_YET}: calibration {wanted[:40]}")
         if c.mode == "adaptive":
             cal = decider.record.calibration if decider.record is not None else None
             if cal is None:
