@@ -312,6 +312,7 @@ def cmd_session(args: argparse.Namespace) -> int:
     out_path = Path(args.out) if args.out else Path(f"{args.subject}_{args.condition}.mcap")
     if out_path.exists():
         raise InputError(f"{out_path}: exists; a session file is evidence and is never overwritten")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
     data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or "~/.local/share/cadence")
     opts = SessionOptions(
         subject=args.subject,
