@@ -11,7 +11,6 @@ import json
 import re
 import shutil
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -67,17 +66,15 @@ def images_in_chromium(root: Path, page: str) -> dict:
 
 
 def test_every_image_of_a_report_and_of_a_study_loads_in_chromium(tmp_path: Path) -> None:
-    run = write_run(tmp_path)
-    for argv in (
-        ["report", str(run), "--out", str(tmp_path / "site" / "report"), "--rr-rest", "0.85"],
-        ["study", "simulate", "--subjects", "2", "--minutes", "2", "--calibrate", "1",
-         "--out", str(tmp_path / "site" / "study")],
-    ):  # fmt: skip
-        r = subprocess.run(
-            [sys.executable, "-m", "cadence", *argv], capture_output=True, text=True, timeout=300
-        )
-        assert r.returncode == 0, r.stderr
-    report = images_in_chromium(tmp_path / "site", "report/index.html")
-    assert report == {"images": 3, "bad": []}
-    study = images_in_chromium(tmp_path / "site", "study/index.html")
-    assert study == {"images": 3, "bad": []}  # conditions.png and one figure per subject
+    from cadence.analysis import analyse, write_study
+    from cadence.report import from_mcap, write_report
+    from cadence.session import load_session
+    from tests.test_session_files import info, write
+
+    site = tmp_path / "site"
+    write_report(from_mcap(write_run(tmp_path)), site / "report", 0.85)
+    files = [write(tmp_path / f"s{i}_{c}.mcap", info(f"s{i}", c)) for i in (1, 2) for c in "ab"]
+    write_study(analyse([load_session(f) for f in files]), site / "study")
+    assert images_in_chromium(site, "report/index.html") == {"images": 3, "bad": []}
+    # conditions.png and one figure per subject
+    assert images_in_chromium(site, "study/index.html") == {"images": 3, "bad": []}

@@ -22,7 +22,7 @@ from mcap.reader import make_reader
 
 from tests.conftest import free_port
 
-SPEED = "8"
+SPEED = "16"
 MINUTES = {"a": 1, "b": 2, "c": 1}
 
 
