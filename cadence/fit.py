@@ -108,31 +108,13 @@ def cohort_for(
     return Cohort(task, moves, n_per_path, subjects, cals, minutes)
 
 
-def fit_figure(paper: dict[str, tuple[float, float]], twin: dict[str, tuple[float, float]]) -> bytes:
-    """φ relative to (a), and ε, per condition: the paper beside the fitted twin; (c) was not fitted."""
-    import matplotlib.pyplot as plt
-
-    from cadence.plots import _png
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
-    x = np.arange(3)
-    for ax, (i, label) in zip(axes, ((0, "φ / φ_a"), (1, "ε [errors/cycle]")), strict=True):
-        norm = (lambda v, c: v[c][0] / v["a"][0]) if i == 0 else (lambda v, c: v[c][1])
-        ax.bar(x - 0.18, [norm(paper, c) for c in "abc"], 0.36, label="paper (people)", color="0.6")
-        ax.bar(x + 0.18, [norm(twin, c) for c in "abc"], 0.36, label="twin (simulated)", color="tab:blue")
-        ax.set_xticks(x, ["(a) fitted", "(b) fitted", "(c) predicted"])
-        ax.set_ylabel(label)
-    axes[0].legend()
-    fig.suptitle("Operator twin fitted to Table I on (a) and (b): a simulation, not people")
-    return _png(fig)
-
-
 Rates = dict[str, tuple[float, float]]  # condition → (φ, ε)
 
 
 def write_fit(result: Fit, predicted: Rates, rr_p: dict[str, float], out: Path) -> dict:
     import json
 
+    from cadence.plots import fit_figure
     from common.runtime.storage import write_readable
 
     doc = {

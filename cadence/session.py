@@ -288,7 +288,7 @@ class Watch:
     start_ns: int | None = None
     cycles: int = 0
     errors: int = 0
-    isolation: str | None = None  # as last checked
+    isolation: str | None = None  # ``Bus.isolation()`` as last checked
     changed: asyncio.Event = field(default_factory=asyncio.Event)
 
     def on(self, key: str, payload: bytes) -> None:
@@ -314,13 +314,12 @@ class Watch:
             self.errors += 1
         self.changed.set()
 
-    def readiness(self, isolation: str | None = None) -> dict[str, str | None]:
-        """Each check and what is wrong with it (None: fine); ``isolation``: ``Bus.isolation()``."""
-        self.isolation = isolation
+    def readiness(self) -> dict[str, str | None]:
+        """Each check and what is wrong with it (None: fine)."""
         missing = [s for s in SERVICES if s not in self.statuses]
         robot, w = self.robot, self.window
         return {
-            "bus": isolation,
+            "bus": self.isolation,
             "services": f"no status yet from {', '.join(missing)}" if missing else None,
             "robot": "no robot/state yet"
             if robot is None
@@ -437,7 +436,10 @@ async def run_session(
     try:
         # 1. the cell is ready: every service's status, the robot, the strap
         deadline = wall0 + opts.ready_timeout_s
-        while (problem := check_ready(watch.readiness(bus.isolation()))) and not stop.is_set():
+        while not stop.is_set():
+            watch.isolation = bus.isolation()
+            if (problem := check_ready(watch.readiness())) is None:
+                break
             show("checking the cell", watch, opts)
             if time.monotonic() > deadline:
                 raise CadenceError(f"the cell is not ready after {opts.ready_timeout_s:g} s: {problem}")

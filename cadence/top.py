@@ -32,8 +32,7 @@ class KeyStats:
             self.arrivals.popleft()
         if len(self.arrivals) < 2:
             return 0.0
-        span = max(now - self.arrivals[0], 1e-9)
-        return len(self.arrivals) / max(span, 1.0)
+        return len(self.arrivals) / max(now - self.arrivals[0], 1.0)
 
 
 @dataclass

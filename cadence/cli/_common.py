@@ -10,7 +10,7 @@ from typing import Literal
 from msgspec import structs
 from rich.console import Console
 
-from common.runtime.bus import BusConfig
+from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import Task, load_task
 from schemas.topology import SERVICES as GRAPH_SERVICES
@@ -80,6 +80,23 @@ def bus_config(args: argparse.Namespace, mode: Literal["peer", "client", "router
         listen=getattr(args, "listen", None) or [],
         config_file=args.zenoh_config,
     )
+
+
+def joining(args: argparse.Namespace) -> BusConfig:
+    """A command's bus: a peer on this host, or a client of the router ``--connect`` names."""
+    return bus_config(args, "peer" if not args.connect else "client")
+
+
+def say_when_alone(bus: Bus, command: str) -> None:
+    """After a session's first moments, say on stderr if it reaches no router and no peer: Zenoh would
+    leave the command waiting in silence."""
+    from common.runtime.service import ISOLATED_SAY_S
+
+    def say() -> None:
+        if (why := bus.isolation()) is not None:
+            err.print(f"cadence {command}: {why}: nothing will come", markup=False, soft_wrap=True)
+
+    asyncio.get_running_loop().call_later(ISOLATED_SAY_S, say)
 
 
 def stop_on_signals():

@@ -11,7 +11,16 @@ from typing import TYPE_CHECKING, TypeVar
 
 import msgspec
 
-from cadence.cli._common import SERVICES, add_bus_flags, bus_config, err, out, stop_on_signals
+from cadence.cli._common import (
+    SERVICES,
+    add_bus_flags,
+    bus_config,
+    err,
+    joining,
+    out,
+    say_when_alone,
+    stop_on_signals,
+)
 from common.runtime.errors import BusError, InputError
 from schemas.base import Message
 from schemas.operator import OperatorError, OperatorSignal
@@ -57,7 +66,6 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     from cadence.recording import record
     from common.runtime.bus import Bus
-    from common.runtime.service import ISOLATED_SAY_S
 
     async def go() -> int:
         stop = stop_on_signals()
@@ -67,12 +75,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             keys = args.keys or [bus.key("**")]
             err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
             bus.token(bus.key("health/recorder"))  # a recorder is running (zenoh liveliness)
-
-            def say_if_alone() -> None:
-                if (why := bus.isolation()) is not None:
-                    err.print(f"cadence record: {why}: nothing will come", markup=False, soft_wrap=True)
-
-            asyncio.get_running_loop().call_later(ISOLATED_SAY_S, say_if_alone)
+            say_when_alone(bus, "record")
             rec = await record(
                 bus,
                 Path(args.output),
@@ -117,7 +120,7 @@ def cmd_get(args: argparse.Namespace) -> int:
     from schemas.topology import AnyMessage
 
     async def go() -> int:
-        async with await Bus.open(bus_config(args, "peer" if not args.connect else "client"), "cell1") as bus:
+        async with await Bus.open(joining(args), "cell1") as bus:
             replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
             alone = bus.isolation()
         ok = 0
@@ -149,14 +152,13 @@ def cmd_top(args: argparse.Namespace) -> int:
 
     async def go() -> int:
         stop = stop_on_signals()
-        cfg = bus_config(args, "peer" if not args.connect else "client")
+        cfg = joining(args)
         async with await Bus.open(cfg, args.cell) as bus:
             bus.subscribe_raw(bus.key("**"), top.on)
+            say_when_alone(bus, "top")
             if args.once is not None:
                 await first_of(stop.wait(), asyncio.sleep(args.once))
                 out.print(top.view(args.status_period))
-                if (why := bus.isolation()) is not None:
-                    err.print(f"cadence top: {why}", markup=False, soft_wrap=True)
                 return 0
             with Live(top.view(args.status_period), console=out, refresh_per_second=2) as live:
                 while not stop.is_set():
@@ -176,7 +178,6 @@ def cmd_view(args: argparse.Namespace) -> int:
     from cadence.view import Bridge
     from common.runtime.bus import Bus
     from common.runtime.resources import FOXGLOVE_LAYOUT
-    from common.runtime.service import ISOLATED_SAY_S, first_of
 
     async def go() -> int:
         stop = stop_on_signals()
@@ -187,7 +188,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         except Exception as exc:  # the SDK raises its own kinds for a port in use
             raise InputError(f"cannot serve Foxglove on {args.host}:{args.port}: {exc}") from None
         try:
-            cfg = bus_config(args, "peer" if not args.connect else "client")
+            cfg = joining(args)
             async with await Bus.open(cfg, args.cell) as bus:
                 bus.subscribe_raw(bus.key("**"), bridge.on)
                 out.print(
@@ -195,9 +196,7 @@ def cmd_view(args: argparse.Namespace) -> int:
                     f"({len(bridge.channels) + 2} channels so far); layout: {FOXGLOVE_LAYOUT}; Ctrl-C ends",
                     markup=False, soft_wrap=True,
                 )  # fmt: skip
-                await first_of(stop.wait(), asyncio.sleep(ISOLATED_SAY_S))
-                if (why := bus.isolation()) is not None:
-                    err.print(f"cadence view: {why}", markup=False, soft_wrap=True)
+                say_when_alone(bus, "view")
                 await stop.wait()
         finally:
             server.stop()
@@ -217,9 +216,7 @@ def cmd_robot_resume(args: argparse.Namespace) -> int:
     by = args.by or getpass.getuser()
 
     async def go() -> int:
-        async with await Bus.open(
-            bus_config(args, "peer" if not args.connect else "client"), args.cell, role="operator"
-        ) as bus:
+        async with await Bus.open(joining(args), args.cell, role="operator") as bus:
             replies = await bus.get(ROBOT_RESUME, timeout=args.timeout, parameters=f"by={by}")
         for r in replies:
             if r.message is not None:
@@ -266,9 +263,7 @@ def _tell_once(args: argparse.Namespace, topic: Topic[M], msg: M) -> int:
     from common.runtime.bus import Bus
 
     async def go() -> str:
-        async with await Bus.open(
-            bus_config(args, "peer" if not args.connect else "client"), args.cell, role="operator"
-        ) as bus:
+        async with await Bus.open(joining(args), args.cell, role="operator") as bus:
             return await tell(bus, topic, _checked(msg), args.timeout)
 
     key = asyncio.run(go())

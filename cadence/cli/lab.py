@@ -280,7 +280,7 @@ def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
     if w.start_ns is None:
         t.add_column("check")
         t.add_column("state")
-        for what, why in w.readiness(w.isolation).items():
+        for what, why in w.readiness().items():
             t.add_row(what, "[green]ok[/green]" if why is None else why)
         return t
     for col in ("time left", "mean RR (last window)", "k", "cycles", "φ so far", "errors", "robot"):
@@ -304,16 +304,17 @@ def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
 def cmd_session(args: argparse.Namespace) -> int:
     from rich.live import Live
 
-    from cadence.cli._common import bus_config, stop_on_signals
+    from cadence.cli._common import joining, stop_on_signals
     from cadence.cli.hrv import calibrate
     from cadence.session import SessionOptions, load_session, run_session, task_digest
     from common.runtime.bus import Bus
+    from common.runtime.config import CommonSettings
 
     out_path = Path(args.out) if args.out else Path(f"{args.subject}_{args.condition}.mcap")
     if out_path.exists():
         raise InputError(f"{out_path}: exists; a session file is evidence and is never overwritten")
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or "~/.local/share/cadence")
+    data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or CommonSettings().data_dir)
     opts = SessionOptions(
         subject=args.subject,
         condition=args.condition,
@@ -331,7 +332,7 @@ def cmd_session(args: argparse.Namespace) -> int:
 
     async def go() -> SessionEnd:
         stop = stop_on_signals()
-        cfg = bus_config(args, "peer" if not args.connect else "client")
+        cfg = joining(args)
         async with await Bus.open(cfg, args.cell, role="operator") as bus:
             with Live(console=err, refresh_per_second=4, transient=False) as live:
 

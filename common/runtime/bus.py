@@ -87,6 +87,11 @@ class Request:
     key: str
     parameters: str
 
+    @property
+    def params(self) -> dict[str, str]:
+        """The selector's ``a=1;b=2`` as a mapping (a part without ``=`` is ignored)."""
+        return dict(p.split("=", 1) for p in self.parameters.split(";") if "=" in p)
+
 
 @dataclass(frozen=True, slots=True)
 class Reply(Generic[M]):

@@ -64,10 +64,9 @@ def fixed_selection(preset: int | str, n: int, t_ns: int) -> Selection:
     return Selection(t_ns=t_ns, seq=0, k=fixed_k(preset, n), n=n, delta=0, reason="fixed")
 
 
-def parse_condition(parameters: str, n: int, t_ns: int) -> Condition:
+def parse_condition(p: dict[str, str], n: int, t_ns: int) -> Condition:
     """``mode=fixed;k=a`` (``a``, ``b`` or a number) or ``mode=adaptive``, with ``by=<who>``: a QueryError
     says what is wrong, so the session that asked can tell its user."""
-    p = dict(part.split("=", 1) for part in parameters.split(";") if "=" in part)
     mode, k, by = p.get("mode", ""), p.get("k", "a"), p.get("by", "")[:200]
     if mode not in ("adaptive", "fixed"):
         raise QueryError(f"mode={mode!r}: expected mode=adaptive or mode=fixed;k=a|b|<1…{n}>")
@@ -194,10 +193,10 @@ async def main(ctx: ServiceContext) -> None:
         """A session sets its condition: stored, then in force, then announced; the reply is the
         selection it starts with, whose t_ns is the data time the condition took effect."""
         now = ctx.common.clock.now_ns()
-        c = parse_condition(req.parameters, settings.n, now)
+        c = parse_condition(req.params, settings.n, now)
         # a session that has just calibrated names its calibration: the topic and this query travel
         # apart, and condition (c) must start from the new RR_r, not the one before
-        wanted = dict(p.split("=", 1) for p in req.parameters.split(";") if "=" in p).get("calibration")
+        wanted = req.params.get("calibration")
         if wanted is not None and (not wanted.isdecimal() or int(wanted) not in calibrations_seen):
             raise QueryError(f"{CALIBRATION_NOT_YET}: calibration {wanted[:40]}")
         if c.mode == "adaptive":

@@ -236,7 +236,7 @@ class Executor:
 
     async def on_resume(self, req: Request) -> RobotEvent:
         """``robot/resume``: a person clears a latched stop. The reply is the state change it made."""
-        by = dict(p.split("=", 1) for p in req.parameters.split(";") if "=" in p).get("by", "")
+        by = req.params.get("by", "")
         if self.motion.state is not State.STOPPED:
             raise QueryError(f"nothing to resume: the robot is {self.motion.state}")
         return await self.resume(f"resumed by {by or 'cadence robot resume'}")
@@ -479,7 +479,7 @@ class Executor:
         """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),
         then the robot keeps waiting or goes on without it, as the task program says."""
         assert step.wait_for is not None
-        timeout = None if step.deadline is None else step.deadline / self.clock.speed
+        timeout = None if step.deadline is None else self.clock.wall_s(step.deadline)
         got = await self.signals.wait(step.wait_for, self.ctx.stop, timeout)
         if got != "late":
             return got
