@@ -54,7 +54,9 @@ async def test_cadence_top_shows_a_running_services_keys(tmp_path: Path, endpoin
         svc = InProcessService(
             "decision_maker", main, Settings(republish_s=0.1, rr_rest_s=0.9), tmp_path, endpoint
         )
-        argv = ["top", "--connect", endpoint, "--once", "3", "--status-period", "0.1"]
+        # the service reports every 0.1 s; top is told 1 s, so a status late by a loaded machine's
+        # stall (up to 3 s) still counts as alive
+        argv = ["top", "--connect", endpoint, "--once", "3", "--status-period", "1"]
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "cadence", *argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             env={**os.environ, "COLUMNS": "250"},
