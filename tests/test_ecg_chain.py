@@ -12,8 +12,8 @@ import pytest
 from common.decision import Params, State, step
 from common.hrv.calibration import CALIBRATION_FILE
 from common.hrv.records import read_record
-from common.hrv.rpeaks import detect
-from common.hrv.stream import intervals, windows
+from common.hrv.rpeaks import detect_peaks
+from common.hrv.stream import intervals, peak_intervals, windows
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
@@ -42,7 +42,7 @@ def record_cut(tmp_path: Path, name: str, seconds: float) -> tuple[Path, np.ndar
 async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) -> None:
     csv, x = record_cut(tmp_path, "100", 125)
     START_NS = now_ns()
-    expected = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
+    expected = windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0, end_s=len(x) / 130.0)
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         decider = InProcessService(
@@ -105,7 +105,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     START_NS = now_ns()
     offline = [
         w
-        for w in windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)[:2]
+        for w in windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0, end_s=len(x) / 130.0)[:2]
         if w.quality == "good"
     ]
 

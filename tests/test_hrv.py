@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from common.hrv.records import read_record
-from common.hrv.rpeaks import detect
-from common.hrv.stream import HrvStream, classify, intervals, windows
+from common.hrv.rpeaks import detect, detect_peaks
+from common.hrv.stream import HrvStream, classify, intervals, peak_intervals, windows
 from tests.test_cli import run_cli
 from tests.test_rpeaks import ECG, needs_data
 
@@ -23,7 +23,19 @@ def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
     rr[20], rr[21] = 0.55, 1.05  # a premature beat and its compensatory pause
     kinds = classify(rr)
     assert kinds[5] == "missed" and kinds[12] == "extra" and kinds[20] == "ectopic" and kinds[21] == "ectopic"
-    assert sum(k != "ok" for k in kinds) == 5
+    # which end of the fragment is the false beat cannot be told: the interval before it goes too
+    assert kinds[11] == "extra" and kinds[13] != "ok"
+    assert sum(k != "ok" for k in kinds) == 6
+
+
+def test_the_ecg_excludes_what_rr_cannot_tell_a_late_unlike_beat_and_a_burst_of_noise() -> None:
+    rr = np.full(30, 0.8)  # regular to RR alone
+    likeness, noise = np.ones(30), np.full(30, 0.3)
+    likeness[10] = 0.4  # interval 10 has a beat unlike the template (a late PVC: RR cannot see it)
+    noise[20] = 0.9  # a burst of noise between the beats of interval 20
+    kinds = classify(rr, likeness, noise)
+    assert kinds[10] == "unlike" and kinds[20] == "noise"
+    assert sum(k != "ok" for k in kinds) == 2 and classify(rr) == ["ok"] * 30
 
 
 def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a_false_one() -> None:
@@ -33,22 +45,26 @@ def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a
     kinds = classify(rr)
     assert kinds[8] == kinds[9] == "ectopic"
     assert kinds[22] == "ok" and kinds[7] == "ok" and kinds[10] == "ok"
-    assert sum(k != "ok" for k in kinds) == 4
+    assert kinds[19] == "extra"  # next to the fragment, which might have been the other piece
+    assert sum(k != "ok" for k in kinds) == 5
 
 
 @needs_data
 def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> None:
-    """Issue 19's scorer on the shared records: the truth is the mean of the annotated NN intervals."""
+    """Issue 19's bar, by its scorer, on the shared records clean and with the strongest white noise and
+    the motion bursts (`cadence bench hrv --windows` runs all five variants): no window marked good is a
+    decision step (20 ms) off the mean of the annotated NN intervals, and holding is not how."""
     from cadence.bench import bench_hrv_windows
 
-    score = bench_hrv_windows(str(ECG), 130.0, ("clean",), peers=False)["clean"]["cadence"]
-    f = score.figures()
-    print(f)
-    assert f["p95_ms"] <= 5.0
-    assert f["held_share_sinus"] <= 0.24  # holding everything would be accurate and useless
-    # what is left over 20 ms: 101 at 300 s and 105 at 1290 s, where the annotators marked noise and left
-    # out a beat in it, so their "NN" interval is 1.4-1.9 s long (issue 19, still open on them)
-    assert f["over_20_ms"] <= 2 and set(str(f["worst_records"]).split(", ")) <= {"101", "105", "208"}
+    scores = bench_hrv_windows(str(ECG), 130.0, ("clean", "white6", "motion"), peers=False)
+    for variant, by_pipeline in scores.items():
+        f = by_pipeline["cadence"].figures()
+        print(variant, f)
+        assert f["over_20_ms"] == 0 and f["p95_ms"] <= 5.0, variant
+        assert f["held_share_sinus"] <= 0.24, variant  # holding everything would be accurate and useless
+    # 101 at 300 s: the annotators marked noise and left out a beat in it, so their "NN" interval is 1.9 s
+    # long; the noise in the ECG holds that window, not its RR
+    assert scores["clean"]["cadence"].held_reasons.get("noise", 0) >= 1
 
 
 @needs_data
@@ -110,7 +126,7 @@ def test_a_broken_recording_is_one_line_and_exit_2(tmp_path) -> None:
 def test_the_stream_gives_the_offline_windows_in_chunks(chunk: int) -> None:
     rec = read_record(str(ECG / "208"), fs=130.0)
     x = rec.uv[: 130 * 600]
-    offline = windows(intervals(detect(x, 130.0) / 130.0), 30.0, end_s=len(x) / 130.0)
+    offline = windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0, end_s=len(x) / 130.0)
     stream, online = HrvStream(130.0), []
     for i in range(0, len(x), chunk):
         online += stream.feed(i / 130.0, x[i : i + chunk])[1]
@@ -191,7 +207,8 @@ def test_the_beats_the_stream_flags_are_the_intervals_its_windows_exclude() -> N
         beats, wins = beats + b, wins + w
     b, w = stream.flush()
     beats, wins = beats + b, wins + w
-    iv = intervals(np.array([b.t_s for b in beats]))
+    iv = peak_intervals(detect_peaks(x, 130.0), 130.0)
+    assert [b.t_s for b in beats[1:]] == pytest.approx(list(iv.t_s))
     assert beats[0].kind == "start" and beats[0].excluded and [b.kind for b in beats[1:]] == iv.kind
     assert any(b.excluded for b in beats[1:]) and not all(b.excluded for b in beats[1:])  # 208: many PVCs
     for w in wins:

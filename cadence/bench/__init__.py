@@ -305,7 +305,7 @@ def bench_hrv(
 
     from common.hrv.records import read_record
     from common.hrv.rpeaks import RPeakDetector
-    from common.hrv.stream import intervals, match_beats, windows
+    from common.hrv.stream import intervals, match_beats, peak_intervals, windows
 
     records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
     others = _established_detectors(fs)
@@ -322,15 +322,15 @@ def bench_hrv(
         t0 = time.perf_counter()
         det, peaks = RPeakDetector(fs), []
         for i in range(0, len(rec.uv), chunk):
-            new = det.feed(rec.uv[i : i + chunk])
-            latency += [(min(i + chunk, len(rec.uv)) - p) / fs for p in new]
+            new = det.feed_peaks(rec.uv[i : i + chunk])
+            latency += [(min(i + chunk, len(rec.uv)) - p.index) / fs for p in new]
             peaks += new
-        peaks += det.flush()
+        peaks += det.flush_peaks()
         elapsed = time.perf_counter() - t0
-        found = np.array(sorted(peaks)) / fs
+        found = np.array(sorted(p.index for p in peaks)) / fs
         totals["cadence"] += (*match_beats(beats_s, found), elapsed)
         end = len(rec.uv) / fs
-        ours = windows(intervals(found), 30.0, end_s=end)
+        ours = windows(peak_intervals(peaks, fs), 30.0, end_s=end)
         ref = windows(intervals(beats_s), 30.0, end_s=end)
         errors += [
             abs(a.mean_rr_s - b.mean_rr_s)
@@ -379,8 +379,8 @@ def bench_hrv_windows(
     from cadence.bench.ecg_noise import noisy
     from cadence.bench.hrv_scoring import NN_SYMBOLS, has_arrhythmia_runs, truth
     from common.hrv.records import read_annotations, read_record
-    from common.hrv.rpeaks import detect
-    from common.hrv.stream import intervals, windows
+    from common.hrv.rpeaks import detect_peaks
+    from common.hrv.stream import intervals, peak_intervals, windows
 
     try:
         import neurokit2 as nk
@@ -404,7 +404,7 @@ def bench_hrv_windows(
             if progress:
                 progress(f"{path.name} {v}")
             x = noisy(rec.uv, fs, v, seed=zlib.crc32(path.name.encode()))
-            ws = windows(intervals(detect(x, fs, chunk=13) / fs), 30.0, end_s=end)
+            ws = windows(peak_intervals(detect_peaks(x, fs, chunk=13), fs), 30.0, end_s=end)
             tr = truth(ann, [w.start_s for w in ws], 30.0, end)
             out[v]["cadence"].add_windows(path.name, tr, ws, sinus)
             if nk is not None:

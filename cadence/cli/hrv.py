@@ -24,10 +24,10 @@ if TYPE_CHECKING:
 
 def _record_peaks(args: argparse.Namespace):
     from common.hrv.records import read_record
-    from common.hrv.rpeaks import detect
+    from common.hrv.rpeaks import detect_peaks
 
     rec = read_record(args.record, fs=args.fs)
-    return rec, detect(rec.uv, rec.fs, chunk=round(rec.fs)) / rec.fs
+    return rec, detect_peaks(rec.uv, rec.fs, chunk=round(rec.fs))
 
 
 def cmd_hrv_peaks(args: argparse.Namespace) -> int:
@@ -36,7 +36,7 @@ def cmd_hrv_peaks(args: argparse.Namespace) -> int:
     if is_rr_file(args.record):
         raise InputError(f"{args.record}: RR intervals only, no ECG to find peaks in (`cadence hrv windows`)")
     rec, peaks = _record_peaks(args)
-    print(json.dumps({"fs": rec.fs, "peaks_s": [round(float(t), 6) for t in peaks]}))
+    print(json.dumps({"fs": rec.fs, "peaks_s": [round(p.index / rec.fs, 6) for p in sorted(peaks)]}))
     return 0
 
 
@@ -46,16 +46,16 @@ def cmd_hrv_windows(args: argparse.Namespace) -> int:
     import numpy as np
 
     from common.hrv.records import is_rr_file, read_rr
-    from common.hrv.stream import intervals, windows
+    from common.hrv.stream import intervals, peak_intervals, windows
 
     if is_rr_file(args.record):
         rr = read_rr(args.record)
-        peaks = np.concatenate([[0.0], np.cumsum(rr)])
-        end_s = float(peaks[-1])
+        beats_s = np.concatenate([[0.0], np.cumsum(rr)])
+        iv, end_s = intervals(beats_s), float(beats_s[-1])
     else:
         rec, peaks = _record_peaks(args)
-        end_s = len(rec.uv) / rec.fs
-    for w in windows(intervals(peaks), args.window, end_s=end_s):
+        iv, end_s = peak_intervals(peaks, rec.fs), len(rec.uv) / rec.fs
+    for w in windows(iv, args.window, end_s=end_s):
         print(
             json.dumps(
                 {

@@ -12,7 +12,9 @@ keeps the detector hundreds of times faster than real time on one core.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +29,22 @@ T_WAVE_S = 0.36
 LOOKAHEAD_S = 0.21  # a maximum is final once the refractory span after it (0.2 s) has been seen
 LEARN_S = 2.0
 SEARCHBACK_FACTOR = 1.66
+SHAPE_S = 0.1  # each side of the R peak: the QRS whose shape is compared with the template
+TEMPLATE_BEATS = 8  # the template is the median of the last this many beats like it
+RELEARN_BEATS = 8  # this many beats in a row unlike the template: the QRS itself changed, learn it anew
+LIKE = 0.8  # correlation with the template below which a beat is not like the rhythm's own (ectopic, noise)
+
+
+class Peak(NamedTuple):
+    """An R peak and what the cleaning needs to know of the ECG around it, which RR intervals alone
+    cannot tell: ``likeness``, the correlation of its QRS with the template of the recent normal beats (a
+    ventricular beat that is only mildly early, or a spike of noise, is unlike it); ``noise``, the largest
+    band-passed excursion between the previous peak's QRS and this one's, relative to the recent QRS
+    amplitude (a burst of noise in which beats may be hidden or invented; 0 for a segment's first)."""
+
+    index: int
+    likeness: float
+    noise: float
 
 
 @dataclass
@@ -81,11 +99,23 @@ class RPeakDetector:
         self._last_slope = 0.0
         self._rr: list[int] = []
         self._pending: list[tuple[int, float]] = []  # below-threshold maxima since the last R
-        self._out: list[int] = []
+        self._out: list[Peak] = []
+        self._shape = round(SHAPE_S * fs)
+        self._templates: deque[Array] = deque(maxlen=TEMPLATE_BEATS)  # QRS shapes of beats like the rhythm
+        self._unlike: deque[Array] = deque(maxlen=RELEARN_BEATS)  # the latest run of beats unlike it
+        self._amps: deque[float] = deque(maxlen=TEMPLATE_BEATS)  # recent QRS amplitudes, band-passed
+        self._last_peak: int | None = None  # the last R peak given out (absolute index)
 
     # -- public ----------------------------------------------------------------------------------
 
     def feed(self, x: Array) -> list[int]:
+        return [p.index for p in self.feed_peaks(x)]
+
+    def flush(self) -> list[int]:
+        return [p.index for p in self.flush_peaks()]
+
+    def feed_peaks(self, x: Array) -> list[Peak]:
+        """As ``feed``, with each peak's likeness and noise."""
         x = np.asarray(x, dtype=float)
         if x.size == 0:
             return []
@@ -97,13 +127,13 @@ class RPeakDetector:
         self._scan(final=False)
         return self._take()
 
-    def flush(self) -> list[int]:
+    def flush_peaks(self) -> list[Peak]:
         self._scan(final=True)
         return self._take()
 
     # -- internals -------------------------------------------------------------------------------
 
-    def _take(self) -> list[int]:
+    def _take(self) -> list[Peak]:
         out, self._out = self._out, []
         self._trim()
         return out
@@ -113,6 +143,8 @@ class RPeakDetector:
         keep_from = self._n - round(4.0 * self.fs)
         if self._last_r is not None:
             keep_from = min(keep_from, self._last_r - self._t_wave)
+        if self._last_peak is not None:  # the noise since it is measured at the next peak
+            keep_from = min(keep_from, self._last_peak)
         keep_from = min(keep_from, self._next_scan - self._refractory - 2)
         cut = keep_from - self._base
         if cut > 0:
@@ -183,7 +215,39 @@ class RPeakDetector:
         self._last_r = idx
         self._last_slope = slope
         self._pending.clear()
-        self._out.append(self._locate(idx))
+        self._out.append(self._describe(self._locate(idx)))
+
+    def _describe(self, r: int) -> Peak:
+        """The peak with its likeness to the template and the noise since the previous peak."""
+        j, h = r - self._base, self._shape
+        seg = self._raw[max(0, j - h) : j + h + 1]
+        seg = np.pad(seg, (max(0, h - j), 2 * h + 1 - len(seg) - max(0, h - j)), mode="edge")
+        seg = seg - np.median(self._raw[max(0, j - 3 * h) : j + 1])
+        if len(self._templates) < 3:
+            likeness = 1.0  # learning the template
+        else:
+            c = np.corrcoef(np.median(np.array(self._templates), axis=0), seg)[0, 1]
+            likeness = float(c) if np.isfinite(c) else 0.0
+        if likeness >= LIKE:
+            self._templates.append(seg)
+            self._unlike.clear()
+        else:
+            self._unlike.append(seg)
+            if len(self._unlike) == RELEARN_BEATS:  # not ectopy: the QRS itself changed (electrodes, posture)
+                self._templates.clear()
+                self._templates.extend(self._unlike)
+                self._unlike.clear()
+        amp = float(np.max(np.abs(self._bp[max(0, j - 6) : j + 4]))) if j >= 0 else 0.0
+        self._amps.append(amp)
+        noise = 0.0
+        if self._last_peak is not None:
+            lo = self._last_peak + round(0.12 * self.fs) - self._base
+            hi = j - round(0.08 * self.fs)
+            level = float(np.median(self._amps))
+            if hi > lo and level > 0:
+                noise = float(np.max(np.abs(self._bp[max(0, lo) : hi]))) / level
+        self._last_peak = r
+        return Peak(r, likeness, noise)
 
     def _search_back(self, now: int) -> None:
         """No beat for 1.66 mean RR: take the largest skipped maximum above half the threshold."""
@@ -209,12 +273,17 @@ class RPeakDetector:
         return r0 + int(np.argmax(np.abs(raw - base))) + self._base
 
 
-def detect(x: Array, fs: float, chunk: int | None = None) -> NDArray[np.intp]:
-    """All R peaks of a record (sample indices); ``chunk`` feeds it in pieces of that many samples."""
+def detect_peaks(x: Array, fs: float, chunk: int | None = None) -> list[Peak]:
+    """All R peaks of a record with their likeness and noise; ``chunk`` feeds it in pieces of that many
+    samples."""
     det = RPeakDetector(fs)
-    out: list[int] = []
+    out: list[Peak] = []
     step = chunk or len(x)
     for i in range(0, len(x), step):
-        out += det.feed(x[i : i + step])
-    out += det.flush()
-    return np.array(sorted(set(out)), dtype=np.intp)
+        out += det.feed_peaks(x[i : i + step])
+    return out + det.flush_peaks()
+
+
+def detect(x: Array, fs: float, chunk: int | None = None) -> NDArray[np.intp]:
+    """All R peaks of a record (sample indices)."""
+    return np.array(sorted({p.index for p in detect_peaks(x, fs, chunk)}), dtype=np.intp)

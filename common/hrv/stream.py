@@ -3,8 +3,12 @@
 Why cleaning is not optional: one missed or extra beat moves a 30 s window's mean RR by about 20 ms,
 the size of Δ_rs, so one detection error could move k. An interval is excluded when it departs from the
 median of its neighbours by more than ``TOLERANCE``; its kind says why (``missed``: about twice the
-median, ``extra``: a fragment, ``ectopic``: a premature beat and its compensatory pause). An interval
-that spans a gap in the data is never formed.
+median, ``extra``: a fragment, ``ectopic``: a premature beat and its compensatory pause). What RR alone
+cannot tell, the ECG around each beat can (issue 19; ``rpeaks.Peak``): a beat whose QRS is unlike the
+rhythm's own (a ventricular beat only mildly early, a spike of noise) takes both its intervals with it
+(``unlike``), and so does a burst of noise between two beats (``noise``). A window in which noise and
+excluded beats meet is held: where beats are hidden in noise, even the annotators' truth disagrees on
+how many there were. An interval that spans a gap in the data is never formed.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from common.hrv.rpeaks import RPeakDetector
+from common.hrv.rpeaks import LIKE, Peak, RPeakDetector
 from schemas.hrv import Beats, HoldReason, HrvWindow, Quality
 
 TOLERANCE = 0.2  # relative departure from the local median that excludes an interval
@@ -27,8 +31,11 @@ MIN_RR_S, MAX_RR_S = 0.25, 2.5  # physiological bounds (240 and 24 beats per min
 MAX_EXCLUDED = 0.2  # a window with more excluded intervals than this is low quality
 MIN_COVERAGE = 0.6  # clean intervals must cover this share of the window
 RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the notification time: a gap
+NOISE = 0.8  # band-passed noise between two beats above this share of the QRS amplitude excludes it
+# a window with HOLD_NOISY intervals noisier than HOLD_NOISE that are excluded, or next to one, is held
+HOLD_NOISE, HOLD_NOISY = 1.0, 2
 
-Kind = Literal["ok", "missed", "extra", "ectopic", "implausible"]
+Kind = Literal["ok", "missed", "extra", "ectopic", "implausible", "unlike", "noise"]
 Gaps = tuple[tuple[float, float], ...] | list[tuple[float, float]]  # (start, end) of missing data, s
 
 
@@ -39,33 +46,62 @@ class Intervals:
     t_s: NDArray[np.float64]
     rr_s: NDArray[np.float64]
     kind: list[Kind]
+    noise: NDArray[np.float64] | None = None  # from the ECG, per interval; None for device RR
 
     @property
     def excluded(self) -> NDArray[np.bool_]:
         return np.array([k != "ok" for k in self.kind], dtype=bool)
 
 
-def intervals(peaks_s: NDArray[np.float64], gaps_s: Gaps = ()) -> Intervals:
-    """RR intervals between consecutive peaks, classified; none across a gap (start, end) in the data."""
+def intervals(
+    peaks_s: NDArray[np.float64],
+    gaps_s: Gaps = (),
+    likeness: NDArray[np.float64] | None = None,
+    noise: NDArray[np.float64] | None = None,
+) -> Intervals:
+    """RR intervals between consecutive peaks, classified; none across a gap (start, end) in the data.
+    ``likeness`` and ``noise`` are the detector's, per peak (``rpeaks.Peak``): without them (device RR),
+    the cleaning has the intervals only."""
     peaks_s = np.asarray(peaks_s, dtype=float)
     if len(peaks_s) < 2:
-        return Intervals(np.empty(0), np.empty(0), [])
+        return Intervals(np.empty(0), np.empty(0), [], None if noise is None else np.empty(0))
     rr = np.diff(peaks_s)
     t = peaks_s[1:]
     keep = np.ones(len(rr), dtype=bool)
     for g0, g1 in gaps_s:
         keep &= ~((peaks_s[:-1] < g1) & (peaks_s[1:] > g0))
+    like_iv = None if likeness is None else np.minimum(likeness[:-1], likeness[1:])[keep]
+    noise_iv = None if noise is None else np.asarray(noise, dtype=float)[1:][keep]
     rr, t = rr[keep], t[keep]
-    return Intervals(t, rr, classify(rr))
+    return Intervals(t, rr, classify(rr, like_iv, noise_iv), noise_iv)
 
 
-def classify(rr: NDArray[np.float64]) -> list[Kind]:
-    return [classify_one(rr, i) for i in range(len(rr))]
+def peak_intervals(peaks: Sequence[Peak], fs: float, gaps_s: Gaps = ()) -> Intervals:
+    """``intervals`` of the detector's peaks (``rpeaks.detect_peaks``), with what it saw of the ECG."""
+    found = sorted(peaks)
+    return intervals(
+        np.array([p.index / fs for p in found]),
+        gaps_s,
+        np.array([p.likeness for p in found]),
+        np.array([p.noise for p in found]),
+    )
 
 
-def classify_one(rr: NDArray[np.float64] | list[float], i: int) -> Kind:
+def classify(
+    rr: NDArray[np.float64], likeness: Sequence[float] | None = None, noise: Sequence[float] | None = None
+) -> list[Kind]:
+    return [classify_one(rr, i, likeness, noise) for i in range(len(rr))]
+
+
+def classify_one(
+    rr: NDArray[np.float64] | list[float],
+    i: int,
+    likeness: Sequence[float] | None = None,
+    noise: Sequence[float] | None = None,
+) -> Kind:
     """Interval i, from ``rr[i - NEIGHBOURS : i + NEIGHBOURS + 1]`` only (the stream classifies an
-    interval once NEIGHBOURS follow it).
+    interval once NEIGHBOURS follow it); ``likeness[i]`` (the lesser of its two beats') and ``noise[i]``
+    are the ECG's word on it, when there is an ECG.
 
     The reference is the median of the plausible intervals around i, leaving out i and its two
     neighbours (a premature beat moves two intervals). An interval is excluded when it departs from the
@@ -74,7 +110,8 @@ def classify_one(rr: NDArray[np.float64] | list[float], i: int) -> Kind:
     one long by more than PAUSE (a mildly early beat and its compensatory pause). The reference counts
     intervals between normal beats (NN), as the annotations' truth does: both intervals around an
     ectopic beat go. The second half of an interval that a false beat split is not premature: its
-    closing beat is a real one.
+    closing beat is a real one. An interval next to a fragment goes too: which end of the fragment is the
+    false beat cannot be told, so the other piece of the split interval may be either neighbour.
     """
     x = rr[i]
     if not MIN_RR_S <= x <= MAX_RR_S:
@@ -109,6 +146,12 @@ def classify_one(rr: NDArray[np.float64] | list[float], i: int) -> Kind:
 
     if premature(i) or premature(i - 1):
         return "ectopic"
+    if likeness is not None and likeness[i] < LIKE:
+        return "unlike"
+    if noise is not None and noise[i] > NOISE:
+        return "noise"
+    if any(0 <= j < n and (rr[j] < MIN_RR_S or rr[j] / ref <= 0.6) for j in (i - 1, i + 1)):
+        return "extra"
     return "ok"
 
 
@@ -158,6 +201,8 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
         reason = "excluded"
     elif coverage < MIN_COVERAGE:
         reason = "coverage"
+    elif iv.noise is not None and noisy_exclusions(iv, np.nonzero(sel)[0]) >= HOLD_NOISY:
+        reason = "noise"
     # successive differences only between intervals that are next to each other and both clean
     idx = np.nonzero(sel)[0]
     pairs = [
@@ -176,6 +221,22 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
         rmssd,
         float(clean.std(ddof=1)) if clean.size > 1 else None,
         reason,
+    )
+
+
+def noisy_exclusions(iv: Intervals, idx: NDArray[np.intp]) -> int:
+    """How many of the intervals ``idx`` (one window's, in order) are noisy beyond HOLD_NOISE and were
+    excluded by the RR or the shape of their beats, or lie next to one that was, in the window."""
+    assert iv.noise is not None
+    inside = set(idx.tolist())
+
+    def beat_excluded(j: int) -> bool:
+        return j in inside and iv.kind[j] not in ("ok", "noise")
+
+    return sum(
+        1
+        for i in idx
+        if iv.noise[i] > HOLD_NOISE and (beat_excluded(i) or beat_excluded(i - 1) or beat_excluded(i + 1))
     )
 
 
@@ -254,7 +315,7 @@ class HrvStream:
     that are final. A gap (flagged, or a jump in data time) ends a segment: the detector starts afresh
     and no interval spans the gap. An interval is classified once its NEIGHBOURS following intervals exist
     (or its segment ended), exactly as ``classify`` does offline, so a record streamed in chunks gives the
-    windows that ``windows(intervals(detect(...)))`` gives for it whole.
+    windows that ``windows(peak_intervals(detect_peaks(...)))`` gives for it whole.
     """
 
     def __init__(
@@ -270,10 +331,15 @@ class HrvStream:
         self._seg_peaks: list[float] = []
         self._seg_rr: list[float] = []
         self._seg_t: list[float] = []
+        self._seg_like: list[float] = []  # per beat, the detector's (1 for device RR)
+        self._seg_like_iv: list[float] = []  # per interval, the lesser of its beats'
+        self._seg_noise: list[float] = []  # per interval
+        self._ecg = False  # fed samples, so the detector's likeness and noise exist
         self._classified = 0  # of the segment's intervals
         self._done_t: list[float] = []
         self._done_rr: list[float] = []
         self._done_kind: list[Kind] = []
+        self._done_noise: list[float] = []
         self._beats: list[Beat] = []  # final since the last feed
         self.gaps: list[tuple[float, float]] = []
         self._win_start: float | None = None
@@ -296,7 +362,8 @@ class HrvStream:
                 self.gaps.append((self._next_t, t0_s))
             self._det, self._seg_t0, self._seg_n = self._factory(), t0_s, 0
             self.segments += 1
-        found = self._det.feed(samples)
+        self._ecg = True
+        found = self._det.feed_peaks(samples)
         self._seg_n += samples.size
         self._next_t = t0_s + samples.size / self.fs
         self._now = self._next_t
@@ -346,21 +413,30 @@ class HrvStream:
 
     def _end_segment(self) -> None:
         if self._det is not None:
-            self._add_peaks(self._det.flush())
+            self._add_peaks(self._det.flush_peaks())
         self._classify(final=True)
         self._seg_peaks, self._seg_rr, self._seg_t, self._classified = [], [], [], 0
+        self._seg_like, self._seg_like_iv, self._seg_noise = [], [], []
 
-    def _add_peaks(self, idx: list[int]) -> list[float]:
-        return self._add_times([self._seg_t0 + i / self.fs for i in sorted(idx)])
+    def _add_peaks(self, found: list[Peak]) -> list[float]:
+        found = sorted(found)
+        times = [self._seg_t0 + p.index / self.fs for p in found]
+        return self._add_times(times, [p.likeness for p in found], [p.noise for p in found])
 
-    def _add_times(self, times: list[float]) -> list[float]:
-        for t in times:
+    def _add_times(
+        self, times: list[float], likeness: list[float] | None = None, noise: list[float] | None = None
+    ) -> list[float]:
+        for k, t in enumerate(times):
+            like = 1.0 if likeness is None else likeness[k]
             if self._seg_peaks:
                 self._seg_rr.append(t - self._seg_peaks[-1])
                 self._seg_t.append(t)
+                self._seg_like_iv.append(min(like, self._seg_like[-1]))
+                self._seg_noise.append(0.0 if noise is None else noise[k])
             else:
                 self._beats.append(Beat(t, 0.0, "start"))
             self._seg_peaks.append(t)
+            self._seg_like.append(like)
         return times
 
     def _classify(self, final: bool) -> None:
@@ -368,7 +444,11 @@ class HrvStream:
         for i in range(self._classified, max(self._classified, upto)):
             self._done_t.append(self._seg_t[i])
             self._done_rr.append(self._seg_rr[i])
-            self._done_kind.append(classify_one(self._seg_rr, i))
+            if self._ecg:
+                self._done_kind.append(classify_one(self._seg_rr, i, self._seg_like_iv, self._seg_noise))
+            else:
+                self._done_kind.append(classify_one(self._seg_rr, i))
+            self._done_noise.append(self._seg_noise[i])
             self._beats.append(Beat(self._seg_t[i], self._seg_rr[i], self._done_kind[-1]))
         self._classified = max(self._classified, upto)
 
@@ -381,11 +461,12 @@ class HrvStream:
             end = self._win_start + self.window_s
             if not final and pending_from < end:
                 break
-            iv = Intervals(np.array(self._done_t), np.array(self._done_rr), list(self._done_kind))
+            noise = np.array(self._done_noise) if self._ecg else None
+            iv = Intervals(np.array(self._done_t), np.array(self._done_rr), list(self._done_kind), noise)
             out.append(window_stats(self._win_start, end, iv, self.gaps))
             self._win_start = end
         if out:  # what closed windows used is no longer needed: the stream runs for hours
             keep = next((i for i, t in enumerate(self._done_t) if t >= self._win_start), len(self._done_t))
-            del self._done_t[:keep], self._done_rr[:keep], self._done_kind[:keep]
+            del self._done_t[:keep], self._done_rr[:keep], self._done_kind[:keep], self._done_noise[:keep]
             self.gaps = [g for g in self.gaps if g[1] > self._win_start]
         return out
