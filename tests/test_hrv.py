@@ -38,6 +38,20 @@ def test_the_ecg_excludes_what_rr_cannot_tell_a_late_unlike_beat_and_a_burst_of_
     assert sum(k != "ok" for k in kinds) == 2 and classify(rr) == ["ok"] * 30
 
 
+def test_a_run_of_doubled_intervals_is_missed_beats_until_it_lasts_too_long_to_be_dropped_beats() -> None:
+    """The H10's own RR in bigeminy: each premature beat left out, so every interval twice the rhythm's,
+    regular to its neighbours. Against the level they are missed beats; a minute of them is a slow rhythm."""
+    from common.hrv.stream import RELEVEL
+
+    rr = np.concatenate([np.full(40, 0.8), np.full(20, 1.6), np.full(20, 0.8), np.full(RELEVEL + 20, 1.6)])
+    kinds = classify(rr)
+    # each step takes the two intervals on either side as a premature pair; between them:
+    assert kinds[:38] == ["ok"] * 38 and kinds[42:58] == ["missed"] * 16 and kinds[62:78] == ["ok"] * 16
+    run = kinds[82:]
+    assert run[: RELEVEL - 2] == ["missed"] * (RELEVEL - 2) and run[-10:] == ["ok"] * 10  # then relearnt
+    assert classify(rr, segment_starts={80})[86:96] == ["ok"] * 10  # after a gap: no level to compare with
+
+
 def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a_false_one() -> None:
     rr = np.full(30, 0.8)
     rr[8], rr[9] = 0.72, 0.86  # 10 % early, then a pause: within TOLERANCE each, a premature beat as a pair

@@ -14,7 +14,8 @@ how many there were. An interval that spans a gap in the data is never formed.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Sequence
+from collections import deque
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -34,6 +35,8 @@ RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the 
 NOISE = 0.8  # band-passed noise between two beats above this share of the QRS amplitude excludes it
 # a window with HOLD_NOISY intervals noisier than HOLD_NOISE that are excluded, or next to one, is held
 HOLD_NOISE, HOLD_NOISY = 1.0, 2
+LEVEL_N, LEVEL_MIN = 30, 10  # the rhythm's level: the median of the last LEVEL_N clean intervals, once 10
+RELEVEL = 40  # intervals in a row at twice the level: a rhythm that slow is believed, and the level relearnt
 
 Kind = Literal["ok", "missed", "extra", "ectopic", "implausible", "unlike", "noise"]
 Gaps = tuple[tuple[float, float], ...] | list[tuple[float, float]]  # (start, end) of missing data, s
@@ -72,8 +75,10 @@ def intervals(
         keep &= ~((peaks_s[:-1] < g1) & (peaks_s[1:] > g0))
     like_iv = None if likeness is None else np.minimum(likeness[:-1], likeness[1:])[keep]
     noise_iv = None if noise is None else np.asarray(noise, dtype=float)[1:][keep]
+    kept = np.nonzero(keep)[0]
+    starts = {j for j in range(1, len(kept)) if kept[j] != kept[j - 1] + 1}  # the first interval after a gap
     rr, t = rr[keep], t[keep]
-    return Intervals(t, rr, classify(rr, like_iv, noise_iv), noise_iv)
+    return Intervals(t, rr, classify(rr, like_iv, noise_iv, starts), noise_iv)
 
 
 def peak_intervals(peaks: Sequence[Peak], fs: float, gaps_s: Gaps = ()) -> Intervals:
@@ -87,10 +92,51 @@ def peak_intervals(peaks: Sequence[Peak], fs: float, gaps_s: Gaps = ()) -> Inter
     )
 
 
+class Level:
+    """The rhythm's level: the median of the last clean intervals of a segment, which a run of doubled
+    intervals cannot move. A strap's own RR leaves premature beats out (the H10 does), so a run of
+    bigeminy reaches the cleaning as a run of intervals twice as long, regular to any local median; no
+    heart halves its rate from one beat to the next, so against the level they are missed beats."""
+
+    def __init__(self) -> None:
+        self._clean: deque[float] = deque(maxlen=LEVEL_N)
+        self._doubled = 0  # in a row
+
+    @property
+    def value(self) -> float | None:
+        return float(np.median(self._clean)) if len(self._clean) >= LEVEL_MIN else None
+
+    def update(self, rr: float, kind: Kind, doubled: bool) -> None:
+        if kind == "ok":
+            self._clean.append(rr)
+            self._doubled = 0
+        elif doubled:
+            self._doubled += 1
+            if self._doubled >= RELEVEL:  # over a minute of it: a slow rhythm, not dropped beats
+                self._clean.clear()
+                self._doubled = 0
+
+
 def classify(
-    rr: NDArray[np.float64], likeness: Sequence[float] | None = None, noise: Sequence[float] | None = None
+    rr: NDArray[np.float64],
+    likeness: Sequence[float] | None = None,
+    noise: Sequence[float] | None = None,
+    segment_starts: Collection[int] = (),
 ) -> list[Kind]:
-    return [classify_one(rr, i, likeness, noise) for i in range(len(rr))]
+    """Every interval in order, as the stream does: the level carries from one to the next, and starts
+    afresh at each of ``segment_starts`` (the first interval after a gap)."""
+    kinds: list[Kind] = []
+    level = Level()
+    for i in range(len(rr)):
+        if i in segment_starts:
+            level = Level()
+        kinds.append(classify_one(rr, i, likeness, noise, level.value))
+        level.update(rr[i], kinds[-1], doubled(rr[i], level.value))
+    return kinds
+
+
+def doubled(rr: float, level: float | None) -> bool:
+    return level is not None and 1.6 <= rr / level <= 2.4
 
 
 def classify_one(
@@ -98,10 +144,11 @@ def classify_one(
     i: int,
     likeness: Sequence[float] | None = None,
     noise: Sequence[float] | None = None,
+    level: float | None = None,
 ) -> Kind:
     """Interval i, from ``rr[i - NEIGHBOURS : i + NEIGHBOURS + 1]`` only (the stream classifies an
     interval once NEIGHBOURS follow it); ``likeness[i]`` (the lesser of its two beats') and ``noise[i]``
-    are the ECG's word on it, when there is an ECG.
+    are the ECG's word on it, when there is an ECG; ``level`` is the rhythm's (``Level``).
 
     The reference is the median of the plausible intervals around i, leaving out i and its two
     neighbours (a premature beat moves two intervals). An interval is excluded when it departs from the
@@ -111,7 +158,8 @@ def classify_one(
     intervals between normal beats (NN), as the annotations' truth does: both intervals around an
     ectopic beat go. The second half of an interval that a false beat split is not premature: its
     closing beat is a real one. An interval next to a fragment goes too: which end of the fragment is the
-    false beat cannot be told, so the other piece of the split interval may be either neighbour.
+    false beat cannot be told, so the other piece of the split interval may be either neighbour. An
+    interval regular to its neighbours but twice the level is a missed beat in a run of them.
     """
     x = rr[i]
     if not MIN_RR_S <= x <= MAX_RR_S:
@@ -129,6 +177,8 @@ def classify_one(
         if ratio <= 0.6:
             return "extra"
         return "ectopic"
+    if doubled(x, level):
+        return "missed"
 
     def premature(a: int) -> bool:  # the beat that closes interval a
         if not 0 <= a < n or not MIN_RR_S <= rr[a] <= MAX_RR_S:
@@ -335,6 +385,7 @@ class HrvStream:
         self._seg_like_iv: list[float] = []  # per interval, the lesser of its beats'
         self._seg_noise: list[float] = []  # per interval
         self._ecg = False  # fed samples, so the detector's likeness and noise exist
+        self._level = Level()  # the segment's
         self._classified = 0  # of the segment's intervals
         self._done_t: list[float] = []
         self._done_rr: list[float] = []
@@ -417,6 +468,7 @@ class HrvStream:
         self._classify(final=True)
         self._seg_peaks, self._seg_rr, self._seg_t, self._classified = [], [], [], 0
         self._seg_like, self._seg_like_iv, self._seg_noise = [], [], []
+        self._level = Level()
 
     def _add_peaks(self, found: list[Peak]) -> list[float]:
         found = sorted(found)
@@ -444,10 +496,10 @@ class HrvStream:
         for i in range(self._classified, max(self._classified, upto)):
             self._done_t.append(self._seg_t[i])
             self._done_rr.append(self._seg_rr[i])
-            if self._ecg:
-                self._done_kind.append(classify_one(self._seg_rr, i, self._seg_like_iv, self._seg_noise))
-            else:
-                self._done_kind.append(classify_one(self._seg_rr, i))
+            ecg = (self._seg_like_iv, self._seg_noise) if self._ecg else (None, None)
+            level = self._level.value
+            self._done_kind.append(classify_one(self._seg_rr, i, *ecg, level))
+            self._level.update(self._seg_rr[i], self._done_kind[-1], doubled(self._seg_rr[i], level))
             self._done_noise.append(self._seg_noise[i])
             self._beats.append(Beat(self._seg_t[i], self._seg_rr[i], self._done_kind[-1]))
         self._classified = max(self._classified, upto)
