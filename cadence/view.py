@@ -7,8 +7,8 @@ advertised at start, so a client sees the whole graph before any traffic; a fami
 schemas: ``/robot/joint_states`` (foxglove.JointStates), ``/tf`` (foxglove.FrameTransforms, the UR16e's
 links from its DH table) and ``/robot/model`` (foxglove.SceneUpdate, a line per link locked to its frame),
 so the 3D panel shows the arm move. Log time is the message's data
-time. ``deploy/foxglove/cadence.layout.json`` is a layout for it: RR and k over time, the joints, the
-events and the services' health.
+time. ``deploy/foxglove/cadence.layout.json`` is a layout for it: the window mean RR with the thresholds
+of Alg. 1 (carried by each selection), k, the joints, the events and the services' health.
 """
 
 from __future__ import annotations

@@ -127,6 +127,9 @@ async def test_without_calibration_it_publishes_nothing_until_one_arrives(
                 with contextlib.suppress(TimeoutError):
                     sel = await asyncio.wait_for(first_selection(sub), 0.3)
         assert (sel.k, sel.reason) == (8, "initial")
+        # the thresholds it decides against travel with it (Foxglove plots them beside RR)
+        thresholds = (sel.rr_rest_s, sel.rr_stress_s, sel.rr_stress_max_s)
+        assert thresholds == pytest.approx((0.90, 0.82, 0.74))  # RR_r; - 0.08 offset; - 0.08 sigma_s
         low = await answer(bus, sub, window(0, 0.5, quality="low"))
         assert (low.k, low.delta, low.reason) == (8, 0, "low-quality")
         drop = await answer(bus, sub, window(1, 0.86))  # ΔRR = -0.04 from RR_r = 0.90: one step
@@ -148,6 +151,7 @@ async def test_a_fixed_condition_holds_its_k_whatever_the_windows_say(
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         first = await first_selection(sub)
         assert (first.k, first.n, first.delta, first.reason) == (k, 15, 0, "fixed")
+        assert first.rr_stress_s is None  # a fixed k is decided against nothing
         for i, rr in enumerate((0.6, 0.55, 1.1)):  # stress, more stress, rest: Alg. 1 would move k
             bus.put(bus.key("hrv/window"), window(i, rr), block=True)
         async with asyncio.timeout(10):

@@ -127,16 +127,27 @@ def test_the_arm_model_s_links_join_their_frames_at_every_pose() -> None:
     assert [e["frame_id"] for e in scene["entities"]] == list(FRAMES[1:])
 
 
-def test_the_shipped_layout_names_only_channels_the_bridge_gives() -> None:
+def test_the_shipped_layout_names_only_channels_and_fields_the_bridge_gives() -> None:
+    import msgspec
+
     layout = json.loads(Path(FOXGLOVE_LAYOUT).read_text())
-    topics = {f"/cadence/cell1/{t.suffix}" for t in TOPICS if t.pattern == "topic"}
-    topics |= {JOINT_STATES, TF, SCENE}
-    named = set()
+    types = {f"/cadence/cell1/{t.suffix}": t.message for t in TOPICS if t.pattern == "topic"}
+    topics = set(types) | {JOINT_STATES, TF, SCENE}
+    named, plotted = set(), set()
     for config in layout["configById"].values():
         for path in [p["value"] for p in config.get("paths", [])] + [config.get("topicPath", "")]:
             if path:
                 named.add(re.match(r"[^.]+", path).group(0))
+        plotted |= {p["value"] for p in config.get("paths", [])}
         named |= set(config.get("topics", {}))
     assert named, "the layout names no topic"
     for topic in named:
         assert topic in topics or re.fullmatch(r"/cadence/cell1/health/\w+", topic), topic
+    for path in plotted:  # a plotted field of a Cadence message is one of its fields
+        topic, _, field = path.partition(".")
+        if topic in types:
+            assert field in {f.name for f in msgspec.structs.fields(types[topic])}, path
+    # RR is plotted with the thresholds k is decided against
+    selection = "/cadence/cell1/decision/selection"
+    thresholds = {f"{selection}.rr_rest_s", f"{selection}.rr_stress_s", f"{selection}.rr_stress_max_s"}
+    assert thresholds | {"/cadence/cell1/hrv/window.mean_rr_s"} <= plotted

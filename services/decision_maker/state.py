@@ -57,6 +57,12 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
     @property
     def selection(self) -> Selection:
+        """With the thresholds, so that whoever watches k sees what it was decided against."""
+        p = params_of(self.calibration, self.n)
+
+        def positive(x: Decimal) -> float | None:  # a calibration at a very fast rest leaves no RR_s^max
+            return float(x) if x > 0 else None
+
         return Selection(
             t_ns=self.t_ns,
             seq=self.seq,
@@ -65,6 +71,9 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
             delta=self.delta,
             reason=self.reason,
             window_end_ns=self.window_end_ns,
+            rr_rest_s=positive(p.rr_rest),
+            rr_stress_s=positive(p.rr_stress),
+            rr_stress_max_s=positive(p.rr_stress_max),
         )
 
 
