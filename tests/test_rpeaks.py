@@ -47,7 +47,7 @@ def test_ventricular_beats_are_unlike_the_template_and_normal_beats_like_it() ->
 
     rec, ann = read_record(str(ECG / "208"), fs=130.0), read_annotations(str(ECG / "208"))
     peaks = detect_peaks(rec.uv[: 130 * 300], 130.0, chunk=13)
-    t = np.array([p.index / 130.0 for p in peaks])
+    t = np.array([p.sample / 130.0 for p in peaks])
     like = np.array([p.likeness for p in peaks])
 
     def likeness_of(symbol: str) -> np.ndarray:
@@ -75,6 +75,6 @@ def test_a_burst_of_noise_is_noise_between_the_beats_around_it() -> None:
     qrs = np.percentile(np.abs(x - np.median(x)), 99.5)
     x[130 * 60 : 130 * 61] += 1.5 * qrs * burst / np.max(np.abs(burst))  # 1 s at 60 s, taller than a QRS
     peaks = detect_peaks(x, 130.0, chunk=13)
-    hit = [p.noise for p in peaks if 60.0 < p.index / 130.0 < 62.0]
-    rest = [p.noise for p in peaks[1:] if not 59.5 < p.index / 130.0 < 63.0]
+    hit = [p.noise for p in peaks if 60.0 < p.sample / 130.0 < 62.0]
+    rest = [p.noise for p in peaks[1:] if not 59.5 < p.sample / 130.0 < 63.0]
     assert max(hit) > 1.0 and max(rest) < 0.5

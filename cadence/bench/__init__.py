@@ -323,11 +323,11 @@ def bench_hrv(
         det, peaks = RPeakDetector(fs), []
         for i in range(0, len(rec.uv), chunk):
             new = det.feed_peaks(rec.uv[i : i + chunk])
-            latency += [(min(i + chunk, len(rec.uv)) - p.index) / fs for p in new]
+            latency += [(min(i + chunk, len(rec.uv)) - p.sample) / fs for p in new]
             peaks += new
         peaks += det.flush_peaks()
         elapsed = time.perf_counter() - t0
-        found = np.array(sorted(p.index for p in peaks)) / fs
+        found = np.array(sorted(p.sample for p in peaks)) / fs
         totals["cadence"] += (*match_beats(beats_s, found), elapsed)
         end = len(rec.uv) / fs
         ours = windows(peak_intervals(peaks, fs), 30.0, end_s=end)
@@ -364,6 +364,7 @@ def bench_hrv_windows(
     records: tuple[str, ...] = (),
     progress: Callable[[str], None] | None = None,
     peers: bool = True,
+    jobs: int | None = None,
 ) -> dict[str, dict[str, WindowScore]]:
     """Issue 19's table: per noise variant, how far the windows each pipeline marks good are from the
     annotated NN mean (``hrv_scoring``), for Cadence (its detector, cleaning and quality gate) and
@@ -373,7 +374,34 @@ def bench_hrv_windows(
 
     With the clean variant, also ``cadence-rr``: the same cleaning and gate on a strap's own RR (``input =
     "rr"``), simulated as the H10 gives it: the annotated beats less every beat that is not normal (the
-    strap leaves premature beats out, so one interval spans each)."""
+    strap leaves premature beats out, so one interval spans each). Records are scored in ``jobs``
+    processes (default: one per core); the figures do not depend on it."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    paths = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
+    if records:
+        paths = [p for p in paths if p.name in records]
+    out: dict[str, dict[str, WindowScore]] = {}
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(paths) or 1))
+    # spawned, not forked: the caller may hold threads (a bus session) whose locks a fork would copy held
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(_score_record, str(p), fs, variants, peers): p.name for p in paths}
+        for fut in as_completed(futures):
+            if progress:
+                progress(f"{futures[fut]} scored")
+            for v, by_name in fut.result().items():
+                for name, score in by_name.items():
+                    out.setdefault(v, {}).setdefault(name, WindowScore(name)).merge(score)
+    order: dict[str, int] = {v: i for i, v in enumerate(variants)}
+    return dict(sorted(out.items(), key=lambda kv: order[kv[0]]))
+
+
+def _score_record(
+    path: str, fs: float, variants: tuple[Variant, ...], peers: bool
+) -> dict[str, dict[str, WindowScore]]:
+    """One record's windows in every variant, each pipeline's scored (a worker of bench_hrv_windows)."""
     import zlib
 
     from cadence.bench.ecg_noise import noisy
@@ -387,41 +415,33 @@ def bench_hrv_windows(
     except ImportError:
         nk = None
     nk = nk if peers else None
-    paths = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
-    if records:
-        paths = [p for p in paths if p.name in records]
-    out: dict[str, dict[str, WindowScore]] = {
-        v: {"cadence": WindowScore("cadence"), **({"neurokit2": WindowScore("neurokit2")} if nk else {})}
-        for v in variants
-    }
-    if "clean" in out:
-        out["clean"]["cadence-rr"] = WindowScore("cadence-rr")
-    for path in paths:
-        rec, ann = read_record(str(path), fs=fs), read_annotations(str(path))
-        sinus = not has_arrhythmia_runs(ann)
-        end = len(rec.uv) / fs
-        for v in variants:
-            if progress:
-                progress(f"{path.name} {v}")
-            x = noisy(rec.uv, fs, v, seed=zlib.crc32(path.name.encode()))
-            ws = windows(peak_intervals(detect_peaks(x, fs, chunk=13), fs), 30.0, end_s=end)
-            tr = truth(ann, [w.start_s for w in ws], 30.0, end)
-            out[v]["cadence"].add_windows(path.name, tr, ws, sinus)
-            if nk is not None:
-                _, info = nk.ecg_peaks(
-                    nk.ecg_clean(x, sampling_rate=fs), sampling_rate=fs, correct_artifacts=True
-                )
-                peaks = np.asarray(info["ECG_R_Peaks"], dtype=float) / fs
-                rr, t_end = np.diff(peaks), peaks[1:]
-                means = []
-                for t in tr:
-                    sel = (t_end >= t.start_s) & (t_end < t.end_s)
-                    means.append(float(rr[sel].mean()) if sel.any() else None)
-                out[v]["neurokit2"].add(path.name, tr, means, ["no beats"] * len(tr), sinus)
-            if v == "clean":
-                normal = [t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS]
-                ws = windows(intervals(np.array(normal)), 30.0, end_s=end)
-                out[v]["cadence-rr"].add_windows(path.name, tr, ws, sinus)
+    name = Path(path).name
+    rec, ann = read_record(path, fs=fs), read_annotations(path)
+    sinus = not has_arrhythmia_runs(ann)
+    end = len(rec.uv) / fs
+    out: dict[str, dict[str, WindowScore]] = {}
+    for v in variants:
+        scores = out[v] = {"cadence": WindowScore("cadence")}
+        x = noisy(rec.uv, fs, v, seed=zlib.crc32(name.encode()))
+        ws = windows(peak_intervals(detect_peaks(x, fs, chunk=13), fs), 30.0, end_s=end)
+        tr = truth(ann, [w.start_s for w in ws], 30.0, end)
+        scores["cadence"].add_windows(name, tr, ws, sinus)
+        if nk is not None:
+            cleaned = nk.ecg_clean(x, sampling_rate=fs)
+            _, info = nk.ecg_peaks(cleaned, sampling_rate=fs, correct_artifacts=True)
+            peaks = np.asarray(info["ECG_R_Peaks"], dtype=float) / fs
+            rr, t_end = np.diff(peaks), peaks[1:]
+            means = []
+            for t in tr:
+                sel = (t_end >= t.start_s) & (t_end < t.end_s)
+                means.append(float(rr[sel].mean()) if sel.any() else None)
+            scores["neurokit2"] = WindowScore("neurokit2")
+            scores["neurokit2"].add(name, tr, means, ["no beats"] * len(tr), sinus)
+        if v == "clean":
+            normal = [t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS]
+            ws = windows(intervals(np.array(normal)), 30.0, end_s=end)
+            scores["cadence-rr"] = WindowScore("cadence-rr")
+            scores["cadence-rr"].add_windows(name, tr, ws, sinus)
     return out
 
 

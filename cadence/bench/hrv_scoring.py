@@ -122,6 +122,15 @@ class WindowScore:
         means = [w.mean_rr_s if w.quality == "good" else None for w in wins]
         self.add(record, truths, means, [w.reason or "" for w in wins], sinus)
 
+    def merge(self, other: WindowScore) -> None:
+        """Another part of the same pipeline's run (another record) added to this one."""
+        self.good += other.good
+        self.held += other.held
+        for why, n in other.held_reasons.items():
+            self.held_reasons[why] = self.held_reasons.get(why, 0) + n
+        self.sinus_scored += other.sinus_scored
+        self.sinus_held += other.sinus_held
+
     @property
     def errors_ms(self) -> NDArray[np.float64]:
         return np.array([w.error_s for w in self.good]) * 1e3

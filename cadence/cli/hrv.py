@@ -36,7 +36,7 @@ def cmd_hrv_peaks(args: argparse.Namespace) -> int:
     if is_rr_file(args.record):
         raise InputError(f"{args.record}: RR intervals only, no ECG to find peaks in (`cadence hrv windows`)")
     rec, peaks = _record_peaks(args)
-    print(json.dumps({"fs": rec.fs, "peaks_s": [round(p.index / rec.fs, 6) for p in sorted(peaks)]}))
+    print(json.dumps({"fs": rec.fs, "peaks_s": [round(p.sample / rec.fs, 6) for p in sorted(peaks)]}))
     return 0
 
 

@@ -42,7 +42,7 @@ class Peak(NamedTuple):
     band-passed excursion between the previous peak's QRS and this one's, relative to the recent QRS
     amplitude (a burst of noise in which beats may be hidden or invented; 0 for a segment's first)."""
 
-    index: int
+    sample: int  # from the first sample fed
     likeness: float
     noise: float
 
@@ -109,10 +109,10 @@ class RPeakDetector:
     # -- public ----------------------------------------------------------------------------------
 
     def feed(self, x: Array) -> list[int]:
-        return [p.index for p in self.feed_peaks(x)]
+        return [p.sample for p in self.feed_peaks(x)]
 
     def flush(self) -> list[int]:
-        return [p.index for p in self.flush_peaks()]
+        return [p.sample for p in self.flush_peaks()]
 
     def feed_peaks(self, x: Array) -> list[Peak]:
         """As ``feed``, with each peak's likeness and noise."""
@@ -286,4 +286,4 @@ def detect_peaks(x: Array, fs: float, chunk: int | None = None) -> list[Peak]:
 
 def detect(x: Array, fs: float, chunk: int | None = None) -> NDArray[np.intp]:
     """All R peaks of a record (sample indices)."""
-    return np.array(sorted({p.index for p in detect_peaks(x, fs, chunk)}), dtype=np.intp)
+    return np.array(sorted({p.sample for p in detect_peaks(x, fs, chunk)}), dtype=np.intp)

@@ -85,7 +85,7 @@ def peak_intervals(peaks: Sequence[Peak], fs: float, gaps_s: Gaps = ()) -> Inter
     """``intervals`` of the detector's peaks (``rpeaks.detect_peaks``), with what it saw of the ECG."""
     found = sorted(peaks)
     return intervals(
-        np.array([p.index / fs for p in found]),
+        np.array([p.sample / fs for p in found]),
         gaps_s,
         np.array([p.likeness for p in found]),
         np.array([p.noise for p in found]),
@@ -119,8 +119,8 @@ class Level:
 
 def classify(
     rr: NDArray[np.float64],
-    likeness: Sequence[float] | None = None,
-    noise: Sequence[float] | None = None,
+    likeness: NDArray[np.float64] | Sequence[float] | None = None,
+    noise: NDArray[np.float64] | Sequence[float] | None = None,
     segment_starts: Collection[int] = (),
 ) -> list[Kind]:
     """Every interval in order, as the stream does: the level carries from one to the next, and starts
@@ -142,8 +142,8 @@ def doubled(rr: float, level: float | None) -> bool:
 def classify_one(
     rr: NDArray[np.float64] | list[float],
     i: int,
-    likeness: Sequence[float] | None = None,
-    noise: Sequence[float] | None = None,
+    likeness: NDArray[np.float64] | Sequence[float] | None = None,
+    noise: NDArray[np.float64] | Sequence[float] | None = None,
     level: float | None = None,
 ) -> Kind:
     """Interval i, from ``rr[i - NEIGHBOURS : i + NEIGHBOURS + 1]`` only (the stream classifies an
@@ -472,7 +472,7 @@ class HrvStream:
 
     def _add_peaks(self, found: list[Peak]) -> list[float]:
         found = sorted(found)
-        times = [self._seg_t0 + p.index / self.fs for p in found]
+        times = [self._seg_t0 + p.sample / self.fs for p in found]
         return self._add_times(times, [p.likeness for p in found], [p.noise for p in found])
 
     def _add_times(
@@ -496,9 +496,12 @@ class HrvStream:
         for i in range(self._classified, max(self._classified, upto)):
             self._done_t.append(self._seg_t[i])
             self._done_rr.append(self._seg_rr[i])
-            ecg = (self._seg_like_iv, self._seg_noise) if self._ecg else (None, None)
             level = self._level.value
-            self._done_kind.append(classify_one(self._seg_rr, i, *ecg, level))
+            if self._ecg:
+                kind = classify_one(self._seg_rr, i, self._seg_like_iv, self._seg_noise, level)
+            else:
+                kind = classify_one(self._seg_rr, i, level=level)
+            self._done_kind.append(kind)
             self._level.update(self._seg_rr[i], self._done_kind[-1], doubled(self._seg_rr[i], level))
             self._done_noise.append(self._seg_noise[i])
             self._beats.append(Beat(self._seg_t[i], self._seg_rr[i], self._done_kind[-1]))
