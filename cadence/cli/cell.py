@@ -119,10 +119,25 @@ def cmd_get(args: argparse.Namespace) -> int:
     from common.runtime.bus import Bus
     from schemas.topology import AnyMessage
 
-    async def go() -> int:
+    async def ask() -> tuple[list, str | None]:
         async with await Bus.open(joining(args), "cell1") as bus:
-            replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
-            alone = bus.isolation()
+            while True:
+                replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
+                if any(r.message is not None for r in replies) or time.monotonic() >= until:
+                    return replies, bus.isolation()
+                await asyncio.sleep(0.5)
+
+    until = time.monotonic() + args.wait
+
+    async def go() -> int:
+        while True:  # with --wait, a router not up yet is asked again, as is a key nobody answers yet
+            try:
+                replies, alone = await ask()
+                break
+            except BusError:
+                if time.monotonic() >= until:
+                    raise
+                await asyncio.sleep(0.5)
         ok = 0
         for r in replies:
             if r.message is not None:
@@ -332,6 +347,13 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     get.add_argument("key", help="key expression or selector")
     get.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     get.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
+    get.add_argument(
+        "--wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="ask again until a reply comes or S seconds have passed (a router or a service still starting)",
+    )
     get.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     get.set_defaults(func=cmd_get)
 

@@ -1,0 +1,279 @@
+"""The README's shell examples, as written (issue 20).
+
+Every command of every ``sh`` block is checked against what it names: a ``cadence`` command line is
+parsed by the CLI's own parser (a renamed flag or command fails here), a ``CADENCE_<SECTION>_<KEY>``
+variable is decoded by the config's own rules, a file in the repository or the shared data exists.
+The examples that run in seconds on a laptop are then run as written, by bash, in the repository's root:
+the router, the store, `cadence get` and zenoh-cli; `cadence decide`, whose output the README states;
+`cadence hrv` on the shared files; the executor through a router with no operator. The others are run
+elsewhere: the demo (test_demo.py), the lab's procedure (test_lab.py), the simulated study and the fit
+(test_study.py), the install (test_systemd.py), the UR emulator (test_ur_emulator.py), record, replay and
+report (test_recording.py, test_report.py); and the benchmarks in tests/bench.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import re
+import shlex
+import signal
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from cadence.cli import SERVICES, build_parser
+from common.runtime.config import CONFIG_SECTIONS, CommonSettings, ConfigError, section
+from tests.conftest import SHARED_DATA, free_port
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+PORT = "7447"  # the examples' router port; a free one is used in its place when they run
+
+
+@dataclass(frozen=True)
+class Block:
+    line: int  # of the opening fence
+    text: str
+
+
+def sh_blocks() -> list[Block]:
+    blocks, current, start = [], None, 0
+    for n, line in enumerate(README.read_text().splitlines(), 1):
+        if current is None and line.strip() == "```sh":
+            current, start = [], n
+        elif current is not None and line.strip() == "```":
+            blocks.append(Block(start, "\n".join(current)))
+            current = None
+        elif current is not None:
+            current.append(line)
+    return blocks
+
+
+def commands(text: str) -> list[list[str]]:
+    """Each command of a block, as tokens, continuation lines joined and comments dropped."""
+    out = []
+    for line in text.replace("\\\n", " ").splitlines():
+        tokens = shlex.split(line, comments=True)
+        if tokens:
+            out.append(tokens)
+    return out
+
+
+def section_type(name: str) -> type:
+    if name == "cadence":
+        return CommonSettings
+    if name == "bus":
+        from common.runtime.bus import BusConfig
+
+        return BusConfig
+    return importlib.import_module(SERVICES[name]).Settings
+
+
+def check_setting(var: str, value: str) -> None:
+    names = [s for s in CONFIG_SECTIONS if var.startswith(f"CADENCE_{s.upper()}_")]
+    assert names, f"{var}: no config section of that name"
+    name = max(names, key=len)  # CADENCE_DECISION_MAKER_… is decision_maker's, not a "decision" one
+    key = var[len(f"CADENCE_{name.upper()}_") :].lower()
+    kind = section_type(name)
+    assert key in {f for f in kind.__struct_fields__}, f"{var}: [{name}] has no key {key!r}"
+    try:
+        section({}, name, kind, env={var: value})
+    except ConfigError as exc:
+        pytest.fail(f"{var}={value}: {exc}")
+
+
+def check_cadence(argv: list[str]) -> None:
+    try:
+        build_parser().parse_args(argv)
+    except SystemExit as exc:
+        if exc.code != 0:
+            pytest.fail(f"cadence {shlex.join(argv)}: the CLI refuses it (exit {exc.code})")
+
+
+OTHER_PROGRAMS = {"printf", "systemctl", "journalctl"}
+
+
+def check_command(tokens: list[str], variables: dict[str, str]) -> None:
+    """One command of a block; ``variables`` gathers the block's own (``CELL=…``, ``export …``)."""
+    for stage in " ".join(shlex.quote(t) for t in tokens).split(" '|' "):
+        words = shlex.split(stage)
+        if words[:1] == ["export"]:
+            words = words[1:]
+        env = {}
+        while words and re.fullmatch(r"[A-Z_][A-Z0-9_]*=.*", words[0]):
+            var, _, value = words.pop(0).partition("=")
+            env[var] = value
+        for var, value in env.items():
+            if var.startswith("CADENCE_"):
+                check_setting(var, value)
+            if not words:
+                variables[var] = value
+        if words[:1] == ["sudo"]:
+            words = words[1:]
+        if words[-1:] == ["&"]:
+            words = words[:-1]
+        expanded: list[str] = []
+        for w in words:
+            expanded += shlex.split(variables[w[1:]]) if w.startswith("$") and w[1:] in variables else [w]
+        for w in expanded:
+            if (w.startswith("../shared/") and SHARED_DATA.exists()) or w.startswith("deploy/"):
+                p = ROOT / w  # a WFDB record is named without its extensions
+                assert p.exists() or p.with_name(p.name + ".hea").exists(), f"{w}: no such file"
+        if not expanded:
+            continue
+        if expanded[:3] == ["uv", "run", "cadence"]:
+            check_cadence(expanded[3:])
+        elif expanded[0].endswith("/bin/cadence"):
+            check_cadence(expanded[1:])
+        elif expanded[:3] == ["uv", "run", "zenoh"]:
+            assert "--decoder" in expanded and expanded[expanded.index("--decoder") + 1] == "cadence"
+        elif expanded[:3] in (["uv", "run", "pytest"], ["uv", "run", "ruff"]):
+            pass  # what CI runs
+        else:
+            assert expanded[0] in OTHER_PROGRAMS, f"{expanded[0]}: a program this test does not know"
+
+
+def test_every_command_of_every_example_is_one_the_cli_and_the_settings_accept(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(ROOT)
+    blocks = sh_blocks()
+    assert len(blocks) >= 15, "the README's examples were not found"
+    checked = 0
+    for block in blocks:
+        variables: dict[str, str] = {}
+        for tokens in commands(block.text):
+            try:
+                check_command(tokens, variables)
+            except (AssertionError, pytest.fail.Exception) as exc:
+                pytest.fail(f"README.md:{block.line}: {shlex.join(tokens)}\n{exc}")
+            checked += 1
+    print(f"{checked} commands in {len(blocks)} blocks")
+
+
+def test_the_checks_catch_a_renamed_flag_and_an_unknown_setting() -> None:
+    with pytest.raises(pytest.fail.Exception, match="refuses"):
+        check_command(["uv", "run", "cadence", "decide", "--rr-rest-s", "0.85"], {})
+    with pytest.raises(AssertionError, match="no key 'fixed'"):
+        check_command(["CADENCE_DECISION_MAKER_FIXED=a", "uv", "run", "cadence", "run", "decision_maker"], {})
+    with pytest.raises(pytest.fail.Exception, match="CADENCE_DECISION_MAKER_MODE=sometimes"):
+        check_command(
+            ["CADENCE_DECISION_MAKER_MODE=sometimes", "uv", "run", "cadence", "run", "decision_maker"], {}
+        )
+
+
+# --- run as written ---------------------------------------------------------------------------------
+
+
+def block_with(needle: str) -> Block:
+    found = [b for b in sh_blocks() if needle in b.text]
+    assert len(found) == 1, f"the README has {len(found)} examples with {needle!r}"
+    return found[0]
+
+
+@pytest.fixture
+def shell_env(tmp_path: Path) -> dict[str, str]:
+    """What the examples run in: this machine's environment, with the services' data in a temporary
+    folder and, on a loaded test machine, the executor not stopped by its own servo overruns."""
+    return {
+        **os.environ,
+        "CADENCE_CADENCE_DATA_DIR": str(tmp_path / "data"),
+        "CADENCE_EXECUTOR_OVERRUN_LIMIT": "1000",
+        "NO_COLOR": "1",
+    }
+
+
+def run_until(
+    script: str, env: dict[str, str], done: Callable[[str], bool], timeout_s: float, out: Path
+) -> str:
+    """Runs ``script`` with bash in the repository's root until its output satisfies ``done``, then
+    stops it and everything it started in the background (its own process group)."""
+    with out.open("w") as f:
+        proc = subprocess.Popen(
+            ["bash", "-c", script],
+            cwd=ROOT,
+            env=env,
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        deadline = time.monotonic() + timeout_s
+        try:
+            while time.monotonic() < deadline and proc.poll() is None and not done(out.read_text()):
+                time.sleep(0.2)
+        finally:
+            with_signal = signal.SIGTERM
+            for _ in range(2):
+                try:
+                    os.killpg(proc.pid, with_signal)
+                except ProcessLookupError:
+                    break
+                try:
+                    proc.wait(timeout=10)
+                    break
+                except subprocess.TimeoutExpired:
+                    with_signal = signal.SIGKILL
+    return out.read_text()
+
+
+def test_the_router_store_get_and_zenoh_example_runs_as_written(
+    shell_env: dict[str, str], tmp_path: Path
+) -> None:
+    block = block_with("cadence get cadence/cell1/pareto")
+    script = block.text.replace(PORT, str(free_port()))
+    keyed = re.compile(r"^cadence/cell1/\S+ \{", re.MULTILINE)
+
+    def done(text: str) -> bool:
+        return '"pareto.solution.v1"' in text and keyed.search(text) is not None
+
+    text = run_until(script, shell_env, done, 90.0, tmp_path / "out.txt")
+    assert done(text), text[-3000:]
+    solution = json.loads(next(line for line in text.splitlines() if '"pareto.solution.v1"' in line))
+    assert solution["path_id"] == "b1_to_b2" and solution["solution"]["k"] == 15  # what the example asks
+
+
+def test_the_decide_example_prints_what_the_readme_says(shell_env: dict[str, str]) -> None:
+    block = block_with("cadence decide")
+    line = next(line for line in block.text.splitlines() if "cadence decide" in line)
+    command, _, said = line.partition("#")
+    r = subprocess.run(
+        ["bash", "-c", command], cwd=ROOT, env=shell_env, capture_output=True, text=True, timeout=60
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == said.split()
+
+
+@pytest.mark.skipif(
+    not (SHARED_DATA / "ecg").exists(), reason=f"the shared recordings are not at {SHARED_DATA}"
+)
+def test_the_hrv_examples_run_as_written(shell_env: dict[str, str]) -> None:
+    block = block_with("cadence hrv peaks")
+    lines = [line.partition("#")[0] for line in block.text.splitlines() if "cadence hrv " in line]
+    assert len(lines) == 4
+    for command in lines:
+        r = subprocess.run(
+            ["bash", "-c", command], cwd=ROOT, env=shell_env, capture_output=True, text=True, timeout=120
+        )
+        assert r.returncode == 0, f"{command}: {r.stderr}"
+        out = [json.loads(x) for x in r.stdout.splitlines()]
+        assert out and ("peaks_s" in out[0] or "mean_rr_s" in out[0]), command
+
+
+def test_the_executor_example_goes_through_the_router_and_past_the_wait_for_steps(
+    shell_env: dict[str, str], tmp_path: Path
+) -> None:
+    block = block_with("cadence run executor --speed 5")
+    script = block.text.replace(PORT, str(free_port()))
+    first_path = re.compile(r"moving: 'b1_to_b2'")
+
+    def done(text: str) -> bool:  # a second cycle started: the first one's wait_for steps passed
+        return len(first_path.findall(text)) >= 2
+
+    text = run_until(script, shell_env, done, 120.0, tmp_path / "out.txt")
+    assert done(text), text[-3000:]
