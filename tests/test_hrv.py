@@ -65,12 +65,13 @@ def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a
 
 @needs_data
 def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> None:
-    """Issue 19's bar, by its scorer, on the shared records clean and with the strongest white noise and
-    the motion bursts (`cadence bench hrv --windows` runs all five variants): no window marked good is a
-    decision step (20 ms) off the mean of the annotated NN intervals, and holding is not how."""
+    """Issue 19's bar, by its scorer, on the shared records clean and with motion bursts, the variant
+    that holds most (`cadence bench hrv --windows` runs all five; tests/bench runs white noise at 6 dB on
+    the noisiest record): no window marked good is a decision step (20 ms) off the mean of the annotated
+    NN intervals, and holding is not how."""
     from cadence.bench import bench_hrv_windows
 
-    scores = bench_hrv_windows(str(ECG), 130.0, ("clean", "white6", "motion"), peers=False)
+    scores = bench_hrv_windows(str(ECG), 130.0, ("clean", "motion"), peers=False)
     for variant, by_pipeline in scores.items():
         f = by_pipeline["cadence"].figures()
         print(variant, f)

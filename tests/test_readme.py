@@ -4,11 +4,11 @@ Every command of every ``sh`` block is checked against what it names: a ``cadenc
 parsed by the CLI's own parser (a renamed flag or command fails here), a ``CADENCE_<SECTION>_<KEY>``
 variable is decoded by the config's own rules, a file in the repository or the shared data exists.
 The examples that run in seconds on a laptop are then run as written, by bash, in the repository's root:
-the router, the store, `cadence get` and zenoh-cli; `cadence decide`, whose output the README states;
-`cadence hrv` on the shared files; the executor through a router with no operator. The others are run
-elsewhere: the demo (test_demo.py), the lab's procedure (test_lab.py), the simulated study and the fit
-(test_study.py), the install (test_systemd.py), the UR emulator (test_ur_emulator.py), record, replay and
-report (test_recording.py, test_report.py); and the benchmarks in tests/bench.
+the router, the store, `cadence get` and zenoh-cli; `cadence decide`, whose output the README states; the
+executor through a router with no operator. The others are run elsewhere: `cadence hrv` on the shared
+files (test_hrv.py), the demo (test_demo.py), the lab's procedure (test_lab.py), the simulated study and
+the fit (test_study.py), the install (test_systemd.py), the UR emulator (test_ur_emulator.py), record,
+replay and report (test_recording.py, test_report.py); and the benchmarks in tests/bench.
 """
 
 from __future__ import annotations
@@ -247,22 +247,6 @@ def test_the_decide_example_prints_what_the_readme_says(shell_env: dict[str, str
     )
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == said.split()
-
-
-@pytest.mark.skipif(
-    not (SHARED_DATA / "ecg").exists(), reason=f"the shared recordings are not at {SHARED_DATA}"
-)
-def test_the_hrv_examples_run_as_written(shell_env: dict[str, str]) -> None:
-    block = block_with("cadence hrv peaks")
-    lines = [line.partition("#")[0] for line in block.text.splitlines() if "cadence hrv " in line]
-    assert len(lines) == 4
-    for command in lines:
-        r = subprocess.run(
-            ["bash", "-c", command], cwd=ROOT, env=shell_env, capture_output=True, text=True, timeout=120
-        )
-        assert r.returncode == 0, f"{command}: {r.stderr}"
-        out = [json.loads(x) for x in r.stdout.splitlines()]
-        assert out and ("peaks_s" in out[0] or "mean_rr_s" in out[0]), command
 
 
 def test_the_executor_example_goes_through_the_router_and_past_the_wait_for_steps(
