@@ -136,6 +136,7 @@ class Observed:
     selections: list[dict] = field(default_factory=list)
     cycles: list[CycleReport] = field(default_factory=list)
     errors: int = 0
+    error_times_s: list[float] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
 
     def t(self, t_ns: int) -> float:
@@ -292,6 +293,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
 
         def on_error(e: OperatorError) -> None:
             obs.errors += 1
+            obs.error_times_s.append(obs.t(e.t_ns))
 
         bus.handle(OPERATOR_ERROR, _call(on_error))
         running: set[str] = set()
@@ -354,6 +356,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "productivity_per_min": round(cycles / minutes, 3),
         "errors": obs.errors,
         "error_rate": round(obs.errors / cycles, 4) if cycles else 0.0,
+        "error_times_s": obs.error_times_s,
         "windows": obs.windows,
         "selections": [{k: v for k, v in s.items() if k != "window_end_s"} for s in obs.selections],
         "k_steps_down": down,

@@ -39,6 +39,7 @@ class Run:
     selections: list[dict] = field(default_factory=list)
     cycles: list[dict] = field(default_factory=list)  # {"end_s", "cycle_time_s", "k": {path: k}}
     errors: int = 0
+    error_t_s: list[float] = field(default_factory=list)  # when each was marked
     events: list[dict] = field(default_factory=list)
     sets: dict[str, ParetoSet] = field(default_factory=dict)
 
@@ -79,14 +80,15 @@ def from_demo(folder: Path) -> Run:
         )
     ]
     return Run(
-        str(folder),
-        s["duration_s"],
-        s["windows"],
-        s["selections"],
-        cycles,
-        s["errors"],
-        s["events"],
-        load_sets(folder / "data" / "executor"),
+        source=str(folder),
+        duration_s=s["duration_s"],
+        windows=s["windows"],
+        selections=s["selections"],
+        cycles=cycles,
+        errors=s["errors"],
+        error_t_s=s.get("error_times_s", []),
+        events=s["events"],
+        sets=load_sets(folder / "data" / "executor"),
     )
 
 
@@ -132,6 +134,7 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
             run.cycles.append({"end_s": t(m.t_ns), "cycle_time_s": m.cycle_time_s, "k": dict(m.k_per_path)})
         elif isinstance(m, OperatorError):
             run.errors += 1
+            run.error_t_s.append(t(m.t_ns))
         elif isinstance(m, RobotEvent) and not (m.kind == "state" and routine_change(m.message)):
             run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message})
         elif isinstance(m, ParetoSet):
@@ -144,7 +147,7 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
 CAPTIONS = {
     "rr_k.png": "Each window's mean RR (red; crosses: held windows) against data time, with RR_r and the "
     "decision thresholds RR_s and RR_s^max; the selected k on the right axis (blue); cycle ends as ticks "
-    "along the bottom. Like the paper's Fig. 6.",
+    "along the bottom, the operator's errors as orange ticks along the top. Like the paper's Fig. 6.",
     "pareto.png": "Each path's Pareto front, normalised (grey), its N chosen solutions (blue) and the k the "
     "robot ran with, circled by how often (red).",
     "cycles.png": "Joint positions, velocities, accelerations and jerk of the first and last cycle as "
@@ -166,7 +169,8 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
         rest = float(np.max(good)) if good else 0.85
         label = "no RR_r given (--rr-rest): the highest good window's, in its place"
     ends = [c["end_s"] for c in run.cycles]
-    write_readable(out / "rr_k.png", rr_k_figure(run.windows, run.selections, rest, label, ends))
+    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_t_s)
+    write_readable(out / "rr_k.png", figure)
     written.append("rr_k.png")
     if run.sets:
         used: dict[str, dict[int, int]] = {}

@@ -73,6 +73,7 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert any(w["end_s"] > KILL_HRV + 40 for w in s["windows"])  # the restarted analyser windows again
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
     assert s["cycles"] >= 5 and len(ends) == s["cycles"]
+    assert len(s["error_times_s"]) == s["errors"]  # the twin's errors, marked on rr_k.png
     for fig in ("rr_k.png", "cycles.png", "pareto.png"):
         assert (out / fig).read_bytes()[:4] == b"\x89PNG"
     assert "φ, production rate" in (out / "index.html").read_text()

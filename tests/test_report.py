@@ -67,5 +67,16 @@ def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path)
         assert (out / fig).read_bytes()[:4] == b"\x89PNG"
         assert f'src="{fig}"' in page
     assert page.count("<figcaption>") == 3 and "commanded" in page and "radians" in page
+    assert "errors as orange ticks" in page
     for f in out.iterdir():  # what people open is readable by everyone (state files stay private)
         assert f.stat().st_mode & 0o777 == 0o644, f
+
+
+def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> None:
+    from cadence.plots import rr_k_figure
+    from cadence.report import from_mcap
+
+    run = from_mcap(write_run(tmp_path))
+    assert run.errors == 1 and run.error_t_s == [50.0]  # data time from the run's first message
+    args = (run.windows, run.selections, 0.9, "RR_r", [c["end_s"] for c in run.cycles])
+    assert rr_k_figure(*args, run.error_t_s) != rr_k_figure(*args, [])
