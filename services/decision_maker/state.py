@@ -55,27 +55,6 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     def state(self) -> State:
         return State(self.k, Decimal(self.rr_prev))
 
-    @property
-    def selection(self) -> Selection:
-        """With the thresholds, so that whoever watches k sees what it was decided against."""
-        p = params_of(self.calibration, self.n)
-
-        def positive(x: Decimal) -> float | None:  # a calibration at a very fast rest leaves no RR_s^max
-            return float(x) if x > 0 else None
-
-        return Selection(
-            t_ns=self.t_ns,
-            seq=self.seq,
-            k=self.k,
-            n=self.n,
-            delta=self.delta,
-            reason=self.reason,
-            window_end_ns=self.window_end_ns,
-            rr_rest_s=positive(p.rr_rest),
-            rr_stress_s=positive(p.rr_stress),
-            rr_stress_max_s=positive(p.rr_stress_max),
-        )
-
 
 class Condition(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     """``condition.json``: the study condition in force, as a session set it on ``decision/condition``;
@@ -120,7 +99,27 @@ class Decider:
 
     @property
     def selection(self) -> Selection | None:
-        return self.record.selection if self.record is not None else None
+        """The record's, with the thresholds of the parameters in force, so that whoever watches k sees
+        what it was decided against."""
+        r, p = self.record, self.params
+        if r is None or p is None:
+            return None
+
+        def positive(x: Decimal) -> float | None:  # a calibration at a very fast rest leaves no RR_s^max
+            return float(x) if x > 0 else None
+
+        return Selection(
+            t_ns=r.t_ns,
+            seq=r.seq,
+            k=r.k,
+            n=r.n,
+            delta=r.delta,
+            reason=r.reason,
+            window_end_ns=r.window_end_ns,
+            rr_rest_s=positive(p.rr_rest),
+            rr_stress_s=positive(p.rr_stress),
+            rr_stress_max_s=positive(p.rr_stress_max),
+        )
 
     def calibrated(self, cal: Calibration, t_ns: int, again: bool = False) -> DecisionRecord | None:
         """The record that starts a calibration at the initial k; None when it is the one in use, unless
