@@ -39,7 +39,6 @@ from common.trajectory.task import load_task
 from schemas import (
     CycleReport,
     HrvWindow,
-    OperatorError,
     PlanProgress,
     Selection,
     ServiceStatus,
@@ -135,9 +134,12 @@ class Observed:
     windows: list[dict] = field(default_factory=list)
     selections: list[dict] = field(default_factory=list)
     cycles: list[CycleReport] = field(default_factory=list)
-    errors: int = 0
     error_times_s: list[float] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
+
+    @property
+    def errors(self) -> int:
+        return len(self.error_times_s)
 
     def t(self, t_ns: int) -> float:
         return round((t_ns - self.epoch_ns) / 1e9, 3)
@@ -291,11 +293,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         bus.handle(ROBOT_CYCLE, _call(obs.cycles.append))
         bus.handle(ROBOT_EVENT, _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns)))
 
-        def on_error(e: OperatorError) -> None:
-            obs.errors += 1
-            obs.error_times_s.append(obs.t(e.t_ns))
-
-        bus.handle(OPERATOR_ERROR, _call(on_error))
+        bus.handle(OPERATOR_ERROR, _call(lambda e: obs.error_times_s.append(obs.t(e.t_ns))))
         running: set[str] = set()
         all_up = asyncio.Event()
 

@@ -74,7 +74,7 @@ def rr_k_figure(
     rr_rest_s: float,
     rest_label: str = "RR_r",
     cycle_ends_s: list[float] | None = None,
-    errors_s: list[float] | None = None,
+    error_times_s: list[float] | None = None,
 ) -> bytes:
     """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
     decision thresholds RR_s, RR_s^max (the paper's defaults about RR_r) as lines, k on integer ticks,
@@ -101,10 +101,10 @@ def rr_k_figure(
     ax.axhline(float(p.rr_stress_max), ls=":", c="0.4", lw=0.8, label="RR_s^max = RR_s − σ_s")
     for end in cycle_ends_s or []:
         ax.axvline(end, ymin=0.0, ymax=0.03, c="0.2", lw=0.8)
-    for i, at in enumerate(errors_s or []):
+    for i, at in enumerate(error_times_s or []):
         label = "operator error" if i == 0 else None
         ax.axvline(at, ymin=0.95, ymax=1.0, c="tab:orange", lw=1.5, label=label)
-    marks = (("bottom: cycle ends", cycle_ends_s), ("top: errors", errors_s))
+    marks = (("bottom: cycle ends", cycle_ends_s), ("top: errors", error_times_s))
     ticks = [what for what, there in marks if there]
     ax.set_xlabel("data time [s]" + (f" (ticks at the {'; '.join(ticks)})" if ticks else ""))
     ax.set_ylabel("mean RR per window [s]", color="tab:red")

@@ -39,7 +39,7 @@ class Run:
     selections: list[dict] = field(default_factory=list)
     cycles: list[dict] = field(default_factory=list)  # {"end_s", "cycle_time_s", "k": {path: k}}
     errors: int = 0
-    error_t_s: list[float] = field(default_factory=list)  # when each was marked
+    error_times_s: list[float] = field(default_factory=list)  # when each was marked
     events: list[dict] = field(default_factory=list)
     sets: dict[str, ParetoSet] = field(default_factory=dict)
 
@@ -86,7 +86,7 @@ def from_demo(folder: Path) -> Run:
         selections=s["selections"],
         cycles=cycles,
         errors=s["errors"],
-        error_t_s=s.get("error_times_s", []),
+        error_times_s=s.get("error_times_s", []),
         events=s["events"],
         sets=load_sets(folder / "data" / "executor"),
     )
@@ -134,7 +134,7 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
             run.cycles.append({"end_s": t(m.t_ns), "cycle_time_s": m.cycle_time_s, "k": dict(m.k_per_path)})
         elif isinstance(m, OperatorError):
             run.errors += 1
-            run.error_t_s.append(t(m.t_ns))
+            run.error_times_s.append(t(m.t_ns))
         elif isinstance(m, RobotEvent) and not (m.kind == "state" and routine_change(m.message)):
             run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message})
         elif isinstance(m, ParetoSet):
@@ -169,7 +169,7 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
         rest = float(np.max(good)) if good else 0.85
         label = "no RR_r given (--rr-rest): the highest good window's, in its place"
     ends = [c["end_s"] for c in run.cycles]
-    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_t_s)
+    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_times_s)
     write_readable(out / "rr_k.png", figure)
     written.append("rr_k.png")
     if run.sets:

@@ -77,6 +77,6 @@ def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> Non
     from cadence.report import from_mcap
 
     run = from_mcap(write_run(tmp_path))
-    assert run.errors == 1 and run.error_t_s == [50.0]  # data time from the run's first message
+    assert run.errors == 1 and run.error_times_s == [50.0]  # data time from the run's first message
     args = (run.windows, run.selections, 0.9, "RR_r", [c["end_s"] for c in run.cycles])
-    assert rr_k_figure(*args, run.error_t_s) != rr_k_figure(*args, [])
+    assert rr_k_figure(*args, run.error_times_s) != rr_k_figure(*args, [])
