@@ -106,15 +106,26 @@ class Level:
     def value(self) -> float | None:
         return float(np.median(self._clean)) if len(self._clean) >= LEVEL_MIN else None
 
-    def update(self, rr: float, kind: Kind, doubled: bool) -> None:
+    def classify(
+        self,
+        rr: NDArray[np.float64] | list[float],
+        i: int,
+        likeness: NDArray[np.float64] | Sequence[float] | None = None,
+        noise: NDArray[np.float64] | Sequence[float] | None = None,
+    ) -> Kind:
+        """``classify_one`` against this level, which then takes in interval i: the one step that both
+        the offline ``classify`` and the stream take for each interval, in order."""
+        level = self.value
+        kind = classify_one(rr, i, likeness, noise, level)
         if kind == "ok":
-            self._clean.append(rr)
+            self._clean.append(rr[i])
             self._doubled = 0
-        elif doubled:
+        elif doubled(rr[i], level):
             self._doubled += 1
             if self._doubled >= RELEVEL:  # over a minute of it: a slow rhythm, not dropped beats
                 self._clean.clear()
                 self._doubled = 0
+        return kind
 
 
 def classify(
@@ -130,8 +141,7 @@ def classify(
     for i in range(len(rr)):
         if i in segment_starts:
             level = Level()
-        kinds.append(classify_one(rr, i, likeness, noise, level.value))
-        level.update(rr[i], kinds[-1], doubled(rr[i], level.value))
+        kinds.append(level.classify(rr, i, likeness, noise))
     return kinds
 
 
@@ -236,6 +246,7 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
     """One window [start, end): the intervals whose ending beat falls inside it. A window that a gap in
     the data overlaps is low quality whatever is left of it (DESIGN §6)."""
     sel = (iv.t_s >= start_s) & (iv.t_s < end_s)
+    idx = np.nonzero(sel)[0]
     rr = iv.rr_s[sel]
     bad = iv.excluded[sel]
     clean = rr[~bad]
@@ -251,10 +262,9 @@ def window_stats(start_s: float, end_s: float, iv: Intervals, gaps_s: Gaps = ())
         reason = "excluded"
     elif coverage < MIN_COVERAGE:
         reason = "coverage"
-    elif iv.noise is not None and noisy_exclusions(iv, np.nonzero(sel)[0]) >= HOLD_NOISY:
+    elif iv.noise is not None and noisy_exclusions(iv, idx) >= HOLD_NOISY:
         reason = "noise"
     # successive differences only between intervals that are next to each other and both clean
-    idx = np.nonzero(sel)[0]
     pairs = [
         (iv.rr_s[a], iv.rr_s[b])
         for a, b in itertools.pairwise(idx)
@@ -381,7 +391,7 @@ class HrvStream:
         self._seg_peaks: list[float] = []
         self._seg_rr: list[float] = []
         self._seg_t: list[float] = []
-        self._seg_like: list[float] = []  # per beat, the detector's (1 for device RR)
+        self._last_like = 1.0  # the segment's last beat's likeness (1 for device RR)
         self._seg_like_iv: list[float] = []  # per interval, the lesser of its beats'
         self._seg_noise: list[float] = []  # per interval
         self._ecg = False  # fed samples, so the detector's likeness and noise exist
@@ -467,7 +477,7 @@ class HrvStream:
             self._add_peaks(self._det.flush_peaks())
         self._classify(final=True)
         self._seg_peaks, self._seg_rr, self._seg_t, self._classified = [], [], [], 0
-        self._seg_like, self._seg_like_iv, self._seg_noise = [], [], []
+        self._seg_like_iv, self._seg_noise = [], []
         self._level = Level()
 
     def _add_peaks(self, found: list[Peak]) -> list[float]:
@@ -483,12 +493,12 @@ class HrvStream:
             if self._seg_peaks:
                 self._seg_rr.append(t - self._seg_peaks[-1])
                 self._seg_t.append(t)
-                self._seg_like_iv.append(min(like, self._seg_like[-1]))
+                self._seg_like_iv.append(min(like, self._last_like))
                 self._seg_noise.append(0.0 if noise is None else noise[k])
             else:
                 self._beats.append(Beat(t, 0.0, "start"))
             self._seg_peaks.append(t)
-            self._seg_like.append(like)
+            self._last_like = like
         return times
 
     def _classify(self, final: bool) -> None:
@@ -496,13 +506,11 @@ class HrvStream:
         for i in range(self._classified, max(self._classified, upto)):
             self._done_t.append(self._seg_t[i])
             self._done_rr.append(self._seg_rr[i])
-            level = self._level.value
             if self._ecg:
-                kind = classify_one(self._seg_rr, i, self._seg_like_iv, self._seg_noise, level)
+                kind = self._level.classify(self._seg_rr, i, self._seg_like_iv, self._seg_noise)
             else:
-                kind = classify_one(self._seg_rr, i, level=level)
+                kind = self._level.classify(self._seg_rr, i)
             self._done_kind.append(kind)
-            self._level.update(self._seg_rr[i], self._done_kind[-1], doubled(self._seg_rr[i], level))
             self._done_noise.append(self._seg_noise[i])
             self._beats.append(Beat(self._seg_t[i], self._seg_rr[i], self._done_kind[-1]))
         self._classified = max(self._classified, upto)
