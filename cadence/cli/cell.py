@@ -119,6 +119,8 @@ def cmd_get(args: argparse.Namespace) -> int:
     from common.runtime.bus import Bus
     from schemas.topology import AnyMessage
 
+    until = time.monotonic() + args.wait
+
     async def ask() -> tuple[list, str | None]:
         async with await Bus.open(joining(args), "cell1") as bus:
             while True:
@@ -126,8 +128,6 @@ def cmd_get(args: argparse.Namespace) -> int:
                 if any(r.message is not None for r in replies) or time.monotonic() >= until:
                     return replies, bus.isolation()
                 await asyncio.sleep(0.5)
-
-    until = time.monotonic() + args.wait
 
     async def go() -> int:
         while True:  # with --wait, a router not up yet is asked again, as is a key nobody answers yet

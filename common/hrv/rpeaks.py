@@ -101,6 +101,8 @@ class RPeakDetector:
         self._pending: list[tuple[int, float]] = []  # below-threshold maxima since the last R
         self._out: list[Peak] = []
         self._shape = round(SHAPE_S * fs)
+        self._qrs = (round(0.045 * fs), round(0.03 * fs))  # around the R peak, for its band-passed height
+        self._between = (round(0.12 * fs), round(0.08 * fs))  # after one QRS, before the next: noise there
         self._templates: deque[Array] = deque(maxlen=TEMPLATE_BEATS)  # QRS shapes of beats like the rhythm
         self._unlike: deque[Array] = deque(maxlen=RELEARN_BEATS)  # the latest run of beats unlike it
         self._amps: deque[float] = deque(maxlen=TEMPLATE_BEATS)  # recent QRS amplitudes, band-passed
@@ -237,12 +239,13 @@ class RPeakDetector:
                 self._templates.clear()
                 self._templates.extend(self._unlike)
                 self._unlike.clear()
-        amp = float(np.max(np.abs(self._bp[max(0, j - 6) : j + 4]))) if j >= 0 else 0.0
+        before, after = self._qrs
+        amp = float(np.max(np.abs(self._bp[max(0, j - before) : j + after]))) if j >= 0 else 0.0
         self._amps.append(amp)
         noise = 0.0
         if self._last_peak is not None:
-            lo = self._last_peak + round(0.12 * self.fs) - self._base
-            hi = j - round(0.08 * self.fs)
+            lo = self._last_peak + self._between[0] - self._base
+            hi = j - self._between[1]
             level = float(np.median(self._amps))
             if hi > lo and level > 0:
                 noise = float(np.max(np.abs(self._bp[max(0, lo) : hi]))) / level
