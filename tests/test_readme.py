@@ -14,6 +14,7 @@ replay and report (test_recording.py, test_report.py); and the benchmarks in tes
 from __future__ import annotations
 
 import importlib
+import itertools
 import json
 import os
 import re
@@ -81,7 +82,7 @@ def check_setting(var: str, value: str) -> None:
     name = max(names, key=len)  # CADENCE_DECISION_MAKER_… is decision_maker's, not a "decision" one
     key = var[len(f"CADENCE_{name.upper()}_") :].lower()
     kind = section_type(name)
-    assert key in {f for f in kind.__struct_fields__}, f"{var}: [{name}] has no key {key!r}"
+    assert key in kind.__struct_fields__, f"{var}: [{name}] has no key {key!r}"
     try:
         section({}, name, kind, env={var: value})
     except ConfigError as exc:
@@ -101,8 +102,8 @@ OTHER_PROGRAMS = {"printf", "systemctl", "journalctl"}
 
 def check_command(tokens: list[str], variables: dict[str, str]) -> None:
     """One command of a block; ``variables`` gathers the block's own (``CELL=…``, ``export …``)."""
-    for stage in " ".join(shlex.quote(t) for t in tokens).split(" '|' "):
-        words = shlex.split(stage)
+    stages = [list(g) for pipe, g in itertools.groupby(tokens, lambda t: t == "|") if not pipe]
+    for words in stages:
         if words[:1] == ["export"]:
             words = words[1:]
         env = {}
