@@ -383,7 +383,7 @@ def bench_hrv_windows(
     paths = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
     if records:
         paths = [p for p in paths if p.name in records]
-    out: dict[str, dict[str, WindowScore]] = {}
+    out: dict[str, dict[str, WindowScore]] = {v: {} for v in variants}  # in the order asked
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(paths) or 1))
     # spawned, not forked: the caller may hold threads (a bus session) whose locks a fork would copy held
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -393,9 +393,8 @@ def bench_hrv_windows(
                 progress(f"{futures[fut]} scored")
             for v, by_name in fut.result().items():
                 for name, score in by_name.items():
-                    out.setdefault(v, {}).setdefault(name, WindowScore(name)).merge(score)
-    order: dict[str, int] = {v: i for i, v in enumerate(variants)}
-    return dict(sorted(out.items(), key=lambda kv: order[kv[0]]))
+                    out[v].setdefault(name, WindowScore(name)).merge(score)
+    return {v: scores for v, scores in out.items() if scores}  # no records: nothing scored
 
 
 def _score_record(
