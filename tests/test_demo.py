@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 KILL_HRV, KILL_DECISION = 150.0, 260.0
 
 
@@ -65,11 +67,16 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
         e["kind"] == "state" and "→ waiting_for_selection" in e["message"] and e["t_s"] > started
         for e in s["events"]
     )
-    for kill in (KILL_HRV, KILL_DECISION):  # the robot went on cycling while each was down and restarting
+    # the robot went on cycling while each was down and restarting: a cycle ended within two typical
+    # cycles of the kill. A cycle of the example task is about 24 s of data time at 16x, and a loaded
+    # machine stretches the one around a kill (a restarting service takes a core for a second of wall
+    # time, 16 s of data time, from the operator twin too): a fixed 30 s failed 1 run in 5 under load.
+    within = 2 * float(np.median(np.diff(ends)))
+    for kill in (KILL_HRV, KILL_DECISION):
         # (unless its own overruns on a loaded machine stopped it then: a stop of its own, resumed by the
         # demo's auto policy, after which it cycles again)
-        stopped = [t for t in stops if kill < t < kill + 30]
-        assert any(kill < t < kill + 30 for t in ends) or (stopped and any(t > stopped[0] for t in ends))
+        stopped = [t for t in stops if kill < t < kill + within]
+        assert any(kill < t < kill + within for t in ends) or (stopped and any(t > stopped[0] for t in ends))
     assert any(w["end_s"] > KILL_HRV + 40 for w in s["windows"])  # the restarted analyser windows again
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
     assert s["cycles"] >= 5 and len(ends) == s["cycles"]
