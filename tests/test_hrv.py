@@ -30,9 +30,9 @@ def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
 
 def test_the_ecg_excludes_what_rr_cannot_tell_a_late_unlike_beat_and_a_burst_of_noise() -> None:
     rr = np.full(30, 0.8)  # regular to RR alone
-    likeness, noise = np.ones(30), np.full(30, 0.3)
+    likeness, noise = np.ones(30), np.full(30, 1.0)  # noise: the person's own level between beats is 1
     likeness[10] = 0.4  # interval 10 has a beat unlike the template (a late PVC: RR cannot see it)
-    noise[20] = 0.9  # a burst of noise between the beats of interval 20
+    noise[20] = 3.0  # a burst of noise, three times the usual, between the beats of interval 20
     kinds = classify(rr, likeness, noise)
     assert kinds[10] == "unlike" and kinds[20] == "noise"
     assert sum(k != "ok" for k in kinds) == 2 and classify(rr) == ["ok"] * 30

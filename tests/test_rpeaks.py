@@ -77,4 +77,5 @@ def test_a_burst_of_noise_is_noise_between_the_beats_around_it() -> None:
     peaks = detect_peaks(x, 130.0, chunk=13)
     hit = [p.noise for p in peaks if 60.0 < p.sample / 130.0 < 62.0]
     rest = [p.noise for p in peaks[1:] if not 59.5 < p.sample / 130.0 < 63.0]
-    assert max(hit) > 1.0 and max(rest) < 0.5
+    # relative to the person's own level between beats (about 1 on a clean ECG)
+    assert max(hit) > 3.0 and max(rest) < 1.5

@@ -33,6 +33,9 @@ SHAPE_S = 0.1  # each side of the R peak: the QRS whose shape is compared with t
 TEMPLATE_BEATS = 8  # the template is the median of the last this many beats like it
 RELEARN_BEATS = 8  # this many beats in a row unlike the template: the QRS itself changed, learn it anew
 LIKE = 0.8  # correlation with the template below which a beat is not like the rhythm's own (ectopic, noise)
+ALIGN_S = 0.05  # each side: the shift within which a beat's QRS is aligned to the template before comparing
+NOISE_BEATS = 32  # the person's own between-beat level: the median of the last this many beats' excursions
+NOISE_FLOOR = 0.35  # of the QRS height: a lower own level counts as this (a clean ECG's is 0.15-0.5)
 
 
 class Peak(NamedTuple):
@@ -40,11 +43,21 @@ class Peak(NamedTuple):
     cannot tell: ``likeness``, the correlation of its QRS with the template of the recent normal beats (a
     ventricular beat that is only mildly early, or a spike of noise, is unlike it); ``noise``, the largest
     band-passed excursion between the previous peak's QRS and this one's, relative to the recent QRS
-    amplitude (a burst of noise in which beats may be hidden or invented; 0 for a segment's first)."""
+    amplitude and then to this person's own usual level of it (a burst of noise in which beats may be
+    hidden or invented; 0 for a segment's first).
+
+    Both are relative to the person (issue 26): a bundle branch block's wide QRS and large T wave put a
+    band-passed excursion between beats as high as the QRS itself in every beat (MIT-BIH 109), so the
+    excursion counts against the median of the last NOISE_BEATS, not against a fixed share of the QRS;
+    and a QRS with two peaks of like height (rSR', 118) is located on either from beat to beat, so a
+    beat is aligned to the template (within ALIGN_S) before it is compared, and its time is the aligned
+    one: the same point of every beat like the template, so the interval between two beats has no jitter
+    from which peak was found."""
 
     sample: int  # from the first sample fed
     likeness: float
     noise: float
+    excursion: float = 0.0  # the largest between the beats, relative to the QRS height only (not the person)
 
 
 @dataclass
@@ -106,6 +119,8 @@ class RPeakDetector:
         self._templates: deque[Array] = deque(maxlen=TEMPLATE_BEATS)  # QRS shapes of beats like the rhythm
         self._unlike: deque[Array] = deque(maxlen=RELEARN_BEATS)  # the latest run of beats unlike it
         self._amps: deque[float] = deque(maxlen=TEMPLATE_BEATS)  # recent QRS amplitudes, band-passed
+        self._excursions: deque[float] = deque(maxlen=NOISE_BEATS)  # between beats, relative to the QRS
+        self._align = round(ALIGN_S * fs)
         self._last_peak: int | None = None  # the last R peak given out (absolute index)
 
     # -- public ----------------------------------------------------------------------------------
@@ -219,17 +234,32 @@ class RPeakDetector:
         self._pending.clear()
         self._out.append(self._describe(self._locate(idx)))
 
-    def _describe(self, r: int) -> Peak:
-        """The peak with its likeness to the template and the noise since the previous peak."""
-        j, h = r - self._base, self._shape
+    def _qrs_shape(self, j: int) -> Array:
+        """The raw QRS centred on buffer index j (±SHAPE_S), less its local median; edge-padded."""
+        h = self._shape
         seg = self._raw[max(0, j - h) : j + h + 1]
         seg = np.pad(seg, (max(0, h - j), 2 * h + 1 - len(seg) - max(0, h - j)), mode="edge")
-        seg = seg - np.median(self._raw[max(0, j - 3 * h) : j + 1])
+        out: Array = seg - np.median(self._raw[max(0, j - 3 * h) : j + 1])
+        return out
+
+    def _describe(self, r: int) -> Peak:
+        """The peak, aligned to the template, with its likeness and the noise since the previous peak."""
+        j = r - self._base
+        seg = self._qrs_shape(j)
         if len(self._templates) < 3:
             likeness = 1.0  # learning the template
         else:
-            c = np.corrcoef(np.median(np.array(self._templates), axis=0), seg)[0, 1]
-            likeness = float(c) if np.isfinite(c) else 0.0
+            template = np.median(np.array(self._templates), axis=0)
+            best = (-2.0, 0, seg)
+            for lag in range(-self._align, self._align + 1):
+                cand = seg if lag == 0 else self._qrs_shape(j + lag)
+                c = np.corrcoef(template, cand)[0, 1]
+                if np.isfinite(c) and c > best[0]:
+                    best = (float(c), lag, cand)
+            likeness, lag, aligned = best
+            likeness = max(likeness, 0.0) if likeness > -2.0 else 0.0
+            if likeness >= LIKE:  # the template's own point of this beat
+                r, j, seg = r + lag, j + lag, aligned
         if likeness >= LIKE:
             self._templates.append(seg)
             self._unlike.clear()
@@ -242,15 +272,18 @@ class RPeakDetector:
         before, after = self._qrs
         amp = float(np.max(np.abs(self._bp[max(0, j - before) : j + after]))) if j >= 0 else 0.0
         self._amps.append(amp)
-        noise = 0.0
+        noise = excursion = 0.0
         if self._last_peak is not None:
             lo = self._last_peak + self._between[0] - self._base
             hi = j - self._between[1]
             level = float(np.median(self._amps))
             if hi > lo and level > 0:
-                noise = float(np.max(np.abs(self._bp[max(0, lo) : hi]))) / level
+                excursion = float(np.max(np.abs(self._bp[max(0, lo) : hi]))) / level
+                own = float(np.median(self._excursions)) if self._excursions else NOISE_FLOOR
+                noise = excursion / max(own, NOISE_FLOOR)
+                self._excursions.append(excursion)
         self._last_peak = r
-        return Peak(r, likeness, noise)
+        return Peak(r, likeness, noise, excursion)
 
     def _search_back(self, now: int) -> None:
         """No beat for 1.66 mean RR: take the largest skipped maximum above half the threshold."""
