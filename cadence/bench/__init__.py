@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from cadence.bench.ecg_noise import Variant
 from cadence.bench.hrv_scoring import WindowScore
 from cadence.bench.naive import evaluate_naive
+from common.hrv.stream import RULES
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.limits import JointLimits
@@ -365,6 +366,7 @@ def bench_hrv_windows(
     progress: Callable[[str], None] | None = None,
     peers: bool = True,
     jobs: int | None = None,
+    gudb_dir: str | None = None,
 ) -> dict[str, dict[str, WindowScore]]:
     """Issue 19's table: per noise variant, how far the windows each pipeline marks good are from the
     annotated NN mean (``hrv_scoring``), for Cadence (its detector, cleaning and quality gate) and
@@ -375,7 +377,11 @@ def bench_hrv_windows(
     With the clean variant, also ``cadence-rr``: the same cleaning and gate on a strap's own RR (``input =
     "rr"``), simulated as the H10 gives it: the annotated beats less every beat that is not normal (the
     strap leaves premature beats out, so one interval spans each). Records are scored in ``jobs``
-    processes (default: one per core); the figures do not depend on it."""
+    processes (default: one per core); the figures do not depend on it.
+
+    With ``gudb_dir`` and the clean variant, also ``gudb-cs`` and ``gudb-cables``: healthy people's
+    chest-strap beats as a strap's RR, against the strap's and the cables' annotated beats
+    (``hrv_cv.gudb_unit``)."""
     import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -394,6 +400,14 @@ def bench_hrv_windows(
             for v, by_name in fut.result().items():
                 for name, score in by_name.items():
                     out[v].setdefault(name, WindowScore(name)).merge(score)
+    if gudb_dir and "clean" in variants and Path(gudb_dir).is_dir():
+        from cadence.bench.hrv_cv import gudb_unit
+
+        for subject in sorted(Path(gudb_dir).glob("subject_*")):
+            for (_, name), score in gudb_unit(subject).score(RULES).items():
+                out["clean"].setdefault(name, WindowScore(name)).merge(score)
+        if progress:
+            progress("GUDB scored")
     return {v: scores for v, scores in out.items() if scores}  # no records: nothing scored
 
 

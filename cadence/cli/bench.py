@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rich.progress import Progress
 from rich.table import Table
@@ -14,6 +15,10 @@ from rich.table import Table
 from cadence.cli._common import add_planner_flags, err, out, positive_int, task_with_overrides
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
+
+if TYPE_CHECKING:
+    from cadence.bench.ecg_noise import Variant
+    from cadence.bench.hrv_scoring import WindowScore
 
 
 def cmd_bench_plan(args: argparse.Namespace) -> int:
@@ -148,22 +153,9 @@ def cmd_bench_executor(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_hrv_windows(args: argparse.Namespace) -> int:
-    from cadence.bench import bench_hrv_windows
-    from cadence.bench.ecg_noise import VARIANTS
-
-    asked = args.variants.split(",") if args.variants else list(VARIANTS)
-    unknown = [v for v in asked if v not in VARIANTS]
-    if unknown:
-        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
-    variants = tuple(v for v in VARIANTS if v in asked)
-    records = tuple(r for r in (args.records or "").split(",") if r)
-    with Progress(console=err, transient=True) as bar:
-        task = bar.add_task("scoring windows", total=None)
-        scores = bench_hrv_windows(
-            args.data, args.fs, variants, records, progress=lambda what: bar.update(task, description=what)
-        )
-    table = Table(title=f"30 s windows marked good vs the annotated NN mean, {args.fs:g} Hz; errors in ms")
+def _window_table(title: str, scores: dict[str, dict[str, WindowScore]]) -> dict[str, object]:
+    """The window scores as a table on stdout; the worst records of Cadence's under it; the figures."""
+    table = Table(title=title)
     for col in ("variant", "pipeline", "good", "held", "held %*", "p95", ">10", ">20", "worst"):
         table.add_column(col, justify="left" if col in ("variant", "pipeline") else "right", no_wrap=True)
     figures: dict[str, dict[str, dict[str, float | int | str]]] = {}
@@ -182,13 +174,77 @@ def _bench_hrv_windows(args: argparse.Namespace) -> int:
                 str(f["over_20_ms"]),
                 f"{f['worst_ms']}",
             )
-            if f["worst_records"] and name == "cadence":
-                notes.append(f"{v}: {f['worst_records']}")
+            if f["worst_records"] and name != "neurokit2":
+                notes.append(f"{v} {name}: {f['worst_records']}")
     out.print(table)
-    out.print("* the share held on the records without arrhythmia runs")
+    out.print("* the share held on the records without arrhythmia runs (GUDB: every window)")
     if notes:
         out.print("Cadence's windows over 10 ms, worst first: " + "; ".join(notes))
-    print(json.dumps(figures))
+    return dict(figures)
+
+
+def _variants(args: argparse.Namespace) -> tuple[Variant, ...]:
+    from cadence.bench.ecg_noise import VARIANTS
+
+    asked = args.variants.split(",") if args.variants else list(VARIANTS)
+    unknown = [v for v in asked if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+    return tuple(v for v in VARIANTS if v in asked)
+
+
+def _bench_hrv_windows(args: argparse.Namespace) -> int:
+    from cadence.bench import bench_hrv_windows
+
+    variants = _variants(args)
+    records = tuple(r for r in (args.records or "").split(",") if r)
+    with Progress(console=err, transient=True) as bar:
+        task = bar.add_task("scoring windows", total=None)
+        scores = bench_hrv_windows(
+            args.data,
+            args.fs,
+            variants,
+            records,
+            progress=lambda what: bar.update(task, description=what),
+            gudb_dir=args.gudb,
+        )
+    title = f"30 s windows marked good vs the annotated NN mean, {args.fs:g} Hz; errors in ms"
+    print(json.dumps(_window_table(title, scores)))
+    return 0
+
+
+def _bench_hrv_cv(args: argparse.Namespace) -> int:
+    from cadence.bench.hrv_cv import GRID, cross_validate, describe
+    from common.hrv.stream import RULES
+
+    variants = _variants(args)
+    with Progress(console=err, transient=True) as bar:
+        task = bar.add_task("detecting and scoring every unit under every rule set", total=None)
+        cv = cross_validate(
+            args.data, args.gudb, args.fs, variants, progress=lambda what: bar.update(task, description=what)
+        )
+    if not cv.units:
+        raise InputError(f"{args.data}, {args.gudb}: no annotated record nor GUDB subject to cross-validate")
+    held_out, picks = cv.held_out()
+    nested: dict[str, dict[str, WindowScore]] = {}
+    for (v, name), sc in held_out.items():
+        nested.setdefault(v, {})[name] = sc
+    title = f"Held out: each unit scored with the thresholds chosen on the others ({len(cv.units)} units)"
+    figures = _window_table(title, nested)
+    best = cv.chosen()
+    counts: dict[int, list[str]] = {}
+    for u, g in picks.items():
+        counts.setdefault(g, []).append(u)
+    out.print(f"Grid: {len(cv.rules)} rule sets over " + ", ".join(f"{k} {v}" for k, v in GRID.items()))
+    for g, units in sorted(counts.items(), key=lambda kv: -len(kv[1])):
+        out.print(f"  chosen in {len(units)} of {len(cv.units)} folds: {describe(cv.rules[g])}")
+    shipped = describe(RULES)
+    out.print(
+        f"Chosen on all units: {describe(cv.rules[best])}; shipped (common/hrv/stream.py Rules): {shipped}"
+    )
+    if describe(cv.rules[best]) != shipped:
+        out.print("[yellow]the shipped thresholds are not the ones chosen on all units[/yellow]")
+    print(json.dumps({"held_out": figures, "chosen": describe(cv.rules[best]), "shipped": shipped}))
     return 0
 
 
@@ -197,6 +253,8 @@ def cmd_bench_hrv(args: argparse.Namespace) -> int:
 
     if not Path(args.data).is_dir():
         raise InputError(f"{args.data}: no such folder (the annotated recordings, e.g. ../shared/data/ecg)")
+    if args.cv:
+        return _bench_hrv_cv(args)
     if args.windows:
         return _bench_hrv_windows(args)
     with err.status("detecting beats on every record …"):
@@ -319,4 +377,18 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="with --windows: noise variants (clean, white12, white6, wander, motion; default all)",
     )
     bh.add_argument("--records", metavar="R,…", help="with --windows: only these records (default all)")
+    bh.add_argument(
+        "--gudb",
+        default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "gudb"),
+        metavar="DIR",
+        help="with --windows or --cv: GUDB subjects' annotated chest-strap beats, scored as a strap's RR "
+        "(default ../shared/data/gudb; skipped when absent)",
+    )
+    bh.add_argument(
+        "--cv",
+        action="store_true",
+        help="cross-validate the cleaning's thresholds: leave one record (or GUDB subject) out, choose on "
+        "the rest from a grid, score the one left out; prints the held-out figures and the choices "
+        "(a few minutes)",
+    )
     bh.set_defaults(func=cmd_bench_hrv)

@@ -234,32 +234,36 @@ class RPeakDetector:
         self._pending.clear()
         self._out.append(self._describe(self._locate(idx)))
 
-    def _qrs_shape(self, j: int) -> Array:
-        """The raw QRS centred on buffer index j (±SHAPE_S), less its local median; edge-padded."""
-        h = self._shape
+    def _qrs_shape(self, j: int, extra: int = 0) -> Array:
+        """The raw QRS centred on buffer index j (±SHAPE_S, and ``extra`` samples more each side), less
+        its local median; edge-padded."""
+        h = self._shape + extra
         seg = self._raw[max(0, j - h) : j + h + 1]
         seg = np.pad(seg, (max(0, h - j), 2 * h + 1 - len(seg) - max(0, h - j)), mode="edge")
-        out: Array = seg - np.median(self._raw[max(0, j - 3 * h) : j + 1])
+        out: Array = seg - np.median(self._raw[max(0, j - 3 * self._shape) : j + 1])
         return out
 
     def _describe(self, r: int) -> Peak:
         """The peak, aligned to the template, with its likeness and the noise since the previous peak."""
         j = r - self._base
-        seg = self._qrs_shape(j)
+        n = 2 * self._shape + 1
+        wide = self._qrs_shape(j, self._align)  # every shift's QRS is a slice of it
+        seg = wide[self._align : self._align + n]
         if len(self._templates) < 3:
             likeness = 1.0  # learning the template
         else:
-            template = np.median(np.array(self._templates), axis=0)
-            best = (-2.0, 0, seg)
-            for lag in range(-self._align, self._align + 1):
-                cand = seg if lag == 0 else self._qrs_shape(j + lag)
-                c = np.corrcoef(template, cand)[0, 1]
-                if np.isfinite(c) and c > best[0]:
-                    best = (float(c), lag, cand)
-            likeness, lag, aligned = best
-            likeness = max(likeness, 0.0) if likeness > -2.0 else 0.0
+            # the correlation with the template at every shift within ±ALIGN_S, at once
+            t = np.median(np.array(self._templates), axis=0)
+            t = t - t.mean()
+            shifts = np.lib.stride_tricks.sliding_window_view(wide, n)
+            centred = shifts - shifts.mean(axis=1, keepdims=True)
+            norms = np.linalg.norm(centred, axis=1) * np.linalg.norm(t)
+            c = np.divide(centred @ t, norms, out=np.zeros(len(shifts)), where=norms > 0)
+            k = int(np.argmax(c))
+            likeness = max(float(c[k]), 0.0)
             if likeness >= LIKE:  # the template's own point of this beat
-                r, j, seg = r + lag, j + lag, aligned
+                lag = k - self._align
+                r, j, seg = r + lag, j + lag, shifts[k]
         if likeness >= LIKE:
             self._templates.append(seg)
             self._unlike.clear()

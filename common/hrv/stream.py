@@ -330,7 +330,8 @@ def window_stats(
     sel = (iv.t_s >= start_s) & (iv.t_s < end_s)
     idx = np.nonzero(sel)[0]
     rr = iv.rr_s[sel]
-    bad = iv.excluded[sel]
+    excluded_all = iv.excluded  # built once: the pairs below look at it per interval
+    bad = excluded_all[sel]
     clean = rr[~bad]
     n = int(rr.size)
     excluded = float(bad.mean()) if n else 1.0
@@ -352,7 +353,7 @@ def window_stats(
     pairs = [
         (iv.rr_s[a], iv.rr_s[b])
         for a, b in itertools.pairwise(idx)
-        if b == a + 1 and not iv.excluded[a] and not iv.excluded[b]
+        if b == a + 1 and not excluded_all[a] and not excluded_all[b]
     ]
     rmssd = float(np.sqrt(np.mean([(b - a) ** 2 for a, b in pairs]))) if pairs else None
     return Window(
