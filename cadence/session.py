@@ -17,6 +17,7 @@ import asyncio
 import contextlib
 import hashlib
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from numpy.typing import NDArray
 
 from cadence import version
 from cadence.recording import Recorder, read
+from common.hrv.calibration import SETTLED_WINDOWS, settled
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
 from common.trajectory.task import load_task
@@ -41,7 +43,7 @@ from schemas import (
     Selection,
     ServiceStatus,
 )
-from schemas.operator import ErrorKind, OperatorSignal
+from schemas.operator import ErrorKind, OperatorSignal, Posture
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
 from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, ROOT, SERVICES, decode_any, encode
 
@@ -273,6 +275,8 @@ class SessionOptions:
     measured_sigma: bool = False
     ready_timeout_s: float = 120.0
     notes: str = ""
+    posture: Posture = "rest"  # of a calibration this session takes (--calibrate)
+    settle_timeout_s: float | None = 600.0  # wall time the settle gate waits; None: no gate
 
 
 @dataclass
@@ -282,6 +286,7 @@ class Watch:
     statuses: dict[str, ServiceStatus] = field(default_factory=dict)
     robot: RobotState | None = None
     window: HrvWindow | None = None
+    recent: deque[HrvWindow] = field(default_factory=lambda: deque(maxlen=SETTLED_WINDOWS))
     selection: Selection | None = None
     data_ns: int = 0  # the latest data time a clocked key carried
     data_wall: float = 0.0  # when it came (monotonic)
@@ -306,6 +311,7 @@ class Watch:
             self.robot = msg
         elif isinstance(msg, HrvWindow):
             self.window = msg
+            self.recent.append(msg)
         elif isinstance(msg, Selection):
             self.selection = msg
         elif isinstance(msg, CycleReport) and counting:
@@ -446,10 +452,29 @@ async def run_session(
             watch.changed.clear()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(watch.changed.wait(), 0.5)
-        # 2. at rest, if asked
+        # 2. the calibration, if asked: at rest, or at work at the slowest solution
         if opts.calibrate_minutes and not stop.is_set():
-            show("calibrating at rest", watch, opts)
+            show(
+                "calibrating at rest" if opts.posture == "rest" else "calibrating at work (k = 1)",
+                watch,
+                opts,
+            )
             cal = await _until(stop, calibrate())
+        # 2b. the person has settled near the baseline: Alg. 1 starts from RR_{-1} = RR_r
+        if cal is not None and opts.settle_timeout_s is not None and not stop.is_set():
+            watch.recent.clear()  # windows from now on
+            deadline = time.monotonic() + opts.settle_timeout_s
+            while not stop.is_set() and (why := settled(watch.recent, cal.rr_rest_s)) is not None:
+                show(f"waiting for the person to settle: {why}", watch, opts)
+                if time.monotonic() > deadline:
+                    raise CadenceError(
+                        f"the person has not settled near the baseline RR_r = {cal.rr_rest_s:.3f} s after "
+                        f"{opts.settle_timeout_s:g} s: {why} (let them rest or work at the slowest pace, or "
+                        "calibrate again)"
+                    )
+                watch.changed.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(watch.changed.wait(), 0.5)
         # 3. the condition, and from then on the session counts
         if not stop.is_set() and cal is not None:
             fresh = cal.t_ns if opts.calibrate_minutes else None

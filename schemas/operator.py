@@ -14,14 +14,24 @@ Spread = Annotated[float, msgspec.Meta(gt=0.0, lt=1.0)]
 SignalName = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
 
 
+# rest: seated at rest, as the paper calibrates; working: at the task at its slowest solution (k = 1)
+Posture = Literal["rest", "working"]
+
+
 class Calibration(Message, frozen=True, tag="operator.calibration.v1"):
-    """Resting mean RR and its spread for one subject (paper §III-B); stress values derive from them."""
+    """The baseline mean RR (RR_r) and its spread for one subject (paper §III-B); stress values derive
+    from them. ``rr_rest_s`` is the baseline the decision uses, taken in ``posture``: at rest as the
+    paper does, or at work (issue 26: standing and moving lower RR as much as a maths test, so a worker
+    calibrated seated who stands to work is read as stressed). A working calibration keeps the level
+    at rest it replaced in ``rr_resting_s``."""
 
     subject: Name
     rr_rest_s: RrSeconds
     sigma_rest_s: Spread = 0.14
     rr_stress_offset_s: Spread = 0.08
     sigma_stress_s: Spread = 0.08
+    posture: Posture = "rest"  # new fields: old decoders skip them
+    rr_resting_s: RrSeconds | None = None
 
     def __post_init__(self) -> None:
         if self.rr_rest_s - self.rr_stress_offset_s - self.sigma_stress_s <= 0:

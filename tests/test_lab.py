@@ -100,7 +100,10 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
         wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
         # (b) runs two minutes: a minimum-jerk cycle takes about 40 s, and the test wants one whole cycle
         # inside it even when a busy machine's protective stop costs some time
-        for condition, calibrate in (("a", ["--calibrate", "1"]), ("b", []), ("c", [])):
+        # (a) calibrates, then waits for the twin to settle near its RR_r; (b) and (c) follow at once, as
+        # a lab that skips the break would (the twin is still stressed from (a): the gate would wait)
+        settle_now = ["--settle-timeout", "0"]
+        for condition, calibrate in (("a", ["--calibrate", "1"]), ("b", settle_now), ("c", settle_now)):
             minutes = MINUTES[condition]
             r = subprocess.run(
                 [sys.executable, "-m", "cadence", "session", "--subject", "twin-1", "--condition", condition,
@@ -184,7 +187,8 @@ async def cut_short(endpoint: str, tmp_path: Path):
 
     stop = asyncio.Event()
     opts = SessionOptions(subject="twin-1", condition="b", minutes=5.0, out=tmp_path / "cut.mcap",
-                          data_dir=tmp_path / "lab", task=EXAMPLE_TASK, ready_timeout_s=240)  # fmt: skip
+                          data_dir=tmp_path / "lab", task=EXAMPLE_TASK, ready_timeout_s=240,
+                          settle_timeout_s=None)  # fmt: skip
     seen = 0
 
     keys: asyncio.Queue[str] = asyncio.Queue()

@@ -18,7 +18,9 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, fields, replace
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +28,7 @@ from numpy.typing import NDArray
 from cadence.bench.ecg_noise import Variant
 from cadence.bench.hrv_scoring import Truth, WindowScore
 from common.hrv.rpeaks import Peak
-from common.hrv.stream import RULES, Rules
+from common.hrv.stream import RULES, Intervals, Rules
 
 # the grid: a few values of each threshold that the person-relative rules depend on
 GRID: dict[str, tuple[float, ...]] = {
@@ -43,7 +45,11 @@ GUDB_ACTIVITIES = ("sitting", "maths", "walking", "hand_bike")  # jogging: its a
 def grid(spec: dict[str, tuple[float, ...]] = GRID) -> list[Rules]:
     names = list(spec)
     combos = itertools.product(*spec.values())
-    return [replace(RULES, **dict(zip(names, values, strict=True))) for values in combos]
+    out: list[Rules] = []
+    for values in combos:
+        changes: dict[str, Any] = dict(zip(names, values, strict=True))
+        out.append(replace(RULES, **changes))
+    return out
 
 
 def loss(scores: Iterable[WindowScore]) -> float:
@@ -95,7 +101,7 @@ class Unit:
     def score_all(self, grid: list[Rules]) -> list[dict[tuple[str, str], WindowScore]]:
         """``score`` under every rule set of ``grid``; the intervals are classified once for the rule sets
         that differ only in what holds a window."""
-        from common.hrv.stream import Intervals, intervals, peak_intervals, windows
+        from common.hrv.stream import windows
 
         cache: dict[tuple[object, ...], Intervals] = {}
 
@@ -111,19 +117,31 @@ class Unit:
         for rules in grid:
             by: dict[tuple[str, str], WindowScore] = {}
             for i, s in enumerate(self.ecg):
-                iv = classified(("ecg", i), rules, lambda r, s=s: peak_intervals(s.peaks, s.fs, rules=r))
+                iv = classified(("ecg", i), rules, partial(_peak_intervals, s))
                 sc = by.setdefault((s.variant, "cadence"), WindowScore("cadence"))
                 sc.add_windows(s.record, s.truths, windows(iv, 30.0, end_s=s.end_s, rules=rules), s.sinus)
             for i, r in enumerate(self.rr):
                 # the ECG's thresholds do not touch a series without one
                 rr_rules = replace(rules, noise=RULES.noise, quiet=RULES.quiet)
-                iv = classified(("rr", i), rr_rules, lambda x, r=r: intervals(r.beats_s, rules=x))
+                iv = classified(("rr", i), rr_rules, partial(_rr_intervals, r))
                 ws = windows(iv, 30.0, r.start_s, r.end_s, rules=rules)
                 for pipeline, truths in r.truths.items():
                     sc = by.setdefault(("clean", pipeline), WindowScore(pipeline))
                     sc.add_windows(r.record, truths, ws[: len(truths)], r.sinus)
             out.append(by)
         return out
+
+
+def _peak_intervals(s: EcgSeries, rules: Rules) -> Intervals:
+    from common.hrv.stream import peak_intervals
+
+    return peak_intervals(s.peaks, s.fs, rules=rules)
+
+
+def _rr_intervals(r: RrSeries, rules: Rules) -> Intervals:
+    from common.hrv.stream import intervals
+
+    return intervals(r.beats_s, rules=rules)
 
 
 def gudb_truth(beats_s: NDArray[np.float64], starts_s: Iterable[float], length_s: float) -> list[Truth]:

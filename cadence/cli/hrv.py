@@ -14,12 +14,13 @@ from typing import TYPE_CHECKING
 from rich.progress import BarColumn, Progress, TextColumn
 
 from cadence.cli._common import err, out, positive_int
-from common.runtime.errors import InputError
+from common.runtime.errors import CadenceError, InputError
 
 if TYPE_CHECKING:
     from common.hrv.calibration import RestingLevel
     from common.runtime.bus import Bus
     from schemas import Calibration, HrvWindow
+    from schemas.operator import Posture
 
 
 def _record_peaks(args: argparse.Namespace):
@@ -108,13 +109,23 @@ async def calibrate(
     data_dir: Path,
     measured_sigma: bool,
     progress: Callable[[float, float], object] | None = None,
+    posture: Posture = "rest",
 ) -> tuple[Calibration, RestingLevel]:
-    """Collect `minutes` of data time of resting windows from the bus; store and publish the calibration."""
+    """Collect ``minutes`` of data time of windows from the bus; store and publish the calibration. At
+    work (``posture`` working), the robot first runs its slowest solution (the decision maker's condition
+    fixed at k = 1, where it stays until a session sets its own) and the stored calibration at rest of
+    the same subject is kept beside the new baseline. An ECG that cannot be read is an InputError that
+    says why (``calibration.Verdict``)."""
 
-    from common.hrv.calibration import calibration, store_calibration
-    from schemas.topology import CALIBRATION, HRV_WINDOW
+    from common.hrv.calibration import calibration, load_calibration, store_calibration
+    from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW
 
     calibrations = bus.publisher(CALIBRATION)
+    if posture == "working":
+        replies = await bus.get(DECISION_CONDITION, timeout=10.0, parameters="mode=fixed;k=1;by=calibrate")
+        if not replies or replies[0].message is None:
+            why = replies[0].error if replies else "no decision maker answered"
+            raise CadenceError(f"calibrate --posture working: cannot set the slowest solution (k = 1): {why}")
     wins: list[HrvWindow] = []
     async for _, w in bus.subscribe(HRV_WINDOW, maxsize=1000):
         wins.append(w)
@@ -123,13 +134,33 @@ async def calibrate(
             progress(min(covered, minutes), minutes)
         if covered >= minutes - 1e-9:
             break
-    try:
-        cal, level = calibration(wins, subject, wins[-1].end_ns, measured_sigma)  # the cell's data time
+    resting = load_calibration(data_dir).value if posture == "working" else None
+    try:  # the cell's data time
+        cal, level = calibration(wins, subject, wins[-1].end_ns, measured_sigma, posture, resting)
     except ValueError as exc:
         raise InputError(f"calibrate: {exc}") from exc
     store_calibration(data_dir, cal)
     calibrations.put(cal)
     return cal, level
+
+
+def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bool) -> list[str]:
+    """What a calibration ends with: the person's verdict and which baseline the decision uses."""
+    where = "at work, at the slowest solution (k = 1)" if cal.posture == "working" else "at rest"
+    lines = [
+        f"subject {cal.subject}: RR_r = {cal.rr_rest_s:.3f} s {where}, over {level.good}/{level.total} good "
+        f"windows: the baseline the decision uses",
+    ]
+    if cal.posture == "working":
+        rest = cal.rr_resting_s
+        lines.append(
+            f"at rest: {rest:.3f} s (kept; {1e3 * (cal.rr_rest_s - rest):+.0f} ms at work)"
+            if rest is not None
+            else "at rest: none stored for this subject"
+        )
+    how = "measured: the spread of the windows' means" if measured_sigma else "the paper default"
+    lines.append(f"σ_r = {cal.sigma_rest_s:.3f} s ({how}; measured {level.sigma_s:.3f} s)")
+    return lines + level.verdict.lines()
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -148,7 +179,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     async def go() -> tuple[Calibration, RestingLevel]:
         async with await Bus.open(bus_cfg, cell, role="operator") as bus:
             with Progress(
-                TextColumn("resting windows"),
+                TextColumn(f"windows {'at work' if args.posture == 'working' else 'at rest'}"),
                 BarColumn(),
                 TextColumn("{task.completed:.1f}/{task.total:.1f} min"),
                 console=err,
@@ -161,15 +192,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                     data_dir,
                     args.measured_sigma,
                     lambda done, total: prog.update(bar, completed=done),
+                    args.posture,
                 )
 
     cal, level = asyncio.run(go())
-    out.print(
-        f"subject {cal.subject}: RR_r = {cal.rr_rest_s:.3f} s over {level.good}/{level.total} good windows; "
-        f"σ_r = {cal.sigma_rest_s:.3f} s ({'measured' if args.measured_sigma else 'the paper default'}); "
-        f"stored in {calibration_path(data_dir)} and published on operator/calibration"
-    )
+    for line in calibration_screen(cal, level, args.measured_sigma):
+        out.print(line)
+    out.print(f"stored in {calibration_path(data_dir)} and published on operator/calibration")
     return 0
+
+
+def add_posture(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--posture",
+        choices=("rest", "working"),
+        default="rest",
+        help="rest: seated at rest, as the paper; working: at the task with the robot at its slowest "
+        "solution (k = 1), so moving and standing are in the baseline; the level at rest is kept beside it",
+    )
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -197,17 +237,20 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
     cal = sub.add_parser(
         "calibrate",
-        help="record resting windows, compute RR_r, store and publish the subject's calibration",
+        help="record windows at rest or at work, compute RR_r, store and publish the subject's calibration",
         description="Listens to hrv/window for MINUTES of data time (the ECG gateway and HRV analyser must "
         "run), averages the good windows' mean RR into RR_r, writes DATA_DIR/calibration.json and publishes "
-        "it on operator/calibration.",
+        "it on operator/calibration. Ends with a verdict: the share of readable windows, why the others "
+        "were held, and 'this ECG cannot be read reliably: …' (exit 2) when too few are good.",
     )
-    cal.add_argument("--minutes", type=float, default=5.0, help="resting time to record (default 5)")
+    cal.add_argument("--minutes", type=float, default=5.0, help="time to record (default 5)")
+    add_posture(cal)
     cal.add_argument("--subject", default="subject", help="who is calibrated")
     cal.add_argument(
         "--measured-sigma",
         action="store_true",
-        help="use the measured RR spread as σ_r instead of the paper's 0.14 s (moves the initial k)",
+        help="use the measured spread of the windows' mean RR as σ_r instead of the paper's 0.14 s (moves "
+        "the initial k)",
     )
     cal.add_argument("--config", metavar="FILE.toml", help="deployment config ([cadence], [bus])")
     cal.add_argument("--data-dir", help="data folder (default from the config or CADENCE_DATA_DIR)")

@@ -15,6 +15,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from cadence.cli._common import SERVICES, add_bus_flags, err, out, positive_int
+from cadence.cli.hrv import add_posture
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import load_task
@@ -305,7 +306,7 @@ def cmd_session(args: argparse.Namespace) -> int:
     from rich.live import Live
 
     from cadence.cli._common import joining, stop_on_signals
-    from cadence.cli.hrv import calibrate
+    from cadence.cli.hrv import calibrate, calibration_screen
     from cadence.session import SessionOptions, load_session, run_session, task_digest
     from common.runtime.bus import Bus
     from common.runtime.config import CommonSettings
@@ -327,6 +328,8 @@ def cmd_session(args: argparse.Namespace) -> int:
         measured_sigma=args.measured_sigma,
         ready_timeout_s=args.timeout,
         notes=args.note,
+        posture=args.posture,
+        settle_timeout_s=None if args.settle_timeout == 0 else args.settle_timeout,
     )
     task_digest(opts.task)  # a task file that is not there is said before the session starts
 
@@ -341,7 +344,11 @@ def cmd_session(args: argparse.Namespace) -> int:
 
                 async def calib() -> Calibration:
                     minutes = args.calibrate
-                    cal, _ = await calibrate(bus, minutes, args.subject, opts.data_dir, args.measured_sigma)
+                    cal, level = await calibrate(
+                        bus, minutes, args.subject, opts.data_dir, args.measured_sigma, posture=args.posture
+                    )
+                    for line in calibration_screen(cal, level, args.measured_sigma):
+                        live.console.print(line)
                     return cal
 
                 keys: asyncio.Queue[str] = asyncio.Queue()
@@ -447,8 +454,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "session",
         help="one subject's session in one condition on a running cell, recorded to one MCAP",
         description="Checks the cell first (a status from every service, the robot ready, a good HRV "
-        "window), calibrates the subject at rest if asked (--calibrate; stored and published as `cadence "
-        "calibrate` does) or takes the stored calibration, sets the condition on the decision maker "
+        "window), calibrates the subject at rest or at work if asked (--calibrate, --posture; stored and "
+        "published as `cadence calibrate` does) or takes the stored calibration, waits until the person's "
+        "windows are good and near the baseline (--settle-timeout), sets the condition on the decision maker "
         "((a) minimum time: k = N; (b) minimum jerk: k = 1; (c) tuned online: Alg. 1 from the initial k), "
         "and records the cell's traffic for MINUTES of data time, with a live view. The file carries the "
         "session's description (subject, condition, calibration, task hash, software, start and end in "
@@ -459,7 +467,19 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     session.add_argument("--condition", required=True, choices=("a", "b", "c"))
     session.add_argument("--minutes", type=float, default=10.0, help="data time to record (default 10)")
     session.add_argument(
-        "--calibrate", type=float, metavar="MINUTES", help="calibrate at rest first (the paper: 5)"
+        "--calibrate",
+        type=float,
+        metavar="MINUTES",
+        help="calibrate first, for MINUTES (the paper: 5 at rest; not the 5-minute familiarisation)",
+    )
+    add_posture(session)
+    session.add_argument(
+        "--settle-timeout",
+        type=float,
+        default=600.0,
+        metavar="S",
+        help="before the condition starts, wait up to S wall seconds for two good windows within 40 ms of "
+        "RR_r (the person settled where the calibration put them); 0: no wait (default 600)",
     )
     session.add_argument("--measured-sigma", action="store_true", help="as `cadence calibrate`")
     session.add_argument("--out", metavar="FILE.mcap", help="default: SUBJECT_CONDITION.mcap")

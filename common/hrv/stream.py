@@ -307,6 +307,11 @@ class Window:
     sdnn_s: float | None
     reason: HoldReason | None = None  # why it is not good
 
+    @property
+    def excluded_fraction(self) -> float:
+        """As ``HrvWindow`` names it, so a calibration reads either."""
+        return self.excluded
+
 
 @dataclass(frozen=True, slots=True)
 class Beat:
