@@ -164,9 +164,13 @@ def read(path: Path, keys: list[str] | None = None) -> Iterator[Recorded]:
         raise InputError(f"{path}: not a readable MCAP recording ({type(exc).__name__}: {exc})") from None
 
 
-async def replay(bus: Bus, path: Path, speed: float, keys: list[str] | None = None) -> int:
-    """Republish a recording; ``speed`` 0 is as fast as the bus takes it. Returns the messages sent."""
+async def replay(
+    bus: Bus, path: Path, speed: float, keys: list[str] | None = None, heard: set[str] | None = None
+) -> int:
+    """Republish a recording; ``speed`` 0 is as fast as the bus takes it. Returns the messages sent;
+    ``heard`` gets each key that a subscriber matched when its first message, or the last, was sent."""
     t0_wall, t0_log, n = time.monotonic(), None, 0
+    seen: set[str] = set()
     for m in read(path, keys):
         if m.encoding != "msgpack":
             raise InputError(f"{path}: a message on {m.key} ({m.encoding}) is not a Cadence message")
@@ -175,6 +179,12 @@ async def replay(bus: Bus, path: Path, speed: float, keys: list[str] | None = No
         if speed > 0:
             due = t0_wall + (m.log_time - t0_log) / 1e9 / speed
             await asyncio.sleep(max(0.0, due - time.monotonic()))
+        if heard is not None and m.key not in seen:
+            seen.add(m.key)
+            if bus.matching(m.key):
+                heard.add(m.key)
         bus.put_raw(m.key, m.data, block=True)
         n += 1
+    if heard is not None:
+        heard.update(k for k in seen - heard if bus.matching(k))
     return n

@@ -142,7 +142,7 @@ def test_cadence_decide_prints_k_per_line_and_matches_the_reference() -> None:
     assert [int(x) for x in proc.stdout.split()] == reference(values, "0.85")
 
 
-@pytest.mark.parametrize("bad", ["abc", "-0.8", "0", "nan", "inf", "", "0.8 0.9"])
+@pytest.mark.parametrize("bad", ["abc", "-0.8", "0", "nan", "inf", "", "0.8 0.9", "850", "0.1"])
 def test_cadence_decide_rejects_a_bad_line_naming_it(bad: str) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "cadence", "decide", "--rr-rest", "0.85"],
@@ -153,3 +153,15 @@ def test_cadence_decide_rejects_a_bad_line_naming_it(bad: str) -> None:
     )
     assert proc.returncode == 2
     assert "<stdin>:3" in proc.stderr and proc.stdout == ""
+
+
+def test_cadence_decide_says_a_mean_rr_in_milliseconds_is_one() -> None:
+    """850 (ms) read as seconds moved k 8 → 15 silently (issue 28)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "cadence", "decide", "--rr-rest", "0.85"],
+        input="850\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and "milliseconds? 0.85 s" in proc.stderr

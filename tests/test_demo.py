@@ -72,12 +72,18 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     # machine stretches the one around a kill (a restarting service takes a core for a second of wall
     # time, 16 s of data time, from the operator twin too): a fixed 30 s failed 1 run in 5 under load.
     within = 2 * float(np.median(np.diff(ends)))
-    for kill in (KILL_HRV, KILL_DECISION):
+    # the kills as the demo fired them (data time): on a loaded machine the demo's clock reaches the
+    # planned time late, so the planned times say nothing of when the services were down
+    fired = {e["message"]: e["t_s"] for e in s["events"] if e["kind"] == "kill"}
+    assert set(fired) == {"SIGKILL hrv_analyser", "SIGKILL decision_maker"}, fired
+    assert fired["SIGKILL hrv_analyser"] >= KILL_HRV and fired["SIGKILL decision_maker"] >= KILL_DECISION
+    for kill in fired.values():
         # (unless its own overruns on a loaded machine stopped it then: a stop of its own, resumed by the
         # demo's auto policy, after which it cycles again)
         stopped = [t for t in stops if kill < t < kill + within]
         assert any(kill < t < kill + within for t in ends) or (stopped and any(t > stopped[0] for t in ends))
-    assert any(w["end_s"] > KILL_HRV + 40 for w in s["windows"])  # the restarted analyser windows again
+    # the restarted analyser windows again
+    assert any(w["end_s"] > fired["SIGKILL hrv_analyser"] + 40 for w in s["windows"])
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
     assert s["cycles"] >= 5 and len(ends) == s["cycles"]
     assert len(s["error_times_s"]) == s["errors"]  # the twin's errors, marked on rr_k.png

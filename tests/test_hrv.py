@@ -63,6 +63,46 @@ def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a
     assert sum(k != "ok" for k in kinds) == 5
 
 
+def test_a_deep_breathing_rhythm_is_the_persons_own_but_a_premature_beat_in_it_is_not() -> None:
+    """Respiratory sinus arrhythmia, ±18 % with each breath of 4.5 beats (GUDB's subject 11 sitting swings
+    776-1200 ms): every interval is a normal beat's, and issue 19's fixed rules excluded its troughs and
+    crests (a mean biased by up to 26 ms). The tolerance follows the person's own spread and a mildly
+    early beat must drop sharper than a breath does; a premature beat and its pause still go."""
+    beat = np.arange(200)
+    rr = 0.95 * (1 + 0.18 * np.sin(2 * np.pi * beat / 4.5))
+    kinds = classify(rr)
+    assert kinds[5:] == ["ok"] * 195  # once the person's spread is learnt (5 intervals)
+    assert kinds[:5].count("ok") >= 4
+    pvc = rr.copy()
+    pvc[100], pvc[101] = 0.55 * rr[100], rr[100] + 0.45 * rr[100]  # early by 45 %, full compensatory pause
+    kinds = classify(pvc)
+    assert kinds[100] != "ok" and kinds[101] != "ok"
+    assert sum(k != "ok" for k in kinds) <= 4  # the pair, and at most its neighbours
+
+
+def test_a_lone_long_interval_stays_but_the_pause_after_a_premature_beat_goes() -> None:
+    rr = np.full(40, 0.8) + np.tile([0.0, 0.02, -0.02], 14)[:40]  # the person's own small spread
+    rr[20] = 1.05  # a pause of the person's own (a sigh, a sinus pause): 31 % long, after a normal beat
+    rr[30], rr[31] = 0.5, 1.1  # a premature beat and its pause
+    kinds = classify(rr)
+    assert kinds[20] == "ok" and kinds[30] != "ok" and kinds[31] != "ok"
+
+
+@needs_data
+@pytest.mark.parametrize("record", ["109", "118"])
+def test_bundle_branch_block_is_read_as_the_persons_own_qrs(record: str) -> None:
+    """109 (left bundle branch block: wide QRS, T waves as tall as it) and 118 (right: a QRS of two
+    peaks of like height) held 95-100 % of their windows under issue 19's rules: the noise between
+    beats counts against the person's own level, and a beat is aligned to the template before it is
+    compared. Now at least 80 % of their scored windows are good, within 10 ms of the annotations."""
+    from cadence.bench import bench_hrv_windows
+
+    sc = bench_hrv_windows(str(ECG), 130.0, ("clean",), (record,), peers=False)["clean"]["cadence"]
+    f = sc.figures()
+    assert len(sc.good) >= 0.8 * (len(sc.good) + sc.held), f
+    assert f["over_10_ms"] == 0, f
+
+
 @needs_data
 def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> None:
     """Issue 19's bar, by its scorer, on the shared records clean and with motion bursts, the variant
@@ -76,7 +116,7 @@ def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> N
         f = by_pipeline["cadence"].figures()
         print(variant, f)
         assert f["over_20_ms"] == 0 and f["p95_ms"] <= 5.0, variant
-        assert f["held_share_sinus"] <= 0.24, variant  # holding everything would be accurate and useless
+        assert f["held_share_sinus"] <= 0.16, variant  # holding everything would be accurate and useless
     # 101 at 300 s: the annotators marked noise and left out a beat in it, so their "NN" interval is 1.9 s
     # long; the noise in the ECG holds that window, not its RR
     assert scores["clean"]["cadence"].held_reasons.get("noise", 0) >= 1

@@ -220,3 +220,20 @@ def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_pat
     assert (
         runs[0].cycles == runs[1].cycles and runs[0].windows == runs[1].windows and len(runs[1].cycles) == 1
     )
+
+
+def test_a_replay_that_nothing_received_says_so_and_exits_1(tmp_path: Path) -> None:
+    """Zenoh drops a put with no subscriber silently: "426 messages replayed", exit 0, was a dead end
+    (issue 28). A replay on a private port, with nobody there, says nothing received it."""
+    from cadence.recording import Recorder
+    from schemas.topology import encode
+
+    rec = Recorder(tmp_path / "one.mcap")
+    sel = Selection(t_ns=5, seq=0, k=8, n=15, delta=0, reason="initial")
+    rec.write("cadence/cell1/decision/selection", encode(sel))
+    rec.close()
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "replay", str(tmp_path / "one.mcap"), "--speed", "0"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 1 and "no subscriber matched" in r.stderr, r.stderr

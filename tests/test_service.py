@@ -34,6 +34,14 @@ def test_a_bad_environment_value_names_the_variable() -> None:
         section({}, "bus", BusConfig, "c.toml", {"CADENCE_BUS_LEASE_MS": "soon"})
 
 
+def test_a_misspelled_environment_variable_is_named_not_the_defaults() -> None:
+    """An unknown key from the environment was reported as "<defaults>: … unknown field" (issue 28)."""
+    with pytest.raises(ConfigError, match=r"^CADENCE_BUS_CONECT: \[bus\] conect: .*unknown field"):
+        section({}, "bus", BusConfig, "<defaults>", {"CADENCE_BUS_CONECT": "['tcp/127.0.0.1:7447']"})
+    with pytest.raises(ConfigError, match=r"^c\.toml: \[bus\] listen_on"):  # one from the file names the file
+        section({"bus": {"listen_on": []}}, "bus", BusConfig, "c.toml", {})
+
+
 def test_a_missing_config_file_is_a_config_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"nope\.toml"):
         read_config(str(tmp_path / "nope.toml"))

@@ -33,12 +33,15 @@ from common.hrv.stream import RULES, Intervals, Rules
 # the grid: a few values of each threshold that the person-relative rules depend on
 GRID: dict[str, tuple[float, ...]] = {
     "spread": (0.0, 4.0, 6.0),
-    "sharp": (0.0, 3.0),
-    "long_ok": (1.0, 1.5),
+    "like": (0.7, 0.8),
     "noise": (1.8, 2.3, 2.8),
     "hold_noise": (2.3, 2.9),
+    "hold_noisy": (2, 3),
     "irregular": (0.09, 0.12),
+    "max_excluded": (0.2, 0.3),
 }
+# sharp (0, 3) and long_ok (1.0, 1.5) were in the grid of the first run: 3 and 1.5 were chosen in every
+# fold, and they are held there so that this grid stays within minutes
 GUDB_ACTIVITIES = ("sitting", "maths", "walking", "hand_bike")  # jogging: its annotations miss beats
 
 
@@ -108,7 +111,7 @@ class Unit:
         def classified(
             key: tuple[object, ...], rules: Rules, make: Callable[[Rules], Intervals]
         ) -> Intervals:
-            k = (*key, replace(rules, hold_noise=0.0, hold_noisy=0, irregular=0.0))
+            k = (*key, replace(rules, hold_noise=0.0, hold_noisy=0, irregular=0.0, max_excluded=0.0))
             if k not in cache:
                 cache[k] = make(rules)
             return cache[k]

@@ -35,6 +35,17 @@ def positive_int(minimum: int):
     return parse
 
 
+def positive_float(text: str) -> float:
+    """A number above 0 (a speed, a duration): a negative one would be accepted and then wait in silence."""
+    try:
+        value = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from exc
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
+    return value
+
+
 def task_with_overrides(args: argparse.Namespace) -> Task:
     task = load_task(args.task)
     overrides = {

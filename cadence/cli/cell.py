@@ -104,7 +104,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         async with await Bus.open(bus_config(args, "peer"), "cell1") as bus:
             if args.wait is not None:
                 await asyncio.sleep(args.wait)  # let subscribers on other hosts discover this session
-            n = await replay(bus, Path(args.recording), args.speed, args.keys)
+            heard: set[str] = set()
+            n = await replay(bus, Path(args.recording), args.speed, args.keys, heard)
+        if n and not heard:
+            err.print(
+                f"cadence replay: {n} messages of {args.recording} sent, but no subscriber matched any of "
+                "their keys: nothing received them (is the cell running, on this --connect, this cell?)"
+            )
+            return 1
         err.print(f"{n} messages replayed from {args.recording}")
         return 0
 

@@ -75,6 +75,9 @@ def cmd_hrv_windows(args: argparse.Namespace) -> int:
     return 0
 
 
+DECIDE_MIN_S, DECIDE_MAX_S = 0.2, 3  # a window's mean RR that a heart can have (300 to 20 beats per minute)
+
+
 def cmd_decide(args: argparse.Namespace) -> int:
     from common.decision import Params, State, dec, step
 
@@ -92,6 +95,11 @@ def cmd_decide(args: argparse.Namespace) -> int:
             ok = False
         if not ok:
             raise InputError(f"<stdin>:{lineno}: expected a positive number of seconds, got {text!r}")
+        if not DECIDE_MIN_S <= value <= DECIDE_MAX_S:
+            hint = f" (milliseconds? {value / 1000} s)" if value > DECIDE_MAX_S else ""
+            raise InputError(
+                f"<stdin>:{lineno}: a mean RR of {text} s is outside {DECIDE_MIN_S}-{DECIDE_MAX_S} s{hint}"
+            )
         values.append(value)
     state = State.initial(params)
     lines = []

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cadence.cli._common import SERVICES, add_bus_flags, err, out, positive_int
+from cadence.cli._common import SERVICES, add_bus_flags, err, out, positive_float, positive_int
 from cadence.cli.hrv import add_posture
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
@@ -495,11 +495,14 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Opens a Zenoh router on loopback, plans the task if its sets are not stored, starts "
         "every service as its own process (ECG gateway with the operator twin, HRV analyser, Pareto store, "
         "decision maker, executor with the simulated UR16e), restarts any that dies, shows a live view, "
-        "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time) "
-        "and DIR/cycles.png (joint positions of the first and last cycle).",
+        "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time), "
+        "DIR/cycles.png (joint positions of the first and last cycle), DIR/pareto.png (the sets) and "
+        "DIR/index.html (the report that shows them).",
     )
-    demo.add_argument("--duration", type=float, default=600.0, help="data time to run, s (default 600)")
-    demo.add_argument("--speed", type=float, default=8.0, help="data time per wall time (default 8)")
+    demo.add_argument(
+        "--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)"
+    )
+    demo.add_argument("--speed", type=positive_float, default=8.0, help="data time per wall time (default 8)")
     demo.add_argument("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
     demo.add_argument("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
     demo.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")

@@ -23,12 +23,11 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from common.hrv.rpeaks import LIKE, Peak, RPeakDetector
+from common.hrv.rpeaks import Peak, RPeakDetector
 from schemas.hrv import Beats, HoldReason, HrvWindow, Quality
 
 NEIGHBOURS = 5  # on each side, for the local median
 MIN_RR_S, MAX_RR_S = 0.25, 2.5  # physiological bounds (240 and 24 beats per minute)
-MAX_EXCLUDED = 0.2  # a window with more excluded intervals than this is low quality
 MIN_COVERAGE = 0.6  # clean intervals must cover this share of the window
 RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the notification time: a gap
 LEVEL_N, LEVEL_MIN = 30, 10  # the rhythm's level: the median of the last LEVEL_N clean intervals, once 10
@@ -51,16 +50,18 @@ class Rules:
 
     tolerance: float = 0.2  # relative departure from the local median that excludes an interval, at least
     tolerance_max: float = 0.3  # and at most, whatever the person's spread
-    spread: float = 5.0  # times the person's median departure
+    spread: float = 6.0  # times the person's median departure
     premature: float = 0.08  # a beat this much early, then a pause this much long: premature …
     pause: float = 0.05
     sharp: float = 3.0  # … when the drop into it is this many times the person's median step
     long_ok: float = 1.5  # a long interval after no premature beat, up to this ratio: the person's own pause
     quiet: float = 0.5  # an interval twice the rhythm's with nothing above this share of a QRS in it: a pause
-    noise: float = 2.3  # noise between two beats above this many times the person's own level excludes it
+    like: float = 0.8  # a beat whose QRS correlates less with the template's is unlike the rhythm's own
+    noise: float = 2.8  # noise between two beats above this many times the person's own level excludes it
     hold_noise: float = 2.3  # a window with hold_noisy intervals noisier than this that are excluded, …
     hold_noisy: int = 2  # … or next to one that is, is held
-    irregular: float = 0.12  # a window whose median step is this share of its median RR is held (AF)
+    irregular: float = 0.09  # a window whose median step is this share of its median RR is held (AF)
+    max_excluded: float = 0.2  # a window with a larger share of its intervals excluded is held
 
 
 RULES = Rules()
@@ -286,7 +287,7 @@ def classify_one(
         return "missed"
     if premature(i) or premature(i - 1):
         return "ectopic"
-    if likeness is not None and likeness[i] < LIKE:
+    if likeness is not None and likeness[i] < rules.like:
         return "unlike"
     if noise is not None and noise[i] > rules.noise:
         return "noise"
@@ -348,7 +349,7 @@ def window_stats(
         reason = "gap"
     elif irregularity(iv.rr_s[idx[0] : idx[-1] + 1]) > rules.irregular:
         reason = "irregular"
-    elif excluded > MAX_EXCLUDED:
+    elif excluded > rules.max_excluded:
         reason = "excluded"
     elif coverage < MIN_COVERAGE:
         reason = "coverage"

@@ -369,6 +369,16 @@ class Bus:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.session.put(key, payload, congestion_control=cc)
 
+    def matching(self, key: str) -> bool:
+        """Whether a subscriber somewhere matches ``key`` now (Zenoh's matching status): a put to a key
+        nobody subscribes to is dropped silently, so a replay says so rather than count it as sent."""
+        self._check_open()
+        pub: Any = self.session.declare_publisher(key)
+        try:
+            return bool(pub.matching_status.matching)
+        finally:
+            pub.undeclare()
+
     async def until_subscribed(self, key: str, timeout: float) -> None:
         """Wait until a subscriber somewhere matches ``key`` (Zenoh's matching status), so that what is
         published next reaches it: a replay, a test. TimeoutError when none appears."""

@@ -7,6 +7,7 @@ is a ``ConfigError`` naming the file (or variable) and the key.
 from __future__ import annotations
 
 import os
+import re
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
@@ -94,5 +95,8 @@ def section(
         text = str(exc)
         where = text.rsplit(" - at `$.", 1)
         keyname = where[1].rstrip("`") if len(where) == 2 else ""
+        unknown = re.search(r"unknown field `([^`]+)`", text)
+        if unknown and not keyname:  # msgspec names an unknown key in its message, not in the path
+            keyname = unknown.group(1)
         origin = from_env.get(keyname.split(".")[0].split("[")[0], source)
         raise ConfigError(f"{origin}: [{name}] {keyname or '(table)'}: {where[0]}") from exc
