@@ -116,7 +116,7 @@ def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> N
         f = by_pipeline["cadence"].figures()
         print(variant, f)
         assert f["over_20_ms"] == 0 and f["p95_ms"] <= 5.0, variant
-        assert f["held_share_sinus"] <= 0.16, variant  # holding everything would be accurate and useless
+        assert f["held_share_sinus"] <= 0.2, variant  # holding everything would be accurate and useless
     # 101 at 300 s: the annotators marked noise and left out a beat in it, so their "NN" interval is 1.9 s
     # long; the noise in the ECG holds that window, not its RR
     assert scores["clean"]["cadence"].held_reasons.get("noise", 0) >= 1
