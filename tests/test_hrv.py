@@ -290,8 +290,12 @@ def test_the_polar_sensor_logger_exports_read_and_their_ecg_and_rr_agree(tmp_pat
     assert len(ecg) >= 4 and len(rr) >= 4
     assert all({"rmssd_s", "sdnn_s"} <= w.keys() for w in ecg + rr)
     both = [(a, b) for a, b in zip(ecg, rr, strict=False) if a["quality"] == b["quality"] == "good"]
-    assert both  # the two clocks start 1 s apart: a window's mean RR differs by little
-    assert all(abs(a["mean_rr_s"] - b["mean_rr_s"]) < 0.03 for a, b in both)
+    assert len(both) >= 3
+    # The RR export starts about 2.5 s before the ECG, so the same window holds other beats; this person's
+    # RR swings 750-1100 ms within a few beats (a breathing rhythm, now kept as theirs), so windows 2.5 s
+    # apart differ by up to some 35 ms. Over the whole session the two agree closely.
+    assert all(abs(a["mean_rr_s"] - b["mean_rr_s"]) < 0.04 for a, b in both)
+    assert abs(np.mean([a["mean_rr_s"] for a, _ in both]) - np.mean([b["mean_rr_s"] for _, b in both])) < 0.01
     assert read_record(str(POLAR / "Polar_H10_55354125_20210516_080846_ECG.txt")).fs == pytest.approx(
         130, rel=0.01
     )

@@ -100,10 +100,12 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
         wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
         # (b) runs two minutes: a minimum-jerk cycle takes about 40 s, and the test wants one whole cycle
         # inside it even when a busy machine's protective stop costs some time
-        # (a) calibrates, then waits for the twin to settle near its RR_r; (b) and (c) follow at once, as
-        # a lab that skips the break would (the twin is still stressed from (a): the gate would wait)
+        # (a) calibrates at work (the robot at k = 1 meanwhile), then waits for the twin to settle near its
+        # RR_r; (b) and (c) follow at once, as a lab that skips the break would (the twin is still
+        # stressed from (a): the gate would wait)
         settle_now = ["--settle-timeout", "0"]
-        for condition, calibrate in (("a", ["--calibrate", "1"]), ("b", settle_now), ("c", settle_now)):
+        at_work = ["--calibrate", "1", "--posture", "working"]
+        for condition, calibrate in (("a", at_work), ("b", settle_now), ("c", settle_now)):
             minutes = MINUTES[condition]
             r = subprocess.run(
                 [sys.executable, "-m", "cadence", "session", "--subject", "twin-1", "--condition", condition,
@@ -113,6 +115,9 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
             )  # fmt: skip
             assert r.returncode == 0, r.stdout + r.stderr
             assert "complete" in r.stdout
+            if condition == "a":  # the calibration's one screen: the baseline it took, and the verdict
+                assert "at work, at the slowest solution (k = 1)" in r.stderr, r.stderr
+                assert "this ECG can be read" in r.stderr, r.stderr
         cut = asyncio.run(cut_short(endpoint, tmp_path))
     finally:
         demo.terminate()
@@ -146,6 +151,7 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
         assert row["productivity_per_min"] == pytest.approx(raw["productivity_per_min"])
         assert row["mean_rr_s"] == pytest.approx(raw["mean_rr_s"])
         cal = raw["meta"]["cadence.session"]["calibration"]
+        assert cal["posture"] == "working"
         assert cal["subject"] == "twin-1" and row["mean_rr_norm"] == pytest.approx(
             raw["mean_rr_s"] / cal["rr_rest_s"]
         )

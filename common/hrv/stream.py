@@ -2,13 +2,15 @@
 
 Why cleaning is not optional: one missed or extra beat moves a 30 s window's mean RR by about 20 ms,
 the size of Δ_rs, so one detection error could move k. An interval is excluded when it departs from the
-median of its neighbours by more than ``TOLERANCE``; its kind says why (``missed``: about twice the
-median, ``extra``: a fragment, ``ectopic``: a premature beat and its compensatory pause). What RR alone
+median of its neighbours by more than the person's own tolerance (``Rules``, ``Level``: what is normal
+is learnt per person, issue 26); its kind says why (``missed``: about twice the median, ``extra``: a
+fragment, ``ectopic``: a premature beat and its compensatory pause). What RR alone
 cannot tell, the ECG around each beat can (issue 19; ``rpeaks.Peak``): a beat whose QRS is unlike the
 rhythm's own (a ventricular beat only mildly early, a spike of noise) takes both its intervals with it
 (``unlike``), and so does a burst of noise between two beats (``noise``). A window in which noise and
 excluded beats meet is held: where beats are hidden in noise, even the annotators' truth disagrees on
-how many there were. An interval that spans a gap in the data is never formed.
+how many there were; so is a window whose rhythm is irregular beat to beat (atrial fibrillation). An
+interval that spans a gap in the data is never formed.
 """
 
 from __future__ import annotations
