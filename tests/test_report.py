@@ -72,6 +72,16 @@ def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path)
         assert f.stat().st_mode & 0o777 == 0o644, f
 
 
+def test_a_missing_sets_folder_is_one_line_naming_it(tmp_path: Path) -> None:
+    """`--sets DIR` with no DIR said "pass --sets" as if none had been passed (issue 28)."""
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "report", str(write_run(tmp_path)),
+         "--sets", str(tmp_path / "nope"), "--out", str(tmp_path / "report")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 2 and "--sets" in r.stderr and "nope: no such folder" in r.stderr, r.stderr
+
+
 def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> None:
     from cadence.plots import rr_k_figure
     from cadence.report import from_mcap

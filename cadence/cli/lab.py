@@ -89,6 +89,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     from cadence.report import from_demo, from_mcap, write_report
 
     src = Path(args.source)
+    if args.sets and not Path(args.sets).is_dir():
+        raise InputError(f"--sets {args.sets}: no such folder (the executor's cached sets: <data>/executor)")
     if src.is_dir():
         run = from_demo(src)
     elif src.suffix == ".mcap" or src.is_file():
@@ -109,7 +111,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     )
     out.print(table)
     if not run.sets:
-        err.print("no Pareto sets in the source: pass --sets <data>/executor for the front and cycle figures")
+        err.print(
+            f"no Pareto sets in {args.sets}"
+            if args.sets
+            else "no Pareto sets in the source: pass --sets <data>/executor for the front and cycle figures"
+        )
     out.print(f"written to {args.out}: {', '.join(written)}")
     return 0
 
