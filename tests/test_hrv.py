@@ -89,21 +89,6 @@ def test_a_lone_long_interval_stays_but_the_pause_after_a_premature_beat_goes() 
 
 
 @needs_data
-@pytest.mark.parametrize("record", ["109", "118"])
-def test_bundle_branch_block_is_read_as_the_persons_own_qrs(record: str) -> None:
-    """109 (left bundle branch block: wide QRS, T waves as tall as it) and 118 (right: a QRS of two
-    peaks of like height) held 95-100 % of their windows under issue 19's rules: the noise between
-    beats counts against the person's own level, and a beat is aligned to the template before it is
-    compared. Now at least 80 % of their scored windows are good, within 10 ms of the annotations."""
-    from cadence.bench import bench_hrv_windows
-
-    sc = bench_hrv_windows(str(ECG), 130.0, ("clean",), (record,), peers=False)["clean"]["cadence"]
-    f = sc.figures()
-    assert len(sc.good) >= 0.8 * (len(sc.good) + sc.held), f
-    assert f["over_10_ms"] == 0, f
-
-
-@needs_data
 def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> None:
     """Issue 19's bar, by its scorer, on the shared records clean and with motion bursts, the variant
     that holds most (`cadence bench hrv --windows` runs all five; tests/bench runs white noise at 6 dB on
@@ -117,6 +102,15 @@ def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> N
         print(variant, f)
         assert f["over_20_ms"] == 0 and f["p95_ms"] <= 5.0, variant
         assert f["held_share_sinus"] <= 0.2, variant  # holding everything would be accurate and useless
+    # Bundle branch block: 109 (left: wide QRS, T waves as tall as it) and 118 (right: a QRS of two peaks
+    # of like height) held 95-100 % of their windows under issue 19's rules. The noise between beats now
+    # counts against the person's own level, and a beat is aligned to the template before it is
+    # compared: at least 80 % of their scored windows are good, none 10 ms off the annotations.
+    clean = scores["clean"]["cadence"]
+    for record in ("109", "118"):
+        good = [w for w in clean.good if w.record == record]
+        assert len(good) >= 0.8 * (len(good) + clean.held_by_record.get(record, 0)), record
+        assert max(w.error_s for w in good) < 0.010, record
     # 101 at 300 s: the annotators marked noise and left out a beat in it, so their "NN" interval is 1.9 s
     # long; the noise in the ECG holds that window, not its RR
     assert scores["clean"]["cadence"].held_reasons.get("noise", 0) >= 1

@@ -95,6 +95,7 @@ class WindowScore:
     held_reasons: dict[str, int] = field(default_factory=dict)
     sinus_scored: int = 0  # scored windows of records without arrhythmia runs
     sinus_held: int = 0
+    held_by_record: dict[str, int] = field(default_factory=dict)
 
     def add(
         self,
@@ -114,6 +115,7 @@ class WindowScore:
                 self.held += 1
                 self.sinus_held += sinus
                 self.held_reasons[why] = self.held_reasons.get(why, 0) + 1
+                self.held_by_record[record] = self.held_by_record.get(record, 0) + 1
             else:
                 self.good.append(WindowError(record, t.start_s, abs(m - t.mean_nn_s)))
 
@@ -130,6 +132,8 @@ class WindowScore:
             self.held_reasons[why] = self.held_reasons.get(why, 0) + n
         self.sinus_scored += other.sinus_scored
         self.sinus_held += other.sinus_held
+        for record, n in other.held_by_record.items():
+            self.held_by_record[record] = self.held_by_record.get(record, 0) + n
 
     @property
     def errors_ms(self) -> NDArray[np.float64]:
