@@ -215,7 +215,8 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
 
 
 def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, Supervised]) -> Group:
-    t = Table(title=f"cadence demo — data time {now_s:6.0f} / {opts.duration_s:.0f} s at {opts.speed:g}×")
+    shown = min(now_s, opts.duration_s)  # the run ends at its duration, whatever a late message says
+    t = Table(title=f"cadence demo — data time {shown:6.0f} / {opts.duration_s:.0f} s at {opts.speed:g}×")
     for col in ("mean RR (last window)", "k", "cycles", "last cycle", "errors", "restarts"):
         t.add_column(col, justify="right")
     w = obs.windows[-1] if obs.windows else None

@@ -75,10 +75,12 @@ def rr_k_figure(
     rest_label: str = "RR_r",
     cycle_ends_s: list[float] | None = None,
     error_times_s: list[float] | None = None,
+    idle: list[tuple[float, float, str]] | None = None,
 ) -> bytes:
     """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
     decision thresholds RR_s, RR_s^max (the paper's defaults about RR_r) as lines, k on integer ticks,
-    cycle ends as ticks along the bottom, the operator's errors as ticks along the top."""
+    cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and shaded the
+    spans in which the robot did not work (``motion.idle_spans``): a k chosen there moved nothing."""
     from common.decision import Params
 
     fig, ax = plt.subplots(figsize=(11, 4.5), constrained_layout=True)
@@ -95,6 +97,8 @@ def rr_k_figure(
             c="0.5",
             label="mean RR (low quality)",
         )
+    for i, (a, b, _) in enumerate(idle or []):
+        ax.axvspan(a, b, color="0.85", lw=0, label="robot stopped or waiting" if i == 0 else None)
     p = Params.of(rr_rest_s)
     ax.axhline(rr_rest_s, ls="--", c="tab:red", lw=0.8, label=rest_label)
     ax.axhline(float(p.rr_stress), ls="-.", c="0.4", lw=0.8, label="RR_s = RR_r − 0.08 s")

@@ -15,7 +15,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from common.motion import routine_change
+from common.motion import idle_spans, routine_change
 from common.runtime.errors import InputError
 from common.runtime.storage import write_readable
 from schemas import (
@@ -147,7 +147,8 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
 CAPTIONS = {
     "rr_k.png": "Each window's mean RR (red; crosses: held windows) against data time, with RR_r and the "
     "decision thresholds RR_s and RR_s^max; the selected k on the right axis (blue); cycle ends as ticks "
-    "along the bottom, the operator's errors as orange ticks along the top. Like the paper's Fig. 6.",
+    "along the bottom, the operator's errors as orange ticks along the top; shaded grey, the spans in which "
+    "the robot was stopped or waiting (a k chosen there moved nothing). Like the paper's Fig. 6.",
     "pareto.png": "Each path's Pareto front, normalised (grey), its N chosen solutions (blue) and the k the "
     "robot ran with, circled by how often (red).",
     "cycles.png": "Joint positions, velocities, accelerations and jerk of the first and last cycle as "
@@ -169,7 +170,8 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
         rest = float(np.max(good)) if good else 0.85
         label = "no RR_r given (--rr-rest): the highest good window's, in its place"
     ends = [c["end_s"] for c in run.cycles]
-    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_times_s)
+    idle = idle_spans(run.events, run.duration_s)
+    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_times_s, idle)
     write_readable(out / "rr_k.png", figure)
     written.append("rr_k.png")
     if run.sets:

@@ -15,6 +15,7 @@ published (``robot/state`` carries the state, ``robot/event`` each change). The 
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -128,3 +129,26 @@ def routine_change(message: str) -> bool:
     moving, waiting for the operator): every path gives two, so a report or a live view leaves them out."""
     states = message.split(":", 1)[0].split(" → ")
     return len(states) == 2 and all(x.strip() in _ROUTINE for x in states)
+
+
+def idle_spans(events: Sequence[Mapping[str, object]], end_s: float) -> list[tuple[float, float, str]]:
+    """(start, end, state) of each span in which the robot was out of normal work (stopped, recovering,
+    waiting for a selection …), from the ``robot/event`` state changes ("from → to: why", with ``t_s``)
+    of a run, so that a figure never shows adaptation that did not move the arm (issue 28). A span still
+    open at the end closes at ``end_s``."""
+    spans: list[tuple[float, float, str]] = []
+    open_at: tuple[float, str] | None = None
+    for e in sorted((e for e in events if e.get("kind") == "state"), key=lambda e: float(str(e["t_s"]))):
+        states = str(e["message"]).split(":", 1)[0].split(" → ")
+        if len(states) != 2:
+            continue
+        t, to = float(str(e["t_s"])), states[1].strip()
+        if to in _ROUTINE:
+            if open_at is not None:
+                spans.append((open_at[0], t, open_at[1]))
+                open_at = None
+        elif open_at is None:
+            open_at = (t, to)
+    if open_at is not None and end_s > open_at[0]:
+        spans.append((open_at[0], end_s, open_at[1]))
+    return spans

@@ -90,3 +90,21 @@ def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> Non
     assert run.errors == 1 and run.error_times_s == [50.0]  # data time from the run's first message
     args = (run.windows, run.selections, 0.9, "RR_r", [c["end_s"] for c in run.cycles])
     assert rr_k_figure(*args, run.error_times_s) != rr_k_figure(*args, [])
+
+
+def test_the_spans_the_robot_did_not_work_are_found_from_its_state_changes() -> None:
+    """rr_k.png shades them, so that no figure shows adaptation that did not move the arm (issue 28): a
+    protective stop until the resume brought it back to work, and a wait for a selection still open at
+    the end of the run."""
+    from common.motion import idle_spans
+
+    events = [
+        {"t_s": 50.0, "kind": "overrun", "message": "5 servo overruns in a row"},
+        {"t_s": 51.0, "kind": "state", "message": "moving → stopped: 5 servo overruns in a row"},
+        {"t_s": 80.0, "kind": "state", "message": "stopped → recovering: resumed by the operator"},
+        {"t_s": 84.0, "kind": "state", "message": "recovering → ready: back at the path's start"},
+        {"t_s": 90.0, "kind": "state", "message": "ready → moving: path there"},
+        {"t_s": 200.0, "kind": "state", "message": "ready → waiting_for_selection: no selection yet"},
+    ]
+    assert idle_spans(events, 300.0) == [(51.0, 84.0, "stopped"), (200.0, 300.0, "waiting_for_selection")]
+    assert idle_spans(events[:1], 300.0) == []  # no state change: the robot worked throughout
