@@ -66,7 +66,7 @@ def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a
 def test_a_deep_breathing_rhythm_is_the_persons_own_but_a_premature_beat_in_it_is_not() -> None:
     """Respiratory sinus arrhythmia, ±18 % with each breath of 4.5 beats (GUDB's subject 11 sitting swings
     776-1200 ms): every interval is a normal beat's, and issue 19's fixed rules excluded its troughs and
-    crests (a mean biased by up to 26 ms). The tolerance follows the person's own spread and a mildly
+    crests (a mean biased by up to 24 ms). The tolerance follows the person's own spread and a mildly
     early beat must drop sharper than a breath does; a premature beat and its pause still go."""
     beat = np.arange(200)
     rr = 0.95 * (1 + 0.18 * np.sin(2 * np.pi * beat / 4.5))
