@@ -298,51 +298,32 @@ def _established_detectors(fs: float) -> dict[str, Callable[[NDArray[np.float64]
 
 
 def bench_hrv(
-    data_dir: str, fs: float = 130.0, chunk: int = 13
+    data_dir: str, fs: float = 130.0, chunk: int = 13, jobs: int | None = None
 ) -> tuple[list[DetectorScore], dict[str, float]]:
     """Every annotated record of ``data_dir`` at ``fs``: each detector's Se, PPV, F1 and speed; for
     Cadence also the publication latency (data time from the peak to the end of the chunk that released
-    it; chunks of 13 samples, 0.1 s) and the window mean-RR error."""
-
-    from common.hrv.records import read_record
-    from common.hrv.rpeaks import RPeakDetector
-    from common.hrv.stream import intervals, match_beats, peak_intervals, windows
+    it; chunks of 13 samples, 0.1 s) and the window mean-RR error. Records are scored in ``jobs`` spawned
+    processes (default: one per core), each detector timed on its own record in its worker, so the
+    speeds still compare with each other."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
 
     records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
-    others = _established_detectors(fs)
-    totals = {name: np.zeros(4) for name in ["cadence", *others]}
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(records) or 1))
+    totals: dict[str, NDArray[np.float64]] = {}
     latency: list[float] = []
     errors: list[float] = []
     signal_s = 0.0
-    for path in records:
-        rec = read_record(str(path), fs=fs)
-        if rec.beats_s is None:  # globbed by its annotation file: always annotated
-            raise InputError(f"{path}: no beat annotations")
-        beats_s = rec.beats_s
-        signal_s += len(rec.uv) / fs
-        t0 = time.perf_counter()
-        det, peaks = RPeakDetector(fs), []
-        for i in range(0, len(rec.uv), chunk):
-            new = det.feed_peaks(rec.uv[i : i + chunk])
-            latency += [(min(i + chunk, len(rec.uv)) - p.sample) / fs for p in new]
-            peaks += new
-        peaks += det.flush_peaks()
-        elapsed = time.perf_counter() - t0
-        found = np.array(sorted(p.sample for p in peaks)) / fs
-        totals["cadence"] += (*match_beats(beats_s, found), elapsed)
-        end = len(rec.uv) / fs
-        ours = windows(peak_intervals(peaks, fs), 30.0, end_s=end)
-        ref = windows(intervals(beats_s), 30.0, end_s=end)
-        errors += [
-            abs(a.mean_rr_s - b.mean_rr_s)
-            for a, b in zip(ours, ref, strict=True)
-            if a.quality == "good" and a.mean_rr_s is not None and b.mean_rr_s is not None
-        ]
-        for name, fn in others.items():
-            t0 = time.perf_counter()
-            idx = np.asarray(fn(rec.uv), dtype=np.float64)
-            elapsed = time.perf_counter() - t0
-            totals[name] += (*match_beats(beats_s, np.sort(idx) / fs), elapsed)
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for part in pool.map(
+            _detect_record, [str(r) for r in records], [fs] * len(records), [chunk] * len(records)
+        ):
+            for name, t in part.totals.items():
+                totals[name] = totals.get(name, np.zeros(4)) + t
+            latency += part.latency
+            errors += part.errors
+            signal_s += part.signal_s
     scores = [
         DetectorScore(n, int(t[0]), int(t[1]), int(t[2]), float(t[3]), signal_s) for n, t in totals.items()
     ]
@@ -356,6 +337,54 @@ def bench_hrv(
         "good_windows": float(len(errors)),
     }
     return scores, extra
+
+
+@dataclass(frozen=True, slots=True)
+class _RecordDetection:
+    totals: dict[str, NDArray[np.float64]]  # detector → (TP, FP, FN, seconds)
+    latency: list[float]
+    errors: list[float]
+    signal_s: float
+
+
+def _detect_record(path_str: str, fs: float, chunk: int) -> _RecordDetection:
+    """One record for ``bench_hrv`` (a worker): every detector's matches and time, Cadence's latency and
+    window errors."""
+    from common.hrv.records import read_record
+    from common.hrv.rpeaks import RPeakDetector
+    from common.hrv.stream import intervals, match_beats, peak_intervals, windows
+
+    path = Path(path_str)
+    rec = read_record(str(path), fs=fs)
+    if rec.beats_s is None:  # globbed by its annotation file: always annotated
+        raise InputError(f"{path}: no beat annotations")
+    beats_s = rec.beats_s
+    totals: dict[str, NDArray[np.float64]] = {}
+    latency: list[float] = []
+    t0 = time.perf_counter()
+    det, peaks = RPeakDetector(fs), []
+    for i in range(0, len(rec.uv), chunk):
+        new = det.feed_peaks(rec.uv[i : i + chunk])
+        latency += [(min(i + chunk, len(rec.uv)) - p.sample) / fs for p in new]
+        peaks += new
+    peaks += det.flush_peaks()
+    elapsed = time.perf_counter() - t0
+    found = np.array(sorted(p.sample for p in peaks)) / fs
+    totals["cadence"] = np.array([*match_beats(beats_s, found), elapsed], dtype=float)
+    end = len(rec.uv) / fs
+    ours = windows(peak_intervals(peaks, fs), 30.0, end_s=end)
+    ref = windows(intervals(beats_s), 30.0, end_s=end)
+    errors = [
+        abs(a.mean_rr_s - b.mean_rr_s)
+        for a, b in zip(ours, ref, strict=True)
+        if a.quality == "good" and a.mean_rr_s is not None and b.mean_rr_s is not None
+    ]
+    for name, fn in _established_detectors(fs).items():
+        t0 = time.perf_counter()
+        idx = np.asarray(fn(rec.uv), dtype=np.float64)
+        elapsed = time.perf_counter() - t0
+        totals[name] = np.array([*match_beats(beats_s, np.sort(idx) / fs), elapsed], dtype=float)
+    return _RecordDetection(totals, latency, errors, len(rec.uv) / fs)
 
 
 def bench_hrv_windows(
