@@ -320,6 +320,12 @@ class Watch:
             self.errors += 1
         self.changed.set()
 
+    async def next_change(self, timeout_s: float) -> None:
+        """Until the next message, or ``timeout_s``: the live view's pace when nothing comes."""
+        self.changed.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self.changed.wait(), timeout_s)
+
     def readiness(self) -> dict[str, str | None]:
         """Each check and what is wrong with it (None: fine)."""
         missing = [s for s in SERVICES if s not in self.statuses]
@@ -449,9 +455,7 @@ async def run_session(
             show("checking the cell", watch, opts)
             if time.monotonic() > deadline:
                 raise CadenceError(f"the cell is not ready after {opts.ready_timeout_s:g} s: {problem}")
-            watch.changed.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(watch.changed.wait(), 0.5)
+            await watch.next_change(0.5)
         # 2. the calibration, if asked: at rest, or at work at the slowest solution
         if opts.calibrate_minutes and not stop.is_set():
             show(
@@ -472,9 +476,7 @@ async def run_session(
                         f"{opts.settle_timeout_s:g} s: {why} (let them rest or work at the slowest pace, or "
                         "calibrate again)"
                     )
-                watch.changed.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(watch.changed.wait(), 0.5)
+                await watch.next_change(0.5)
         # 3. the condition, and from then on the session counts
         if not stop.is_set() and cal is not None:
             fresh = cal.t_ns if opts.calibrate_minutes else None
@@ -500,9 +502,7 @@ async def run_session(
                 while keys is not None and not keys.empty():
                     act(keys.get_nowait())
                 show("running", watch, opts)
-                watch.changed.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(watch.changed.wait(), 0.25)
+                await watch.next_change(0.25)
             if stop.is_set():
                 end = SessionEnd(end_ns=max(watch.data_ns, first.t_ns + 1), complete=False,
                                  reason="interrupted (Ctrl-C or a stop signal)")  # fmt: skip

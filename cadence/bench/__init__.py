@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -297,6 +298,16 @@ def _established_detectors(fs: float) -> dict[str, Callable[[NDArray[np.float64]
     return out
 
 
+def spawned_pool(jobs: int | None, tasks: int) -> ProcessPoolExecutor:
+    """A pool of ``jobs`` worker processes (default: one per core, never more than ``tasks``), spawned,
+    not forked: the caller may hold threads (a bus session) whose locks a fork would copy held."""
+    import multiprocessing
+    import os
+
+    n = max(1, min(jobs or os.cpu_count() or 1, tasks or 1))
+    return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+
+
 def bench_hrv(
     data_dir: str, fs: float = 130.0, chunk: int = 13, jobs: int | None = None
 ) -> tuple[list[DetectorScore], dict[str, float]]:
@@ -305,17 +316,12 @@ def bench_hrv(
     it; chunks of 13 samples, 0.1 s) and the window mean-RR error. Records are scored in ``jobs`` spawned
     processes (default: one per core), each detector timed on its own record in its worker, so the
     speeds still compare with each other."""
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
     records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(records) or 1))
     totals: dict[str, NDArray[np.float64]] = {}
     latency: list[float] = []
     errors: list[float] = []
     signal_s = 0.0
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with spawned_pool(jobs, len(records)) as pool:
         for part in pool.map(
             _detect_record, [str(r) for r in records], [fs] * len(records), [chunk] * len(records)
         ):
@@ -411,17 +417,13 @@ def bench_hrv_windows(
     With ``gudb_dir`` and the clean variant, also ``gudb-cs`` and ``gudb-cables``: healthy people's
     chest-strap beats as a strap's RR, against the strap's and the cables' annotated beats
     (``hrv_cv.gudb_unit``)."""
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
     paths = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
     if records:
         paths = [p for p in paths if p.name in records]
     out: dict[str, dict[str, WindowScore]] = {v: {} for v in variants}  # in the order asked
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(paths) or 1))
-    # spawned, not forked: the caller may hold threads (a bus session) whose locks a fork would copy held
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with spawned_pool(jobs, len(paths)) as pool:
         futures = {pool.submit(_score_record, str(p), fs, variants, peers): p.name for p in paths}
         for fut in as_completed(futures):
             if progress:
@@ -443,33 +445,24 @@ def bench_hrv_windows(
 def _score_record(
     path: str, fs: float, variants: tuple[Variant, ...], peers: bool
 ) -> dict[str, dict[str, WindowScore]]:
-    """One record's windows in every variant, each pipeline's scored (a worker of bench_hrv_windows)."""
-    import zlib
-
-    from cadence.bench.ecg_noise import noisy
-    from cadence.bench.hrv_scoring import NN_SYMBOLS, has_arrhythmia_runs, truth
-    from common.hrv.records import read_annotations, read_record
-    from common.hrv.rpeaks import detect_peaks
-    from common.hrv.stream import intervals, peak_intervals, windows
+    """One record's windows in every variant, each pipeline's scored (a worker of bench_hrv_windows):
+    Cadence's and the strap RR's as the cross-validation scores them (``hrv_cv.ecg_unit``), NeuroKit2's on
+    the same noisy signal and windows."""
+    from cadence.bench.hrv_cv import ecg_unit
 
     try:
         import neurokit2 as nk
     except ImportError:
         nk = None
     nk = nk if peers else None
-    name = Path(path).name
-    rec, ann = read_record(path, fs=fs), read_annotations(path)
-    sinus = not has_arrhythmia_runs(ann)
-    end = len(rec.uv) / fs
+    unit = ecg_unit(path, fs, variants)
+    ours = unit.score(RULES)
     out: dict[str, dict[str, WindowScore]] = {}
-    for v in variants:
-        scores = out[v] = {"cadence": WindowScore("cadence")}
-        x = noisy(rec.uv, fs, v, seed=zlib.crc32(name.encode()))
-        ws = windows(peak_intervals(detect_peaks(x, fs, chunk=13), fs), 30.0, end_s=end)
-        tr = truth(ann, [w.start_s for w in ws], 30.0, end)
-        scores["cadence"].add_windows(name, tr, ws, sinus)
+    for series in unit.ecg:
+        v, tr = series.variant, series.truths
+        scores = out[v] = {"cadence": ours[(v, "cadence")]}
         if nk is not None:
-            cleaned = nk.ecg_clean(x, sampling_rate=fs)
+            cleaned = nk.ecg_clean(series.signal, sampling_rate=fs)
             _, info = nk.ecg_peaks(cleaned, sampling_rate=fs, correct_artifacts=True)
             peaks = np.asarray(info["ECG_R_Peaks"], dtype=float) / fs
             rr, t_end = np.diff(peaks), peaks[1:]
@@ -478,12 +471,9 @@ def _score_record(
                 sel = (t_end >= t.start_s) & (t_end < t.end_s)
                 means.append(float(rr[sel].mean()) if sel.any() else None)
             scores["neurokit2"] = WindowScore("neurokit2")
-            scores["neurokit2"].add(name, tr, means, ["no beats"] * len(tr), sinus)
-        if v == "clean":
-            normal = [t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS]
-            ws = windows(intervals(np.array(normal)), 30.0, end_s=end)
-            scores["cadence-rr"] = WindowScore("cadence-rr")
-            scores["cadence-rr"].add_windows(name, tr, ws, sinus)
+            scores["neurokit2"].add(unit.name, tr, means, ["no beats"] * len(tr), series.sinus)
+        if (v, "cadence-rr") in ours:
+            scores["cadence-rr"] = ours[(v, "cadence-rr")]
     return out
 
 

@@ -71,6 +71,7 @@ class EcgSeries:
 
     record: str
     variant: Variant
+    signal: NDArray[np.float64]  # what was detected: the record with the variant's noise
     peaks: list[Peak]
     fs: float
     end_s: float
@@ -190,7 +191,8 @@ def gudb_unit(subject: Path, activities: tuple[str, ...] = GUDB_ACTIVITIES) -> U
 
 
 def ecg_unit(path: str, fs: float, variants: tuple[Variant, ...]) -> Unit:
-    """An annotated record: its detector peaks in every variant, and its normal beats as a strap's RR."""
+    """An annotated record: its detector peaks in every variant, and, with the clean variant, its normal
+    beats as a strap's RR."""
     import zlib
 
     from cadence.bench.ecg_noise import noisy
@@ -207,9 +209,10 @@ def ecg_unit(path: str, fs: float, variants: tuple[Variant, ...]) -> Unit:
     unit = Unit(name)
     for v in variants:
         x = noisy(rec.uv, fs, v, seed=zlib.crc32(name.encode()))
-        unit.ecg.append(EcgSeries(name, v, detect_peaks(x, fs, chunk=13), fs, end, tr, sinus))
-    normal = np.array([t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS])
-    unit.rr.append(RrSeries(name, normal, 0.0, end, {"cadence-rr": tr}, sinus))
+        unit.ecg.append(EcgSeries(name, v, x, detect_peaks(x, fs, chunk=13), fs, end, tr, sinus))
+    if "clean" in variants:
+        normal = np.array([t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS])
+        unit.rr.append(RrSeries(name, normal, 0.0, end, {"cadence-rr": tr}, sinus))
     return unit
 
 
@@ -247,13 +250,6 @@ class CrossValidation:
                 out.setdefault(key, WindowScore(key[1])).merge(sc)
         return out, picks
 
-    def in_sample(self, g: int) -> dict[tuple[str, str], WindowScore]:
-        out: dict[tuple[str, str], WindowScore] = {}
-        for u in self.units:
-            for key, sc in self.scores[u][g].items():
-                out.setdefault(key, WindowScore(key[1])).merge(sc)
-        return out
-
 
 def cross_validate(
     ecg_dir: str | None,
@@ -265,9 +261,9 @@ def cross_validate(
     jobs: int | None = None,
 ) -> CrossValidation:
     """Every unit of the two folders, scored under every grid point (in ``jobs`` spawned processes)."""
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
+
+    from cadence.bench import spawned_pool
 
     rules = grid(spec)
     todo: list[tuple[str, str]] = []
@@ -276,8 +272,7 @@ def cross_validate(
     if gudb_dir and Path(gudb_dir).is_dir():
         todo += [("gudb", str(p)) for p in sorted(Path(gudb_dir).glob("subject_*")) if p.is_dir()]
     scores: dict[str, list[dict[tuple[str, str], WindowScore]]] = {}
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(todo) or 1))
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with spawned_pool(jobs, len(todo)) as pool:
         futures = [pool.submit(_unit_scores, kind, path, fs, variants, rules) for kind, path in todo]
         for fut in as_completed(futures):
             name, per_point = fut.result()

@@ -263,7 +263,8 @@ def classify_one(
         tol = min(max(tol, rules.spread * person.spread), rules.tolerance_max)
     ratio = x / ref
     # a pause with no QRS in it is the heart's (a blocked beat), not the detector's: its truth is NN
-    pause = quiet is not None and bool(quiet[i]) and 1.6 <= ratio <= 2.4
+    nothing_in_it = quiet is not None and bool(quiet[i])
+    pause = nothing_in_it and 1.6 <= ratio <= 2.4
     if abs(ratio - 1.0) > tol and (1.6 <= ratio <= 2.4 or ratio <= 0.6) and not pause:
         return "missed" if ratio > 1.0 else "extra"
     sharp = rules.sharp * (person.step or 0.0)
@@ -285,7 +286,7 @@ def classify_one(
 
     if abs(ratio - 1.0) > tol and not pause and not (1.0 < ratio < rules.long_ok and not premature(i - 1)):
         return "ectopic"  # a lone long interval is a breath or a pause of the person's own: kept
-    if doubled(x, person.level) and not (quiet is not None and quiet[i]):
+    if doubled(x, person.level) and not nothing_in_it:
         return "missed"
     if premature(i) or premature(i - 1):
         return "ectopic"
