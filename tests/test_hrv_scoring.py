@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cadence.bench.hrv_scoring import WindowScore, flutter_spans, has_arrhythmia_runs, truth
+from cadence.bench.hrv_scoring import WindowScore, flutter_spans, has_arrhythmia_runs, truth, unreadable_spans
 from common.hrv.records import Annotations
 
 
@@ -35,6 +35,20 @@ def test_too_few_nn_intervals_or_flutter_leave_a_window_unscored() -> None:
     touched, clear = truth(ann, [0.0, 15.0], 10.0, 40.0)
     assert touched.mean_nn_s is None and clear.mean_nn_s == pytest.approx(1.0)
     assert has_arrhythmia_runs(ann) and not has_arrhythmia_runs(beats(t, "N" * 40, [(0.0, "+", "(N")]))
+
+
+def test_an_interval_across_a_stretch_unreadable_in_every_lead_is_not_in_the_truth() -> None:
+    t = [i * 1.0 for i in range(31) if i != 12]  # the beat at 12 s hidden in noise: an 11-13 s "NN interval"
+    rows = [(ti, "N", "", 0) for ti in t] + [(11.5, "~", "", -1), (12.5, "~", "", 0), (20.0, "~", "", 1)]
+    rows.sort()
+    ann = Annotations(
+        np.array([r[0] for r in rows]), [r[1] for r in rows], [r[2] for r in rows], tuple(r[3] for r in rows)
+    )
+    assert unreadable_spans(ann, 31.0) == [(11.5, 12.5)]  # one lead noisy (subtype 1) is still readable
+    [w] = truth(ann, [0.5], 30.0, 31.0)
+    assert w.mean_nn_s == pytest.approx(1.0)
+    [w] = truth(beats(t, "N" * 30), [0.5], 30.0, 31.0)  # unmarked, the 2 s interval is the heart's
+    assert w.mean_nn_s == pytest.approx(30 / 29)
 
 
 def test_the_score_counts_good_and_held_windows_and_their_errors() -> None:

@@ -4,7 +4,9 @@ Alg. 1 moves k one step for each Δ_rs = 20 ms of mean RR, so what matters is no
 the error of each window that is allowed to move k. The truth of a window is the mean of the annotated
 NN intervals (both beats normal: N L R e j) whose closing beat lies in it. A window is not scored when it
 has fewer than ``MIN_NN`` of them (there is no truth to compare with) or touches ventricular flutter or
-fibrillation (no RR interval means anything there).
+fibrillation (no RR interval means anything there). An NN interval that spans a stretch the annotators
+marked unreadable in every lead is not in the truth: a beat hidden there could not be annotated (101 at
+320 s: an "NN interval" of 1.89 s between beats 1 s apart, across 1 s marked unreadable).
 """
 
 from __future__ import annotations
@@ -38,6 +40,23 @@ class Truth:
     mean_nn_s: float | None  # None: not scored
 
 
+def unreadable_spans(ann: Annotations, end_s: float) -> list[tuple[float, float]]:
+    """Where every lead is unreadable: from a ``~`` of subtype -1 to the next ``~``."""
+    spans: list[tuple[float, float]] = []
+    open_at: float | None = None
+    for t, sym, sub in zip(ann.t_s, ann.symbol, ann.subtype, strict=False):
+        if sym != "~":
+            continue
+        if open_at is not None:
+            spans.append((open_at, float(t)))
+            open_at = None
+        if sub == -1:
+            open_at = float(t)
+    if open_at is not None:
+        spans.append((open_at, end_s))
+    return spans
+
+
 def flutter_spans(ann: Annotations, end_s: float) -> list[tuple[float, float]]:
     """Where the rhythm is ventricular flutter or fibrillation: a ``(VFL``/``(VF`` rhythm until the next
     rhythm annotation, and each ``[`` … ``]`` episode."""
@@ -65,9 +84,15 @@ def truth(ann: Annotations, starts_s: Sequence[float], length_s: float, end_s: f
     """The reference mean NN of each window [start, start + length)."""
     beats = [(float(t), s) for t, s in zip(ann.t_s, ann.symbol, strict=True) if s in BEAT_SYMBOLS]
     t_end = np.array([b[0] for b in beats[1:]])
-    nn = np.array([a[1] in NN_SYMBOLS and b[1] in NN_SYMBOLS for a, b in itertools.pairwise(beats)])
+    nn = np.array(
+        [a[1] in NN_SYMBOLS and b[1] in NN_SYMBOLS for a, b in itertools.pairwise(beats)], dtype=bool
+    )
     rr = np.diff([b[0] for b in beats]) if beats else np.empty(0)
     spans = flutter_spans(ann, end_s)
+    hidden = unreadable_spans(ann, end_s)
+    t_start = np.array([b[0] for b in beats[:-1]])
+    for a, b in hidden:
+        nn &= ~((t_start < b) & (t_end > a))
     out = []
     for s in starts_s:
         e = s + length_s

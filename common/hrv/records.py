@@ -22,11 +22,13 @@ BEAT_SYMBOLS = frozenset("NLRBAaJSVrFejnE/fQ?")
 @dataclass(frozen=True, slots=True)
 class Annotations:
     """A record's reference annotations, all of them: beats, rhythm changes (``aux`` like ``(VFL``) and
-    the flutter marks ``[`` ``!`` ``]``."""
+    the flutter marks ``[`` ``!`` ``]``; ``subtype`` is WFDB's, which for a signal quality change ``~``
+    says which leads are noisy from there on (-1: every lead unreadable)."""
 
     t_s: NDArray[np.float64]
     symbol: list[str]
     aux: list[str]
+    subtype: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,7 +141,8 @@ def read_annotations(path: str) -> Annotations:
     except Exception as exc:
         raise InputError(f"{p}.atr: cannot read the annotations: {exc}") from exc
     aux = list(a.aux_note) if a.aux_note is not None else [""] * len(a.sample)
-    return Annotations(np.asarray(a.sample, dtype=float) / float(a.fs), list(a.symbol), aux)
+    sub = tuple(int(x) for x in a.subtype) if a.subtype is not None else ()
+    return Annotations(np.asarray(a.sample, dtype=float) / float(a.fs), list(a.symbol), aux, sub)
 
 
 def _from_times(p: Path, t_s: NDArray[np.float64], uv: NDArray[np.float64]) -> Recording:

@@ -60,8 +60,8 @@ class Rules:
     quiet: float = 0.5  # an interval twice the rhythm's with nothing above this share of a QRS in it: a pause
     like: float = 0.8  # a beat whose QRS correlates less with the template's is unlike the rhythm's own
     noise: float = 2.8  # noise between two beats above this many times the person's own level excludes it
-    hold_noise: float = 2.3  # a window with hold_noisy intervals noisier than this that are excluded, …
-    hold_noisy: int = 2  # … or next to one that is, is held
+    hold_noise: float = 2.9  # a window with hold_noisy intervals noisier than this that are excluded, …
+    hold_noisy: int = 3  # … or next to one that is, is held
     irregular: float = 0.09  # a window whose median step is this share of its median RR is held (AF)
     max_excluded: float = 0.2  # a window with a larger share of its intervals excluded is held
 
