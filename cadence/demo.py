@@ -205,11 +205,6 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
             "task": task,
             "backend": "sim",
             "start_selection": "last",
-            # the simulated arm on a busy laptop stops for overruns now and then: the demo resumes by
-            # itself (a real robot never does: resume_policy = "auto" is for the sim backend only)
-            "resume_policy": "auto",
-            "auto_resume_s": "1.0",
-            "auto_resume_per_hour": "1000",
         },
     }
 

@@ -61,7 +61,8 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert all(code == 0 for code in s["exit_codes"].values())  # every service stopped cleanly on SIGTERM
     ends = s["cycle_ends_s"]
     started = next(e["t_s"] for e in s["events"] if e["kind"] == "started")
-    stops = [e["t_s"] for e in s["events"] if e["kind"] == "protective_stop"]
+    # a busy host slows the simulated arm and never stops it (issue 28)
+    assert not [e for e in s["events"] if e["kind"] == "protective_stop"]
     # the robot never waited on the killed services for a selection
     assert not any(
         e["kind"] == "state" and "→ waiting_for_selection" in e["message"] and e["t_s"] > started
@@ -78,10 +79,7 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert set(fired) == {"SIGKILL hrv_analyser", "SIGKILL decision_maker"}, fired
     assert fired["SIGKILL hrv_analyser"] >= KILL_HRV and fired["SIGKILL decision_maker"] >= KILL_DECISION
     for kill in fired.values():
-        # (unless its own overruns on a loaded machine stopped it then: a stop of its own, resumed by the
-        # demo's auto policy, after which it cycles again)
-        stopped = [t for t in stops if kill < t < kill + within]
-        assert any(kill < t < kill + within for t in ends) or (stopped and any(t > stopped[0] for t in ends))
+        assert any(kill < t < kill + within for t in ends)
     # the restarted analyser windows again
     assert any(w["end_s"] > fired["SIGKILL hrv_analyser"] + 40 for w in s["windows"])
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k

@@ -30,8 +30,10 @@ def task_file(tmp_path: Path) -> Path:
     return p
 
 
-def stall(monkeypatch: pytest.MonkeyPatch, backend: type) -> dict[str, bool]:
-    """The machine stalls (as a loaded VM does) while ``on["stall"]``: every servo call takes 20 ms."""
+def stall(monkeypatch: pytest.MonkeyPatch, backend: type, realtime: bool = True) -> dict[str, bool]:
+    """The machine stalls (as a loaded VM does) while ``on["stall"]``: every servo call takes 20 ms.
+    ``realtime``: the arm is paced as a controller paces a real one, so overruns stop it (the sim's own
+    time is the samples sent, and nothing stops it)."""
     import time
 
     on = {"stall": False}
@@ -43,6 +45,7 @@ def stall(monkeypatch: pytest.MonkeyPatch, backend: type) -> dict[str, bool]:
         return real(self, target)
 
     monkeypatch.setattr(backend, "servo", slow)
+    monkeypatch.setattr(backend, "realtime", realtime)
     return on
 
 
@@ -88,6 +91,47 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
     assert "overruns in a row" in held.reason
     assert said.startswith("ready") and "resumed by the test" in said
     assert report.k_per_path == {"there": 2, "back": 2}
+
+
+async def test_a_stalled_host_slows_the_sim_arm_and_never_stops_it(
+    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import time
+
+    left = [8 * 2 * RUN]  # servo calls that stall: twice the run of overruns that stops a real arm (8 a tick)
+    real = SimBackend.servo
+
+    def slow(self: SimBackend, target: object) -> bool:
+        if left[0] > 0:
+            left[0] -= 1
+            time.sleep(STALL_S)
+        return real(self, target)
+
+    monkeypatch.setattr(SimBackend, "servo", slow)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = sim_settings(task_file, overrun_limit=RUN, cycles=1, initial_k=2)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        report = await next_of(cycles, timeout=60)
+        await ex.close()
+        await store.close()
+        kinds = [e.kind for e in await _drained(events)]
+    assert left[0] == 0 and "overrun" in kinds, kinds  # the stalls were counted, as ever …
+    assert "protective_stop" not in kinds  # … and the arm went on through them
+    assert report.k_per_path == {"there": 2, "back": 2}
+
+
+async def _drained(sub) -> list[RobotEvent]:
+    """The messages a subscription holds now, without waiting for more."""
+    out = []
+    while True:
+        try:
+            _, msg = await asyncio.wait_for(anext(sub), 0.01)
+        except TimeoutError:
+            return out
+        out.append(msg)
 
 
 async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(

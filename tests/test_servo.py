@@ -42,9 +42,17 @@ class Scripted(SimBackend):
 CALM = 1000
 
 
-def run(backend: SimBackend, q: np.ndarray, speed: float = 1.0, overrun_limit: int = CALM):
+def run(
+    backend: SimBackend, q: np.ndarray, speed: float = 1.0, overrun_limit: int = CALM, realtime: bool = True
+):
     loop = ServoLoop(
-        backend, core=None, fifo_priority=0, lock_memory=False, speed=speed, overrun_limit=overrun_limit
+        backend,
+        core=None,
+        fifo_priority=0,
+        lock_memory=False,
+        speed=speed,
+        overrun_limit=overrun_limit,
+        realtime=realtime,
     )
     loop.start()
     try:
@@ -91,6 +99,18 @@ def test_a_run_of_overruns_stops_the_robot(samples: np.ndarray) -> None:
     _, r = run(sim, samples, overrun_limit=4)
     assert r.outcome == "overruns" and r.overruns >= 4 and r.samples_sent < len(samples)
     assert np.all(sim.arm.qd == 0.0)
+
+
+def test_a_stalled_host_slows_a_simulated_arm_and_never_stops_it(samples: np.ndarray) -> None:
+    def stall(b: SimBackend) -> bool | None:
+        if b.calls <= 140:
+            time.sleep(0.005)  # 2.5 periods, 41 ticks in a row
+        return None
+
+    sim = Scripted(samples[0], 100, stall)
+    _, r = run(sim, samples, overrun_limit=4, realtime=False)
+    assert r.outcome == "done" and r.samples_sent == len(samples) and r.overruns >= 41
+    assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4 and not sim.fault()
 
 
 def test_a_refusing_arm_ends_the_motion_as_a_fault(samples: np.ndarray) -> None:

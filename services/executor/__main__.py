@@ -129,6 +129,7 @@ async def main(ctx: ServiceContext) -> None:
         speed=ctx.common.speed,
         spin_us=settings.spin_us,
         overrun_limit=settings.overrun_limit,
+        realtime=backend.realtime,
     )
     ex = Executor(ctx, task, backend, loop)
     ex.sets.load()

@@ -28,6 +28,7 @@ class RobotUnavailable(CadenceError):
 
 class Backend(Protocol):
     name: str
+    realtime: bool  # a controller paces the samples on the wall clock (a stalled executor must stop it)
 
     def connect(self) -> None: ...
     def close(self) -> None: ...
@@ -54,6 +55,7 @@ class SimBackend:
     ``speed`` X the arm moves X times faster than real time, exactly as far per step."""
 
     name = "sim"
+    realtime = False  # its time is the samples sent: a stalled host slows it (servo.ServoLoop)
 
     def __init__(
         self,
@@ -144,6 +146,7 @@ class UrRtdeBackend:
     slow start-up move, a standard digital output for the gripper (see ``set_gripper``)."""
 
     name = "ur_rtde"
+    realtime = True
 
     def __init__(
         self,

@@ -10,6 +10,12 @@ GIL from it before the deadline; a shorter interval was measured to make the tai
 
 Faster than real time (``speed`` > 1, sim only): a tick of 2 ms·steps/speed wall time sends ``steps``
 consecutive samples, so the arm still sees one 2 ms step per sample and the CPU is not spent spinning.
+
+A simulated arm (``realtime=False``) has no controller waiting on the wall clock: its time is the samples
+it was sent. A late tick is still counted as an overrun (the host's timing, reported as ever), but no run
+of them stops the arm, and the deadlines move on from the late tick instead of crowding the samples after
+it: a stalled host slows the motion and never stops it (issue 28). A real robot (``ur_rtde``, the
+emulator) keeps the overrun stop exactly as it is.
 """
 
 from __future__ import annotations
@@ -75,6 +81,7 @@ class ServoLoop:
         spin_us: int = 400,
         ring: int = 1 << 17,
         overrun_limit: int = 5,
+        realtime: bool = True,
     ) -> None:
         if speed <= 1.0:
             self.steps, self.period_ns = 1, round(PERIOD_NS / speed)
@@ -85,6 +92,7 @@ class ServoLoop:
         self.core, self.fifo_priority, self.lock_memory = core, fifo_priority, lock_memory
         self.spin_ns = spin_us * 1000
         self.overrun_limit = overrun_limit
+        self.realtime = realtime
         self.errors_ns = np.zeros(ring, dtype=np.int64)  # |late| per tick, ns: a ring
         self.ticks = 0  # since the last reset
         self.overruns = 0
@@ -202,10 +210,12 @@ class ServoLoop:
                 break
             if at_rest:
                 break
-            if clock() > deadline + period:
+            if (late := clock()) > deadline + period:
                 overruns += 1
                 run_of_overruns += 1
-                if run_of_overruns >= limit and not braking:
+                if not self.realtime:
+                    t0 = late - (tick - 1) * period  # the next tick is due a period from now
+                elif run_of_overruns >= limit and not braking:
                     braking, outcome = True, "overruns"
             else:
                 run_of_overruns = 0
