@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import os
 import shutil
 import tempfile
 import time
@@ -17,6 +18,8 @@ from common.trajectory.task import PathPlan
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE_TASK = REPO / "deploy" / "tasks" / "box_filling.toml"
 SHARED_DATA = REPO.parent / "shared" / "data"
+# the benchmarks (marker ``bench``, not in a plain ``uv run pytest``) in the shorter form .ci/run runs
+BENCH_QUICK = os.environ.get("CADENCE_BENCH") == "quick"
 
 
 def random_path(seed: int, n_waypoints: int = 6, boundary: bool = False) -> PathPlan:

@@ -4,7 +4,7 @@ to it measured in the same run (the machines are shared and noisy; absolute time
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -309,14 +309,18 @@ def spawned_pool(jobs: int | None, tasks: int) -> ProcessPoolExecutor:
 
 
 def bench_hrv(
-    data_dir: str, fs: float = 130.0, chunk: int = 13, jobs: int | None = None
+    data_dir: str,
+    fs: float = 130.0,
+    chunk: int = 13,
+    jobs: int | None = None,
+    only: Sequence[str] | None = None,
 ) -> tuple[list[DetectorScore], dict[str, float]]:
     """Every annotated record of ``data_dir`` at ``fs``: each detector's Se, PPV, F1 and speed; for
     Cadence also the publication latency (data time from the peak to the end of the chunk that released
     it; chunks of 13 samples, 0.1 s) and the window mean-RR error. Records are scored in ``jobs`` spawned
     processes (default: one per core), each detector timed on its own record in its worker, so the
-    speeds still compare with each other."""
-    records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr"))
+    speeds still compare with each other. ``only``: these records (names), not all."""
+    records = sorted(p.with_suffix("") for p in Path(data_dir).glob("*.atr") if not only or p.stem in only)
     totals: dict[str, NDArray[np.float64]] = {}
     latency: list[float] = []
     errors: list[float] = []

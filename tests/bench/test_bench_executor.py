@@ -8,6 +8,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 EXPECTED = {
     "period_us",
     "ticks",
@@ -37,6 +39,7 @@ def check_bench_executor_output(r: subprocess.CompletedProcess[str]) -> dict[str
     return figures
 
 
+@pytest.mark.bench
 def test_bench_executor_prints_its_figures_as_the_last_json_line() -> None:
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "bench", "executor", "--backend", "sim", "--seconds", "3"],
@@ -48,6 +51,7 @@ def test_bench_executor_prints_its_figures_as_the_last_json_line() -> None:
 
 
 def test_an_unreachable_controller_is_one_clear_line_and_exit_1() -> None:
+    """Not a benchmark: its refusal, in every run."""
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "bench", "executor", "--backend", "ur_rtde", "--host", "127.0.0.9"],
         capture_output=True,

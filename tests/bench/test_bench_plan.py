@@ -3,14 +3,18 @@ straightforward baseline measured in the same run; the assertions are on quality
 
 from __future__ import annotations
 
+import pytest
+
 from cadence.bench import bench_plan
 from common.trajectory.task import load_task
-from tests.conftest import EXAMPLE_TASK
+from tests.conftest import BENCH_QUICK, EXAMPLE_TASK
+
+pytestmark = pytest.mark.bench
 
 
 def test_bench_plan_prints_times_ratios_and_fronts() -> None:
     task = load_task(EXAMPLE_TASK)
-    r = bench_plan(task, task.planner, repeat=2)
+    r = bench_plan(task, task.planner, repeat=1 if BENCH_QUICK else 2)
     print(
         f"\npath {r.path_id} (W={r.n_waypoints}, pop {r.population}, {r.generations} generations)\n"
         f"full planning   {r.plan_s:.3f} s  naive {r.naive_plan_s:.3f} s  ratio {r.plan_ratio:.1f}x\n"

@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from cadence.bench import StoreBench, bench_store
-from tests.conftest import EXAMPLE_TASK
+from tests.conftest import BENCH_QUICK, EXAMPLE_TASK
+
+pytestmark = pytest.mark.bench
+QUERIES = 50 if BENCH_QUICK else 200
 
 
 def test_bench_store_query_latency() -> None:
-    r = asyncio.run(bench_store(str(EXAMPLE_TASK), queries=200))
+    r = asyncio.run(bench_store(str(EXAMPLE_TASK), queries=QUERIES))
     p = StoreBench.pct
     stored, during = r.stored_ms, r.during_planning_ms
     print(
@@ -19,4 +24,4 @@ def test_bench_store_query_latency() -> None:
         f"p99.9 {p(during, 99.9):.2f} ms, "
         f"max {max(during, default=float('nan')):.2f} ms"
     )
-    assert len(r.stored_ms) == 200 and len(r.during_planning_ms) > 10
+    assert len(r.stored_ms) == QUERIES and len(r.during_planning_ms) > 10
