@@ -75,14 +75,16 @@ def counted(path: Path) -> dict:
         "productivity_per_min": len(cycles) / minutes,
         "mean_rr_s": float(np.mean(good)),
         "selections": selections,
-        # the k the robot moved with from the first cycle that began once the condition was in force
+        # the k the robot moved with from the second cycle that ended in the session on: the executor
+        # takes a selection at its next path start once it has it, and on a loaded machine it can have
+        # it only after the cycle in flight at the start has ended and the next one has begun
         "ks": {
             m["k"]
             for m in msgs
             if m.get("type") == "robot.state.v1"
             and m.get("k") is not None
-            and cycles
-            and cycles[0]["t_ns"] < m["t_ns"] <= end
+            and len(cycles) > 1
+            and cycles[1]["t_ns"] < m["t_ns"] <= end
         },
     }
 

@@ -19,19 +19,21 @@ from tests.conftest import EXAMPLE_TASK
 
 
 def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_would(tmp_path: Path) -> None:
+    """The README's command, as written; its tables are what the run gives (issue 28)."""
     r = subprocess.run(
-        [sys.executable, "-m", "cadence", "study", "simulate", "--subjects", "4", "--minutes", "4",
-         "--calibrate", "2", "--out", str(tmp_path)],
+        [sys.executable, "-m", "cadence", "study", "simulate", "--subjects", "12", "--minutes", "10",
+         "--out", str(tmp_path)],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "SIMULATED" in r.stdout and "Wilcoxon" in r.stdout
     files = sorted((tmp_path / "sessions").glob("*.mcap"))
-    assert len(files) == 4 * 3
+    assert len(files) == 12 * 3
     doc = json.loads((tmp_path / "study.json").read_text())
-    assert doc["simulated"] is True and len(doc["sessions"]) == 4 * 3
+    assert doc["simulated"] is True and len(doc["sessions"]) == 12 * 3
+    readme_tables_are(doc)
     m = {c: {k: v["mean"] for k, v in doc["table"][c].items()} for c in "abc"}
     # (a) fastest and most stressful, (b) slowest and most relaxed, (c) in between on all three
     assert m["a"]["productivity_per_min"] > m["c"]["productivity_per_min"] > m["b"]["productivity_per_min"]
@@ -39,11 +41,11 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
     assert m["a"]["error_rate"] >= m["c"]["error_rate"] >= m["b"]["error_rate"]
     for pair in ("a-b", "a-c", "b-c"):
         t = doc["wilcoxon"][pair]["productivity_per_min"]
-        assert 0 < t["p"] <= 1 and t["n"] == 4 and t["method"] in ("exact", "normal approximation")
+        assert 0 < t["p"] <= 1 and t["n"] == 12 and t["method"] in ("exact", "normal approximation")
     for name in ("conditions.png", "subject_twin-01.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     page = (tmp_path / "index.html").read_text()
-    assert "SIMULATED" in page and "subject_twin-04.png" in page and "Table I" in page
+    assert "SIMULATED" in page and "subject_twin-12.png" in page and "Table I" in page
 
     # the files alone give the same study (`cadence study analyse` on them is in tests/test_lab.py)
     redo = json.loads(json.dumps(to_json(analyse([load_session(f) for f in files]))))
@@ -51,6 +53,22 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
         info = load_session(f).info
         assert info.calibration is not None and info.calibration.subject == info.subject
     assert redo["table"] == doc["table"] and redo["wilcoxon"] == doc["wilcoxon"]
+
+
+def readme_tables_are(doc: dict) -> None:
+    from cadence.analysis import METRICS
+    from schemas.session import CONDITION_NAMES
+    from tests.test_readme import README
+
+    shown = [m for m in METRICS if m != "mean_rr_s"]  # the README's columns: φ, ε, mean RR / RR_r
+    text = README.read_text()
+    for c, row in doc["table"].items():
+        cells = " | ".join(f"{row[m]['mean']:.3f} ± {row[m]['sd']:.3f}" for m in shown)
+        line = f"| ({c}) {CONDITION_NAMES[c]} | {cells} |"
+        assert line in text, f"README, the simulated study's table: expected the row\n{line}"
+    for pair, row in doc["wilcoxon"].items():
+        line = f"| {pair} | " + " | ".join(f"{row[m]['p']:.2g} ({row[m]['method']})" for m in shown) + " |"
+        assert line in text, f"README, the simulated study's Wilcoxon table: expected the row\n{line}"
 
 
 def test_online_tuning_lowers_k_for_an_intolerant_subject_and_keeps_it_high_for_a_tolerant_one() -> None:
