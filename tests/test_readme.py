@@ -181,13 +181,8 @@ def block_with(needle: str) -> Block:
 @pytest.fixture
 def shell_env(tmp_path: Path) -> dict[str, str]:
     """What the examples run in: this machine's environment, with the services' data in a temporary
-    folder and, on a loaded test machine, the executor not stopped by its own servo overruns."""
-    return {
-        **os.environ,
-        "CADENCE_CADENCE_DATA_DIR": str(tmp_path / "data"),
-        "CADENCE_EXECUTOR_OVERRUN_LIMIT": "1000",
-        "NO_COLOR": "1",
-    }
+    folder."""
+    return {**os.environ, "CADENCE_CADENCE_DATA_DIR": str(tmp_path / "data"), "NO_COLOR": "1"}
 
 
 def run_until(

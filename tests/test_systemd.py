@@ -187,10 +187,9 @@ second_machine = pytest.fixture(_booted)  # another host of the same cell (the n
 
 
 def _speed_ups(m: Machine, example_sets: Path) -> None:
-    """The tests' settings, as an admin would set them: short windows, sets already planned (the store
-    serves them without planning), and the sim arm resuming by itself after a stop on a loaded machine."""
+    """The tests' settings, as an admin would set them: short windows, and sets already planned (the
+    store serves them without planning)."""
     m.put("/etc/cadence/hrv_analyser.env", b"CADENCE_HRV_ANALYSER_WINDOW_S=10\n")
-    m.put("/etc/cadence/executor.env", b"CADENCE_EXECUTOR_RESUME_POLICY=auto\n")
     m.put("/var/lib/cadence/pareto.sqlite", example_sets.read_bytes(), "cadence:cadence")
 
 
