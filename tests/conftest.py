@@ -22,6 +22,25 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 BENCH_QUICK = os.environ.get("CADENCE_BENCH") == "quick"
 
 
+# Each test file goes to one of the two xdist workers, whole (``--dist loadfile``, pyproject); the files
+# that run a whole cell (the demo, the lab, systemd, the wheel's demo) share one worker, one at a time: two
+# cells at 16x on a 2-core machine, with other work running, starved each other's simulated operator.
+CELL_FILES = frozenset({"test_demo.py", "test_lab.py", "test_systemd.py", "test_packaging.py"})
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    if config.getvalue("dist") != "loadfile":
+        return None  # another distribution asked for on the command line: xdist's own
+    from xdist.scheduler import LoadFileScheduling
+
+    class CellsTogether(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            file = super()._split_scope(nodeid)
+            return "cells" if Path(file).name in CELL_FILES else file
+
+    return CellsTogether(config, log)
+
+
 def random_path(seed: int, n_waypoints: int = 6, boundary: bool = False) -> PathPlan:
     """A UR16e-like path: waypoints within ±π, consecutive steps of up to ~70° per joint."""
     rng = np.random.default_rng(seed)

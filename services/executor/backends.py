@@ -55,7 +55,7 @@ class SimBackend:
     ``speed`` X the arm moves X times faster than real time, exactly as far per step."""
 
     name = "sim"
-    realtime = False  # its time is the samples sent: a stalled host slows it (servo.ServoLoop)
+    realtime = False  # its time is the samples sent: a stalled host never stops it (servo.ServoLoop)
 
     def __init__(
         self,

@@ -12,10 +12,11 @@ Faster than real time (``speed`` > 1, sim only): a tick of 2 ms·steps/speed wal
 consecutive samples, so the arm still sees one 2 ms step per sample and the CPU is not spent spinning.
 
 A simulated arm (``realtime=False``) has no controller waiting on the wall clock: its time is the samples
-it was sent. A late tick is still counted as an overrun (the host's timing, reported as ever), but no run
-of them stops the arm, and the deadlines move on from the late tick instead of crowding the samples after
-it: a stalled host slows the motion and never stops it (issue 28). A real robot (``ur_rtde``, the
-emulator) keeps the overrun stop exactly as it is.
+it was sent, one controller step each, however close together they come. A late tick is still counted as
+an overrun (the host's timing, reported as ever), but no run of them stops the arm: the ticks after a
+stall come at once until the loop is back on its deadlines, so the arm keeps the pace of the data time
+the rest of the cell runs on, and a host too slow for the speed slows the arm and never stops it
+(issue 28). A real robot (``ur_rtde``, the emulator) keeps the overrun stop exactly as it is.
 """
 
 from __future__ import annotations
@@ -210,12 +211,10 @@ class ServoLoop:
                 break
             if at_rest:
                 break
-            if (late := clock()) > deadline + period:
+            if clock() > deadline + period:
                 overruns += 1
                 run_of_overruns += 1
-                if not self.realtime:
-                    t0 = late - (tick - 1) * period  # the next tick is due a period from now
-                elif run_of_overruns >= limit and not braking:
+                if run_of_overruns >= limit and self.realtime and not braking:
                     braking, outcome = True, "overruns"
             else:
                 run_of_overruns = 0
