@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import signal
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -30,18 +31,24 @@ def task_file(tmp_path: Path) -> Path:
     return p
 
 
-def stall(monkeypatch: pytest.MonkeyPatch, backend: type, realtime: bool = True) -> dict[str, bool]:
+def stall(
+    monkeypatch: pytest.MonkeyPatch, backend: type, realtime: bool = True, calls: int | None = None
+) -> dict[str, Any]:
     """The machine stalls (as a loaded VM does) while ``on["stall"]``: every servo call takes 20 ms.
+    ``calls``: from the start, for that many servo calls (``on["left"]`` counts them down).
     ``realtime``: the arm is paced as a controller paces a real one, so overruns stop it (the sim's own
     time is the samples sent, and nothing stops it)."""
     import time
 
-    on = {"stall": False}
+    on: dict[str, Any] = {"stall": calls is not None, "left": calls or 0}
     real = backend.servo
 
     def slow(self, target):
         if on["stall"]:
             time.sleep(STALL_S)
+            if calls is not None:
+                on["left"] -= 1
+                on["stall"] = on["left"] > 0
         return real(self, target)
 
     monkeypatch.setattr(backend, "servo", slow)
@@ -96,18 +103,8 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
 async def test_a_stalled_host_never_stops_the_sim_arm(
     task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import time
-
-    left = [8 * 2 * RUN]  # servo calls that stall: twice the run of overruns that stops a real arm (8 a tick)
-    real = SimBackend.servo
-
-    def slow(self: SimBackend, target: object) -> bool:
-        if left[0] > 0:
-            left[0] -= 1
-            time.sleep(STALL_S)
-        return real(self, target)
-
-    monkeypatch.setattr(SimBackend, "servo", slow)
+    # stalls for twice the run of overruns that stops a real arm (8 servo calls a tick)
+    on = stall(monkeypatch, SimBackend, realtime=False, calls=8 * 2 * RUN)
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
@@ -118,7 +115,7 @@ async def test_a_stalled_host_never_stops_the_sim_arm(
         await ex.close()
         await store.close()
         kinds = [e.kind for e in await _drained(events)]
-    assert left[0] == 0 and "overrun" in kinds, kinds  # the stalls were counted, as ever …
+    assert on["left"] == 0 and "overrun" in kinds, kinds  # the stalls were counted, as ever …
     assert "protective_stop" not in kinds  # … and the arm went on through them
     assert report.k_per_path == {"there": 2, "back": 2}
 
