@@ -127,6 +127,7 @@ def test_the_same_seed_gives_the_same_set() -> None:
     assert [s.h.tolist() for s in a.solutions] == [s.h.tolist() for s in b.solutions]
 
 
+@pytest.mark.bench  # an 800-generation reference run per mode: it runs with the benchmarks (CI runs both)
 @pytest.mark.parametrize("mode", ["exact", "hull"])
 def test_front_hypervolume_is_at_least_99_percent_of_a_long_run(mode: str) -> None:
     path = random_path(31, 6)

@@ -209,7 +209,7 @@ def ecg_unit(path: str, fs: float, variants: tuple[Variant, ...]) -> Unit:
     unit = Unit(name)
     for v in variants:
         x = noisy(rec.uv, fs, v, seed=zlib.crc32(name.encode()))
-        unit.ecg.append(EcgSeries(name, v, x, detect_peaks(x, fs, chunk=13), fs, end, tr, sinus))
+        unit.ecg.append(EcgSeries(name, v, x, detect_peaks(x, fs), fs, end, tr, sinus))
     if "clean" in variants:
         normal = np.array([t for t, sym in zip(ann.t_s, ann.symbol, strict=True) if sym in NN_SYMBOLS])
         unit.rr.append(RrSeries(name, normal, 0.0, end, {"cadence-rr": tr}, sinus))
