@@ -40,39 +40,16 @@ QoS = Literal["block", "drop"]
 
 
 @dataclass(frozen=True, slots=True)
-class Role:
-    """Who opens ports on the bus: a service (its own process and account), a role hosted inside a
-    service's process (the operator twin, inside the ECG gateway when its source is the twin), or a
-    person's tool (``operator``: calibrate, resume, an HMI; ``monitor``: record, zenoh subscribe)."""
-
-    name: str
-    kind: Literal["service", "hosted", "tool"]
-    host: str | None = None  # hosted: the service whose process (and bus account) it runs in
-    reads_all: bool = False  # tools read the whole cell, as the ACL lets everyone
-
-
-ROLES: tuple[Role, ...] = (
-    Role("pareto_store", "service"),
-    Role("decision_maker", "service"),
-    Role("hrv_analyser", "service"),
-    Role("ecg_gateway", "service"),
-    Role("executor", "service"),
-    Role("operator_twin", "hosted", host="ecg_gateway"),
-    Role("operator", "tool", reads_all=True),
-    Role("monitor", "tool", reads_all=True),
-)
-ROLE = {r.name: r for r in ROLES}
-SERVICES = tuple(r.name for r in ROLES if r.kind == "service")
-
-
-@dataclass(frozen=True, slots=True)
 class Topic(Generic[M]):
+    """A key of the graph and how it travels; who publishes, reads and asks it is derived from the
+    roles' declarations (``ROLES``), never written here."""
+
     suffix: str  # under cadence/<cell>/; '*' stands for one chunk, filled in when a port is opened
     message: type[M]
-    publishers: tuple[str, ...]  # for a query: the roles that answer it
-    subscribers: tuple[str, ...] = ()  # the roles that act on it (tools read everything anyway)
     pattern: Pattern = "topic"
     qos: QoS = "block"
+    publishers: tuple[str, ...] = ()  # for a query: the roles that answer it
+    subscribers: tuple[str, ...] = ()  # the roles that act on it (tools read everything anyway)
     askers: tuple[str, ...] = ()  # roles that may query it (a topic's publisher also answers queries)
 
     def at(self, *chunks: str) -> Topic[M]:
@@ -80,45 +57,125 @@ class Topic(Generic[M]):
         return replace(self, suffix=fill(self.suffix, chunks))
 
 
-LOOKERS = ("operator", "monitor")  # people's tools may ask what is only looked at (`cadence get`)
-
-ECG_SAMPLES = Topic("ecg/samples", EcgChunk, ("ecg_gateway",), ("hrv_analyser",))
-ECG_RR = Topic("ecg/rr", RrIntervals, ("ecg_gateway",), ("hrv_analyser",))  # read only with input = rr
-HRV_BEATS = Topic("hrv/beats", Beats, ("hrv_analyser",))
-HRV_WINDOW = Topic("hrv/window", HrvWindow, ("hrv_analyser",), ("decision_maker",))
-CALIBRATION = Topic("operator/calibration", Calibration, ("operator",), ("decision_maker",))
+ECG_SAMPLES = Topic("ecg/samples", EcgChunk)
+ECG_RR = Topic("ecg/rr", RrIntervals)
+HRV_BEATS = Topic("hrv/beats", Beats)
+HRV_WINDOW = Topic("hrv/window", HrvWindow)
+CALIBRATION = Topic("operator/calibration", Calibration)
 # the executor publishes a button on one of the controller's digital inputs (a task step's ``input``)
-OPERATOR_SIGNAL = Topic(
-    "operator/signal", OperatorSignal, ("operator", "operator_twin", "executor"), ("executor",)
-)
+OPERATOR_SIGNAL = Topic("operator/signal", OperatorSignal)
 # the executor publishes a part not there by its wait_for step's deadline (kind "late")
-OPERATOR_ERROR = Topic("operator/error", OperatorError, ("operator", "operator_twin", "executor"))
-SELECTION = Topic(
-    "decision/selection", Selection, ("decision_maker",), ("executor",), askers=("executor", *LOOKERS)
-)
+OPERATOR_ERROR = Topic("operator/error", OperatorError)
+SELECTION = Topic("decision/selection", Selection)
 # the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the
 # initial k); the reply is the selection it starts with, stamped with the data time it took effect
+DECISION_CONDITION = Topic("decision/condition", Selection, pattern="query")
 # its error reply while a calibration the asker names has not reached the decision maker: ask again
 CALIBRATION_NOT_YET = "not received yet"
-DECISION_CONDITION = Topic(
-    "decision/condition", Selection, ("decision_maker",), pattern="query", askers=("operator",)
-)
-PLAN_PROGRESS = Topic("pareto/progress", PlanProgress, ("pareto_store",), qos="drop")
-PARETO_SET = Topic("pareto/*", ParetoSet, ("pareto_store",), pattern="query", askers=("executor", *LOOKERS))
-PARETO_SOLUTION = Topic("pareto/*/*", ParetoSolutionReply, ("pareto_store",), pattern="query", askers=LOOKERS)
-ROBOT_STATE = Topic("robot/state", RobotState, ("executor",), ("operator_twin",), qos="drop")
-ROBOT_CYCLE = Topic("robot/cycle", CycleReport, ("executor",), ("operator_twin",))
-ROBOT_EVENT = Topic("robot/event", RobotEvent, ("executor",))
+PLAN_PROGRESS = Topic("pareto/progress", PlanProgress, qos="drop")
+PARETO_SET = Topic("pareto/*", ParetoSet, pattern="query")
+PARETO_SOLUTION = Topic("pareto/*/*", ParetoSolutionReply, pattern="query")
+ROBOT_STATE = Topic("robot/state", RobotState, qos="drop")
+ROBOT_CYCLE = Topic("robot/cycle", CycleReport)
+ROBOT_EVENT = Topic("robot/event", RobotEvent)
 # clear a latched stop (`cadence robot resume`): the reply is the state change it made
-ROBOT_RESUME = Topic("robot/resume", RobotEvent, ("executor",), pattern="query", askers=("operator",))
-HEALTH = Topic(
-    "health/*",
-    ServiceStatus,
-    SERVICES,
-    qos="drop",  # health/<service>, plus a liveliness token
-)
+ROBOT_RESUME = Topic("robot/resume", RobotEvent, pattern="query")
+HEALTH = Topic("health/*", ServiceStatus, qos="drop")  # health/<service>, plus a liveliness token
 
-TOPICS: tuple[Topic[Any], ...] = (
+
+@dataclass(frozen=True, slots=True)
+class Role:
+    """A node of the graph, declared once: who it is and every port it opens. A service (its own process
+    and account), a role hosted inside a service's process (the operator twin, inside the ECG gateway
+    when its source is the twin), or a person's tool (``operator``: calibrate, resume, an HMI;
+    ``monitor``: record, zenoh subscribe). Every service also publishes its own ``health/<service>``."""
+
+    name: str
+    kind: Literal["service", "hosted", "tool"]
+    host: str | None = None  # hosted: the service whose process (and bus account) it runs in
+    reads_all: bool = False  # tools read the whole cell, as the ACL lets everyone
+    inputs: tuple[Topic[Any], ...] = ()  # topics it subscribes to and acts on
+    outputs: tuple[Topic[Any], ...] = ()  # topics it publishes
+    answers: tuple[Topic[Any], ...] = ()  # queries it answers (a published topic's latest, on demand)
+    asks: tuple[Topic[Any], ...] = ()  # queries it sends
+
+
+LOOKERS = (SELECTION, PARETO_SET, PARETO_SOLUTION)  # what people's tools may ask (`cadence get`)
+ROLES: tuple[Role, ...] = (
+    Role("pareto_store", "service", outputs=(PLAN_PROGRESS,), answers=(PARETO_SET, PARETO_SOLUTION)),
+    Role(
+        "decision_maker",
+        "service",
+        inputs=(HRV_WINDOW, CALIBRATION),
+        outputs=(SELECTION,),
+        answers=(SELECTION, DECISION_CONDITION),
+    ),
+    # ecg/rr is read only with input = rr
+    Role("hrv_analyser", "service", inputs=(ECG_SAMPLES, ECG_RR), outputs=(HRV_BEATS, HRV_WINDOW)),
+    Role("ecg_gateway", "service", outputs=(ECG_SAMPLES, ECG_RR)),
+    Role(
+        "executor",
+        "service",
+        inputs=(SELECTION, OPERATOR_SIGNAL),
+        outputs=(ROBOT_STATE, ROBOT_CYCLE, ROBOT_EVENT, OPERATOR_SIGNAL, OPERATOR_ERROR),
+        answers=(ROBOT_RESUME,),
+        asks=(SELECTION, PARETO_SET),
+    ),
+    Role(
+        "operator_twin",
+        "hosted",
+        host="ecg_gateway",
+        inputs=(ROBOT_STATE, ROBOT_CYCLE),
+        outputs=(OPERATOR_SIGNAL, OPERATOR_ERROR),
+    ),
+    Role(
+        "operator",
+        "tool",
+        reads_all=True,
+        outputs=(CALIBRATION, OPERATOR_SIGNAL, OPERATOR_ERROR),
+        asks=(*LOOKERS, DECISION_CONDITION, ROBOT_RESUME),
+    ),
+    Role("monitor", "tool", reads_all=True, asks=LOOKERS),
+)
+ROLE = {r.name: r for r in ROLES}
+SERVICES = tuple(r.name for r in ROLES if r.kind == "service")
+
+
+def _derived(t: Topic[M]) -> Topic[M]:
+    """A topic with the roles that publish, read and ask it, from the roles' declarations."""
+
+    def having(ports: str) -> tuple[str, ...]:
+        return tuple(r.name for r in ROLES if any(p.suffix == t.suffix for p in getattr(r, ports)))
+
+    publishers = (
+        SERVICES if t.suffix == "health/*" else tuple(dict.fromkeys(having("outputs") + having("answers")))
+    )
+    return replace(t, publishers=publishers, subscribers=having("inputs"), askers=having("asks"))
+
+
+TOPICS: tuple[Topic[Any], ...] = tuple(
+    _derived(t)
+    for t in (
+        ECG_SAMPLES,
+        ECG_RR,
+        HRV_BEATS,
+        HRV_WINDOW,
+        CALIBRATION,
+        OPERATOR_SIGNAL,
+        OPERATOR_ERROR,
+        SELECTION,
+        DECISION_CONDITION,
+        PLAN_PROGRESS,
+        PARETO_SET,
+        PARETO_SOLUTION,
+        ROBOT_STATE,
+        ROBOT_CYCLE,
+        ROBOT_EVENT,
+        ROBOT_RESUME,
+        HEALTH,
+    )
+)
+(
     ECG_SAMPLES,
     ECG_RR,
     HRV_BEATS,
@@ -136,7 +193,21 @@ TOPICS: tuple[Topic[Any], ...] = (
     ROBOT_EVENT,
     ROBOT_RESUME,
     HEALTH,
-)
+) = TOPICS
+_TOPIC = {t.suffix: t for t in TOPICS}
+
+
+def _pointed(r: Role) -> Role:
+    """The role with the derived topics, so that a port opened from its declaration carries them."""
+
+    def of(ts: tuple[Topic[Any], ...]) -> tuple[Topic[Any], ...]:
+        return tuple(_TOPIC[t.suffix] for t in ts)
+
+    return replace(r, inputs=of(r.inputs), outputs=of(r.outputs), answers=of(r.answers), asks=of(r.asks))
+
+
+ROLES = tuple(_pointed(r) for r in ROLES)
+ROLE = {r.name: r for r in ROLES}
 
 # Every message type, as one tagged union: what a reader of unknown keys accepts.
 AnyMessage = (

@@ -21,8 +21,7 @@ from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection, Servi
 from schemas.topology import encode
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
-from services.decision_maker.__main__ import start
-from services.decision_maker.state import STATE_FILE, Decider
+from services.decision_maker.state import STATE_FILE, Decider, resume
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.store import SetStore
@@ -137,7 +136,7 @@ CORRUPT_STATES = {
 
 def _valid_record(tmp_path: Path) -> dict:
     decider = Decider(tmp_path, 15)
-    start(decider, tmp_path, DecisionSettings(rr_rest_s=0.85))
+    resume(decider, tmp_path, 0.85)
     assert decider.record is not None
     return msgspec.to_builtins(decider.record)
 
@@ -159,7 +158,7 @@ def test_a_corrupt_state_file_is_moved_aside_named_and_the_service_starts_at_the
     (tmp_path / STATE_FILE).write_text(text)
 
     decider = Decider(tmp_path, 15)
-    problems = start(decider, tmp_path, DecisionSettings(rr_rest_s=0.85))
+    problems = resume(decider, tmp_path, 0.85)
 
     (moved,) = tmp_path.glob(f"{STATE_FILE}.corrupt-*")
     assert moved.read_text() == text  # kept as it was, for a person to look at
@@ -187,7 +186,7 @@ async def test_the_status_says_the_state_file_was_moved_aside(tmp_path: Path, en
 def test_a_corrupt_calibration_file_is_moved_aside_and_the_config_rr_rest_used(tmp_path: Path) -> None:
     (tmp_path / CALIBRATION_FILE).write_text('{"type": "operator.calibration.v1", "rr_rest_s": -0.8}')
     decider = Decider(tmp_path, 15)
-    (problem,) = start(decider, tmp_path, DecisionSettings(rr_rest_s=0.9))
+    (problem,) = resume(decider, tmp_path, 0.9)
     assert CALIBRATION_FILE in problem and "rr_rest_s" in problem
     assert list(tmp_path.glob(f"{CALIBRATION_FILE}.corrupt-*"))
     assert decider.record is not None and decider.record.calibration.rr_rest_s == 0.9

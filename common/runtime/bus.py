@@ -104,6 +104,22 @@ class QueryError(Exception):
     """Raised by a queryable handler: its text goes back to the querier with ``reply_err``."""
 
 
+async def answer(
+    answers: type[M] | None, handler: Callable[[Request], Awaitable[M]], req: Request
+) -> tuple[bool, bytes]:
+    """A queryable handler's reply: (True, the encoded message) or (False, the error's text)."""
+    try:
+        msg = await handler(req)
+        if answers is not None and not isinstance(msg, answers):
+            raise TypeError(f"{req.key} answers {answers.__name__}, not {type(msg).__name__}")
+        return True, encode(msg)
+    except QueryError as exc:
+        return False, str(exc).encode()
+    except Exception:
+        log.exception("query handler failed on %s", req.key)
+        return False, b"internal error"
+
+
 class Subscription(Generic[M]):
     """Decoded messages of one key expression, as an async iterator of (key, message).
 
@@ -116,10 +132,7 @@ class Subscription(Generic[M]):
         self._decoder = msgspec.msgpack.Decoder(msg_type)
         self._queue: asyncio.Queue[tuple[str, M]] = asyncio.Queue(maxsize)
         self.dropped = 0
-        loop = bus.loop
-        self._sub: Any = bus.session.declare_subscriber(
-            key_expr, lambda s: _call_soon(loop, self._put, str(s.key_expr), s.payload.to_bytes())
-        )
+        self._sub: Any = bus._declare_subscriber(key_expr, self._put)
 
     def _put(self, key: str, payload: bytes) -> None:
         """On the loop thread: decode at arrival, so bad input is counted whether or not anyone reads."""
@@ -163,7 +176,6 @@ class Publisher(Generic[M]):
         self._bus = bus
         self.topic = topic
         self.key = key
-        self._cc = zenoh.CongestionControl.BLOCK if topic.qos == "block" else zenoh.CongestionControl.DROP
         self.seq = 0  # what next_seq gives next
 
     def next_seq(self) -> int:
@@ -176,7 +188,7 @@ class Publisher(Generic[M]):
         if not isinstance(msg, self.topic.message):
             raise TypeError(f"{self.key} carries {self.topic.message.__name__}, not {type(msg).__name__}")
         self._bus._check_open()
-        self._bus.session.put(self.key, encode(msg), congestion_control=self._cc)
+        self._bus._send(self.key, encode(msg), block=self.topic.qos == "block")
 
     async def until_subscribed(self, timeout: float) -> None:
         await self._bus.until_subscribed(self.key, timeout)
@@ -253,6 +265,19 @@ class Bus:
             return None
         tried = ", ".join(self.cfg.connect) or "no endpoint to connect to, and multicast scouting is off"
         return f"connected to no router and no peer (connect: {tried})"
+
+    # --- the transport: the only methods that touch the Zenoh session (MockBus replaces them) -------
+
+    def _declare_subscriber(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any:
+        """``callback(key, payload)`` on the loop thread for each sample; the handle undeclares it."""
+        loop = self.loop
+        return self.session.declare_subscriber(
+            key_expr, lambda s: _call_soon(loop, callback, str(s.key_expr), s.payload.to_bytes())
+        )
+
+    def _send(self, key: str, payload: bytes, block: bool) -> None:
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.session.put(key, payload, congestion_control=cc)
 
     # --- the graph ----------------------------------------------------------------------------------
 
@@ -360,14 +385,12 @@ class Bus:
         self._check_open()
         if self.role is not None:
             raise BusError(f"{self.role}: publish {key} through Bus.publisher (schemas/topology.py)")
-        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self.session.put(key, encode(msg), congestion_control=cc)
+        self._send(key, encode(msg), block)
 
     def put_raw(self, key: str, payload: bytes, block: bool = False) -> None:
         """Bytes as they are (tests and replay)."""
         self._check_open()
-        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self.session.put(key, payload, congestion_control=cc)
+        self._send(key, payload, block)
 
     def matching(self, key: str) -> bool:
         """Whether a subscriber somewhere matches ``key`` now (Zenoh's matching status): a put to a key
@@ -399,12 +422,7 @@ class Bus:
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> RawSubscription:
         """Payloads as they travel, undecoded (recording): ``callback(key, bytes)`` on the loop thread."""
         self._check_open()
-        loop = self.loop
-        sub = RawSubscription(
-            self.session.declare_subscriber(
-                key_expr, lambda s: _call_soon(loop, callback, str(s.key_expr), s.payload.to_bytes())
-            )
-        )
+        sub = RawSubscription(self._declare_subscriber(key_expr, callback))
         self._declared.append(sub)
         return sub
 
@@ -475,13 +493,17 @@ class Bus:
         the topic's message or raises ``QueryError``. The returned handle undeclares the queryable (the
         bus does at close)."""
         key_expr, answers = self._resolve("publish", what, None, None)
+        served = RawSubscription(self._declare_queryable(key_expr, answers, handler))
+        self._declared.append(served)
+        return served
 
+    def _declare_queryable(
+        self, key_expr: str, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]]
+    ) -> Any:
         def on_query(query: zenoh.Query) -> None:
             _call_soon(self.loop, self._spawn, self._answer(answers, handler, query))
 
-        served = RawSubscription(self.session.declare_queryable(key_expr, on_query))
-        self._declared.append(served)
-        return served
+        return self.session.declare_queryable(key_expr, on_query)
 
     def _spawn(self, coro: Awaitable[None]) -> None:
         task = asyncio.ensure_future(coro)
@@ -492,16 +514,11 @@ class Bus:
         self, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]], query: zenoh.Query
     ) -> None:
         with query:  # dropping the query tells the querier that no more replies come
-            try:
-                msg = await handler(Request(str(query.key_expr), str(query.parameters)))
-                if answers is not None and not isinstance(msg, answers):
-                    raise TypeError(f"{query.key_expr} answers {answers.__name__}, not {type(msg).__name__}")
-                query.reply(query.key_expr, encode(msg))
-            except QueryError as exc:
-                query.reply_err(str(exc).encode())
-            except Exception:
-                log.exception("query handler failed on %s", query.key_expr)
-                query.reply_err(b"internal error")
+            ok, payload = await answer(answers, handler, Request(str(query.key_expr), str(query.parameters)))
+            if ok:
+                query.reply(query.key_expr, payload)
+            else:
+                query.reply_err(payload)
 
     @overload
     async def get(
@@ -527,6 +544,17 @@ class Bus:
         if parameters:
             selector += f"?{parameters}"
         decoder = msgspec.msgpack.Decoder(msg_type)
+        out: list[Reply[Any]] = []
+        for key, ok, payload in await self._query(selector, timeout):
+            if ok:
+                msg = self.decode(key, payload, decoder)
+                out.append(Reply(key, msg, None if msg is not None else "reply does not decode"))
+            else:
+                out.append(Reply(selector, None, payload.decode(errors="replace")))
+        return out
+
+    async def _query(self, selector: str, timeout: float) -> list[tuple[str, bool, bytes]]:
+        """(key, ok, payload) per reply; an error reply's key is the selector's."""
 
         def run() -> list[Any]:
             return list(self.session.get(selector, timeout=timeout))
@@ -535,15 +563,12 @@ class Bus:
             replies = await asyncio.to_thread(run)
         except zenoh.ZError as exc:
             raise BusError(f"query {selector} failed: {exc}") from exc
-        out: list[Reply[Any]] = []
-        for r in replies:
-            if r.ok is not None:
-                key = str(r.ok.key_expr)
-                msg = self.decode(key, r.ok.payload.to_bytes(), decoder)
-                out.append(Reply(key, msg, None if msg is not None else "reply does not decode"))
-            else:
-                out.append(Reply(selector, None, r.err.payload.to_bytes().decode(errors="replace")))
-        return out
+        return [
+            (str(r.ok.key_expr), True, r.ok.payload.to_bytes())
+            if r.ok is not None
+            else (selector, False, r.err.payload.to_bytes())
+            for r in replies
+        ]
 
     # --- presence -----------------------------------------------------------------------------------
 
@@ -563,4 +588,7 @@ class Bus:
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._close_transport()
+
+    async def _close_transport(self) -> None:
         await asyncio.to_thread(self.session.close)

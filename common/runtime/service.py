@@ -193,8 +193,10 @@ async def serve(
     settings: Any,
     stop: asyncio.Event | None = None,
     install_signals: bool = True,
+    bus: Bus | None = None,
 ) -> None:
-    """Run ``main`` until it returns or the stop event is set, then shut down in order."""
+    """Run ``main`` until it returns or the stop event is set, then shut down in order. ``bus``: one
+    opened already (a test's ``MockBus``) instead of a Zenoh session from ``bus_cfg``."""
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     if install_signals:
@@ -210,7 +212,7 @@ async def serve(
             stop.set()
 
         on_stop_signals(loop, on_signal)
-    async with await Bus.open(bus_cfg, common.cell, role=name) as bus:
+    async with bus if bus is not None else await Bus.open(bus_cfg, common.cell, role=name) as bus:
         ctx = ServiceContext(name, bus, common, settings, stop)
         bus.token(bus.key(HEALTH.at(name).suffix))
         ctx.state = "running"  # before main starts, so that main's own word on its state stands

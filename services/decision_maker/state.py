@@ -4,22 +4,25 @@ message; a damaged one is moved aside and the service starts afresh at the initi
 
 from __future__ import annotations
 
+import logging
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import msgspec
 
 from common.decision import Params, State, step
+from common.hrv.calibration import load_calibration as load_stored_calibration
 from common.runtime.admission import TimeLine
 from common.runtime.storage import Loaded, atomic_write, load_checked
-from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, Name, NonNegInt, TimeNs
+from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
 from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
 
+log = logging.getLogger("cadence.decision_maker")
+
 STATE_FILE = "decision_state.json"
-CONDITION_FILE = "condition.json"  # the condition a session set (`cadence session`), over the config's
 # Windows come every 30 s. One that starts more than this after the last answered is out of line (a
 # broken clock, a hostile message) until a second one agrees with it; one that ends within this before it
 # is a duplicate (a replay, a republish), answered already.
@@ -54,24 +57,6 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     @property
     def state(self) -> State:
         return State(self.k, Decimal(self.rr_prev))
-
-
-class Condition(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    """``condition.json``: the study condition in force, as a session set it on ``decision/condition``;
-    kept so that a restart mid-session goes on in the same condition."""
-
-    mode: Literal["adaptive", "fixed"]
-    fixed_k: Annotated[int, msgspec.Meta(ge=1, le=MAX_N)] | Literal["a", "b"] = "a"
-    t_ns: TimeNs = 0
-    by: Name = ""
-
-
-def load_condition(data_dir: Path) -> Loaded[Condition]:
-    return load_checked(data_dir / CONDITION_FILE, lambda b: msgspec.json.decode(b, type=Condition))
-
-
-def store_condition(data_dir: Path, condition: Condition) -> None:
-    atomic_write(data_dir / CONDITION_FILE, msgspec.json.format(msgspec.json.encode(condition), indent=1))
 
 
 def params_of(cal: Calibration, n: int) -> Params:
@@ -167,3 +152,36 @@ class Decider:
 
     def persist(self, record: DecisionRecord) -> None:
         atomic_write(self.path, msgspec.json.format(msgspec.json.encode(record), indent=1))
+
+
+def load_calibration(data_dir: Path, rr_rest_s: float | None, problems: list[str]) -> Calibration | None:
+    """The calibration `cadence calibrate` stored, else one from the config's ``rr_rest_s``."""
+    loaded = load_stored_calibration(data_dir)
+    if loaded.problem:
+        problems.append(loaded.problem)
+    if loaded.value is not None:
+        return loaded.value
+    if rr_rest_s is not None:
+        return Calibration(t_ns=0, seq=0, subject="config", rr_rest_s=rr_rest_s)
+    return None
+
+
+def resume(decider: Decider, data: Path, rr_rest_s: float | None) -> list[str]:
+    """Resume the persisted state, or start at the initial k; what was wrong with the files on disk."""
+    problems: list[str] = []
+    cal = load_calibration(data, rr_rest_s, problems)
+    loaded = load_record(decider.path)
+    if loaded.problem:
+        problems.append(loaded.problem)
+    rec = loaded.value
+    if rec is not None and rec.n != decider.n:
+        log.info("%s was written for n = %d, not %d: starting afresh", decider.path, rec.n, decider.n)
+        rec = None
+    if rec is not None and (cal is None or same_calibration(rec.calibration, cal)):
+        decider.commit(rec, resumed=True)
+        log.info("resumed at k = %d", rec.k)
+    elif cal is not None and (fresh := decider.calibrated(cal, 0)) is not None:
+        decider.commit(fresh)
+    for p in problems:
+        log.error("%s", p)
+    return problems

@@ -1,0 +1,194 @@
+"""A service's logic as a node of the graph (DESIGN §3; dora's Python nodes, ros2's ``demo_nodes_py``).
+
+The graph (``schemas/topology.py``, ``ROLES``) declares once what each role reads, publishes and answers.
+A node implements that declaration: a method per input (``@on``), per query it answers (``@answers``)
+and per timer (``@every``). Handlers take a typed message and return the messages to publish; they never
+touch the bus, so a node's logic is tested by calling them, or served on the in-memory ``MockBus``
+(common/runtime/mock_bus.py), with nothing else to fake.
+
+``node_main(Node)`` gives the ``main`` that ``service_main`` serves: it checks the class against its role's
+declaration (a handler for a port the graph does not give the role, or a declared port with no handler,
+stops the service at start), opens exactly the declared ports, publishes what handlers return on the
+output that carries each message's type, and runs the timers until the service stops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import inspect
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
+from typing import Any, ClassVar, NamedTuple, TypeVar
+
+from common.runtime.bus import Request
+from common.runtime.errors import BusError
+from common.runtime.service import ServiceContext
+from schemas.base import Message
+from schemas.topology import ROLE, Topic
+
+Out = Sequence[Message]  # what a handler returns: published in order, each on the output of its type
+F = TypeVar("F", bound=Callable[..., Any])
+
+_INPUT, _ANSWER, _TIMER = "_cadence_input", "_cadence_answer", "_cadence_timer"
+
+
+def on(topic: Topic[Any]) -> Callable[[F], F]:
+    """Mark ``async def handler(self, msg) -> Out`` as the node's reader of ``topic``."""
+
+    def mark(fn: F) -> F:
+        setattr(fn, _INPUT, topic)
+        return fn
+
+    return mark
+
+
+class Answer(NamedTuple):
+    """A reply that also changes what the node publishes: ``publish`` goes out before the reply does."""
+
+    reply: Message
+    publish: Out = ()
+
+
+def answers(topic: Topic[Any]) -> Callable[[F], F]:
+    """Mark ``async def handler(self, req: Request) -> message | Answer`` as the node's answer to
+    ``topic``'s queries; raising ``QueryError`` replies with its text."""
+
+    def mark(fn: F) -> F:
+        setattr(fn, _ANSWER, topic)
+        return fn
+
+    return mark
+
+
+def every(period: str | float) -> Callable[[F], F]:
+    """Mark ``async def handler(self) -> Out`` to run at start and then every ``period`` seconds (a
+    number, or the name of a field of the service's settings)."""
+
+    def mark(fn: F) -> F:
+        setattr(fn, _TIMER, period)
+        return fn
+
+    return mark
+
+
+class Rejected(Exception):
+    """Raised by an input handler for a message that decoded but must not be acted on (the rules of
+    common/runtime/admission.py): counted and logged by the bus under ``code``, like a malformed one."""
+
+    def __init__(self, code: str, detail: str = "") -> None:
+        super().__init__(detail or code)
+        self.code, self.detail = code, detail
+
+
+class Node:
+    """Base of a service's node: ``role`` names its declaration in the graph. ``setup`` runs before any
+    port opens (state from disk); ``reads`` leaves out a declared input the settings do not use."""
+
+    role: ClassVar[str]
+
+    def __init__(self, ctx: ServiceContext) -> None:
+        self.ctx = ctx
+
+    async def setup(self) -> None:
+        """Load what the node resumes from; its ports open after this."""
+
+    def reads(self, topic: Topic[Any]) -> bool:
+        return True
+
+
+def handlers(cls: type[Node], mark: str) -> dict[str, tuple[Any, str]]:
+    """The class's methods marked ``mark``: by their value's key (a topic's suffix, or the method name for
+    a timer), the value and the method's name."""
+    out: dict[str, tuple[Any, str]] = {}
+    for name, fn in inspect.getmembers(cls, inspect.isfunction):
+        if hasattr(fn, mark):
+            value = getattr(fn, mark)
+            key = value.suffix if isinstance(value, Topic) else name
+            if key in out:
+                raise BusError(f"{cls.__name__}: two handlers for {key} ({out[key][1]}, {name})")
+            out[key] = (value, name)
+    return out
+
+
+def check(cls: type[Node]) -> None:
+    """The class implements its role's declaration exactly: every declared input and query has its
+    handler, no handler serves a port the graph does not give the role, and no two outputs share a type
+    (a returned message goes to the output of its type)."""
+    role = ROLE.get(getattr(cls, "role", ""))
+    if role is None:
+        raise BusError(f"{cls.__name__}: role {getattr(cls, 'role', None)!r} is not in the graph")
+    for mark, declared, verb in ((_INPUT, role.inputs, "read"), (_ANSWER, role.answers, "answer")):
+        have = set(handlers(cls, mark))
+        want = {t.suffix for t in declared}
+        if have - want:
+            raise BusError(f"the graph does not let {role.name} {verb} {', '.join(sorted(have - want))}")
+        if want - have:
+            raise BusError(f"{cls.__name__} has no handler for {', '.join(sorted(want - have))}, which the "
+                           f"graph has {role.name} {verb} (schemas/topology.py)")  # fmt: skip
+    types = [t.message for t in role.outputs]
+    if len(set(types)) != len(types):
+        raise BusError(f"{role.name}: two outputs carry the same message type")
+
+
+def node_main(cls: type[Node]) -> Callable[[ServiceContext], Coroutine[Any, Any, None]]:
+    """The service's ``main``: the node, served on the context's bus until the service stops."""
+    check(cls)
+
+    async def main(ctx: ServiceContext) -> None:
+        node = cls(ctx)
+        await node.setup()
+        await serve_node(node)
+
+    return main
+
+
+async def serve_node(node: Node) -> None:
+    ctx, bus = node.ctx, node.ctx.bus
+    role = ROLE[node.role]
+    outputs = {t.message: bus.publisher(t) for t in role.outputs if "*" not in t.suffix}
+
+    def publish(msgs: Out | None) -> None:
+        for msg in msgs or ():
+            port = outputs.get(type(msg))
+            if port is None:
+                raise TypeError(f"{node.role} has no output for {type(msg).__name__} (schemas/topology.py)")
+            port.put(msg)
+
+    def reader(fn: Callable[[Any], Awaitable[Out | None]]) -> Callable[[str, Any], Awaitable[None]]:
+        async def handle(key: str, msg: Any) -> None:
+            try:
+                publish(await fn(msg))
+            except Rejected as r:
+                bus.reject(key, r.code, r.detail)
+
+        return handle
+
+    for topic, name in handlers(type(node), _INPUT).values():
+        if node.reads(topic):
+            bus.handle(topic, reader(getattr(node, name)))
+
+    def replier(fn: Callable[[Request], Awaitable[Any]]) -> Callable[[Request], Awaitable[Any]]:
+        async def reply(req: Request) -> Any:
+            out = await fn(req)
+            if isinstance(out, Answer):
+                publish(out.publish)
+                return out.reply
+            return out
+
+        return reply
+
+    for topic, name in handlers(type(node), _ANSWER).values():
+        bus.serve(topic, replier(getattr(node, name)))
+
+    async def tick(fn: Callable[[], Awaitable[Out | None]], period: str | float) -> None:
+        seconds = float(getattr(ctx.settings, period) if isinstance(period, str) else period)
+        while not ctx.stop.is_set():
+            try:
+                publish(await fn())
+            except Exception as exc:  # a timer that fails is counted like a handler, and runs again
+                bus.handler_failed(f"{node.role}/timer/{fn.__name__}", exc)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(ctx.stop.wait(), seconds)
+
+    timers = [tick(getattr(node, name), period) for period, name in handlers(type(node), _TIMER).values()]
+    await asyncio.gather(*timers, ctx.stop.wait())

@@ -1,0 +1,163 @@
+"""A node's logic without Zenoh (common/runtime/node.py, common/runtime/mock_bus.py): the decision maker's
+handlers called as methods, the node served on the in-memory bus with the real bus's typing, graph checks
+and decoding, and a node class held to its role's declaration in the graph."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from common.decision import Params, State, step
+from common.runtime.bus import Bus, QueryError
+from common.runtime.config import CommonSettings
+from common.runtime.errors import BusError
+from common.runtime.mock_bus import MockBus, MockNetwork
+from common.runtime.node import Node, Rejected, check, node_main, on
+from common.runtime.service import ServiceContext, serve
+from schemas import Calibration, HrvWindow, Selection
+from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
+from services.decision_maker.__main__ import DecisionMaker, Settings
+from tests.conftest import now_ns
+
+S = 1_000_000_000
+
+
+def window(base: int, i: int, rr: float | None, quality: str = "good") -> HrvWindow:
+    return HrvWindow(t_ns=base + (i + 1) * 30 * S, seq=i, start_ns=base + i * 30 * S,
+                     end_ns=base + (i + 1) * 30 * S, mean_rr_s=rr, n_beats=37, excluded_fraction=0.0,
+                     quality=quality)  # fmt: skip
+
+
+async def decision_maker(tmp_path: Path, settings: Settings) -> DecisionMaker:
+    bus = MockBus(role="decision_maker")
+    ctx = ServiceContext(
+        "decision_maker", bus, CommonSettings(data_dir=str(tmp_path)), settings, asyncio.Event()
+    )
+    node = DecisionMaker(ctx)
+    await node.setup()
+    return node
+
+
+@pytest.mark.asyncio
+async def test_the_decision_makers_handlers_are_alg_1_called_as_methods(tmp_path: Path) -> None:
+    node = await decision_maker(tmp_path, Settings(rr_rest_s=0.85))
+    (first,) = await node.current()
+    assert isinstance(first, Selection) and (first.k, first.reason) == (8, "initial")
+    base, p = now_ns(), Params.of(0.85)
+    state = State.initial(p)
+    for i, rr in enumerate([0.80, 0.78, 0.70, 0.69, 0.90, 0.95]):
+        (sel,) = await node.on_window(window(base, i, rr))
+        state = step(p, state, rr, True).state
+        assert (
+            isinstance(sel, Selection) and sel.k == state.k and sel.window_end_ns == base + (i + 1) * 30 * S
+        )
+    with pytest.raises(Rejected) as r:  # answered already: a replay is dropped and counted, not stepped
+        await node.on_window(window(base, 2, 0.5))
+    assert r.value.code == "duplicate"
+    assert node.ctx.counters["windows"] == 7
+    # a session fixes k: windows are counted and not answered; the reply is the selection it starts with
+    answer = await node.set_condition(_request("mode=fixed;k=b;by=test"))
+    assert isinstance(answer.reply, Selection) and (answer.reply.k, answer.reply.reason) == (1, "fixed")
+    assert list(answer.publish) == [answer.reply]
+    assert await node.on_window(window(base, 6, 0.5)) == []
+    with pytest.raises(QueryError, match="mode='sometimes'"):
+        await node.set_condition(_request("mode=sometimes"))
+
+
+@pytest.mark.asyncio
+async def test_without_calibration_the_node_publishes_nothing_and_a_calibration_starts_it(
+    tmp_path: Path,
+) -> None:
+    node = await decision_maker(tmp_path, Settings())
+    assert await node.current() == [] and node.ctx.state == "waiting for calibration"
+    assert await node.on_window(window(now_ns(), 0, 0.8)) == []
+    assert node.ctx.counters["windows_without_calibration"] == 1
+    with pytest.raises(QueryError, match="no calibration yet"):
+        await node.query(_request(""))
+    (sel,) = await node.on_calibration(Calibration(t_ns=5, seq=0, subject="s1", rr_rest_s=0.9))
+    assert isinstance(sel, Selection) and sel.reason == "initial" and node.ctx.state == "running"
+    assert await node.on_calibration(Calibration(t_ns=6, seq=1, subject="s1", rr_rest_s=0.9)) == []  # in use
+
+
+@pytest.mark.asyncio
+async def test_the_node_served_on_the_mock_bus_answers_windows_queries_and_drops_bad_input(
+    tmp_path: Path,
+) -> None:
+    network = MockNetwork()
+    stop = asyncio.Event()
+    service = MockBus(role="decision_maker", network=network)
+    common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
+    settings = Settings(rr_rest_s=0.85, republish_s=60.0)
+    task = asyncio.ensure_future(
+        serve("decision_maker", node_main(DecisionMaker), common, None, settings, stop,  # type: ignore[arg-type]
+              install_signals=False, bus=service)
+    )  # fmt: skip
+    async with MockBus(network=network) as test:
+        sub = test.subscribe(test.key("decision/selection"), Selection)
+        await test.until_subscribed(test.key("hrv/window"), timeout=10)
+        assert (await sub.receive(10))[1].reason == "initial"
+        base = now_ns()
+        test.put(test.key("hrv/window"), window(base, 0, 0.80))
+        assert (await sub.receive(10))[1].window_end_ns == base + 30 * S
+        test.put_raw(test.key("hrv/window"), b"\x93not a window")  # bounds and types: the real decoder
+        test.put(test.key("hrv/window"), window(base, 0, 0.80))  # a duplicate: the real admission
+        (reply,) = await test.get(test.key("decision/selection"), Selection, 5.0)
+        assert reply.error is None and reply.message is not None
+        assert reply.message.window_end_ns == base + 30 * S
+        (reply,) = await test.get(test.key("decision/condition") + "?mode=never", Selection, 5.0)
+        assert reply.error is not None and "mode='never'" in reply.error
+        async with asyncio.timeout(10):
+            while service.rejected[(test.key("hrv/window"), "duplicate")] != 1:
+                await asyncio.sleep(0)  # handled by the node's own task on this loop
+        assert service.decode_errors[test.key("hrv/window")] == 1
+    stop.set()
+    await task
+    # the ports it opened are exactly its role's in the graph
+    assert {(k, t.suffix) for k, _, t in service.ports} == {
+        ("publish", "decision/selection"),
+        ("publish", "decision/condition"),
+        ("subscribe", "hrv/window"),
+        ("subscribe", "operator/calibration"),
+        ("publish", "health/*"),
+    }
+
+
+@pytest.mark.asyncio
+async def test_the_mock_bus_refuses_what_the_graph_refuses() -> None:
+    async with MockBus(role="hrv_analyser") as bus:
+        with pytest.raises(BusError, match="does not let hrv_analyser publish decision/selection"):
+            bus.publisher(SELECTION)
+        with pytest.raises(BusError, match="subscribe robot/state"):
+            bus.subscribe(ROBOT_STATE)
+        out = bus.publisher(HRV_WINDOW)
+        with pytest.raises(TypeError, match="hrv/window carries HrvWindow, not Selection"):
+            out.put(Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))  # type: ignore[arg-type]  # the mistake under test
+    assert issubclass(MockBus, Bus)
+
+
+def test_a_node_is_held_to_its_roles_declaration() -> None:
+    class Foreign(Node):  # the analyser does not read the calibration in the graph
+        role = "hrv_analyser"
+
+        @on(CALIBRATION)
+        async def on_calibration(self, cal: Calibration) -> list[msgspec.Struct]:
+            return []
+
+    with pytest.raises(BusError, match="does not let hrv_analyser read operator/calibration"):
+        check(Foreign)
+
+    class Deaf(Node):  # the decision maker must read its windows
+        role = "decision_maker"
+
+    with pytest.raises(BusError, match=r"no handler for .*hrv/window"):
+        check(Deaf)
+    check(DecisionMaker)
+
+
+def _request(parameters: str):
+    from common.runtime.bus import Request
+
+    return Request("cadence/cell1/decision/condition", parameters)
