@@ -20,7 +20,10 @@ from common.runtime.service import ServiceContext, serve
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
 from services.decision_maker.__main__ import DecisionMaker, Settings
+from services.hrv_analyser.__main__ import HrvAnalyser
+from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from tests.conftest import now_ns
+from tests.test_rpeaks import ECG, needs_data
 
 S = 1_000_000_000
 
@@ -136,6 +139,44 @@ async def test_the_mock_bus_refuses_what_the_graph_refuses() -> None:
         with pytest.raises(TypeError, match="hrv/window carries HrvWindow, not Selection"):
             out.put(Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))  # type: ignore[arg-type]  # the mistake under test
     assert issubclass(MockBus, Bus)
+
+
+@needs_data
+@pytest.mark.asyncio
+async def test_the_analysers_handlers_window_a_record_and_drop_a_chunk_out_of_line(tmp_path: Path) -> None:
+    """Record 100 at 130 Hz in the H10's chunks of 73 samples, on the analyser node's handler: its windows
+    are the offline pipeline's, in ns from the first chunk; a chunk an hour ahead is dropped, not windowed."""
+    from common.hrv.records import read_record
+    from common.hrv.rpeaks import detect_peaks
+    from common.hrv.stream import peak_intervals, windows
+    from schemas.ecg import EcgChunk
+
+    bus = MockBus(role="hrv_analyser")
+    ctx = ServiceContext("hrv_analyser", bus, CommonSettings(data_dir=str(tmp_path)), AnalyserSettings(),
+                         asyncio.Event())  # fmt: skip
+    node = HrvAnalyser(ctx)
+    await node.setup()
+    x = read_record(str(ECG / "100"), fs=130.0).uv[: 130 * 95]
+    t0, out = now_ns(), []
+    for i in range(0, len(x), 73):
+        chunk = EcgChunk(
+            t_ns=t0 + round(i * 1e9 / 130), seq=i, fs_hz=130.0, samples_uv=x[i : i + 73].tolist()
+        )
+        out += await node.on_chunk(chunk)
+        if i == 73 * 300:
+            with pytest.raises(Rejected) as r:
+                await node.on_chunk(msgspec.structs.replace(chunk, t_ns=chunk.t_ns + 3600 * S))
+            assert r.value.code == "ahead"
+    got = [m for m in out if isinstance(m, HrvWindow)]
+    want = windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0)[: len(got)]
+    assert len(got) == 3 and [m.seq for m in got] == [0, 1, 2]
+    for m, w in zip(got, want, strict=True):
+        assert (
+            m.start_ns == t0 + round(w.start_s * 1e9)
+            and m.mean_rr_s == w.mean_rr_s
+            and m.quality == w.quality
+        )
+    assert ctx.counters["windows"] == 3 and ctx.counters["beats"] > 100
 
 
 def test_a_node_is_held_to_its_roles_declaration() -> None:

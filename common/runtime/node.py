@@ -30,13 +30,16 @@ Out = Sequence[Message]  # what a handler returns: published in order, each on t
 F = TypeVar("F", bound=Callable[..., Any])
 
 _INPUT, _ANSWER, _TIMER = "_cadence_input", "_cadence_answer", "_cadence_timer"
+_MAXSIZE = "_cadence_maxsize"
 
 
-def on(topic: Topic[Any]) -> Callable[[F], F]:
-    """Mark ``async def handler(self, msg) -> Out`` as the node's reader of ``topic``."""
+def on(topic: Topic[Any], maxsize: int = 256) -> Callable[[F], F]:
+    """Mark ``async def handler(self, msg) -> Out`` as the node's reader of ``topic``; ``maxsize``
+    messages wait for it before the oldest is dropped (``Bus.handle``)."""
 
     def mark(fn: F) -> F:
         setattr(fn, _INPUT, topic)
+        setattr(fn, _MAXSIZE, maxsize)
         return fn
 
     return mark
@@ -165,7 +168,8 @@ async def serve_node(node: Node) -> None:
 
     for topic, name in handlers(type(node), _INPUT).values():
         if node.reads(topic):
-            bus.handle(topic, reader(getattr(node, name)))
+            fn = getattr(node, name)
+            bus.handle(topic, reader(fn), maxsize=getattr(fn, _MAXSIZE))
 
     def replier(fn: Callable[[Request], Awaitable[Any]]) -> Callable[[Request], Awaitable[Any]]:
         async def reply(req: Request) -> Any:

@@ -1,0 +1,89 @@
+"""The HRV analyser's stream on the wire (DESIGN §4, §6, §9): messages in, messages out, on data time.
+
+``HrvStream`` works in seconds from its own start; this keeps what the wire adds around it: the stream's
+origin in ns, the time line that admits a chunk or drops it (common/runtime/admission.py), the restart
+when a run of chunks agrees on another data time (the old stream flushed first), and the sequence
+numbers of what it sends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from common.hrv.stream import RR_RESYNC_S, Beat, HrvStream, Window, beats_message, window_message
+from common.runtime.admission import TimeLine, Verdict
+from schemas.ecg import EcgChunk, RrIntervals
+from schemas.hrv import Beats, HrvWindow
+
+RR_RESOLUTION_HZ = 1024.0  # device RR comes in 1/1024 s; no detector runs on this input
+# A source comes back from a BLE drop within this much data time (the H10 takes 20–30 s to restart its
+# ECG); a chunk further ahead, or behind, is out of line until this many chunks in a row agree with it.
+MAX_GAP_S = 120.0
+CONFIRM_CHUNKS = 10  # about 5.6 s of H10 ECG
+CHUNK_TOLERANCE_S = 0.012  # a chunk may start this much before the last one ended (1.5 samples at 130 Hz)
+CONFIRM_RR = 5  # notifications, about 5 s
+
+
+@dataclass
+class Taken:
+    """What one message gave: the time line's verdict (None for an empty chunk) and what to send."""
+
+    verdict: Verdict | None
+    out: list[Beats | HrvWindow] = field(default_factory=list)
+
+
+class LiveHrv:
+    def __init__(self, window_s: float, source: Literal["samples", "rr"]) -> None:
+        self.window_s = window_s
+        self.line = (
+            TimeLine(MAX_GAP_S, tolerance_s=RR_RESYNC_S, confirm=CONFIRM_RR)
+            if source == "rr"
+            else TimeLine(MAX_GAP_S, tolerance_s=CHUNK_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
+        )
+        self.stream: HrvStream | None = None
+        self.origin_ns = 0
+        self.seq = {"beats": 0, "windows": 0}
+
+    def samples(self, chunk: EcgChunk, clock_ns: int) -> Taken:
+        if not chunk.samples_uv:
+            return Taken(None)  # nothing to analyse; a gap shows in the next chunk's data time
+        end_ns = chunk.t_ns + round(len(chunk.samples_uv) * 1e9 / chunk.fs_hz)
+        taken = self._admit(chunk.t_ns, end_ns, chunk.fs_hz, clock_ns)
+        if taken.verdict is not None and taken.verdict.acted_on:
+            stream = self._stream(chunk.fs_hz, chunk.t_ns)
+            taken.out += self._messages(
+                *stream.feed((chunk.t_ns - self.origin_ns) / 1e9, chunk.samples_uv, chunk.gap)
+            )
+        return taken
+
+    def rr(self, msg: RrIntervals, clock_ns: int) -> Taken:
+        taken = self._admit(msg.t_ns - round(sum(msg.rr_s) * 1e9), msg.t_ns, RR_RESOLUTION_HZ, clock_ns)
+        if taken.verdict is not None and taken.verdict.acted_on:
+            stream = self._stream(RR_RESOLUTION_HZ, msg.t_ns)
+            taken.out += self._messages(*stream.feed_rr((msg.t_ns - self.origin_ns) / 1e9, msg.rr_s, msg.gap))
+        return taken
+
+    def _admit(self, start_ns: int, end_ns: int, fs: float, clock_ns: int) -> Taken:
+        """The time line's word; a restart flushes the old stream and starts a new one."""
+        taken = Taken(self.line.admit(start_ns, end_ns, fs, clock_ns=clock_ns))
+        if taken.verdict is not None and taken.verdict.action == "restart" and self.stream is not None:
+            taken.out += self._messages(*self.stream.flush())
+            self.stream = None
+        return taken
+
+    def _stream(self, fs: float, t_ns: int) -> HrvStream:
+        if self.stream is None:
+            self.stream, self.origin_ns = HrvStream(fs, self.window_s), t_ns
+        return self.stream
+
+    def _messages(self, beats: list[Beat], wins: list[Window]) -> list[Beats | HrvWindow]:
+        out: list[Beats | HrvWindow] = []
+        if beats:
+            out.append(beats_message(beats, self.origin_ns, self._next("beats")))
+        out += [window_message(w, self.origin_ns, self._next("windows")) for w in wins]
+        return out
+
+    def _next(self, what: str) -> int:
+        self.seq[what] += 1
+        return self.seq[what] - 1
