@@ -44,6 +44,7 @@ from schemas import (
     ServiceStatus,
 )
 from schemas.topology import (
+    DEFAULT_CELL,
     HEALTH,
     HRV_WINDOW,
     OPERATOR_ERROR,
@@ -262,7 +263,9 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         procs[name] = p
         tasks.append(asyncio.create_task(p.supervise(stopping, on_restart)))
 
-    async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), "cell1", role="monitor") as bus:
+    async with await Bus.open(
+        BusConfig(mode="router", listen=[endpoint]), DEFAULT_CELL, role="monitor"
+    ) as bus:
         console.print(
             f"the demo cell's router: {endpoint}; join it with --connect {endpoint} "
             f"(`cadence record -o run.mcap --connect {endpoint}`, `cadence session --connect {endpoint} …`)"

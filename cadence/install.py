@@ -36,7 +36,7 @@ from common.runtime import cell
 from common.runtime.errors import InputError
 from common.runtime.pki import Pem, issue, load_ca, make_ca
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
-from schemas.topology import SERVICES
+from schemas.topology import DEFAULT_CELL, SERVICES
 
 USER = "cadence"
 ETC = Path("/etc/cadence")
@@ -58,7 +58,7 @@ class InstallError(InputError):
 class Options:
     robot: str = "sim"  # "sim" or the UR controller's address
     strap: str = "Polar H10"  # "twin", "replay", or the H10's MAC address or advertised name
-    cell_name: str = "cell1"
+    cell_name: str = DEFAULT_CELL
     prefix: Path = Path("/opt/cadence")
     services: tuple[str, ...] = HOSTS_ALL  # what runs on this host; "router" for the cell's router
     router_host: str = ""  # where other hosts reach the router (default: this host's name)

@@ -45,7 +45,7 @@ from schemas import (
 )
 from schemas.operator import ErrorKind, OperatorSignal, Posture
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
-from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, ROOT, SERVICES, decode_any, encode
+from schemas.topology import DEFAULT_CELL, OPERATOR_ERROR, OPERATOR_SIGNAL, ROOT, SERVICES, decode_any, encode
 
 # keys whose t_ns is the publisher's data time at publishing: they tell its clock's rate and offset
 # (a selection or a status is republished with an old t_ns and says nothing about the clock)
@@ -270,7 +270,7 @@ class SessionOptions:
     out: Path
     data_dir: Path  # where `cadence calibrate` stored the calibration, and where a new one is stored
     task: Path
-    cell: str = "cell1"
+    cell: str = DEFAULT_CELL
     calibrate_minutes: float | None = None
     measured_sigma: bool = False
     ready_timeout_s: float = 120.0

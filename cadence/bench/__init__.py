@@ -28,6 +28,7 @@ from common.trajectory.planner import (
     plan_path,
 )
 from common.trajectory.task import PathPlan, PlannerSettings, Task, load_task
+from schemas.topology import DEFAULT_CELL
 
 T = TypeVar("T")
 
@@ -214,7 +215,7 @@ async def bench_store(task_path: str, queries: int = 200) -> StoreBench:
             f"[cadence]\ndata_dir = '{tmp}'\nstatus_period_s = 0.05\n[bus]\nconnect = ['{endpoint}']\n"
             f"[pareto_store]\ntask = '{Path(task_path).resolve()}'\n"
         )
-        client = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+        client = await Bus.open(BusConfig(listen=[endpoint]), DEFAULT_CELL)
         async with client:
             status = client.subscribe(client.key("health/pareto_store"), ServiceStatus, maxsize=1)
             proc = subprocess.Popen([sys.executable, "-m", "services.pareto_store", "--config", str(cfg)])

@@ -13,6 +13,7 @@ from rich.console import Console
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import Task, load_task
+from schemas.topology import DEFAULT_CELL
 from schemas.topology import SERVICES as GRAPH_SERVICES
 
 out = Console()
@@ -77,7 +78,7 @@ def add_planner_flags(p: argparse.ArgumentParser, task_option: bool = False) -> 
 
 def add_bus_flags(p: argparse.ArgumentParser, timeout_s: float) -> None:
     """The options of a command that joins a cell's bus for one exchange."""
-    p.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    p.add_argument("--cell", default=DEFAULT_CELL, help=f"robot cell (default {DEFAULT_CELL})")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     p.add_argument("--timeout", type=float, default=timeout_s, help=f"seconds (default {timeout_s:g})")

@@ -24,7 +24,7 @@ from cadence.cli._common import (
 from common.runtime.errors import BusError, InputError
 from schemas.base import Message
 from schemas.operator import OperatorError, OperatorSignal
-from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL, Topic, validated
+from schemas.topology import DEFAULT_CELL, OPERATOR_ERROR, OPERATOR_SIGNAL, Topic, validated
 
 if TYPE_CHECKING:
     from common.runtime.bus import Bus
@@ -47,7 +47,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 
     async def go() -> None:
         stop = stop_on_signals()
-        async with await Bus.open(bus_config(args, "router"), "cell1"):
+        async with await Bus.open(bus_config(args, "router"), DEFAULT_CELL):
             err.print(f"Zenoh router listening on {', '.join(args.listen or ['its config file'])}")
             sd_notify("READY=1")  # under systemd (Type=notify); a no-op elsewhere
             period = watchdog_period_s()
@@ -101,7 +101,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from common.runtime.bus import Bus
 
     async def go() -> int:
-        async with await Bus.open(bus_config(args, "peer"), "cell1") as bus:
+        async with await Bus.open(bus_config(args, "peer"), DEFAULT_CELL) as bus:
             if args.wait is not None:
                 await asyncio.sleep(args.wait)  # let subscribers on other hosts discover this session
             heard: set[str] = set()
@@ -129,7 +129,7 @@ def cmd_get(args: argparse.Namespace) -> int:
     until = time.monotonic() + args.wait
 
     async def ask() -> tuple[list, str | None]:
-        async with await Bus.open(joining(args), "cell1") as bus:
+        async with await Bus.open(joining(args), DEFAULT_CELL) as bus:
             while True:
                 replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
                 if any(r.message is not None for r in replies) or time.monotonic() >= until:
@@ -326,7 +326,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rec.add_argument(
         "--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack"
     )
-    rec.add_argument("--cell", default="cell1", help="robot cell (default cell1)")
+    rec.add_argument("--cell", default=DEFAULT_CELL, help=f"robot cell (default {DEFAULT_CELL})")
     rec.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     rec.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
     rec.set_defaults(func=cmd_record)

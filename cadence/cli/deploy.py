@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from cadence.cli._common import positive_int
+from schemas.topology import DEFAULT_CELL
 from schemas.topology import SERVICES as GRAPH_SERVICES
 
 
@@ -58,7 +59,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="ADDRESS|NAME|twin|replay",
         help="the Polar H10 (MAC address or part of its name; default 'Polar H10'), or twin/replay",
     )
-    inst.add_argument("--cell", default="cell1", help="the cell's name (default cell1)")
+    inst.add_argument("--cell", default=DEFAULT_CELL, help=f"the cell's name (default {DEFAULT_CELL})")
     inst.add_argument(
         "--prefix", default="/opt/cadence", help="where the venv and Python go (default /opt/cadence)"
     )

@@ -18,7 +18,7 @@ import msgspec
 from common.runtime.clock import Clock
 from common.runtime.errors import ConfigError
 from schemas.base import TimeNs
-from schemas.topology import SERVICES
+from schemas.topology import DEFAULT_CELL, SERVICES
 
 T = TypeVar("T")
 
@@ -28,7 +28,7 @@ CONFIG_SECTIONS = frozenset({"cadence", "bus", "ur_emulator", *SERVICES})
 
 
 class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    cell: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$")] = "cell1"  # a key chunk
+    cell: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$")] = DEFAULT_CELL  # a key chunk
     data_dir: str = "~/.local/share/cadence"
     log_format: Literal["auto", "text", "json"] = "auto"
     status_period_s: Annotated[float, msgspec.Meta(ge=0.05, le=3600.0)] = 5.0

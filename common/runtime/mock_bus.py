@@ -17,6 +17,7 @@ from typing import Any
 import zenoh
 
 from common.runtime.bus import Bus, BusConfig, M, Request, answer
+from schemas.topology import DEFAULT_CELL
 
 
 @dataclass
@@ -47,7 +48,7 @@ def _intersects(a: str, b: str) -> bool:
 
 class MockBus(Bus):
     def __init__(
-        self, cell: str = "cell1", role: str | None = None, network: MockNetwork | None = None
+        self, cell: str = DEFAULT_CELL, role: str | None = None, network: MockNetwork | None = None
     ) -> None:
         super().__init__(None, asyncio.get_running_loop(), cell, role, BusConfig())  # type: ignore[arg-type]
         self.network = network or MockNetwork()

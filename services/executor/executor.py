@@ -14,7 +14,7 @@ import asyncio
 import logging
 import time
 from collections import Counter, deque
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -41,9 +41,7 @@ from services.executor.backends import Backend, RobotUnavailable
 from services.executor.persist import ExecutorStore
 from services.executor.servo import MotionResult, ServoLoop
 from services.executor.sets import SetCache
-
-if TYPE_CHECKING:
-    from services.executor.__main__ import Settings
+from services.executor.settings import Settings
 
 log = logging.getLogger("cadence.executor")
 RATE_HZ = 500.0

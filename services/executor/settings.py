@@ -1,0 +1,53 @@
+"""The executor's settings (``[executor]`` in a deployment config; DESIGN §8, §9): apart from the service's
+``__main__`` so that the executor's modules read them without importing the service that runs them."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+
+from common.runtime.resources import EXAMPLE_TASK
+from schemas.decision import MAX_N
+
+
+def _range(lo: float, hi: float) -> msgspec.Meta:
+    return msgspec.Meta(ge=lo, le=hi)
+
+
+class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    task: str = str(EXAMPLE_TASK)
+    backend: Literal["sim", "ur_rtde"] = "sim"
+    host: str = "127.0.0.1"  # ur_rtde: the controller
+    lookahead_s: Annotated[float, _range(0.03, 0.2)] = 0.1  # servoJ (UR's range)
+    gain: Annotated[float, _range(100.0, 2000.0)] = 300.0  # servoJ (UR's range)
+    gripper_output: Annotated[int, _range(0, 7)] = 0  # standard digital output driving the gripper
+    watchdog_hz: Annotated[float, _range(1.0, 500.0)] = 10.0  # ur_rtde: the arm stops below this rate
+    servo_core: Annotated[int, _range(0, 4095)] | None = None  # default: the last free core
+    lock_dir: str | None = None  # where executors claim cores (default /run/cadence)
+    fifo_priority: Annotated[int, _range(0, 99)] = 80  # 0: no SCHED_FIFO
+    lock_memory: bool = True
+    spin_us: Annotated[int, _range(0, 1900)] = 400
+    overrun_limit: Annotated[int, _range(1, 1000)] = 5  # this many overruns in a row stop the robot
+    stop_deceleration: Annotated[float, _range(0.5, 40.0)] = 4.0  # rad/s², SIGTERM and overrun stops
+    settle_s: Annotated[float, _range(0.0, 10.0)] = 0.5  # after the last sample, wait this long at most
+    start_policy: Literal["move", "refuse"] = "move"  # the arm is not at the path's start
+    start_speed: Annotated[float, _range(0.01, 1.0)] = 0.3  # rad/s, the slow move there
+    start_acceleration: Annotated[float, _range(0.01, 2.0)] = 0.6  # rad/s²
+    start_tolerance_rad: Annotated[float, _range(1e-5, 0.05)] = 2e-3
+    # With the decision maker unreachable at start: "wait" for it, go on at the "last" selection applied
+    # (if younger than last_selection_max_age_s), or start at "initial" initial_k. Default: "wait" for
+    # ur_rtde, "last" for sim.
+    start_selection: Literal["wait", "last", "initial"] | None = None
+    last_selection_max_age_s: Annotated[float, _range(0.0, 86400.0)] = 300.0
+    initial_k: Annotated[int, _range(1, MAX_N)] = 8  # start_selection = "initial" (Alg. 1's k0 for N = 15)
+    # A stop is latched until `cadence robot resume`; "auto" (sim only) resumes after auto_resume_s,
+    # doubling, at most auto_resume_per_hour times an hour.
+    resume_policy: Literal["manual", "auto"] = "manual"
+    auto_resume_s: Annotated[float, _range(0.1, 600.0)] = 2.0
+    auto_resume_per_hour: Annotated[int, _range(1, 10_000)] = 10
+    state_rate_hz: Annotated[float, _range(1.0, 500.0)] = 50.0  # robot/state, wall clock
+    query_timeout_s: Annotated[float, _range(0.1, 60.0)] = 2.0
+    wait_for_signals: bool = True  # false: `wait_for` steps pass at once (no operator on the bus)
+    cycles: Annotated[int, _range(0, 10**9)] = 0  # stop after this many cycles; 0: run until stopped
+    sim_start_deg: list[Annotated[float, _range(-360.0, 360.0)]] | None = None  # sim: pose at start
