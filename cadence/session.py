@@ -45,7 +45,16 @@ from schemas import (
 )
 from schemas.operator import ErrorKind, OperatorSignal, Posture
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
-from schemas.topology import DEFAULT_CELL, OPERATOR_ERROR, OPERATOR_SIGNAL, ROOT, SERVICES, decode_any, encode
+from schemas.topology import (
+    DEFAULT_CELL,
+    OPERATOR_ERROR,
+    OPERATOR_SIGNAL,
+    ROOT,
+    SERVICES,
+    decode_any,
+    encode,
+)
+from schemas.topology import key as key_of
 
 # keys whose t_ns is the publisher's data time at publishing: they tell its clock's rate and offset
 # (a selection or a status is republished with an old t_ns and says nothing about the clock)
@@ -87,7 +96,7 @@ class SessionWriter:
 
     def put(self, suffix: str, msg: Message, log_time_ns: int | None = None) -> None:
         """A message as it would have come on ``cadence/<cell>/<suffix>`` (the simulated study)."""
-        self.recorder.write(f"{ROOT}/{self.cell}/{suffix}", encode(msg), log_time_ns)
+        self.recorder.write(key_of(self.cell, suffix), encode(msg), log_time_ns)
 
     def close(self, end: SessionEnd) -> None:
         self.recorder.metadata(SESSION_END_RECORD, _record(end))
@@ -441,7 +450,7 @@ async def run_session(
         writer.recorder.write(key, payload)
         watch.on(key, payload)
 
-    sub = bus.subscribe_raw(f"{ROOT}/{opts.cell}/**", on)
+    sub = bus.subscribe_raw(key_of(opts.cell, "**"), on)
     wall0 = time.monotonic()
     end = SessionEnd(end_ns=1, complete=False, reason="stopped before the condition took effect")
     began = False

@@ -15,6 +15,7 @@ from rich.table import Table
 
 from schemas import ServiceStatus
 from schemas.topology import HEALTH, SERVICES, decode_any, topic_of
+from schemas.topology import key as key_of
 
 RATE_WINDOW_S = 10.0
 
@@ -63,7 +64,7 @@ class Top:
             keys.add_column(col)
         for col in ("rate [Hz]", "last [s ago]", "messages", "bad"):
             keys.add_column(col, justify="right")
-        prefix = f"cadence/{self.cell}/"
+        prefix = key_of(self.cell, "")
         for key in sorted(self.keys):
             k = self.keys[key]
             topic = topic_of(key)

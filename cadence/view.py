@@ -24,7 +24,7 @@ import numpy as np
 from common.sim.arm import DH_A, DH_ALPHA, DH_D
 from common.trajectory.limits import JOINT_NAMES
 from schemas import RobotState
-from schemas.topology import TOPICS, decode_any, topic_of
+from schemas.topology import TOPICS, decode_any, key, topic_of
 
 JOINT_STATES = "/robot/joint_states"
 TF = "/tf"
@@ -165,7 +165,7 @@ class Bridge:
         self.undecodable = 0
         for t in TOPICS:
             if t.pattern == "topic" and "*" not in t.suffix:
-                self._channel(f"cadence/{cell}/{t.suffix}")
+                self._channel(key(cell, t.suffix))
 
     def _channel(self, key: str) -> foxglove.Channel | None:
         if key in self.channels:

@@ -214,3 +214,11 @@ class InProcessService:
 
         self.stop.set()
         await asyncio.wait_for(self.task, 15)
+
+
+def put(bus, key: str, msg, block: bool = False) -> None:
+    """A message on any key from a session that speaks for nobody (a test's): the typed ports are the
+    services' only way to publish, so a test's raw put lives here, not on the Bus."""
+    from schemas.topology import encode
+
+    bus.put_raw(key, encode(msg), block)

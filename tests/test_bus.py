@@ -15,7 +15,7 @@ from common.runtime.bus import Bus, BusConfig, QueryError, Request
 from common.runtime.errors import BusError
 from schemas import Selection, ServiceStatus
 from schemas.topology import TOPICS
-from tests.conftest import free_port
+from tests.conftest import free_port, put
 
 pytestmark = pytest.mark.asyncio
 
@@ -37,7 +37,7 @@ async def test_a_published_message_arrives_decoded(endpoint: str) -> None:
         # the subscriber's declaration reaches the publisher asynchronously: publish until it arrives
         async with asyncio.timeout(5):
             while not received.done():
-                a.put(a.key("decision/selection"), SEL, block=True)
+                put(a, a.key("decision/selection"), SEL, block=True)
                 await asyncio.wait({received}, timeout=0.05)
         key, msg = received.result()
         assert key == "cadence/cell1/decision/selection" and msg == SEL
@@ -63,7 +63,7 @@ async def test_malformed_payloads_on_every_key_are_counted_and_dropped(endpoint:
         # the subscriber still works after the garbage
         async with asyncio.timeout(5):
             while not good.done():
-                a.put(a.key("decision/selection"), SEL)
+                put(a, a.key("decision/selection"), SEL)
                 await asyncio.wait({good}, timeout=0.05)
         assert good.result()[1] == SEL
 
@@ -90,7 +90,7 @@ async def test_a_closed_bus_refuses_use(endpoint: str) -> None:
     a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
     await a.close()
     with pytest.raises(Exception, match="closed"):
-        a.put(a.key("x"), SEL)
+        put(a, a.key("x"), SEL)
 
 
 async def test_two_sessions_meet_through_cadence_router() -> None:
@@ -111,7 +111,7 @@ async def test_two_sessions_meet_through_cadence_router() -> None:
             status = ServiceStatus(t_ns=1, seq=0, service="x", state="ok", uptime_s=1.0, counters={})
             async with asyncio.timeout(5):
                 while not received.done():
-                    a.put(a.key("health/x"), status)
+                    put(a, a.key("health/x"), status)
                     await asyncio.wait({received}, timeout=0.05)
             assert received.result()[1] == status
     finally:
@@ -154,7 +154,7 @@ async def test_zenoh_cli_prints_cadence_messages_as_json(endpoint: str) -> None:
         async with a:
             async with asyncio.timeout(20):
                 while not seen.is_set():
-                    a.put(a.key("decision/selection"), SEL)
+                    put(a, a.key("decision/selection"), SEL)
                     await asyncio.sleep(0.1)
         line = next(x for x in lines if "decision.selection.v1" in x)
         assert '"k":8' in line and '"reason":"initial"' in line
@@ -180,13 +180,16 @@ async def test_a_handler_coroutine_gets_messages_in_order_and_survives_its_own_e
         # wait until the subscription is known to the publisher: the first message handled
         async with asyncio.timeout(5):
             while not got:
-                a.put(
-                    a.key("decision/selection"), Selection(t_ns=0, seq=0, k=8, n=15, delta=0, reason="hold")
+                put(
+                    a,
+                    a.key("decision/selection"),
+                    Selection(t_ns=0, seq=0, k=8, n=15, delta=0, reason="hold"),
                 )
                 await asyncio.sleep(0.05)
         got.clear()
         for seq in (1, 2, 3):
-            a.put(
+            put(
+                a,
                 a.key("decision/selection"),
                 Selection(t_ns=seq, seq=seq, k=8, n=15, delta=0, reason="hold"),
                 block=True,

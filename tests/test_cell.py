@@ -30,7 +30,7 @@ from common.runtime.cell import (
 from common.runtime.pki import common_name, issue, make_ca
 from schemas import HrvWindow, Selection
 from schemas.topology import OPERATOR_SIGNAL, SELECTION, TOPICS
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO, free_port, put
 
 
 def _includes(rule_key: str, key: str) -> bool:
@@ -111,14 +111,14 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
         windows = monitor.subscribe(monitor.key("hrv/window"), HrvWindow)
         await analyser.until_subscribed(analyser.key("hrv/window"), 10)
         await decider.until_subscribed(decider.key("decision/selection"), 10)
-        analyser.put(analyser.key("hrv/window"), window, block=True)  # its own key: allowed
+        put(analyser, analyser.key("hrv/window"), window, block=True)  # its own key: allowed
         assert (await windows.receive(10))[1] == window
         for rogue in (analyser, mixed):
-            rogue.put(rogue.key("decision/selection"), sel, block=True)  # forbidden
-        analyser.put(analyser.key("hrv/window"), window, block=True)  # after them on the same links
-        mixed.put(mixed.key("hrv/window"), window, block=True)  # (the monitor's rights: forbidden too)
+            put(rogue, rogue.key("decision/selection"), sel, block=True)  # forbidden
+        put(analyser, analyser.key("hrv/window"), window, block=True)  # after them on the same links
+        put(mixed, mixed.key("hrv/window"), window, block=True)  # (the monitor's rights: forbidden too)
         await windows.receive(10)
-        decider.put(decider.key("decision/selection"), sel, block=True)
+        put(decider, decider.key("decision/selection"), sel, block=True)
         _, got = await selections.receive(10)
         assert got == sel and selections.pending == 0  # the decision maker's, and only it
         assert windows.pending == 0

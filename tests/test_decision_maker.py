@@ -16,7 +16,7 @@ from common.runtime.bus import Bus, BusConfig
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main
-from tests.conftest import InProcessService, now_ns
+from tests.conftest import InProcessService, now_ns, put
 
 pytestmark = pytest.mark.asyncio
 S = 1_000_000_000
@@ -49,7 +49,7 @@ def window(i: int, rr: float | None, quality: str = "good") -> HrvWindow:
 
 async def answer(bus: Bus, sub, w: HrvWindow) -> Selection:
     """Publish a window and wait for the selection that answers it (republishes are skipped)."""
-    bus.put(bus.key("hrv/window"), w, block=True)
+    put(bus, bus.key("hrv/window"), w, block=True)
     async with asyncio.timeout(10):
         async for _, sel in sub:
             if sel.window_end_ns == w.end_ns:
@@ -97,7 +97,7 @@ async def test_a_restart_mid_sequence_gives_the_same_k_sequence(tmp_path: Path, 
         resumed = await first_selection(sub)
         assert resumed.k == got[-1]
         # a window answered before the restart is not stepped again
-        bus.put(bus.key("hrv/window"), windows[16], block=True)
+        put(bus, bus.key("hrv/window"), windows[16], block=True)
         got += [(await answer(bus, sub, w)).k for w in windows[17:]]
         await svc.close()
     assert got == expected(windows, 0.85)
@@ -123,7 +123,7 @@ async def test_without_calibration_it_publishes_nothing_until_one_arrives(
         async with asyncio.timeout(10):
             sel = None
             while sel is None:
-                bus.put(bus.key("operator/calibration"), cal, block=True)
+                put(bus, bus.key("operator/calibration"), cal, block=True)
                 with contextlib.suppress(TimeoutError):
                     sel = await asyncio.wait_for(first_selection(sub), 0.3)
         assert (sel.k, sel.reason) == (8, "initial")
@@ -153,7 +153,7 @@ async def test_a_fixed_condition_holds_its_k_whatever_the_windows_say(
         assert (first.k, first.n, first.delta, first.reason) == (k, 15, 0, "fixed")
         assert first.rr_stress_s is None  # a fixed k is decided against nothing
         for i, rr in enumerate((0.6, 0.55, 1.1)):  # stress, more stress, rest: Alg. 1 would move k
-            bus.put(bus.key("hrv/window"), window(i, rr), block=True)
+            put(bus, bus.key("hrv/window"), window(i, rr), block=True)
         async with asyncio.timeout(10):
             while svc.ctx.counters["windows"] < 3:
                 await first_selection(sub)  # each republish is a chance to see the count rise
@@ -201,7 +201,7 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
         # a session that has just calibrated names its calibration; until it arrives: "not received yet"
         fresh = Calibration(t_ns=now_ns(), seq=0, subject="s1", rr_rest_s=0.95)
         assert "not received yet" in str(await ask(f"mode=adaptive;calibration={fresh.t_ns}"))
-        bus.put(bus.key("operator/calibration"), fresh, block=True)
+        put(bus, bus.key("operator/calibration"), fresh, block=True)
         async with asyncio.timeout(10):  # the topic and the query travel apart: ask until it has come
             while isinstance(c := await ask(f"mode=adaptive;calibration={fresh.t_ns};by=session s1/c"), str):
                 assert "not received yet" in c

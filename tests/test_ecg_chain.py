@@ -22,7 +22,7 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService, now_ns
+from tests.conftest import InProcessService, now_ns, put
 from tests.test_rpeaks import ECG, needs_data
 
 pytestmark = pytest.mark.asyncio
@@ -153,7 +153,7 @@ async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str
         await analyser.listening(bus, "ecg/rr")  # not its status: that can come before its subscription
         for i, (t, rr) in enumerate(device_rr(beats)):
             msg = RrIntervals(t_ns=START_NS + round(t * 1e9), seq=i, rr_s=rr)
-            bus.put(bus.key("ecg/rr"), msg, block=True)
+            put(bus, bus.key("ecg/rr"), msg, block=True)
         got = []
         async with asyncio.timeout(10):
             while len(got) < len(expected) - 1:  # the last window closes only when data time passes it

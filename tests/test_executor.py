@@ -30,7 +30,7 @@ from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.conftest import InProcessService, planned_once
+from tests.conftest import InProcessService, planned_once, put
 
 pytestmark = pytest.mark.asyncio
 
@@ -153,12 +153,13 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
             # the robot waits at "there" for the operator's part
             await next_of(states, lambda s: s.mode == "waiting")
             if c == 1:
-                bus.put(
+                put(
+                    bus,
                     bus.key("decision/selection"),
                     Selection(t_ns=1, seq=0, k=5, n=5, delta=3, reason="rest", window_end_ns=1),
                     block=True,
                 )
-            bus.put(bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=c, name="part"), block=True)
+            put(bus, bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=c, name="part"), block=True)
             reports.append(await next_of(cycles))
         await asyncio.wait_for(ex.task, 15)  # three cycles, then it ends by itself
         await store.close()
@@ -206,7 +207,7 @@ async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_say
         if on_late == "wait":
             assert "kept waiting" in late.description
             await next_of(states, lambda s: s.mode == "waiting" and s.t_ns > late.t_ns)  # still waits
-            bus.put(bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=0, name="part"), block=True)
+            put(bus, bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=0, name="part"), block=True)
         else:
             assert "went on without it" in late.description
         report = await next_of(cycles)

@@ -16,7 +16,7 @@ from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatu
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.executor.backends import SimBackend, UrRtdeBackend
-from tests.conftest import InProcessService
+from tests.conftest import InProcessService, put
 from tests.test_executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
@@ -202,7 +202,7 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
             assert all(max(map(abs, s.qd)) == 0.0 and s.mode != "moving" for s in waiting)
             later = Selection(t_ns=2, seq=8, k=3, n=15, delta=2, reason="rest")
             await ex.listening(bus, "decision/selection")
-            bus.put(bus.key("decision/selection"), later, block=True)
+            put(bus, bus.key("decision/selection"), later, block=True)
         report = await next_of(cycles, timeout=60)
         await asyncio.wait_for(ex.task, 15)
         await store.close()
@@ -227,7 +227,8 @@ async def test_with_nothing_on_file_the_sim_waits_then_moves_at_the_first_select
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         chose = await next_of(events, lambda e: "the decision maker does not answer" in e.message, timeout=30)
         await ex.listening(bus, "decision/selection")
-        bus.put(
+        put(
+            bus,
             bus.key("decision/selection"),
             Selection(t_ns=2, seq=1, k=4, n=15, delta=0, reason="hold"),
             block=True,

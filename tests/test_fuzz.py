@@ -37,7 +37,7 @@ from services.executor.__main__ import Settings as ExecutorSettings
 from services.executor.__main__ import main as executor_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService, now_ns
+from tests.conftest import InProcessService, now_ns, put
 from tests.test_executor import CALM, SPEED, TASK, store_serving
 from tests.test_hostile import DAY, S, chunks, synthetic_ecg
 from tests.test_schemas import SAMPLES
@@ -218,7 +218,7 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
 
         async def answered(w: HrvWindow) -> int:
             nonlocal selection
-            bus.put(bus.key("hrv/window"), w, block=True)
+            put(bus, bus.key("hrv/window"), w, block=True)
             async with asyncio.timeout(15):
                 async for _, sel in sels:
                     if sel.window_end_ns == w.end_ns:
@@ -228,7 +228,7 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
 
         last_chunk, next_window = honest_chunks[0], 0
         for i, chunk in enumerate(honest_chunks):
-            bus.put("cadence/ecg/ecg/samples", chunk, block=True)
+            put(bus, "cadence/ecg/ecg/samples", chunk, block=True)
             last_chunk = chunk
             for topic, mutation in plan[i * HOSTILE_PER_CHUNK : (i + 1) * HOSTILE_PER_CHUNK]:
                 if topic.message is EcgChunk:

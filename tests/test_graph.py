@@ -40,7 +40,7 @@ from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.conftest import EXAMPLE_TASK, InProcessService
+from tests.conftest import EXAMPLE_TASK, InProcessService, put
 
 Port = tuple[str, str, str]  # (kind, role, the topic's key expression under the cell)
 
@@ -93,7 +93,7 @@ async def test_a_role_opens_only_the_ports_the_graph_gives_it(endpoint: str) -> 
         with pytest.raises(BusError, match="does not host the role operator_twin"):
             bus.publisher(OPERATOR_SIGNAL, role="operator_twin")
         with pytest.raises(BusError, match=r"through Bus\.publisher"):
-            bus.put(bus.key("hrv/window"), Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))
+            put(bus, bus.key("hrv/window"), Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))
         with pytest.raises(BusError, match="not a key of the graph"):
             bus.subscribe("cadence/cell1/elsewhere", HrvWindow)
         with pytest.raises(TypeError, match="hrv/window carries HrvWindow, not Selection"):

@@ -25,7 +25,7 @@ from services.decision_maker.state import STATE_FILE, Decider, resume
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.store import SetStore
-from tests.conftest import InProcessService, now_ns
+from tests.conftest import InProcessService, now_ns, put
 from tests.test_decision_maker import _base_now, window  # noqa: F401 (the fixture sets window times)
 
 S = 1_000_000_000
@@ -80,7 +80,7 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
         seen: list[Selection] = []
 
         async def answered(w: HrvWindow) -> Selection:
-            bus.put(key, w, block=True)
+            put(bus, key, w, block=True)
             async with asyncio.timeout(10):
                 async for _, sel in sels:
                     seen.append(sel)
@@ -92,7 +92,8 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
         for changes in HOSTILE_WINDOWS.values():
             bus.put_raw(key, raw(honest[1], **changes), block=True)
         # valid on the wire, impossible for the stream: 30 days after the last window
-        bus.put(
+        put(
+            bus,
             key,
             msgspec.structs.replace(
                 honest[1], start_ns=honest[1].start_ns + 30 * DAY, end_ns=honest[1].end_ns + 30 * DAY
@@ -216,7 +217,7 @@ async def windows_of(
     for i, c in enumerate(honest):
         for payload in hostile_at.get(i, []):
             bus.put_raw(key, payload, block=True)
-        bus.put(key, c, block=True)
+        put(bus, key, c, block=True)
     out = []
     async with asyncio.timeout(20):
         while len(out) < n:
@@ -321,7 +322,7 @@ async def test_a_failing_handler_is_counted_logged_once_per_10_s_and_the_next_me
         with caplog.at_level(logging.WARNING, logger="cadence.bus"):
             for i in range(100):
                 sel = Selection(t_ns=1, seq=i, k=1, n=15, delta=0, reason="hold")
-                bus.put(bus.key("decision/selection"), sel, block=True)
+                put(bus, bus.key("decision/selection"), sel, block=True)
             async with asyncio.timeout(10):
                 await done.wait()
         ctx = ServiceContext("x", bus, CommonSettings(), None, asyncio.Event())

@@ -22,7 +22,7 @@ from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
 from services.decision_maker.__main__ import DecisionMaker, Settings
 from services.hrv_analyser.__main__ import HrvAnalyser
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
-from tests.conftest import now_ns
+from tests.conftest import now_ns, put
 from tests.test_rpeaks import ECG, needs_data
 
 S = 1_000_000_000
@@ -103,10 +103,10 @@ async def test_the_node_served_on_the_mock_bus_answers_windows_queries_and_drops
         await test.until_subscribed(test.key("hrv/window"), timeout=10)
         assert (await sub.receive(10))[1].reason == "initial"
         base = now_ns()
-        test.put(test.key("hrv/window"), window(base, 0, 0.80))
+        put(test, test.key("hrv/window"), window(base, 0, 0.80))
         assert (await sub.receive(10))[1].window_end_ns == base + 30 * S
         test.put_raw(test.key("hrv/window"), b"\x93not a window")  # bounds and types: the real decoder
-        test.put(test.key("hrv/window"), window(base, 0, 0.80))  # a duplicate: the real admission
+        put(test, test.key("hrv/window"), window(base, 0, 0.80))  # a duplicate: the real admission
         (reply,) = await test.get(test.key("decision/selection"), Selection, 5.0)
         assert reply.error is None and reply.message is not None
         assert reply.message.window_end_ns == base + 30 * S

@@ -22,7 +22,7 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService, now_ns
+from tests.conftest import InProcessService, now_ns, put
 from tests.test_ecg_chain import record_cut
 from tests.test_rpeaks import needs_data
 
@@ -165,7 +165,7 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
             await bus.until_subscribed(bus.key("decision/selection"), 30)  # and it is listening
             sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=0)
             for i in range(1, 2001):
-                bus.put(bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
+                put(bus, bus.key("decision/selection"), msgspec.structs.replace(sel, seq=i), block=True)
             async with asyncio.timeout(60):  # at least one arrived: the check below is not vacuous
                 while (
                     b"first message: cadence/rectest/decision/selection" not in await proc.stderr.readline()

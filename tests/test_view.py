@@ -24,7 +24,7 @@ from common.runtime.resources import FOXGLOVE_LAYOUT
 from common.sim.arm import forward_kinematics
 from schemas import HrvWindow, RobotState
 from schemas.topology import TOPICS
-from tests.conftest import free_port
+from tests.conftest import free_port, put
 
 PROTOCOL = "foxglove.sdk.v1"
 
@@ -87,8 +87,8 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
                     """The server takes a subscription on its own time and says nothing when it has: the
                     cell goes on publishing, as a running one does, until the client has them all."""
                     while True:
-                        bus.put(bus.key("hrv/window"), w, block=True)
-                        bus.put(bus.key("robot/state"), state)
+                        put(bus, bus.key("hrv/window"), w, block=True)
+                        put(bus, bus.key("robot/state"), state)
                         await asyncio.sleep(0.2)
 
                 publishing = asyncio.ensure_future(cell())

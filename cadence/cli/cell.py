@@ -71,10 +71,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         stop = stop_on_signals()
         if args.duration is not None:
             asyncio.get_running_loop().call_later(args.duration, stop.set)
-        async with await Bus.open(bus_config(args, "peer"), args.cell) as bus:
+        async with await Bus.open(bus_config(args, "peer"), args.cell, role="monitor") as bus:
             keys = args.keys or [bus.key("**")]
             err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
-            bus.token(bus.key("health/recorder"))  # a recorder is running (zenoh liveliness)
             say_when_alone(bus, "record")
             rec = await record(
                 bus,
@@ -129,7 +128,7 @@ def cmd_get(args: argparse.Namespace) -> int:
     until = time.monotonic() + args.wait
 
     async def ask() -> tuple[list, str | None]:
-        async with await Bus.open(joining(args), DEFAULT_CELL) as bus:
+        async with await Bus.open(joining(args), DEFAULT_CELL, role="monitor") as bus:
             while True:
                 replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
                 if any(r.message is not None for r in replies) or time.monotonic() >= until:
@@ -175,7 +174,7 @@ def cmd_top(args: argparse.Namespace) -> int:
     async def go() -> int:
         stop = stop_on_signals()
         cfg = joining(args)
-        async with await Bus.open(cfg, args.cell) as bus:
+        async with await Bus.open(cfg, args.cell, role="monitor") as bus:
             bus.subscribe_raw(bus.key("**"), top.on)
             say_when_alone(bus, "top")
             if args.once is not None:
@@ -211,7 +210,7 @@ def cmd_view(args: argparse.Namespace) -> int:
             raise InputError(f"cannot serve Foxglove on {args.host}:{args.port}: {exc}") from None
         try:
             cfg = joining(args)
-            async with await Bus.open(cfg, args.cell) as bus:
+            async with await Bus.open(cfg, args.cell, role="monitor") as bus:
                 bus.subscribe_raw(bus.key("**"), bridge.on)
                 out.print(
                     f"Foxglove: open a connection to ws://{args.host}:{server.port} "

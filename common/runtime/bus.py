@@ -379,17 +379,12 @@ class Bus:
 
     # --- topics -------------------------------------------------------------------------------------
 
-    def put(self, key: str, msg: Message, block: bool = False) -> None:
-        """Publish on any key, for a session that speaks for nobody (a test); a process with a role
-        publishes through its ``publisher`` ports."""
+    def put_raw(self, key: str, payload: bytes, block: bool = False) -> None:
+        """Bytes as they are, on any key: a replay's, or a test's (``tests.conftest.put``); a session that
+        speaks for nobody. A process with a role publishes through its ``publisher`` ports."""
         self._check_open()
         if self.role is not None:
             raise BusError(f"{self.role}: publish {key} through Bus.publisher (schemas/topology.py)")
-        self._send(key, encode(msg), block)
-
-    def put_raw(self, key: str, payload: bytes, block: bool = False) -> None:
-        """Bytes as they are (tests and replay)."""
-        self._check_open()
         self._send(key, payload, block)
 
     def matching(self, key: str) -> bool:
