@@ -163,10 +163,19 @@ class Observed:
             }
         )
 
-    def on_event(self, source: str, kind: str, message: str, t_ns: int) -> None:
-        if kind == "state" and routine_change(message):
+    def on_event(
+        self,
+        source: str,
+        kind: str,
+        message: str,
+        t_ns: int,
+        change: tuple[str | None, str | None] = (None, None),
+    ) -> None:
+        """``change``: a state change's (from, to) states."""
+        if kind == "state" and routine_change(*change):
             return
-        self.events.append({"t_s": self.t(t_ns), "source": source, "kind": kind, "message": message})
+        self.events.append({"t_s": self.t(t_ns), "source": source, "kind": kind, "message": message,
+                            "from": change[0], "to": change[1]})  # fmt: skip
 
     def k_steps(self) -> tuple[int, int]:
         ks = [s["k"] for s in self.selections]
@@ -290,7 +299,10 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         bus.handle(HRV_WINDOW, _call(obs.on_window))
         bus.handle(SELECTION, _call(obs.on_selection))
         bus.handle(ROBOT_CYCLE, _call(obs.cycles.append))
-        bus.handle(ROBOT_EVENT, _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns)))
+        bus.handle(
+            ROBOT_EVENT,
+            _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state))),
+        )
 
         bus.handle(OPERATOR_ERROR, _call(lambda e: obs.error_times_s.append(obs.t(e.t_ns))))
         running: set[str] = set()

@@ -135,8 +135,11 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
         elif isinstance(m, OperatorError):
             run.errors += 1
             run.error_times_s.append(t(m.t_ns))
-        elif isinstance(m, RobotEvent) and not (m.kind == "state" and routine_change(m.message)):
-            run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message})
+        elif isinstance(m, RobotEvent) and not (
+            m.kind == "state" and routine_change(m.from_state, m.to_state)
+        ):
+            run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message,
+                               "from": m.from_state, "to": m.to_state})  # fmt: skip
         elif isinstance(m, ParetoSet):
             run.sets[m.path_id] = m
     if sets_folder is not None:

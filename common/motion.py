@@ -124,25 +124,23 @@ def transition(m: Motion, event: Event, reason: str = "") -> Motion:
 _ROUTINE = {State.READY.value, State.MOVING.value, State.WAITING_FOR_OPERATOR.value}
 
 
-def routine_change(message: str) -> bool:
-    """A ``robot/event`` of kind "state" ("from → to: why") between the states of normal work (ready,
-    moving, waiting for the operator): every path gives two, so a report or a live view leaves them out."""
-    states = message.split(":", 1)[0].split(" → ")
-    return len(states) == 2 and all(x.strip() in _ROUTINE for x in states)
+def routine_change(from_state: str | None, to_state: str | None) -> bool:
+    """A ``robot/event`` of kind "state" between the states of normal work (ready, moving, waiting for
+    the operator): every path gives two, so a report or a live view leaves them out."""
+    return from_state in _ROUTINE and to_state in _ROUTINE
 
 
 def idle_spans(events: Sequence[Mapping[str, object]], end_s: float) -> list[tuple[float, float, str]]:
     """(start, end, state) of each span in which the robot was out of normal work (stopped, recovering,
-    waiting for a selection …), from the ``robot/event`` state changes ("from → to: why", with ``t_s``)
-    of a run, so that a figure never shows adaptation that did not move the arm (issue 28). A span still
-    open at the end closes at ``end_s``."""
+    waiting for a selection …), from the ``robot/event`` state changes of a run (``t_s`` and ``to``, the
+    state entered), so that a figure never shows adaptation that did not move the arm (issue 28). A span
+    still open at the end closes at ``end_s``."""
     spans: list[tuple[float, float, str]] = []
     open_at: tuple[float, str] | None = None
     for e in sorted((e for e in events if e.get("kind") == "state"), key=lambda e: float(str(e["t_s"]))):
-        states = str(e["message"]).split(":", 1)[0].split(" → ")
-        if len(states) != 2:
+        if e.get("to") is None:
             continue
-        t, to = float(str(e["t_s"])), states[1].strip()
+        t, to = float(str(e["t_s"])), str(e["to"])
         if to in _ROUTINE:
             if open_at is not None:
                 spans.append((open_at[0], t, open_at[1]))

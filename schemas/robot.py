@@ -41,7 +41,8 @@ class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
     k_per_path: Annotated[dict[Name, SolutionIndex], msgspec.Meta(max_length=1000)]
 
 
-# "state": a change of the executor's safety state (common/motion.py), "from → to: why"
+# "state": a change of the executor's safety state (common/motion.py), "from → to: why" for a person, and
+# from_state/to_state for a program
 EventKind = Literal[
     "refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info", "state"
 ]
@@ -51,3 +52,5 @@ class RobotEvent(Message, frozen=True, tag="robot.event.v1"):
     kind: EventKind
     message: Text
     path_id: Name | None = None
+    from_state: Name | None = None  # kind "state": the safety state left (common/motion.py State)
+    to_state: Name | None = None  # kind "state": the safety state entered

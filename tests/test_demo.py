@@ -65,7 +65,7 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert not [e for e in s["events"] if e["kind"] == "protective_stop"]
     # the robot never waited on the killed services for a selection
     assert not any(
-        e["kind"] == "state" and "→ waiting_for_selection" in e["message"] and e["t_s"] > started
+        e["kind"] == "state" and e["to"] == "waiting_for_selection" and e["t_s"] > started
         for e in s["events"]
     )
     # the robot went on cycling while each was down and restarting: a cycle ended within two typical

@@ -202,7 +202,7 @@ async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_say
         assert (late.kind, late.source, late.cycle) == ("late", "executor", 0)
         assert "'part' not there 2 s after the robot came" in late.description
         # not before its deadline: counted from the state change into the wait, which precedes it
-        waiting = await next_of(events, lambda e: e.kind == "state" and "→ waiting_for_operator" in e.message)
+        waiting = await next_of(events, lambda e: e.kind == "state" and e.to_state == "waiting_for_operator")
         assert late.t_ns - waiting.t_ns >= 2.0e9 - 1e6  # (a millisecond: wall and monotonic clocks)
         if on_late == "wait":
             assert "kept waiting" in late.description

@@ -98,13 +98,16 @@ def test_the_spans_the_robot_did_not_work_are_found_from_its_state_changes() -> 
     the end of the run."""
     from common.motion import idle_spans
 
+    def change(t_s: float, a: str, b: str, why: str) -> dict:
+        return {"t_s": t_s, "kind": "state", "message": f"{a} → {b}: {why}", "from": a, "to": b}
+
     events = [
         {"t_s": 50.0, "kind": "overrun", "message": "5 servo overruns in a row"},
-        {"t_s": 51.0, "kind": "state", "message": "moving → stopped: 5 servo overruns in a row"},
-        {"t_s": 80.0, "kind": "state", "message": "stopped → recovering: resumed by the operator"},
-        {"t_s": 84.0, "kind": "state", "message": "recovering → ready: back at the path's start"},
-        {"t_s": 90.0, "kind": "state", "message": "ready → moving: path there"},
-        {"t_s": 200.0, "kind": "state", "message": "ready → waiting_for_selection: no selection yet"},
+        change(51.0, "moving", "stopped", "5 servo overruns in a row"),
+        change(80.0, "stopped", "recovering", "resumed by the operator"),
+        change(84.0, "recovering", "ready", "back at the path's start"),
+        change(90.0, "ready", "moving", "path there"),
+        change(200.0, "ready", "waiting_for_selection", "no selection yet"),
     ]
     assert idle_spans(events, 300.0) == [(51.0, 84.0, "stopped"), (200.0, 300.0, "waiting_for_selection")]
     assert idle_spans(events[:1], 300.0) == []  # no state change: the robot worked throughout

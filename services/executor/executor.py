@@ -148,7 +148,8 @@ class Executor:
         if (new.state, new.reason) != (old.state, old.reason):
             why = f": {new.reason}" if new.reason else ""
             self.ctx.state = f"{new.state}{why}"
-            self.event("state", f"{old.state} → {new.state}{why}", self.path_id, repeat=True)
+            change = (old.state.value, new.state.value)
+            self.event("state", f"{old.state} → {new.state}{why}", self.path_id, repeat=True, change=change)
             self.state_changed.set()
         return new
 
@@ -162,15 +163,23 @@ class Executor:
     # --- bus ----------------------------------------------------------------------------------------
 
     def event(
-        self, kind: EventKind, message: str, path_id: str | None = None, repeat: bool = False
+        self,
+        kind: EventKind,
+        message: str,
+        path_id: str | None = None,
+        repeat: bool = False,
+        change: tuple[str, str] | None = None,
     ) -> RobotEvent:
-        """Publish a RobotEvent (and log it); the same event twice in a row only once, unless asked."""
+        """Publish a RobotEvent (and log it); the same event twice in a row only once, unless asked.
+        ``change``: a state change's (from, to)."""
         msg = RobotEvent(
             t_ns=self.clock.now_ns(),
             seq=self.events_out.next_seq(),
             kind=kind,
             message=message,
             path_id=path_id,
+            from_state=change[0] if change else None,
+            to_state=change[1] if change else None,
         )
         if not repeat and self._last_event == (kind, message):
             return msg
