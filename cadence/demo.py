@@ -2,10 +2,10 @@
 
 A Zenoh router on loopback (this process), then every service as its own process, configured the way
 systemd would configure it (environment variables over built-in defaults) and supervised the way systemd
-would supervise it (a service that dies is restarted). The ECG gateway runs the operator twin, the
-executor the simulated UR16e; all of them share one data clock running ``speed`` times faster than the
-wall clock. This process only watches the bus: the live view, ``summary.json`` and the figures come
-from what the services publish.
+would supervise it (a service that dies is restarted). The operator twin is the ECG source, in the ECG
+gateway's place (no strap), and the executor runs the simulated UR16e; all of them share one data clock
+running ``speed`` times faster than the wall clock. This process only watches the bus: the live view,
+``summary.json`` and the figures come from what the services publish.
 """
 
 from __future__ import annotations
@@ -59,7 +59,8 @@ from services.decision_maker.state import STATE_FILE
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
 DEMO_TOLERANCE = 0.7  # the twin's (common/sim/twin.py: 0.8 by default)
-ORDER = launch_order()  # from the graph: readers before writers, answerers before askers
+# from the graph: readers before writers, answerers before askers; the twin sends the ECG, no gateway runs
+ORDER = tuple(s for s in launch_order() if s != "ecg_gateway")
 RESTART_DELAY_S = 0.5
 STOP_TIMEOUT_S = 15.0
 
@@ -210,7 +211,7 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
         # a co-worker less tolerant than the twin's default: the example task's waits for the operator
         # (B2 clear, the parts) leave the arm idle part of each cycle, and the demo should show Alg. 1 at
         # work, stress first and relief after, within its first minutes
-        "ecg_gateway": {"source": "twin", "twin": f"{{ seed = {opts.seed}, tolerance = {DEMO_TOLERANCE} }}"},
+        "operator_twin": {"twin": f"{{ seed = {opts.seed}, tolerance = {DEMO_TOLERANCE} }}"},
         "executor": {
             "task": task,
             "backend": "sim",

@@ -29,7 +29,7 @@ import socket
 import subprocess
 import sys
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from common.runtime import cell
@@ -50,6 +50,13 @@ PYTHON_MIN = (3, 11)
 HOSTS_ALL = (*SERVICES, "router")
 
 
+def cell_services(strap: str) -> tuple[str, ...]:
+    """What a whole cell runs on one host: every service and the router, with one ECG source: the
+    operator twin for ``--strap twin``, else the gateway (the strap, or a replay)."""
+    unused = "ecg_gateway" if strap == "twin" else "operator_twin"
+    return tuple(s for s in HOSTS_ALL if s != unused)
+
+
 class InstallError(InputError):
     """The install cannot go on; the message says what to do."""
 
@@ -60,7 +67,7 @@ class Options:
     strap: str = "Polar H10"  # "twin", "replay", or the H10's MAC address or advertised name
     cell_name: str = DEFAULT_CELL
     prefix: Path = Path("/opt/cadence")
-    services: tuple[str, ...] = HOSTS_ALL  # what runs on this host; "router" for the cell's router
+    services: tuple[str, ...] = ()  # what runs on this host; "router" for the cell's router; () the cell's
     router_host: str = ""  # where other hosts reach the router (default: this host's name)
     port: int = cell.ROUTER_PORT
     join: Path | None = None  # the first host's credentials/cell.json
@@ -153,17 +160,13 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
     from services.ecg_gateway.__main__ import Settings as GatewaySettings
     from services.executor.__main__ import Settings as ExecutorSettings
     from services.hrv_analyser.__main__ import Settings as AnalyserSettings
+    from services.operator_twin.__main__ import Settings as TwinSettings
     from services.pareto_store.__main__ import Settings as StoreSettings
 
     sim = opts.robot == "sim"
     twin = opts.strap == "twin"
     gateway: dict[str, object] = (
-        {"source": opts.strap}
-        if opts.strap in ("twin", "replay")
-        else {
-            "source": "polar",
-            "strap": opts.strap,
-        }
+        {"source": "replay"} if opts.strap == "replay" else {"source": "polar", "strap": opts.strap}
     )
     task: dict[str, object] = {"task": str(TASKS / EXAMPLE_TASK.name)}
     executor: dict[str, object] = task | (
@@ -189,7 +192,9 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
             {"mode": "client"},
             "# each unit sets config_file to its own account (credentials/<service>.json5)",
         ),
-        cell.settings_toml("ecg_gateway", GatewaySettings, gateway),
+        cell.settings_toml("operator_twin", TwinSettings, {})
+        if twin
+        else cell.settings_toml("ecg_gateway", GatewaySettings, gateway),
         cell.settings_toml("hrv_analyser", AnalyserSettings, {}),
         cell.settings_toml(
             "decision_maker",
@@ -422,6 +427,12 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
         raise InstallError(
             f"--services: unknown {sorted(set(opts.services) - set(HOSTS_ALL))}; "
             f"expected some of {', '.join(HOSTS_ALL)}"
+        )
+    opts = replace(opts, services=opts.services or cell_services(opts.strap))
+    if wrong := set(opts.services) - set(cell_services(opts.strap)):  # two ECG sources would interleave
+        raise InstallError(
+            f"--services {', '.join(sorted(wrong))}: with --strap {opts.strap} the ECG comes from "
+            f"{'the operator twin' if opts.strap == 'twin' else 'the ecg_gateway'}"
         )
     if not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", opts.cell_name):  # a key chunk, as [cadence] cell
         raise InstallError(f"--cell {opts.cell_name!r}: letters, digits, '_' and '-' only, at most 64")

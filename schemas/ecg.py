@@ -12,6 +12,8 @@ from schemas.base import Message, Name, RrSeconds
 # usual rates of other chest straps and recorders.
 ECG_RATES_HZ = (125.0, 128.0, 130.0, 200.0, 250.0, 256.0, 360.0, 500.0, 512.0, 1000.0)
 MAX_CHUNK_S = 10.0  # an H10 frame is 73 samples (0.56 s); a chunk is never longer than this
+H10_FS_HZ = 130.0  # what the sources send: the H10's ECG rate, replays resampled to it, the twin's
+H10_CHUNK = 73  # samples per H10 PMD notification at 130 Hz
 MicroVolts = Annotated[int, msgspec.Meta(ge=-(2**23), le=2**23 - 1)]  # the H10's int24
 
 

@@ -86,13 +86,11 @@ HEALTH = Topic("health/*", ServiceStatus, qos="drop")  # health/<service>, plus 
 @dataclass(frozen=True, slots=True)
 class Role:
     """A node of the graph, declared once: who it is and every port it opens. A service (its own process
-    and account), a role hosted inside a service's process (the operator twin, inside the ECG gateway
-    when its source is the twin), or a person's tool (``operator``: calibrate, resume, an HMI;
-    ``monitor``: record, zenoh subscribe). Every service also publishes its own ``health/<service>``."""
+    and account) or a person's tool (``operator``: calibrate, resume, an HMI; ``monitor``: record, top,
+    zenoh subscribe). Every service also publishes its own ``health/<service>``."""
 
     name: str
-    kind: Literal["service", "hosted", "tool"]
-    host: str | None = None  # hosted: the service whose process (and bus account) it runs in
+    kind: Literal["service", "tool"]
     reads_all: bool = False  # tools read the whole cell, as the ACL lets everyone
     inputs: tuple[Topic[Any], ...] = ()  # topics it subscribes to and acts on
     outputs: tuple[Topic[Any], ...] = ()  # topics it publishes
@@ -121,12 +119,13 @@ ROLES: tuple[Role, ...] = (
         answers=(ROBOT_RESUME,),
         asks=(SELECTION, PARETO_SET),
     ),
+    # the simulated operator (common/sim/twin.py): it watches the robot and is the ECG source of a cell
+    # without a strap, in the gateway's place
     Role(
         "operator_twin",
-        "hosted",
-        host="ecg_gateway",
+        "service",
         inputs=(ROBOT_STATE, ROBOT_CYCLE),
-        outputs=(OPERATOR_SIGNAL, OPERATOR_ERROR),
+        outputs=(ECG_SAMPLES, OPERATOR_SIGNAL, OPERATOR_ERROR),
     ),
     Role(
         "operator",
@@ -277,16 +276,12 @@ def may_ask(role: str, topic: Topic[Any]) -> bool:
     return r is not None and role in topic.askers
 
 
-def roles_in(service: str) -> tuple[str, ...]:
-    """The roles a service's process may act as: its own, and those it hosts."""
-    return (service, *(r.name for r in ROLES if r.host == service))
-
-
 def launch_order() -> tuple[str, ...]:
     """The services in the order to start them: after every service that answers their queries, and
     after every service that reads what they publish (Zenoh drops a put with no subscriber yet). Where
     the two disagree (the executor asks the decision maker, and reads what it publishes), the query
-    wins; hosted roles (the twin's loop with the executor) don't order. Ties keep the declared order."""
+    wins; where readers wait on each other (the executor and the operator twin read each other), the
+    first declared goes first. Ties keep the declared order."""
     services = set(SERVICES)
     # (before, after) pairs of two services
     must = {(p, a) for t in TOPICS for p in t.publishers for a in t.askers if p != a and {p, a} <= services}
@@ -297,14 +292,11 @@ def launch_order() -> tuple[str, ...]:
         for s in t.subscribers
         if p != s and {p, s} <= services and (p, s) not in must
     }
-    edges = must | rather
     order: list[str] = []
     left = list(SERVICES)
     while left:
-        ready = [s for s in left if not any(b in left and a == s for b, a in edges)]
-        if not ready:  # a cycle of preferences: drop them, keep what queries demand
-            edges = must
-            continue
+        free = [s for s in left if not any(b in left and a == s for b, a in must)]
+        ready = [s for s in free if not any(b in left and a == s for b, a in rather)] or free[:1]
         order.append(ready[0])
         left.remove(ready[0])
     return tuple(order)

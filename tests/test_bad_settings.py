@@ -30,7 +30,7 @@ BAD = [
     ("executor", "[executor]\noverrun_limit = 0"),
     ("executor", "[executor]\ninitial_k = 0"),
     ("ecg_gateway", "[ecg_gateway]\nspeed = -1"),
-    ("ecg_gateway", "[ecg_gateway]\nsource = 'twin'\n[ecg_gateway.twin]\nrr_rest_s = 1e300"),
+    ("operator_twin", "[operator_twin.twin]\nrr_rest_s = 1e300"),
 ]
 
 

@@ -56,7 +56,7 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
         assert askers(t) <= allowed("ask", key), t.suffix
     assert publishers(SELECTION) == {"decision_maker"}
     # the twin runs in the gateway; the executor publishes the buttons on its controller's inputs
-    assert publishers(OPERATOR_SIGNAL) == {"operator", "ecg_gateway", "executor"}
+    assert publishers(OPERATOR_SIGNAL) == {"operator", "operator_twin", "executor"}
     assert allowed("ask", "cadence/c1/robot/resume") == {"operator"}  # it changes what the robot does
     assert allowed("ask", "cadence/c1/decision/condition") == {"operator"}  # a study session's switch
     assert allowed("ask", "cadence/c1/decision/selection") == {"executor", "operator", "monitor"}

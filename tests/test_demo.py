@@ -55,7 +55,7 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
         "pareto_store": 0,
         "decision_maker": 1,
         "hrv_analyser": 1,
-        "ecg_gateway": 0,
+        "operator_twin": 0,
         "executor": 0,
     }
     assert all(code == 0 for code in s["exit_codes"].values())  # every service stopped cleanly on SIGTERM

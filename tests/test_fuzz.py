@@ -31,12 +31,12 @@ from schemas.topology import TOPICS, Topic
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.decision_maker.state import same_calibration
-from services.ecg_gateway.__main__ import Settings as GatewaySettings
-from services.ecg_gateway.__main__ import main as gateway_main
 from services.executor.__main__ import Settings as ExecutorSettings
 from services.executor.__main__ import main as executor_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
+from services.operator_twin.__main__ import Settings as TwinSettings
+from services.operator_twin.__main__ import main as twin_main
 from tests.conftest import InProcessService, now_ns, put
 from tests.test_executor import CALM, SPEED, TASK, store_serving
 from tests.test_hostile import DAY, S, chunks, synthetic_ecg
@@ -197,7 +197,7 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
             speed=SPEED,
         )
         twin = InProcessService(
-            "ecg_gateway", gateway_main, GatewaySettings(source="twin"), tmp_path / "t", endpoint, cell="twin"
+            "operator_twin", twin_main, TwinSettings(), tmp_path / "t", endpoint, cell="twin"
         )
         await decider.listening(bus, "hrv/window", "operator/calibration")
         await analyser.listening(bus, "ecg/samples")
@@ -301,7 +301,7 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
     assert {k for r in reports for k in r.k_per_path.values()} <= {min(k, 5) for k in [8, *got_k]}
     assert all(r.message is None and r.error for rs in replies for r in rs)
     assert honest_set and honest_set[0].message is not None
-    assert set(last) == {"decision_maker", "hrv_analyser", "executor", "pareto_store", "ecg_gateway"}
+    assert set(last) == {"decision_maker", "hrv_analyser", "executor", "pareto_store", "operator_twin"}
     for st_ in last.values():
         assert not any(k.startswith("handler_errors/") for k in st_.counters), st_.counters
     assert last["decision_maker"].counters["decode_errors"] > 0

@@ -62,7 +62,7 @@ EOT
 exec /lib/systemd/systemd --system --unit=cadence-test-boot.target
 """
 
-UNITS = ["router", "ecg_gateway", "hrv_analyser", "decision_maker", "pareto_store", "executor"]
+UNITS = ["router", "operator_twin", "hrv_analyser", "decision_maker", "pareto_store", "executor"]
 
 
 class Machine:
@@ -341,7 +341,8 @@ async def test_a_second_host_joins_the_cell_with_the_first_hosts_bundle(
     port = free_port()
     install = f"{sys.executable} -m cadence install --robot sim --strap twin"
     cell_pc.sh(
-        f"{install} --services router,executor,ecg_gateway --port {port} --router-host 127.0.0.1", timeout=900
+        f"{install} --services router,executor,operator_twin --port {port} --router-host 127.0.0.1",
+        timeout=900,
     )
     second.put("/root/cell.json", cell_pc.path("/etc/cadence/credentials/cell.json").read_bytes())
     second.sh(
@@ -358,7 +359,7 @@ async def test_a_second_host_joins_the_cell_with_the_first_hosts_bundle(
         _, cycle = await cycles.receive(300)
     assert set(cycle.k_per_path) == set(load_task(EXAMPLE_TASK).paths)
     for m, units in (
-        (cell_pc, ("router", "executor", "ecg_gateway")),
+        (cell_pc, ("router", "executor", "operator_twin")),
         (second, ("pareto_store", "decision_maker")),
     ):
         for u in units:

@@ -65,8 +65,10 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     inst.add_argument(
         "--services",
-        default=",".join((*GRAPH_SERVICES, "router")),
-        help="what runs on this host, comma-separated (default: all of them and the router)",
+        default="",
+        help=f"what runs on this host, comma-separated, of {', '.join((*GRAPH_SERVICES, 'router'))} "
+        "(default: the whole cell and its router, its ECG from the operator twin for --strap twin, else from "
+        "the gateway)",
     )
     inst.add_argument(
         "--router-host", default="", help="where other hosts reach the router (default: hostname)"

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cadence.cli._common import SERVICES, add_bus_flags, err, out, positive_float, positive_int
+from cadence.cli._common import add_bus_flags, err, out, positive_float, positive_int
 from cadence.cli.hrv import add_posture
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
@@ -30,14 +30,14 @@ if TYPE_CHECKING:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cadence.demo import DemoOptions, run_demo
+    from cadence.demo import ORDER, DemoOptions, run_demo
 
     kills = []
     for spec in args.kill:
         name, _, at = spec.partition("@")
-        if name not in SERVICES or not at:
+        if name not in ORDER or not at:
             raise InputError(
-                f"--kill {spec}: expected SERVICE@SECONDS with SERVICE one of {', '.join(SERVICES)}"
+                f"--kill {spec}: expected SERVICE@SECONDS with SERVICE one of {', '.join(ORDER)}"
             )
         kills.append((name, float(at)))
     opts = DemoOptions(

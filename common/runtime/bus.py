@@ -281,16 +281,11 @@ class Bus:
 
     # --- the graph ----------------------------------------------------------------------------------
 
-    def _port(
-        self, kind: Literal["publish", "subscribe", "ask"], topic: Topic[Any], role: str | None
-    ) -> None:
-        """Check a port against the graph and remember it (the graph test reads ``ports``). ``role``
-        is one this process hosts (the twin in the ECG gateway); by default the process's own."""
+    def _port(self, kind: Literal["publish", "subscribe", "ask"], topic: Topic[Any]) -> None:
+        """Check a port against the graph and remember it (the graph test reads ``ports``)."""
         if self.role is None:
             return
-        acting = role or self.role
-        if acting != self.role and ROLE[acting].host != self.role:
-            raise BusError(f"{self.role} does not host the role {acting}")
+        acting = self.role
         allowed = {"publish": may_publish, "subscribe": may_subscribe, "ask": may_ask}[kind]
         if not allowed(acting, topic):
             raise BusError(f"the graph does not let {acting} {kind} {topic.suffix} (schemas/topology.py)")
@@ -301,14 +296,13 @@ class Bus:
         kind: Literal["publish", "subscribe", "ask"],
         what: Topic[Any] | str,
         msg_type: Any,
-        role: str | None,
     ) -> tuple[str, Any]:
         """(key expression, message type) of a port on a topic of the graph, or on a key expression for a
         tool or a test (``msg_type`` then says how to decode; a queryable's replies go unchecked). Checked
         against the graph either way when this process has a role."""
         self._check_open()
         if not isinstance(what, str):
-            self._port(kind, what, role)
+            self._port(kind, what)
             return self.key(what.suffix), what.message
         if msg_type is None and kind != "publish":
             raise TypeError(f"{kind} by key expression needs msg_type")
@@ -316,15 +310,15 @@ class Bus:
             topic = topic_of(what.split("?", 1)[0])
             if topic is None:
                 raise BusError(f"{what} is not a key of the graph (schemas/topology.py)")
-            self._port(kind, topic, role)
+            self._port(kind, topic)
         return what, msg_type
 
-    def publisher(self, topic: Topic[M], *, role: str | None = None) -> Publisher[M]:
+    def publisher(self, topic: Topic[M]) -> Publisher[M]:
         """The port for one key (a family's member: ``HEALTH.at(name)``)."""
         self._check_open()
         if "*" in topic.suffix.split("/"):
             raise ValueError(f"{topic.suffix}: a publisher needs one key; name it with .at()")
-        self._port("publish", topic, role)
+        self._port("publish", topic)
         return Publisher(self, topic, self.key(topic.suffix))
 
     def _check_open(self) -> None:
@@ -426,12 +420,10 @@ class Bus:
         what: Topic[M] | str,
         msg_type: type[M] | None = None,
         maxsize: int = 256,
-        *,
-        role: str | None = None,
     ) -> Subscription[M]:
         """The messages of a topic of the graph (``HEALTH.at("executor")`` for one key of a family); or of
         a key expression, decoded as ``msg_type``, for a tool or a test."""
-        key_expr, msg_type = self._resolve("subscribe", what, msg_type, role)
+        key_expr, msg_type = self._resolve("subscribe", what, msg_type)
         sub = Subscription(self, key_expr, msg_type, maxsize)
         self._declared.append(sub)
         return sub
@@ -444,7 +436,6 @@ class Bus:
         /,
         *,
         maxsize: int = 256,
-        role: str | None = None,
     ) -> Subscription[M]: ...
 
     @overload
@@ -458,18 +449,16 @@ class Bus:
         maxsize: int = 256,
     ) -> Subscription[M]: ...
 
-    def handle(
-        self, what: Topic[Any] | str, /, *args: Any, maxsize: int = 256, role: str | None = None
-    ) -> Any:
+    def handle(self, what: Topic[Any] | str, /, *args: Any, maxsize: int = 256) -> Any:
         """Subscribe with a handler coroutine, run for each message in order in a task the bus owns.
         A handler that raises is counted and logged (rate-limited) and the next message is handled: bad
         input never stops a service."""
         if isinstance(what, str):
             msg_type, handler = args
-            sub = self.subscribe(what, msg_type, maxsize, role=role)
+            sub = self.subscribe(what, msg_type, maxsize)
         else:
             (handler,) = args
-            sub = self.subscribe(what, None, maxsize, role=role)
+            sub = self.subscribe(what, None, maxsize)
 
         async def pump() -> None:
             async for key, msg in sub:
@@ -487,7 +476,7 @@ class Bus:
         """Answer queries on a topic of the graph (a key expression, for a test): the handler returns
         the topic's message or raises ``QueryError``. The returned handle undeclares the queryable (the
         bus does at close)."""
-        key_expr, answers = self._resolve("publish", what, None, None)
+        key_expr, answers = self._resolve("publish", what, None)
         served = RawSubscription(self._declare_queryable(key_expr, answers, handler))
         self._declared.append(served)
         return served
@@ -517,7 +506,7 @@ class Bus:
 
     @overload
     async def get(
-        self, what: Topic[M], /, *, timeout: float = 2.0, parameters: str = "", role: str | None = None
+        self, what: Topic[M], /, *, timeout: float = 2.0, parameters: str = ""
     ) -> list[Reply[M]]: ...
 
     @overload
@@ -530,12 +519,11 @@ class Bus:
         timeout: float = 2.0,
         *,
         parameters: str = "",
-        role: str | None = None,
     ) -> list[Reply[Any]]:
         """Query a topic of the graph (``PARETO_SET.at(path_id)``) and decode every reply; an error reply
         keeps its text. Never blocks the loop. A selector and ``msg_type`` instead (any type, a union
         too), for a tool that asks any key (``cadence get``) or a test."""
-        selector, msg_type = self._resolve("ask", what, msg_type, role)
+        selector, msg_type = self._resolve("ask", what, msg_type)
         if parameters:
             selector += f"?{parameters}"
         decoder = msgspec.msgpack.Decoder(msg_type)

@@ -26,25 +26,21 @@ from typing import Any
 
 import msgspec
 
-from schemas.topology import ROLE, ROLES, ROOT, TOPICS, Topic
+from schemas.topology import ROLES, ROOT, TOPICS, Topic
 
-# One account per process that joins the bus: a service's (its hosted roles use it too) or a tool's.
-ACCOUNTS = tuple(r.name for r in ROLES if r.host is None)
+# One account per process that joins the bus: a service's or a tool's, one per role of the graph.
+ACCOUNTS = tuple(r.name for r in ROLES)
 ROUTER_PORT = 7447
-
-
-def account(role: str) -> str:
-    return ROLE[role].host or role
 
 
 def publishers(topic: Topic[Any]) -> set[str]:
     """The accounts that may publish ``topic`` (and answer queries for it)."""
-    return {account(r) for r in topic.publishers}
+    return set(topic.publishers)
 
 
 def askers(topic: Topic[Any]) -> set[str]:
     """The accounts that may query ``topic``."""
-    return {account(r) for r in topic.askers}
+    return set(topic.askers)
 
 
 def _acl_key(cell: str, suffix: str) -> str:

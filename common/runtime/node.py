@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import inspect
-from collections.abc import Awaitable, Callable, Coroutine, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Sequence
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
 from common.runtime.bus import Request
@@ -97,6 +97,17 @@ class Node:
 
     def reads(self, topic: Topic[Any]) -> bool:
         return True
+
+    async def stream(self) -> AsyncIterator[Out]:
+        """What a source node sends at its own pace (the twin's ECG), until the service stops."""
+        return
+        yield ()
+
+    def next_seq(self, topic: Topic[Any]) -> int:
+        """The node's sequence number for its next message on ``topic`` (DESIGN §3: per key)."""
+        seqs: dict[str, int] = self.__dict__.setdefault("_seqs", {})
+        seqs[topic.suffix] = seqs.get(topic.suffix, -1) + 1
+        return seqs[topic.suffix]
 
 
 def handlers(cls: type[Node], mark: str) -> dict[str, tuple[Any, str]]:
@@ -194,5 +205,19 @@ async def serve_node(node: Node) -> None:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(ctx.stop.wait(), seconds)
 
+    async def source() -> None:
+        async for out in node.stream():
+            publish(out)
+            if ctx.stop.is_set():
+                break
+
     timers = [tick(getattr(node, name), period) for period, name in handlers(type(node), _TIMER).values()]
-    await asyncio.gather(*timers, ctx.stop.wait())
+    tasks = [asyncio.ensure_future(t) for t in (*timers, source(), ctx.stop.wait())]
+    try:  # until the service stops; a source that fails stops it (its supervisor restarts it)
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
+        for t in done:
+            t.result()
+    finally:
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)

@@ -1,5 +1,6 @@
 """ecg_gateway: an ECG source → ``ecg/samples`` and ``ecg/rr`` (DESIGN §1, §6). Sources behind one
-interface: ``polar`` (the H10 over BLE), ``replay`` (a recording) and ``twin`` (the simulated operator)."""
+interface: ``polar`` (the H10 over BLE) and ``replay`` (a recording). A cell without a strap runs the
+operator twin (services/operator_twin) in this service's place."""
 
 from __future__ import annotations
 
@@ -9,17 +10,14 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from common.runtime.clock import Clock
 from common.runtime.config import CommonSettings
 from common.runtime.errors import ConfigError
 from common.runtime.service import ServiceContext, first_of, service_main
-from common.sim.twin import TwinParams
 from schemas.base import TimeNs
 from schemas.ecg import EcgChunk, RrIntervals
 from schemas.topology import ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
-from services.ecg_gateway.twin import TwinSource
 
 NAME = "ecg_gateway"
 LISTENER_WAIT_S = 30.0
@@ -27,18 +25,15 @@ log = logging.getLogger("cadence.ecg_gateway")
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    source: Literal["replay", "polar", "twin"] = "replay"
+    source: Literal["replay", "polar"] = "replay"
     strap: str = "Polar H10"  # polar: MAC address or (part of) the advertised name
     gap_timeout_s: Annotated[float, msgspec.Meta(ge=0.5, le=300.0)] = 5.0  # polar: reconnect after this
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
     speed: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 1.0  # replay: × real time; 0 = at once
     start_ns: TimeNs | None = None  # replay: data time of the first sample (default: now)
-    twin: TwinParams = TwinParams()  # twin: the simulated operator's parameters (common/sim/twin.py)
 
 
-def make_source(settings: Settings, clock: Clock) -> EcgSource:
-    if settings.source == "twin":
-        return TwinSource(settings.twin, clock)
+def make_source(settings: Settings) -> EcgSource:
     if settings.source == "polar":
         return PolarSource(bleak_connector(settings.strap), settings.gap_timeout_s)
     if settings.record is None:
@@ -47,8 +42,7 @@ def make_source(settings: Settings, clock: Clock) -> EcgSource:
 
 
 async def main(ctx: ServiceContext) -> None:
-    source = make_source(ctx.settings, ctx.common.clock)
-    source.connect(ctx.bus)
+    source = make_source(ctx.settings)
     samples_out, rr_out = ctx.bus.publisher(ECG_SAMPLES), ctx.bus.publisher(ECG_RR)
     if source.waits_for_listener:
         ctx.state = "waiting for a subscriber of ecg/samples"
@@ -84,7 +78,7 @@ async def main(ctx: ServiceContext) -> None:
 
 
 def prepare(settings: Settings, common: CommonSettings) -> None:
-    make_source(settings, common.clock)  # a missing or broken record stops the service at start
+    make_source(settings)  # a missing or broken record stops the service at start
 
 
 def run(argv: list[str] | None = None) -> int:

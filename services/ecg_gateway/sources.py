@@ -1,8 +1,8 @@
 """ECG sources behind one interface (STYLE 4: the fake is chosen by argument, like bleak's backends).
 
 A source yields chunks: the data time of their first sample (ns), µV samples at 130 Hz, and whether
-samples are missing before this chunk. ``replay`` plays a recording; ``polar`` (the H10 over BLE) and
-``twin`` (the simulated operator) are the next to come behind the same interface.
+samples are missing before this chunk. ``replay`` plays a recording; ``polar`` is the H10 over BLE (the
+simulated operator is a node of its own, services/operator_twin, that sends its ECG in this one's place).
 """
 
 from __future__ import annotations
@@ -16,10 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.hrv.records import read_record
-from common.runtime.bus import Bus
+from schemas.ecg import H10_CHUNK, H10_FS_HZ
 
-FS_HZ = 130.0
-CHUNK = 73  # samples per H10 PMD notification at 130 Hz
+FS_HZ, CHUNK = H10_FS_HZ, H10_CHUNK
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,9 +44,6 @@ class EcgSource(abc.ABC):
 
     @abc.abstractmethod
     def chunks(self) -> AsyncIterator[Chunk | RrChunk]: ...
-
-    def connect(self, bus: Bus) -> None:  # noqa: B027 (most sources have no ports of their own)
-        """Open the bus ports of a source that is more than a strap (the twin watches the robot)."""
 
 
 class ReplaySource(EcgSource):

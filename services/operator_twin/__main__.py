@@ -1,0 +1,109 @@
+"""operator_twin: the simulated operator of common/sim/twin.py as a node of the cell (DESIGN §5).
+
+It watches the robot (``robot/state``: joint velocities, what the robot waits for; ``robot/cycle``) and
+produces what a real worker with a strap would: an ECG at 130 Hz on ``ecg/samples`` in the ECG gateway's
+place, the parts the task waits for (``operator/signal``, after a handling time), and errors
+(``operator/error``). Data time comes from the shared clock, so the twin runs at the demo's speed with
+every other service. A robot state far from the states before it is dropped (common/runtime/admission.py).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sys
+from collections.abc import AsyncIterator
+
+import msgspec
+import numpy as np
+
+from common.runtime.admission import TimeLine
+from common.runtime.node import Node, Out, Rejected, node_main, on
+from common.runtime.service import service_main
+from common.sim.twin import Operator, TwinParams
+from schemas.base import Message
+from schemas.ecg import H10_CHUNK as CHUNK
+from schemas.ecg import H10_FS_HZ as FS_HZ
+from schemas.ecg import EcgChunk
+from schemas.operator import OperatorError, OperatorSignal
+from schemas.robot import CycleReport, RobotState
+from schemas.topology import ECG_SAMPLES, OPERATOR_ERROR, OPERATOR_SIGNAL, ROBOT_CYCLE, ROBOT_STATE
+
+NAME = "operator_twin"
+log = logging.getLogger("cadence.operator_twin")
+STATE_AHEAD_S = 10.0
+STATE_CONFIRM = 25  # half a second of robot states
+
+
+class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    twin: TwinParams = TwinParams()  # the simulated operator's parameters (common/sim/twin.py)
+
+
+class OperatorTwin(Node):
+    role = NAME
+
+    async def setup(self) -> None:
+        self.operator, self.clock = Operator(self.ctx.settings.twin, FS_HZ), self.ctx.common.clock
+        self.origin_ns = self.clock.now_ns()
+        self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
+        self.waiting_for: str | None = None
+        self.line = TimeLine(STATE_AHEAD_S, tolerance_s=0.0, confirm=STATE_CONFIRM)
+
+    def ns(self, t_s: float) -> int:
+        return self.origin_ns + round(t_s * 1e9)
+
+    @on(ROBOT_STATE, maxsize=1000)
+    async def on_state(self, state: RobotState) -> Out:
+        verdict = self.line.admit(state.t_ns, state.t_ns, clock_ns=self.clock.now_ns())
+        if not verdict.acted_on:
+            raise Rejected(verdict.code, verdict.detail)
+        t = (state.t_ns - self.origin_ns) / 1e9
+        self.operator.observe(t, np.array(state.qd))
+        if state.waiting_for is not None and state.waiting_for != self.waiting_for:
+            self.pending.append((t + self.operator.handling_time(), state.waiting_for))
+        self.waiting_for = state.waiting_for
+        return []
+
+    @on(ROBOT_CYCLE)
+    async def on_cycle(self, report: CycleReport) -> Out:
+        if not self.operator.makes_error():
+            return []
+        why = f"simulated (stress {self.operator.stress:.2f})"
+        seq = self.next_seq(OPERATOR_ERROR)
+        return [OperatorError(t_ns=report.t_ns, seq=seq, cycle=report.cycle, description=why,
+                              kind="wrong_object", source="twin")]  # fmt: skip
+
+    async def stream(self) -> AsyncIterator[Out]:
+        """The ECG, chunk by chunk as the strap sends it (a chunk exists once its last sample does), and
+        the parts put down by then."""
+        for i in range(0, 2**62, CHUNK):
+            ahead_s = (self.ns((i + CHUNK) / FS_HZ) - self.clock.now_ns()) / 1e9
+            await asyncio.sleep(max(0.0, self.clock.wall_s(ahead_s)))
+            t0, t1 = i / FS_HZ, (i + CHUNK) / FS_HZ
+            x = np.rint(self.operator.ecg(t0, CHUNK)).astype(int).tolist()
+            out: list[Message] = [
+                EcgChunk(
+                    t_ns=self.ns(t0), seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ, samples_uv=x, source="twin"
+                )
+            ]
+            for when, name in [p for p in self.pending if p[0] <= t1]:
+                seq = self.next_seq(OPERATOR_SIGNAL)
+                out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
+            self.pending = [p for p in self.pending if p[0] > t1]
+            self.ctx.counters["chunks"] += 1
+            if i % (CHUNK * 54) == 0:  # about every 30 s of data time
+                op = self.operator
+                log.info("twin at %.0f s: exposure %.2f, stress %.2f, mean RR %.3f s, fatigue %.3f", t0,
+                         op.exposure(op.t), op.stress, op.mean_rr(), op.fatigue)  # fmt: skip
+            yield out
+
+
+main = node_main(OperatorTwin)
+
+
+def run(argv: list[str] | None = None) -> int:
+    return service_main(NAME, Settings, main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(run())
