@@ -47,6 +47,7 @@ from schemas.operator import ErrorKind, OperatorSignal, Posture
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
 from schemas.topology import (
     DEFAULT_CELL,
+    ECG_SOURCES,
     OPERATOR_ERROR,
     OPERATOR_SIGNAL,
     ROOT,
@@ -337,7 +338,9 @@ class Watch:
 
     def readiness(self) -> dict[str, str | None]:
         """Each check and what is wrong with it (None: fine)."""
-        missing = [s for s in SERVICES if s not in self.statuses]
+        missing = [s for s in SERVICES if s not in ECG_SOURCES and s not in self.statuses]
+        if not set(ECG_SOURCES) & set(self.statuses):  # a cell runs one ECG source, whichever
+            missing.append(" or ".join(ECG_SOURCES))
         robot, w = self.robot, self.window
         return {
             "bus": self.isolation,

@@ -14,7 +14,7 @@ from rich.console import Group
 from rich.table import Table
 
 from schemas import ServiceStatus
-from schemas.topology import HEALTH, SERVICES, decode_any, topic_of
+from schemas.topology import ECG_SOURCES, HEALTH, SERVICES, decode_any, topic_of
 from schemas.topology import key as key_of
 
 RATE_WINDOW_S = 10.0
@@ -87,6 +87,8 @@ class Top:
             services.add_column(col)
         for name in SERVICES:
             seen = self.statuses.get(name)
+            if seen is None and name in ECG_SOURCES and set(ECG_SOURCES) & set(self.statuses):
+                continue  # the cell's ECG comes from the other source
             if seen is None:
                 services.add_row(name, "[red]no status[/red]", "", "", "", "", "")
                 continue

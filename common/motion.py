@@ -122,6 +122,19 @@ def transition(m: Motion, event: Event, reason: str = "") -> Motion:
 
 
 _ROUTINE = {State.READY.value, State.MOVING.value, State.WAITING_FOR_OPERATOR.value}
+_MODE = {
+    State.MOVING: "moving",
+    State.WAITING_FOR_OPERATOR: "waiting",
+    State.WAITING_FOR_SET: "waiting",
+    State.REFUSED: "refused",
+    State.STOPPED: "fault",
+    State.RECOVERING: "recovering",
+}
+
+
+def mode_of(state: State) -> str:
+    """``robot/state``'s coarse ``mode``, derived from the one safety state (kept for its readers)."""
+    return _MODE.get(state, "idle")
 
 
 def routine_change(from_state: str | None, to_state: str | None) -> bool:

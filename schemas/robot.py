@@ -28,7 +28,7 @@ class RobotState(Message, frozen=True, tag="robot.state.v1"):
     tcp: Pose
     path_id: Name | None = None
     k: SolutionIndex | None = None
-    mode: Name = "idle"
+    mode: Name = "idle"  # coarse, derived from ``state`` (common/motion.py mode_of): moving, waiting, …
     waiting_for: Name | None = None  # the operator signal a ``wait_for`` step waits for
     # the executor's safety state (common/motion.py) and why it is in it: why the robot does not move
     state: Name = "starting"

@@ -207,6 +207,8 @@ def _pointed(r: Role) -> Role:
 
 ROLES = tuple(_pointed(r) for r in ROLES)
 ROLE = {r.name: r for r in ROLES}
+# a cell runs one of them: the gateway (a strap, a replay) or the operator twin
+ECG_SOURCES = tuple(p for p in ECG_SAMPLES.publishers if p in SERVICES)
 
 # Every message type, as one tagged union: what a reader of unknown keys accepts.
 AnyMessage = (

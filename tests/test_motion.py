@@ -108,3 +108,18 @@ def test_routine_changes_are_told_from_the_ones_a_person_should_see() -> None:
     assert routine_change("waiting_for_operator", "ready")
     assert not routine_change("moving", "stopped")
     assert not routine_change("recovering", "ready") and not routine_change(None, None)  # not a change
+
+
+def test_the_coarse_mode_is_derived_from_the_one_safety_state() -> None:
+    """robot/state's ``mode`` was a second state the executor set by hand beside ``state`` (issue 30): it
+    is now read off the safety state, so the two cannot disagree."""
+    from common.motion import State, mode_of
+
+    assert mode_of(State.MOVING) == "moving" and mode_of(State.READY) == "idle"
+    assert mode_of(State.WAITING_FOR_OPERATOR) == mode_of(State.WAITING_FOR_SET) == "waiting"
+    assert (mode_of(State.STOPPED), mode_of(State.RECOVERING), mode_of(State.REFUSED)) == (
+        "fault",
+        "recovering",
+        "refused",
+    )
+    assert {mode_of(s) for s in State} == {"moving", "idle", "waiting", "fault", "recovering", "refused"}

@@ -24,7 +24,7 @@ import pytest
 from common.runtime.bus import Bus, BusConfig
 from common.trajectory.task import load_task
 from schemas import CycleReport, HrvWindow, Selection
-from tests.conftest import EXAMPLE_TASK, REPO, free_port
+from tests.conftest import EXAMPLE_TASK, REPO, free_port, put
 
 TOOLS = ("unshare", "nsenter", "systemctl", "uv")
 SYSTEMD = Path("/lib/systemd/systemd")
@@ -279,7 +279,7 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
         async with await Bus.open(_account(m, tmp_path, "hrv_analyser"), "cell1") as rogue:
             forged = Selection(t_ns=1, seq=999_999, k=1, n=15, delta=-1, reason="stress", window_end_ns=1)
             for _ in range(5):
-                rogue.put(rogue.key("decision/selection"), forged, block=True)
+                put(rogue, rogue.key("decision/selection"), forged, block=True)
             deadline = time.monotonic() + 5
             while time.monotonic() < deadline:
                 try:

@@ -99,9 +99,13 @@ class Node:
         return True
 
     async def stream(self) -> AsyncIterator[Out]:
-        """What a source node sends at its own pace (the twin's ECG), until the service stops."""
+        """What a node sends at its own pace (the twin's ECG, the store's planning progress); the service
+        goes on serving when it ends."""
         return
         yield ()
+
+    async def close(self) -> None:
+        """Release what ``setup`` took (a process pool, a database), however the service stops."""
 
     def next_seq(self, topic: Topic[Any]) -> int:
         """The node's sequence number for its next message on ``topic`` (DESIGN §3: per key)."""
@@ -151,7 +155,10 @@ def node_main(cls: type[Node]) -> Callable[[ServiceContext], Coroutine[Any, Any,
     async def main(ctx: ServiceContext) -> None:
         node = cls(ctx)
         await node.setup()
-        await serve_node(node)
+        try:
+            await serve_node(node)
+        finally:
+            await node.close()
 
     return main
 

@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 
 from common.decision import k_for_path
-from common.motion import Event, IllegalTransition, Motion, State, transition
+from common.motion import Event, IllegalTransition, Motion, State, mode_of, transition
 from common.runtime.bus import Bus, QueryError, Request
 from common.runtime.clock import Clock
 from common.runtime.errors import TrajectoryRejected
@@ -125,7 +125,6 @@ class Executor:
         )
         self.path_id: str | None = None
         self.k: int | None = None
-        self.mode = "idle"
         self.waiting_for: str | None = None
         self.events_out = ctx.bus.publisher(ROBOT_EVENT)
         self.states_out = ctx.bus.publisher(ROBOT_STATE)
@@ -250,7 +249,6 @@ class Executor:
 
     async def resume(self, who: str) -> RobotEvent:
         self.fire(Event.RESUME, who)
-        self.mode = "recovering"
         try:
             await asyncio.to_thread(self.backend.reset_fault)
             fault = self.backend.fault()
@@ -260,7 +258,6 @@ class Executor:
             self.fire(Event.RECOVERY_FAILED, f"{fault} (resume failed)")
         else:
             self.fire(Event.RECOVERED, who)
-        self.mode = "idle"
         return self.event("state", f"{self.motion.state}: {self.motion.reason}", self.path_id, repeat=True)
 
     async def while_stopped(self) -> bool:
@@ -269,7 +266,6 @@ class Executor:
         configured, resumes after its back-off. False when the service stops."""
         delay = 1.0
         while self.motion.state in STOPPED_STATES and not self.ctx.stop.is_set():
-            self.mode = "fault"
             wait_s = 5.0
             if self.motion.state is State.STOPPED and self.backend.link_lost():
                 try:
@@ -299,7 +295,6 @@ class Executor:
                     continue
             self.state_changed.clear()
             await first_of(self.state_changed.wait(), self.ctx.stop.wait(), asyncio.sleep(wait_s))
-        self.mode = "idle"
         return not self.ctx.stop.is_set()
 
     # --- telemetry ----------------------------------------------------------------------------------
@@ -337,7 +332,7 @@ class Executor:
                 tcp=self.backend.tcp_pose().tolist(),
                 path_id=self.path_id,
                 k=self.k,
-                mode=self.mode,
+                mode=mode_of(self.motion.state),
                 waiting_for=self.waiting_for,
                 state=self.motion.state,
                 reason=self.motion.reason[:4000],
@@ -388,11 +383,9 @@ class Executor:
             "info", f"the arm is {off:.4f} rad from the start of '{path_id}': moving there slowly", path_id
         )
         self.fire(Event.MOVE, f"moving slowly to the start of '{path_id}'")
-        self.mode = "moving_to_start"
         ok = await asyncio.to_thread(
             self.backend.move_j, q_start, self.settings.start_speed, self.settings.start_acceleration
         )
-        self.mode = "idle"
         arrived = (
             float(np.max(np.abs(self.backend.actual_q() - q_start))) <= self.settings.start_tolerance_rad
         )
@@ -424,7 +417,6 @@ class Executor:
                 continue
             s = self.sets.sets.get(pid)
             if s is None:
-                self.mode = "waiting"
                 self.event("refused", f"no Pareto set for '{pid}' yet; waiting for the store", pid)
                 self.fire(Event.SET_MISSING, f"no Pareto set for '{pid}'")
                 await self.until_changed()
@@ -440,7 +432,6 @@ class Executor:
                     np.array(s.waypoints),
                 )
             except TrajectoryRejected as exc:
-                self.mode = "refused"
                 self.event("refused", f"k = {k}: {exc}", pid)
                 self.fire(Event.REFUSE, f"k = {k} of '{pid}' refused")
                 self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
@@ -456,12 +447,11 @@ class Executor:
                 log.warning("%s", exc)
                 continue
             await asyncio.to_thread(self.store.applied, self.selection)
-            self.path_id, self.k, self.mode = pid, k, "moving"
+            self.path_id, self.k = pid, k
             targets = self.backend.prepare(q)
             settle = round(self.settings.settle_s * RATE_HZ)
             result: MotionResult = await asyncio.wrap_future(self.loop.run(targets, settle))
             await asyncio.to_thread(self.backend.motion_ended)
-            self.mode = "idle"
             self.ctx.counters["paths"] += 1
             self.ctx.counters["overruns"] = self.loop.overruns
             if result.overruns:
@@ -526,9 +516,9 @@ class Executor:
                     await first_of(self.clock.sleep(step.wait), self.ctx.stop.wait())
                 elif step.wait_for is not None and self.settings.wait_for_signals:
                     self.fire(Event.WAIT_OPERATOR, f"waiting for '{step.wait_for}'")
-                    self.mode, self.waiting_for = "waiting", step.wait_for
+                    self.waiting_for = step.wait_for
                     got = await self.wait_for(step, cycle)
-                    self.mode, self.waiting_for = "idle", None
+                    self.waiting_for = None
                     if got == "stopped":
                         return
                     self.fire(Event.OPERATOR)

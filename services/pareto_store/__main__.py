@@ -10,6 +10,7 @@ import multiprocessing
 import os
 import sys
 import time
+from collections.abc import AsyncIterator
 from concurrent.futures import ProcessPoolExecutor
 from typing import Annotated
 
@@ -18,8 +19,9 @@ import msgspec
 from common.runtime.bus import QueryError, Request
 from common.runtime.config import CommonSettings
 from common.runtime.lifetime import die_with_parent
+from common.runtime.node import Node, Out, answers, node_main
 from common.runtime.resources import EXAMPLE_TASK
-from common.runtime.service import ServiceContext, service_main
+from common.runtime.service import service_main
 from common.trajectory.planner import content_hash
 from common.trajectory.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
@@ -70,87 +72,77 @@ def answer_solution(
     )
 
 
-async def main(ctx: ServiceContext) -> None:
-    settings: Settings = ctx.settings
-    task = load_task(settings.task)
-    store, problem = await asyncio.to_thread(SetStore.open, ctx.common.data_path / "pareto.sqlite")
-    if problem:
-        log.error("%s", problem)
-        ctx.detail = problem
-    sets: dict[str, ParetoSet] = {}
-    digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
-    for pid, digest in digests.items():
-        stored = await asyncio.to_thread(store.load, pid, digest)
-        if stored is not None:
-            sets[pid] = stored
-    progress_out = ctx.bus.publisher(PLAN_PROGRESS)
-    reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
+class ParetoStore(Node):
+    role = NAME
 
-    def progress(pid: str, state: PlanState, message: str = "") -> None:
-        done = sum(1 for p in task.paths if p in sets)
-        progress_out.put(
-            PlanProgress(
-                t_ns=time.time_ns(),
-                seq=progress_out.next_seq(),
-                path_id=pid,
-                state=state,
-                done_paths=done,
-                total_paths=len(task.paths),
-                message=message,
-            ),
+    async def setup(self) -> None:
+        self.task = task = load_task(self.ctx.settings.task)
+        self.store, problem = await asyncio.to_thread(
+            SetStore.open, self.ctx.common.data_path / "pareto.sqlite"
         )
+        if problem:
+            log.error("%s", problem)
+            self.ctx.detail = problem
+        self.sets: dict[str, ParetoSet] = {}
+        self.digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
+        for pid, digest in self.digests.items():
+            if (stored := await asyncio.to_thread(self.store.load, pid, digest)) is not None:
+                self.sets[pid] = stored
+        self.reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
+        # started from this (the loop's) thread; a worker outlives no store, however it ends
+        self.pool = ProcessPoolExecutor(max_workers=self.ctx.settings.workers,
+                                        mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=die_with_parent, initargs=(os.getpid(),))  # fmt: skip
 
-    async def on_set(req: Request) -> ParetoSet:
-        ctx.counters["queries"] += 1
-        return answer_set(sets, task, _chunks(ctx.common.cell, req)[0])
+    def progress(self, pid: str, state: PlanState, message: str = "") -> PlanProgress:
+        done = sum(1 for p in self.task.paths if p in self.sets)
+        return PlanProgress(t_ns=time.time_ns(), seq=self.next_seq(PLAN_PROGRESS), path_id=pid, state=state,
+                            done_paths=done, total_paths=len(self.task.paths), message=message)  # fmt: skip
 
-    async def on_solution(req: Request) -> ParetoSolutionReply:
-        ctx.counters["queries"] += 1
-        path_id, k = _chunks(ctx.common.cell, req)
-        return answer_solution(sets, task, path_id, k, next(reply_seq))
+    @answers(PARETO_SET)
+    async def on_set(self, req: Request) -> ParetoSet:
+        self.ctx.counters["queries"] += 1
+        return answer_set(self.sets, self.task, _chunks(self.ctx.common.cell, req)[0])
 
-    ctx.bus.serve(PARETO_SET, on_set)
-    ctx.bus.serve(PARETO_SOLUTION, on_solution)
-    for pid in sets:
-        progress(pid, "stored")
-    missing = [pid for pid in task.paths if pid not in sets]
-    # started from this (the loop's) thread by submit(); a worker outlives no store, however it ends
-    pool = ProcessPoolExecutor(
-        max_workers=settings.workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=die_with_parent,
-        initargs=(os.getpid(),),
-    )
-    try:
-        for pid in missing:
-            progress(pid, "running")
-            ctx.state = f"planning {pid}"
+    @answers(PARETO_SOLUTION)
+    async def on_solution(self, req: Request) -> ParetoSolutionReply:
+        self.ctx.counters["queries"] += 1
+        path_id, k = _chunks(self.ctx.common.cell, req)
+        return answer_solution(self.sets, self.task, path_id, k, next(self.reply_seq))
+
+    async def stream(self) -> AsyncIterator[Out]:
+        """Plans what SQLite does not hold, one path at a time, saying how far it got."""
+        yield [self.progress(pid, "stored") for pid in self.sets]
+        for pid in [pid for pid in self.task.paths if pid not in self.sets]:
+            self.ctx.state = f"planning {pid}"
+            yield [self.progress(pid, "running")]
             try:
-                future = pool.submit(plan_job, task.paths[pid], task, task.planner, digests[pid])
-                lower_priority(pool)
-                msg = await asyncio.wrap_future(future)
+                future = self.pool.submit(plan_job, self.task.paths[pid], self.task, self.task.planner,
+                                          self.digests[pid])  # fmt: skip
+                lower_priority(self.pool)
                 # what is stored and served passes the schema's checks, as any receiver will apply them
-                msg = validated(msg)
+                msg = validated(await asyncio.wrap_future(future))
             except Exception as exc:  # a path that cannot be planned must not stop the others
                 log.exception("planning %s failed", pid)
-                ctx.counters["plan_failures"] += 1
-                progress(pid, "failed", str(exc))
+                self.ctx.counters["plan_failures"] += 1
+                yield [self.progress(pid, "failed", str(exc))]
                 continue
-            await asyncio.to_thread(store.save, msg)
-            sets[pid] = msg
-            ctx.counters["computed"] += 1
-            progress(pid, "done")
-            if ctx.stop.is_set():
-                break
-        ctx.state = "serving"
-        await ctx.stop.wait()
-    finally:
-        # A plan still in flight is abandoned: its worker is ended, not waited for.
-        workers = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
+            await asyncio.to_thread(self.store.save, msg)
+            self.sets[pid] = msg
+            self.ctx.counters["computed"] += 1
+            yield [self.progress(pid, "done")]
+        self.ctx.state = "serving"
+
+    async def close(self) -> None:
+        """A plan still in flight is abandoned: its worker is ended, not waited for."""
+        workers = list((getattr(self.pool, "_processes", None) or {}).values())
+        self.pool.shutdown(wait=False, cancel_futures=True)
         for proc in workers:
             proc.terminate()
-        store.close()
+        self.store.close()
+
+
+main = node_main(ParetoStore)
 
 
 def prepare(settings: Settings, common: CommonSettings) -> None:
