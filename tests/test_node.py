@@ -179,6 +179,41 @@ async def test_the_analysers_handlers_window_a_record_and_drop_a_chunk_out_of_li
     assert ctx.counters["windows"] == 3 and ctx.counters["beats"] > 100
 
 
+@pytest.mark.asyncio
+async def test_a_replay_waits_for_its_reader_sends_every_chunk_and_then_stops_its_service(
+    tmp_path: Path,
+) -> None:
+    """The gateway as a node on the mock bus: nothing before a reader of ecg/samples is there (a recording
+    is worth nothing to nobody), then every 73-sample chunk in order, then the service ends by itself."""
+    import numpy as np
+
+    from schemas.ecg import EcgChunk
+    from services.ecg_gateway.__main__ import EcgGateway
+    from services.ecg_gateway.__main__ import Settings as GatewaySettings
+
+    csv = tmp_path / "ecg.csv"
+    t = np.arange(0, 20, 1 / 130)
+    np.savetxt(csv, np.c_[t, 1000 * np.exp(-(((t % 0.8) - 0.4) ** 2) / 2e-4)], delimiter=",")
+    network, stop = MockNetwork(), asyncio.Event()
+    service = MockBus(role="ecg_gateway", network=network)
+    common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
+    task = asyncio.ensure_future(
+        serve("ecg_gateway", node_main(EcgGateway), common, None, GatewaySettings(record=str(csv), speed=0.0),  # type: ignore[arg-type]
+              stop, install_signals=False, bus=service)
+    )  # fmt: skip
+    async with MockBus(network=network) as test:
+        async with asyncio.timeout(10):
+            while not any(k.endswith("/health/ecg_gateway") for k, _ in network.sent):
+                await asyncio.sleep(0)  # its first status: it runs, and has sent no ECG
+        assert not any(k.endswith("/ecg/samples") for k, _ in network.sent)
+        sub = test.subscribe(test.key("ecg/samples"), EcgChunk, maxsize=10_000)
+        got = [(await sub.receive(10))[1] for _ in range(-(-len(t) // 73))]
+        async with asyncio.timeout(10):
+            await task  # the replay ended: so did the service
+    assert [c.seq for c in got] == list(range(len(got))) and sum(len(c.samples_uv) for c in got) == len(t)
+    assert [c.t_ns - got[0].t_ns for c in got] == [round(i * 73 * 1e9 / 130) for i in range(len(got))]
+
+
 def test_a_node_is_held_to_its_roles_declaration() -> None:
     class Foreign(Node):  # the analyser does not read the calibration in the graph
         role = "hrv_analyser"

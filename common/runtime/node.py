@@ -88,9 +88,16 @@ class Node:
     port opens (state from disk); ``reads`` leaves out a declared input the settings do not use."""
 
     role: ClassVar[str]
+    ends_with_stream: ClassVar[bool] = False  # a replay that has ended stops its service
 
     def __init__(self, ctx: ServiceContext) -> None:
         self.ctx = ctx
+        self._readers: dict[str, Callable[[float], Awaitable[None]]] = {}
+
+    async def until_read(self, topic: Topic[Any], timeout_s: float) -> None:
+        """Until a reader of one of the node's outputs is there (Zenoh drops a put nobody subscribes to
+        yet); ``TimeoutError`` after ``timeout_s``. A recording is worth nothing to nobody."""
+        await self._readers[topic.suffix](timeout_s)
 
     async def setup(self) -> None:
         """Load what the node resumes from; its ports open after this."""
@@ -167,6 +174,7 @@ async def serve_node(node: Node) -> None:
     ctx, bus = node.ctx, node.ctx.bus
     role = ROLE[node.role]
     outputs = {t.message: bus.publisher(t) for t in role.outputs if "*" not in t.suffix}
+    node._readers = {p.topic.suffix: p.until_subscribed for p in outputs.values()}
 
     def publish(msgs: Out | None) -> None:
         for msg in msgs or ():
@@ -219,11 +227,16 @@ async def serve_node(node: Node) -> None:
                 break
 
     timers = [tick(getattr(node, name), period) for period, name in handlers(type(node), _TIMER).values()]
-    tasks = [asyncio.ensure_future(t) for t in (*timers, source(), ctx.stop.wait())]
-    try:  # until the service stops; a source that fails stops it (its supervisor restarts it)
-        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
-        for t in done:
-            t.result()
+    streaming, stopped = asyncio.ensure_future(source()), asyncio.ensure_future(ctx.stop.wait())
+    tasks = [*(asyncio.ensure_future(t) for t in timers), streaming, stopped]
+    try:  # until the service stops; a stream that fails stops it (its supervisor restarts it)
+        pending = set(tasks)
+        while pending:
+            done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+            for t in done:
+                t.result()
+            if stopped in done or (streaming in done and node.ends_with_stream):
+                break
     finally:
         for t in tasks:
             t.cancel()

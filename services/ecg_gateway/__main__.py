@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import AsyncIterator
 from typing import Annotated, Literal
 
 import msgspec
 
 from common.runtime.config import CommonSettings
 from common.runtime.errors import ConfigError
-from common.runtime.service import ServiceContext, first_of, service_main
+from common.runtime.node import Node, Out, node_main
+from common.runtime.service import service_main
 from schemas.base import TimeNs
 from schemas.ecg import EcgChunk, RrIntervals
 from schemas.topology import ECG_RR, ECG_SAMPLES
@@ -41,40 +43,36 @@ def make_source(settings: Settings) -> EcgSource:
     return ReplaySource(settings.record, settings.speed, settings.start_ns)
 
 
-async def main(ctx: ServiceContext) -> None:
-    source = make_source(ctx.settings)
-    samples_out, rr_out = ctx.bus.publisher(ECG_SAMPLES), ctx.bus.publisher(ECG_RR)
-    if source.waits_for_listener:
-        ctx.state = "waiting for a subscriber of ecg/samples"
-        try:
-            await first_of(samples_out.until_subscribed(LISTENER_WAIT_S), ctx.stop.wait())
-        except TimeoutError:
-            log.warning(
-                "nobody subscribes to %s after %.0f s: replaying anyway", samples_out.key, LISTENER_WAIT_S
-            )
-        if ctx.stop.is_set():
-            return
-        ctx.state = "running"
-    async for chunk in source.chunks():
-        if isinstance(chunk, RrChunk):
-            rr_out.put(
-                RrIntervals(t_ns=chunk.t_ns, seq=rr_out.next_seq(), rr_s=chunk.rr_s, source=source.name)
-            )
-            continue
-        ecg = EcgChunk(
-            t_ns=chunk.t_ns,
-            seq=samples_out.next_seq(),
-            fs_hz=FS_HZ,
-            samples_uv=chunk.samples_uv,
-            gap=chunk.gap,
-            source=source.name,
-        )
-        samples_out.put(ecg)
-        ctx.counters["chunks"] = samples_out.seq
-        ctx.counters["gaps"] += int(chunk.gap)
-        if ctx.stop.is_set():
-            break
-    ctx.state = "source ended"
+class EcgGateway(Node):
+    role = NAME
+    ends_with_stream = True
+
+    async def setup(self) -> None:
+        self.source = make_source(self.ctx.settings)
+
+    async def stream(self) -> AsyncIterator[Out]:
+        if self.source.waits_for_listener:
+            self.ctx.state = "waiting for a subscriber of ecg/samples"
+            try:
+                await self.until_read(ECG_SAMPLES, LISTENER_WAIT_S)
+            except TimeoutError:
+                log.warning(
+                    "nobody subscribes to ecg/samples after %.0f s: replaying anyway", LISTENER_WAIT_S
+                )
+            self.ctx.state = "running"
+        name = self.source.name
+        async for chunk in self.source.chunks():
+            if isinstance(chunk, RrChunk):
+                yield [RrIntervals(t_ns=chunk.t_ns, seq=self.next_seq(ECG_RR), rr_s=chunk.rr_s, source=name)]
+                continue
+            self.ctx.counters["chunks"] += 1
+            self.ctx.counters["gaps"] += int(chunk.gap)
+            yield [EcgChunk(t_ns=chunk.t_ns, seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ,
+                            samples_uv=chunk.samples_uv, gap=chunk.gap, source=name)]  # fmt: skip
+        self.ctx.state = "source ended"
+
+
+main = node_main(EcgGateway)
 
 
 def prepare(settings: Settings, common: CommonSettings) -> None:
