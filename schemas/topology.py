@@ -14,6 +14,7 @@ Everything else is derived from this table, so nothing can disagree with it:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from typing import Any, Generic, Literal, TypeVar
 
@@ -48,13 +49,30 @@ class Topic(Generic[M]):
     message: type[M]
     pattern: Pattern = "topic"
     qos: QoS = "block"
-    publishers: tuple[str, ...] = ()  # for a query: the roles that answer it
-    subscribers: tuple[str, ...] = ()  # the roles that act on it (tools read everything anyway)
-    askers: tuple[str, ...] = ()  # roles that may query it (a topic's publisher also answers queries)
+    family: str = ""  # the suffix as declared, wildcards unfilled (a member's, ``at``, is its family's)
+
+    def __post_init__(self) -> None:
+        if not self.family:
+            object.__setattr__(self, "family", self.suffix)
 
     def at(self, *chunks: str) -> Topic[M]:
         """One member of a family (``PARETO_SET.at("b1_to_b2")``): the wildcards filled in order."""
         return replace(self, suffix=fill(self.suffix, chunks))
+
+    @property
+    def publishers(self) -> tuple[str, ...]:
+        """The roles that publish it (for a query: that answer it)."""
+        return _view(self.family)[0]
+
+    @property
+    def subscribers(self) -> tuple[str, ...]:
+        """The roles that act on it (tools read everything anyway)."""
+        return _view(self.family)[1]
+
+    @property
+    def askers(self) -> tuple[str, ...]:
+        """The roles that may query it (a topic's publisher also answers queries)."""
+        return _view(self.family)[2]
 
 
 ECG_SAMPLES = Topic("ecg/samples", EcgChunk)
@@ -140,41 +158,20 @@ ROLE = {r.name: r for r in ROLES}
 SERVICES = tuple(r.name for r in ROLES if r.kind == "service")
 
 
-def _derived(t: Topic[M]) -> Topic[M]:
-    """A topic with the roles that publish, read and ask it, from the roles' declarations."""
+@functools.cache
+def _view(family: str) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
+    """(publishers, subscribers, askers) of a topic, read off the roles' declarations."""
 
     def having(ports: str) -> tuple[str, ...]:
-        return tuple(r.name for r in ROLES if any(p.suffix == t.suffix for p in getattr(r, ports)))
+        return tuple(r.name for r in ROLES if any(p.family == family for p in getattr(r, ports)))
 
     publishers = (
-        SERVICES if t.suffix == "health/*" else tuple(dict.fromkeys(having("outputs") + having("answers")))
+        SERVICES if family == "health/*" else tuple(dict.fromkeys(having("outputs") + having("answers")))
     )
-    return replace(t, publishers=publishers, subscribers=having("inputs"), askers=having("asks"))
+    return publishers, having("inputs"), having("asks")
 
 
-TOPICS: tuple[Topic[Any], ...] = tuple(
-    _derived(t)
-    for t in (
-        ECG_SAMPLES,
-        ECG_RR,
-        HRV_BEATS,
-        HRV_WINDOW,
-        CALIBRATION,
-        OPERATOR_SIGNAL,
-        OPERATOR_ERROR,
-        SELECTION,
-        DECISION_CONDITION,
-        PLAN_PROGRESS,
-        PARETO_SET,
-        PARETO_SOLUTION,
-        ROBOT_STATE,
-        ROBOT_CYCLE,
-        ROBOT_EVENT,
-        ROBOT_RESUME,
-        HEALTH,
-    )
-)
-(
+TOPICS: tuple[Topic[Any], ...] = (
     ECG_SAMPLES,
     ECG_RR,
     HRV_BEATS,
@@ -192,21 +189,7 @@ TOPICS: tuple[Topic[Any], ...] = tuple(
     ROBOT_EVENT,
     ROBOT_RESUME,
     HEALTH,
-) = TOPICS
-_TOPIC = {t.suffix: t for t in TOPICS}
-
-
-def _pointed(r: Role) -> Role:
-    """The role with the derived topics, so that a port opened from its declaration carries them."""
-
-    def of(ts: tuple[Topic[Any], ...]) -> tuple[Topic[Any], ...]:
-        return tuple(_TOPIC[t.suffix] for t in ts)
-
-    return replace(r, inputs=of(r.inputs), outputs=of(r.outputs), answers=of(r.answers), asks=of(r.asks))
-
-
-ROLES = tuple(_pointed(r) for r in ROLES)
-ROLE = {r.name: r for r in ROLES}
+)
 # a cell runs one of them: the gateway (a strap, a replay) or the operator twin
 ECG_SOURCES = tuple(p for p in ECG_SAMPLES.publishers if p in SERVICES)
 
