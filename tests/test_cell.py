@@ -179,6 +179,16 @@ def test_the_dry_run_prints_every_file_and_no_secret() -> None:
     assert "PRIVATE KEY" not in out and '"password"' not in out and "_base64" not in out
     # every key of every section is in the config: set, or commented at its default
     assert "# fifo_priority = 80" in out and "# window_s = 30.0" in out
+    # one ECG source: the strap's gateway here; the operator twin, in its place, for --strap twin
+    assert "cadence-ecg_gateway.service" in out and "operator_twin" not in out
+    twin = subprocess.run(
+        [sys.executable, "-m", "cadence", "install", "--robot", "sim", "--strap", "twin", "--dry-run"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "cadence-operator_twin.service" in twin and "[operator_twin]" in twin
+    assert "cadence-ecg_gateway.service" not in twin and "[ecg_gateway]" not in twin
 
 
 def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Path) -> None:
@@ -239,6 +249,7 @@ def test_a_child_dies_with_its_parent_even_on_sigkill() -> None:
         (["--join", "/nonexistent/cell.json"], "/nonexistent/cell.json: (file)"),
         (["--cell", "cell 1/x"], "--cell 'cell 1/x': letters, digits"),
         (["--robot", "ur16 e"], "--robot 'ur16 e': a host name"),
+        (["--strap", "twin", "--services", "ecg_gateway"], "--services ecg_gateway: with --strap twin"),
     ],
 )
 def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str) -> None:
