@@ -1,4 +1,4 @@
-"""``cadence install`` and ``cadence uninstall``: a robot cell in one command (issue 16).
+"""``cadence install`` and ``cadence uninstall``: a robot cell in one command.
 
 What it writes (every file is in the manifest, ``/etc/cadence/installed.json``, so uninstall removes
 exactly that and keeps the data folder):

@@ -146,7 +146,7 @@ def routine_change(from_state: str | None, to_state: str | None) -> bool:
 def idle_spans(events: Sequence[Mapping[str, object]], end_s: float) -> list[tuple[float, float, str]]:
     """(start, end, state) of each span in which the robot was out of normal work (stopped, recovering,
     waiting for a selection …), from the ``robot/event`` state changes of a run (``t_s`` and ``to``, the
-    state entered), so that a figure never shows adaptation that did not move the arm (issue 28). A span
+    state entered), so that a figure never shows adaptation that did not move the arm. A span
     still open at the end closes at ``end_s``."""
     spans: list[tuple[float, float, str]] = []
     open_at: tuple[float, str] | None = None

@@ -21,7 +21,7 @@ Posture = Literal["rest", "working"]
 class Calibration(Message, frozen=True, tag="operator.calibration.v1"):
     """The baseline mean RR (RR_r) and its spread for one subject (paper §III-B); stress values derive
     from them. ``rr_rest_s`` is the baseline the decision uses, taken in ``posture``: at rest as the
-    paper does, or at work (issue 26: standing and moving lower RR as much as a maths test, so a worker
+    paper does, or at work (standing and moving lower RR as much as a maths test, so a worker
     calibrated seated who stands to work is read as stressed). A working calibration keeps the level
     at rest it replaced in ``rr_resting_s``."""
 

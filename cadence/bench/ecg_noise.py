@@ -1,4 +1,4 @@
-"""Noisy variants of a recording, as a chest strap at work gives them (issue 19): white noise at a given
+"""Noisy variants of a recording, as a chest strap at work gives them: white noise at a given
 signal-to-noise ratio, baseline wander (breathing and slow drift) and motion bursts (electrode motion:
 a few seconds of large low-frequency artefact). Seeded, so a benchmark's variants are the same in every
 run."""

@@ -1,6 +1,6 @@
-"""How the cleaning's thresholds were chosen, and how they do on records they were not chosen on (issue 26).
+"""How the cleaning's thresholds were chosen, and how they do on records they were not chosen on.
 
-Thresholds picked on the records they are scored on overfit: the cleaning of issue 19 met every target on
+Thresholds picked on the records they are scored on overfit: an earlier cleaning met every target on
 its 8 records and held a third of the windows of unseen normal rhythms. So every threshold of ``Rules``
 is chosen by leave-one-out cross-validation over *units*: an annotated ECG record (all its noise variants,
 ECG and strap-RR pipelines), or a GUDB subject (all four activities). For each unit in turn, the grid

@@ -1,4 +1,4 @@
-"""How far the windows a pipeline marks good are from the truth, on annotated records (issue 19).
+"""How far the windows a pipeline marks good are from the truth, on annotated records.
 
 Alg. 1 moves k one step for each Δ_rs = 20 ms of mean RR, so what matters is not the F1 of the beats but
 the error of each window that is allowed to move k. The truth of a window is the mean of the annotated
@@ -112,7 +112,7 @@ class WindowError:
 
 @dataclass
 class WindowScore:
-    """The figures of issue 19's table for one pipeline over a set of records."""
+    """The figures of the windows table (README, HRV windows) for one pipeline over a set of records."""
 
     name: str
     good: list[WindowError] = field(default_factory=list)

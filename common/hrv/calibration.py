@@ -53,7 +53,7 @@ class GradedWindow(Protocol):
 
 @dataclass(frozen=True, slots=True)
 class Verdict:
-    """Whether this person's ECG can be read: the one screen after a calibration (issue 26). A strap
+    """Whether this person's ECG can be read: the one screen after a calibration. A strap
     that gives no good window is never a silent 100 % hold: ``problem`` says why, in words."""
 
     good: int

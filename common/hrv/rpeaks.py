@@ -46,7 +46,7 @@ class Peak(NamedTuple):
     amplitude and then to this person's own usual level of it (a burst of noise in which beats may be
     hidden or invented; 0 for a segment's first).
 
-    Both are relative to the person (issue 26): a bundle branch block's wide QRS and large T wave put a
+    Both are relative to the person: a bundle branch block's wide QRS and large T wave put a
     band-passed excursion between beats as high as the QRS itself in every beat (MIT-BIH 109), so the
     excursion counts against the median of the last NOISE_BEATS, not against a fixed share of the QRS;
     and a QRS with two peaks of like height (rSR', 118) is located on either from beat to beat, so a

@@ -3,9 +3,9 @@
 Why cleaning is not optional: one missed or extra beat moves a 30 s window's mean RR by about 20 ms,
 the size of Δ_rs, so one detection error could move k. An interval is excluded when it departs from the
 median of its neighbours by more than the person's own tolerance (``Rules``, ``Level``: what is normal
-is learnt per person, issue 26); its kind says why (``missed``: about twice the median, ``extra``: a
+is learnt per person); its kind says why (``missed``: about twice the median, ``extra``: a
 fragment, ``ectopic``: a premature beat and its compensatory pause). What RR alone
-cannot tell, the ECG around each beat can (issue 19; ``rpeaks.Peak``): a beat whose QRS is unlike the
+cannot tell, the ECG around each beat can (``rpeaks.Peak``): a beat whose QRS is unlike the
 rhythm's own (a ventricular beat only mildly early, a spike of noise) takes both its intervals with it
 (``unlike``), and so does a burst of noise between two beats (``noise``). A window in which noise and
 excluded beats meet is held: where beats are hidden in noise, even the annotators' truth disagrees on
@@ -43,7 +43,7 @@ class Rules:
     annotated records and the GUDB subjects (``cadence bench hrv --windows --cv``; README, "HRV
     windows"), never on the record they are scored on; a bench passes other values to compare.
 
-    What a healthy heart does differs from person to person (issue 26): a breathing rhythm swings RR by
+    What a healthy heart does differs from person to person: a breathing rhythm swings RR by
     ±10-20 % in a few beats. So the departure that excludes an interval is the larger of ``tolerance``
     and ``spread`` times the person's own median departure from the local median (up to
     ``tolerance_max``), and a mildly early beat (``premature``, then a pause of ``pause``) is ectopic

@@ -63,7 +63,7 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         if cfg.listen:
             conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
         elif not isinstance(json.loads(conf.get_json("listen/endpoints")), list):
-            # Zenoh's own default listens on every interface, with no authentication (issue 16)
+            # Zenoh's own default listens on every interface, with no authentication
             conf.insert_json5("listen/endpoints", json.dumps(LOOPBACK_LISTEN))
         if cfg.connect:
             conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))

@@ -1,4 +1,4 @@
-"""What a deployed cell is made of, as pure functions (issue 16): the bus's accounts and the router's
+"""What a deployed cell is made of, as pure functions: the bus's accounts and the router's
 access control, derived from the topology so the two can never disagree; the Zenoh configs of the router
 and of each client; the commented deployment config. ``cadence install`` writes what these return.
 

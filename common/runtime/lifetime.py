@@ -1,4 +1,4 @@
-"""Children die with their parent (issue 16): a SIGKILLed store left its planning worker running for ever
+"""Children die with their parent: a SIGKILLed store left its planning worker running for ever
 (PPID 1, 100 MB), and a SIGKILLed ``cadence demo`` left five services as orphans. Linux's parent-death
 signal asks the kernel itself, so it holds whatever way the parent went: no pipe to watch, no timer.
 """

@@ -1,6 +1,6 @@
 """Where the files that ship with Cadence are: the example task and the deploy templates. In a checkout
 they are ``deploy/``; in an installed wheel, ``cadence/deploy/`` (pyproject's force-include). Nothing
-else may build a path from the checkout's layout, or an installed ``cadence`` breaks (issue 16)."""
+else may build a path from the checkout's layout, or an installed ``cadence`` breaks."""
 
 from __future__ import annotations
 

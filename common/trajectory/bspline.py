@@ -319,7 +319,7 @@ def _cubic_root_in_bracket(c0: Array, c1: Array, c2: Array, c3: Array, a: Array,
 
 def span_maxima(h: Array, taylor: Array, per_span: bool = False) -> Array:
     """Exact max over t of |q'|, |q''|, |q'''| per joint: (P, 3, D), or (P, 3, S, D) per knot span
-    with ``per_span``. No sampling (issue 10).
+    with ``per_span``. No sampling.
 
     On a span the maximum of |p| is at an end or at a root of p' inside it. Jerk (quadratic): its
     vertex. Acceleration (cubic): the real roots of the jerk, closed form. Velocity (quartic): the roots

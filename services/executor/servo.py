@@ -15,8 +15,8 @@ A simulated arm (``realtime=False``) has no controller waiting on the wall clock
 it was sent, one controller step each, however close together they come. A late tick is still counted as
 an overrun (the host's timing, reported as ever), but no run of them stops the arm: the ticks after a
 stall come at once until the loop is back on its deadlines, so the arm keeps the pace of the data time
-the rest of the cell runs on, and a host too slow for the speed slows the arm and never stops it
-(issue 28). A real robot (``ur_rtde``, the emulator) keeps the overrun stop exactly as it is.
+the rest of the cell runs on, and a host too slow for the speed slows the arm and never stops it. A
+real robot (``ur_rtde``, the emulator) keeps the overrun stop exactly as it is.
 """
 
 from __future__ import annotations
