@@ -266,7 +266,8 @@ class Bus:
         tried = ", ".join(self.cfg.connect) or "no endpoint to connect to, and multicast scouting is off"
         return f"connected to no router and no peer (connect: {tried})"
 
-    # --- the transport: the only methods that touch the Zenoh session (MockBus replaces them) -------
+    # --- the transport (with _declare_queryable, _query, token, matching, until_subscribed, isolation
+    # and _close_transport below): what touches the Zenoh session, and what MockBus replaces ----------
 
     def _declare_subscriber(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any:
         """``callback(key, payload)`` on the loop thread for each sample; the handle undeclares it."""
@@ -285,11 +286,10 @@ class Bus:
         """Check a port against the graph and remember it (the graph test reads ``ports``)."""
         if self.role is None:
             return
-        acting = self.role
         allowed = {"publish": may_publish, "subscribe": may_subscribe, "ask": may_ask}[kind]
-        if not allowed(acting, topic):
-            raise BusError(f"the graph does not let {acting} {kind} {topic.suffix} (schemas/topology.py)")
-        self.ports.append((kind, acting, topic_of(self.key(topic.suffix)) or topic))  # the family
+        if not allowed(self.role, topic):
+            raise BusError(f"the graph does not let {self.role} {kind} {topic.suffix} (schemas/topology.py)")
+        self.ports.append((kind, self.role, topic_of(self.key(topic.suffix)) or topic))  # the family
 
     def _resolve(
         self,

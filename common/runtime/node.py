@@ -93,6 +93,7 @@ class Node:
     def __init__(self, ctx: ServiceContext) -> None:
         self.ctx = ctx
         self._readers: dict[str, Callable[[float], Awaitable[None]]] = {}
+        self._seqs: dict[str, int] = {}
 
     async def until_read(self, topic: Topic[Any], timeout_s: float) -> None:
         """Until a reader of one of the node's outputs is there (Zenoh drops a put nobody subscribes to
@@ -106,8 +107,8 @@ class Node:
         return True
 
     async def stream(self) -> AsyncIterator[Out]:
-        """What a node sends at its own pace (the twin's ECG, the store's planning progress); the service
-        goes on serving when it ends."""
+        """What a node sends at its own pace (the twin's ECG, the store's planning progress); when it ends
+        the service goes on serving, unless ``ends_with_stream``."""
         return
         yield ()
 
@@ -116,9 +117,8 @@ class Node:
 
     def next_seq(self, topic: Topic[Any]) -> int:
         """The node's sequence number for its next message on ``topic`` (DESIGN §3: per key)."""
-        seqs: dict[str, int] = self.__dict__.setdefault("_seqs", {})
-        seqs[topic.suffix] = seqs.get(topic.suffix, -1) + 1
-        return seqs[topic.suffix]
+        self._seqs[topic.suffix] = self._seqs.get(topic.suffix, -1) + 1
+        return self._seqs[topic.suffix]
 
 
 def handlers(cls: type[Node], mark: str) -> dict[str, tuple[Any, str]]:
