@@ -202,9 +202,8 @@ async def test_a_replay_waits_for_its_reader_sends_every_chunk_and_then_stops_it
               stop, install_signals=False, bus=service)
     )  # fmt: skip
     async with MockBus(network=network) as test:
-        async with asyncio.timeout(10):
-            while not any(k.endswith("/health/ecg_gateway") for k, _ in network.sent):
-                await asyncio.sleep(0)  # its first status: it runs, and has sent no ECG
+        # its first status: it runs, and has sent no ECG
+        await network.until(lambda: any(k.endswith("/health/ecg_gateway") for k, _ in network.sent), 10)
         assert not any(k.endswith("/ecg/samples") for k, _ in network.sent)
         sub = test.subscribe(test.key("ecg/samples"), EcgChunk, maxsize=10_000)
         got = [(await sub.receive(10))[1] for _ in range(-(-len(t) // 73))]

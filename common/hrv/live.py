@@ -49,28 +49,32 @@ class LiveHrv:
         if not chunk.samples_uv:
             return Taken(None)  # nothing to analyse; a gap shows in the next chunk's data time
         end_ns = chunk.t_ns + round(len(chunk.samples_uv) * 1e9 / chunk.fs_hz)
-        taken = self._admit(chunk.t_ns, end_ns, chunk.fs_hz, clock_ns)
-        if taken.verdict is not None and taken.verdict.acted_on:
+        verdict, out = self._admit(chunk.t_ns, end_ns, chunk.fs_hz, clock_ns)
+        if verdict.acted_on:
             stream = self._stream(chunk.fs_hz, chunk.t_ns)
-            taken.out += self._messages(
+            out += self._messages(
                 *stream.feed((chunk.t_ns - self.origin_ns) / 1e9, chunk.samples_uv, chunk.gap)
             )
-        return taken
+        return Taken(verdict, out)
 
     def rr(self, msg: RrIntervals, clock_ns: int) -> Taken:
-        taken = self._admit(msg.t_ns - round(sum(msg.rr_s) * 1e9), msg.t_ns, RR_RESOLUTION_HZ, clock_ns)
-        if taken.verdict is not None and taken.verdict.acted_on:
+        verdict, out = self._admit(
+            msg.t_ns - round(sum(msg.rr_s) * 1e9), msg.t_ns, RR_RESOLUTION_HZ, clock_ns
+        )
+        if verdict.acted_on:
             stream = self._stream(RR_RESOLUTION_HZ, msg.t_ns)
-            taken.out += self._messages(*stream.feed_rr((msg.t_ns - self.origin_ns) / 1e9, msg.rr_s, msg.gap))
-        return taken
+            out += self._messages(*stream.feed_rr((msg.t_ns - self.origin_ns) / 1e9, msg.rr_s, msg.gap))
+        return Taken(verdict, out)
 
-    def _admit(self, start_ns: int, end_ns: int, fs: float, clock_ns: int) -> Taken:
-        """The time line's word; a restart flushes the old stream and starts a new one."""
-        taken = Taken(self.line.admit(start_ns, end_ns, fs, clock_ns=clock_ns))
-        if taken.verdict is not None and taken.verdict.action == "restart" and self.stream is not None:
-            taken.out += self._messages(*self.stream.flush())
-            self.stream = None
-        return taken
+    def _admit(
+        self, start_ns: int, end_ns: int, fs: float, clock_ns: int
+    ) -> tuple[Verdict, list[Beats | HrvWindow]]:
+        """The time line's word, and what a restart flushed of the old stream (a new one starts)."""
+        verdict = self.line.admit(start_ns, end_ns, fs, clock_ns=clock_ns)
+        if verdict.action != "restart" or self.stream is None:
+            return verdict, []
+        flushed, self.stream = self._messages(*self.stream.flush()), None
+        return verdict, flushed
 
     def _stream(self, fs: float, t_ns: int) -> HrvStream:
         if self.stream is None:

@@ -40,6 +40,14 @@ class MockNetwork:
     subscribers: list[_Entry] = field(default_factory=list)
     queryables: list[_Entry] = field(default_factory=list)
     sent: list[tuple[str, bytes]] = field(default_factory=list)
+    changed: asyncio.Event = field(default_factory=asyncio.Event)  # set at each declaration and put
+
+    async def until(self, condition: Callable[[], bool], timeout: float) -> None:
+        """Until ``condition()`` holds, re-checked at each declaration and put; TimeoutError after."""
+        async with asyncio.timeout(timeout):
+            while not condition():
+                self.changed.clear()
+                await self.changed.wait()
 
 
 def _intersects(a: str, b: str) -> bool:
@@ -56,10 +64,12 @@ class MockBus(Bus):
     def _declare_subscriber(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any:
         entry = _Entry(key_expr, callback, self.network, "sub")
         self.network.subscribers.append(entry)
+        self.network.changed.set()
         return entry
 
     def _send(self, key: str, payload: bytes, block: bool) -> None:
         self.network.sent.append((key, payload))
+        self.network.changed.set()
         for entry in list(self.network.subscribers):
             if _intersects(entry.key_expr, key):
                 self.loop.call_soon(entry.callback, key, payload)  # as from Zenoh's thread: later, in order
@@ -87,9 +97,7 @@ class MockBus(Bus):
         return any(_intersects(e.key_expr, key) for e in self.network.subscribers)
 
     async def until_subscribed(self, key: str, timeout: float) -> None:
-        async with asyncio.timeout(timeout):
-            while not self.matching(key):
-                await asyncio.sleep(0)  # the subscriber is declared by another task of this loop
+        await self.network.until(lambda: self.matching(key), timeout)
 
     def token(self, key: str) -> None:
         self._check_open()

@@ -52,8 +52,10 @@ class HrvAnalyser(Node):
         if taken.verdict is not None and taken.verdict.action == "restart":
             self.ctx.counters["stream_restarts"] += 1
         for m in taken.out:
-            self.ctx.counters["beats"] += len(m.rr_s) if isinstance(m, Beats) else 0
-            self.ctx.counters["windows"] += 0 if isinstance(m, Beats) else 1
+            if isinstance(m, Beats):
+                self.ctx.counters["beats"] += len(m.rr_s)
+            else:
+                self.ctx.counters["windows"] += 1
         return taken.out
 
 
