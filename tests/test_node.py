@@ -236,3 +236,54 @@ def _request(parameters: str):
     from common.runtime.bus import Request
 
     return Request("cadence/cell1/decision/condition", parameters)
+
+
+@pytest.mark.asyncio
+async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_clears_it(
+    tmp_path: Path,
+) -> None:
+    """The executor's handlers as methods, no bus: every change of its one state is an event with its from
+    and to, a resume with nothing stopped is refused with the state, a stop ignores a new selection, and
+    robot/state carries the same state once the arm is connected."""
+    from common.motion import Event
+    from common.runtime.bus import Request
+    from schemas import OperatorSignal, RobotEvent, RobotState
+    from services.executor.__main__ import Executor
+    from services.executor.settings import Settings as ExecutorSettings
+
+    settings = ExecutorSettings(lock_dir=str(tmp_path / "locks"), fifo_priority=0, lock_memory=False)
+    ctx = ServiceContext("executor", MockBus(role="executor"), CommonSettings(data_dir=str(tmp_path)),
+                         settings, asyncio.Event())  # fmt: skip
+    node = Executor(ctx)
+    await node.setup()
+    try:
+        assert await node.state() == []  # nothing said about an arm not yet connected
+        with pytest.raises(QueryError, match="nothing to resume: the robot is starting"):
+            await node.resume(Request("cadence/cell1/robot/resume", "by=test"))
+        assert await node.safety.connect()
+        node.connected = True
+        assert node.safety.motion.state == "waiting_for_selection"
+        await node.on_selection(Selection(t_ns=now_ns(), seq=0, k=3, n=15, delta=0, reason="initial"))
+        node.safety.fire(Event.FAULT, "a bump")
+        await node.on_selection(Selection(t_ns=now_ns(), seq=1, k=4, n=15, delta=1, reason="window"))
+        assert (node.safety.motion.state, node.safety.motion.reason) == ("stopped", "a bump")
+        (*_, state) = await node.state()
+        assert isinstance(state, RobotState) and (state.state, state.mode, state.reason) == (
+            "stopped", "fault", "a bump",
+        )  # fmt: skip
+        reply = await node.resume(Request("cadence/cell1/robot/resume", "by=test"))
+        assert reply.message == "ready: resumed by test"
+        changes = [(e.from_state, e.to_state) for e in node.published if isinstance(e, RobotEvent)
+                   and e.kind == "state" and e.from_state is not None]  # fmt: skip
+        assert changes == [
+            ("starting", "waiting_for_selection"),
+            ("waiting_for_selection", "ready"),
+            ("ready", "stopped"),
+            ("stopped", "recovering"),
+            ("recovering", "ready"),
+        ]
+        with pytest.raises(Rejected) as r:  # no step of the example task waits for it
+            await node.on_signal(OperatorSignal(t_ns=now_ns(), seq=0, name="coffee", source="test"))
+        assert r.value.code == "unknown_signal"
+    finally:
+        await node.close()

@@ -88,12 +88,23 @@ class Node:
     port opens (state from disk); ``reads`` leaves out a declared input the settings do not use."""
 
     role: ClassVar[str]
-    ends_with_stream: ClassVar[bool] = False  # a replay that has ended stops its service
+    ends_with_work: ClassVar[bool] = False  # a replay that has ended, a task's last cycle: the service ends
+    # At a stop, ``work`` gets this long to end by itself (the executor brings a moving arm to rest and
+    # says so) before it is cancelled.
+    stop_grace_s: ClassVar[float] = 0.0
 
     def __init__(self, ctx: ServiceContext) -> None:
         self.ctx = ctx
         self._readers: dict[str, Callable[[float], Awaitable[None]]] = {}
         self._seqs: dict[str, int] = {}
+        self.published: list[Message] = []  # what ``publish`` sent while no bus serves the node
+        self._sink: Callable[[Out], None] = self.published.extend
+
+    def publish(self, *msgs: Message) -> None:
+        """Publish now, from work that is not a handler's return (the executor's cycles, its safety
+        states): each message goes to the output of its type. Without a bus (a node's unit test) the
+        messages are kept in ``published``."""
+        self._sink(msgs)
 
     async def until_read(self, topic: Topic[Any], timeout_s: float) -> None:
         """Until a reader of one of the node's outputs is there (Zenoh drops a put nobody subscribes to
@@ -107,10 +118,17 @@ class Node:
         return True
 
     async def stream(self) -> AsyncIterator[Out]:
-        """What a node sends at its own pace (the twin's ECG, the store's planning progress); when it ends
-        the service goes on serving, unless ``ends_with_stream``."""
+        """What a node sends at its own pace (the twin's ECG, the store's planning progress)."""
         return
         yield ()
+
+    async def work(self) -> None:
+        """The node's own work beside its handlers; by default, publishing its ``stream``. When it ends the
+        service goes on serving, unless ``ends_with_work``."""
+        async for out in self.stream():
+            self._sink(out)
+            if self.ctx.stop.is_set():
+                break
 
     async def close(self) -> None:
         """Release what ``setup`` took (a process pool, a database), however the service stops."""
@@ -183,6 +201,8 @@ async def serve_node(node: Node) -> None:
                 raise TypeError(f"{node.role} has no output for {type(msg).__name__} (schemas/topology.py)")
             port.put(msg)
 
+    node._sink = publish
+
     def reader(fn: Callable[[Any], Awaitable[Out | None]]) -> Callable[[str, Any], Awaitable[None]]:
         async def handle(key: str, msg: Any) -> None:
             try:
@@ -220,22 +240,22 @@ async def serve_node(node: Node) -> None:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(ctx.stop.wait(), seconds)
 
-    async def source() -> None:
-        async for out in node.stream():
-            publish(out)
-            if ctx.stop.is_set():
-                break
-
     timers = [tick(getattr(node, name), period) for period, name in handlers(type(node), _TIMER).values()]
-    streaming, stopped = asyncio.ensure_future(source()), asyncio.ensure_future(ctx.stop.wait())
-    tasks = [*(asyncio.ensure_future(t) for t in timers), streaming, stopped]
-    try:  # until the service stops; a stream that fails stops it (its supervisor restarts it)
+    working, stopped = asyncio.ensure_future(node.work()), asyncio.ensure_future(ctx.stop.wait())
+    tasks = [*(asyncio.ensure_future(t) for t in timers), working, stopped]
+    try:  # until the service stops; work that fails stops it (its supervisor restarts it)
         pending = set(tasks)
         while pending:
             done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
             for t in done:
                 t.result()
-            if stopped in done or (streaming in done and node.ends_with_stream):
+            if working in done and node.ends_with_work:
+                break
+            if stopped in done:
+                if not working.done() and node.stop_grace_s > 0:
+                    await asyncio.wait([working], timeout=node.stop_grace_s)
+                    if working.done():
+                        working.result()
                 break
     finally:
         for t in tasks:

@@ -45,7 +45,7 @@ def make_source(settings: Settings) -> EcgSource:
 
 class EcgGateway(Node):
     role = NAME
-    ends_with_stream = True
+    ends_with_work = True
 
     async def setup(self) -> None:
         self.source = make_source(self.ctx.settings)

@@ -15,9 +15,11 @@ from typing import Any, Protocol, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from common.runtime.errors import CadenceError
+from common.runtime.errors import CadenceError, ConfigError
 from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
 from common.trajectory.limits import UR16E, JointLimits
+from common.trajectory.task import Task
+from services.executor.settings import Settings
 
 Array = NDArray[np.float64]
 
@@ -328,3 +330,38 @@ class UrRtdeBackend:
             io.setStandardDigitalOut(self.gripper_output, on)
         finally:
             io.disconnect()
+
+
+def backend_for(settings: Settings, task: Task, speed: float) -> Backend:
+    """The configured backend, not yet connected; a setting it cannot take is a ConfigError at start."""
+    if settings.backend == "ur_rtde":
+        if speed != 1.0:
+            raise ConfigError(f"[executor] backend: a real controller runs at speed 1, not {speed}")
+        try:
+            return UrRtdeBackend(
+                settings.host,
+                lookahead=settings.lookahead_s,
+                gain=settings.gain,
+                stop_deceleration=settings.stop_deceleration,
+                watchdog_hz=settings.watchdog_hz,
+                gripper_output=settings.gripper_output,
+            )
+        except ValueError as exc:
+            raise ConfigError(f"[executor] {exc}") from None
+    first = next(s.move for s in task.cycle if s.move is not None)
+    q0 = (
+        np.radians(settings.sim_start_deg)
+        if settings.sim_start_deg is not None
+        else task.paths[first].waypoints[0]
+    )
+    if len(q0) != 6:
+        raise ConfigError(f"[executor] sim_start_deg: 6 joint angles, got {len(q0)}")
+    return SimBackend(
+        q0,
+        lookahead=settings.lookahead_s,
+        gain=settings.gain,
+        stop_deceleration=settings.stop_deceleration,
+        speed=speed,
+        limits=task.limits,
+        gripper_output=settings.gripper_output,
+    )

@@ -121,9 +121,11 @@ class ServoLoop:
         self._stop = True
 
     def close(self) -> None:
+        """End the thread; a loop never started (the arm was never reached) has nothing to end."""
         self._stop = True
         self._jobs.put(None)
-        self._thread.join(timeout=5.0)
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
 
     def summary(self) -> TickSummary:
         return summarise(self.errors_ns, self.ticks, self.overruns, self.period_ns)

@@ -51,3 +51,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     wait_for_signals: bool = True  # false: `wait_for` steps pass at once (no operator on the bus)
     cycles: Annotated[int, _range(0, 10**9)] = 0  # stop after this many cycles; 0: run until stopped
     sim_start_deg: list[Annotated[float, _range(-360.0, 360.0)]] | None = None  # sim: pose at start
+
+    @property
+    def state_period_s(self) -> float:
+        return 1.0 / self.state_rate_hz

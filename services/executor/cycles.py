@@ -1,0 +1,358 @@
+"""The executor's task program, cycle after cycle (DESIGN §8, §9): each path at the selection current at its
+start, checked against the executor's own limits and waypoints and handed to the servo loop; the task's
+gripper, wait and ``wait_for`` steps; a report per cycle. It never changes the safety state but through the
+supervisor (services/executor/supervisor.py), and a motion starts only from ``ready``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import Counter
+from typing import Literal
+
+import numpy as np
+
+from common.decision import k_for_path
+from common.motion import Event, IllegalTransition, State
+from common.runtime.errors import TrajectoryRejected
+from common.runtime.node import Node, Rejected
+from common.runtime.service import first_of
+from common.trajectory.task import PathPlan, Step, Task
+from common.trajectory.validate import validated_samples
+from schemas.decision import Selection
+from schemas.operator import OperatorError, OperatorSignal
+from schemas.robot import CycleReport
+from schemas.topology import OPERATOR_ERROR, ROBOT_CYCLE, SELECTION
+from services.executor.backends import Backend
+from services.executor.persist import ExecutorStore
+from services.executor.servo import MotionResult, ServoLoop
+from services.executor.sets import SetCache
+from services.executor.settings import Settings
+from services.executor.supervisor import Supervisor
+
+log = logging.getLogger("cadence.executor")
+RATE_HZ = 500.0
+
+
+class Signals:
+    """Operator signals by name. A ``wait_for`` is met by a signal that arrived since the last wait for
+    the same name, so a part put down before the robot got there is not missed. Only the names the task
+    waits for are counted: any other is refused, so a flood of names cannot grow the table."""
+
+    def __init__(self, names: set[str]) -> None:
+        self.names = names
+        self.received: Counter[str] = Counter()
+        self.consumed: Counter[str] = Counter()
+        self.arrived = asyncio.Event()
+
+    def admit(self, sig: OperatorSignal) -> None:
+        if sig.name not in self.names:
+            raise Rejected("unknown_signal", f"no step of the task waits for '{sig.name}'")
+        self.received[sig.name] += 1
+        self.arrived.set()
+
+    async def wait(
+        self, name: str, stop: asyncio.Event, timeout_s: float | None = None
+    ) -> Literal["arrived", "stopped", "late"]:
+        """``timeout_s``: wall seconds to wait at most (a step's deadline at the clock's speed)."""
+        end = None if timeout_s is None else time.monotonic() + timeout_s
+        while self.received[name] <= self.consumed[name]:
+            if stop.is_set():
+                return "stopped"
+            left = None if end is None else end - time.monotonic()
+            if left is not None and left <= 0:
+                return "late"
+            self.arrived.clear()
+            timer = [asyncio.sleep(left)] if left is not None else []
+            await first_of(self.arrived.wait(), stop.wait(), *timer)
+        self.consumed[name] += 1
+        return "arrived"
+
+
+class Cycles:
+    def __init__(self, node: Node, safety: Supervisor, task: Task, backend: Backend, loop: ServoLoop) -> None:
+        self.node, self.ctx, self.safety = node, node.ctx, safety
+        self.task, self.backend, self.loop = task, backend, loop
+        self.settings: Settings = node.ctx.settings
+        self.clock = node.ctx.common.clock
+        self.notes: list[str] = []  # what was wrong with the files on disk, for the status
+        folder = node.ctx.common.data_path / "executor"
+        self.sets = SetCache(node.ctx.bus, folder, task)
+        self.store = ExecutorStore(folder)
+        self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None})
+        self.selection: Selection | None = None
+        self.selection_changed = asyncio.Event()
+        self.k: int | None = None
+        self.waiting_for: str | None = None
+        self.cut_short: int | None = None  # the cycle a restart cut short, said when the cycles start
+
+    def load(self) -> None:
+        """What the last run left on disk: cached sets, the last selection applied, its cycle."""
+        self.sets.load()
+        loaded = self.store.load()
+        self.notes = [p for p in (*self.sets.problems, loaded.problem) if p]
+        self.ctx.detail = "; ".join(self.notes)
+        if loaded.value is not None:
+            self.cut_short = loaded.value.cycle_in_progress
+
+    def select(self, sel: Selection) -> None:
+        if self.selection is None or (sel.t_ns, sel.seq) != (self.selection.t_ns, self.selection.seq):
+            self.selection = sel
+            self.selection_changed.set()
+            self.safety.fire(Event.SELECTION)
+
+    async def start(self) -> None:
+        """Before the first cycle: what a restart cut short, the current selection, the sets."""
+        if self.cut_short is not None:
+            self.safety.event(
+                "info",
+                f"cycle {self.cut_short} of the last run was cut short by a restart; "
+                "it has no report, and cycles count again from 0",
+            )
+        await self.start_selection()
+        await self.sets.fetch_missing(self.settings.query_timeout_s)
+        k = self.selection.k if self.selection is not None else None
+        self.safety.event(
+            "started", f"task '{self.task.name}', {len(self.task.paths)} paths, k = {k if k else 'none yet'}"
+        )
+
+    async def ask_selection(self) -> bool:
+        """Selections are state: ask for the current one at start (DESIGN §11). True when one came."""
+        for r in await self.ctx.bus.get(SELECTION, timeout=self.settings.query_timeout_s):
+            if r.message is not None:
+                self.select(r.message)
+                return True
+        return False
+
+    async def start_selection(self) -> None:
+        """No motion without a current selection: the decision maker's, or, when it cannot be reached, what
+        ``start_selection`` allows. What was chosen, and why, is an event."""
+        if await self.ask_selection():
+            assert self.selection is not None
+            self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
+            return
+        policy = self.settings.start_selection or ("wait" if self.settings.backend == "ur_rtde" else "last")
+        last = self.store.record.selection
+        max_age = self.settings.last_selection_max_age_s
+        unreachable = "the decision maker does not answer"
+        if policy == "last" and last is not None and last.age_s() <= max_age:
+            self.select(last.selection())
+            self.safety.event(
+                "info",
+                f"{unreachable}: going on at the last selection applied, k = {last.k} (n = {last.n}), "
+                f'{last.age_s():.0f} s ago (start_selection = "last")',
+            )
+        elif policy == "initial":
+            k = self.settings.initial_k
+            self.select(Selection(t_ns=self.clock.now_ns(), seq=0, k=k, n=k, delta=0, reason="initial"))
+            self.safety.event(
+                "info",
+                f'{unreachable}: starting at initial_k = {k}, as configured (start_selection = "initial")',
+            )
+        else:
+            why = (
+                'start_selection = "wait"'
+                if policy == "wait"
+                else "no selection on file"
+                if last is None
+                else f"the last one on file is {last.age_s():.0f} s old, over {max_age:.0f} s"
+            )
+            self.safety.event("info", f"{unreachable}: waiting for a selection ({why})")
+
+    async def keep_sets(self) -> None:
+        """Fetch what is missing (the store may still be planning; a refused set was dropped), and wait
+        while nothing is."""
+        while not self.ctx.stop.is_set():
+            if not self.sets.missing():
+                self.sets.wanted.clear()
+                await first_of(self.sets.wanted.wait(), self.ctx.stop.wait())
+                continue
+            why = await self.sets.fetch_missing(self.settings.query_timeout_s)
+            waiting = [f"waiting for Pareto sets: {', '.join(why)}"] if why else []
+            self.ctx.detail = "; ".join([*self.notes, *waiting])
+            if why:
+                await first_of(asyncio.sleep(2.0), self.ctx.stop.wait())
+
+    async def until_changed(self, at_most_s: float = 5.0) -> None:
+        """Wait for something that could resolve a refusal (a new selection, a new set), a stop, or a
+        while (a person may have moved the arm)."""
+        self.selection_changed.clear()
+        self.sets.changed.clear()
+        self.safety.changed.clear()
+        await first_of(
+            self.selection_changed.wait(),
+            self.sets.changed.wait(),
+            self.safety.changed.wait(),
+            self.ctx.stop.wait(),
+            asyncio.sleep(at_most_s),
+        )
+
+    async def reach(self, q_start: np.ndarray, path_id: str) -> bool:
+        """Start-up safety: the arm must be at the path's first waypoint before the path runs."""
+        off = float(np.max(np.abs(self.backend.actual_q() - q_start)))
+        if off <= self.settings.start_tolerance_rad:
+            return True
+        if self.settings.start_policy == "refuse":
+            why = f"the arm is {off:.4f} rad from the start of '{path_id}'; not moving"
+            self.safety.event("refused", why, path_id)
+            self.safety.fire(Event.REFUSE, why)
+            return False
+        self.safety.event(
+            "info", f"the arm is {off:.4f} rad from the start of '{path_id}': moving there slowly", path_id
+        )
+        self.safety.fire(Event.MOVE, f"moving slowly to the start of '{path_id}'")
+        ok = await asyncio.to_thread(
+            self.backend.move_j, q_start, self.settings.start_speed, self.settings.start_acceleration
+        )
+        arrived = (
+            float(np.max(np.abs(self.backend.actual_q() - q_start))) <= self.settings.start_tolerance_rad
+        )
+        if ok and arrived:
+            self.safety.fire(Event.DONE)
+            return True
+        if self.ctx.stop.is_set():
+            self.safety.fire(Event.SHUTDOWN)
+        else:
+            self.safety.fire(
+                Event.FAULT, f"the move to the start of '{path_id}' did not arrive: {self.backend.fault()}"
+            )
+        return False
+
+    async def run_path(self, pid: str) -> int | None:
+        """Run one path with the selection current at its start; its k, or None when stopped."""
+        own: PathPlan = self.task.paths[pid]
+        while not self.ctx.stop.is_set():
+            if self.safety.stopped:
+                if not await self.safety.while_stopped():
+                    return None
+                continue
+            if self.selection is None:
+                await first_of(self.selection_changed.wait(), self.ctx.stop.wait())
+                continue
+            if fault := self.backend.fault():  # a stop at rest (the controller's, a lost link)
+                self.safety.event("protective_stop", f"before '{pid}': {fault}", pid)
+                self.safety.fire(Event.FAULT, fault)
+                continue
+            s = self.sets.sets.get(pid)
+            if s is None:
+                self.safety.event("refused", f"no Pareto set for '{pid}' yet; waiting for the store", pid)
+                self.safety.fire(Event.SET_MISSING, f"no Pareto set for '{pid}'")
+                await self.until_changed()
+                continue
+            self.safety.ready()
+            k = k_for_path(self.selection.k, len(s.solutions))
+            try:
+                q = await asyncio.to_thread(
+                    validated_samples,
+                    np.array(s.solutions[k - 1].h),
+                    own,
+                    self.task.limits,
+                    np.array(s.waypoints),
+                )
+            except TrajectoryRejected as exc:
+                self.safety.event("refused", f"k = {k}: {exc}", pid)
+                self.safety.fire(Event.REFUSE, f"k = {k} of '{pid}' refused")
+                self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
+                await self.until_changed()
+                continue
+            if not await self.reach(q[0], pid):
+                if self.safety.motion.state is State.REFUSED:
+                    await self.until_changed()
+                continue
+            try:
+                self.safety.fire(Event.MOVE, f"'{pid}' at k = {k}")
+            except IllegalTransition as exc:  # a stop came in between: no motion
+                log.warning("%s", exc)
+                continue
+            await asyncio.to_thread(self.store.applied, self.selection)
+            self.safety.path_id, self.k = pid, k
+            targets = self.backend.prepare(q)
+            settle = round(self.settings.settle_s * RATE_HZ)
+            result: MotionResult = await asyncio.wrap_future(self.loop.run(targets, settle))
+            await asyncio.to_thread(self.backend.motion_ended)
+            self.ctx.counters["paths"] += 1
+            self.ctx.counters["overruns"] = self.loop.overruns
+            if result.overruns:
+                self.safety.event(
+                    "overrun", f"{result.overruns} servo overruns during '{pid}'", pid, repeat=True
+                )
+            if result.outcome == "done":
+                self.safety.fire(Event.DONE)
+                return k
+            if result.outcome == "stopped":
+                self.safety.event("info", f"stopped during '{pid}' (decelerating stop)", pid)
+                self.safety.fire(Event.SHUTDOWN)
+                return None
+            if result.outcome == "overruns":
+                why = f"{self.settings.overrun_limit} servo overruns in a row during '{pid}'"
+            else:
+                why = f"during '{pid}': {self.backend.fault() or 'refused by the arm'}"
+            self.safety.event("protective_stop", why, pid)
+            self.safety.fire(Event.FAULT, why)
+            self.ctx.counters["protective_stops"] += 1
+        return None
+
+    async def wait_for(self, step: Step, cycle: int) -> Literal["arrived", "stopped", "late"]:
+        """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),
+        then the robot keeps waiting or goes on without it, as the task program says."""
+        assert step.wait_for is not None
+        timeout = None if step.deadline is None else self.clock.wall_s(step.deadline)
+        got = await self.signals.wait(step.wait_for, self.ctx.stop, timeout)
+        if got != "late":
+            return got
+        assert step.deadline is not None
+        then = "kept waiting" if step.on_late == "wait" else "went on without it"
+        self.ctx.counters["late"] += 1
+        self.node.publish(
+            OperatorError(
+                t_ns=self.clock.now_ns(),
+                seq=self.node.next_seq(OPERATOR_ERROR),
+                cycle=cycle,
+                kind="late",
+                description=f"'{step.wait_for}' not there {step.deadline:g} s after the robot came: {then}",
+                source="executor",
+            )
+        )
+        if step.on_late == "wait":
+            return await self.signals.wait(step.wait_for, self.ctx.stop)
+        return "late"
+
+    async def run(self) -> None:
+        cycle = 0
+        while not self.ctx.stop.is_set() and (self.settings.cycles == 0 or cycle < self.settings.cycles):
+            started, ks = self.clock.now_ns(), {}
+            await asyncio.to_thread(self.store.cycle, cycle)
+            for step in self.task.cycle:
+                if self.ctx.stop.is_set():
+                    return
+                if step.move is not None:
+                    k = await self.run_path(step.move)
+                    if k is None:
+                        return
+                    ks[step.move] = k
+                elif step.gripper is not None:
+                    await asyncio.to_thread(self.backend.set_gripper, step.gripper == "on")
+                elif step.wait is not None:
+                    await first_of(self.clock.sleep(step.wait), self.ctx.stop.wait())
+                elif step.wait_for is not None and self.settings.wait_for_signals:
+                    self.safety.fire(Event.WAIT_OPERATOR, f"waiting for '{step.wait_for}'")
+                    self.waiting_for = step.wait_for
+                    got = await self.wait_for(step, cycle)
+                    self.waiting_for = None
+                    if got == "stopped":
+                        return
+                    self.safety.fire(Event.OPERATOR)
+            end = self.clock.now_ns()
+            await asyncio.to_thread(self.store.cycle, None)
+            self.node.publish(
+                CycleReport(
+                    t_ns=end,
+                    seq=self.node.next_seq(ROBOT_CYCLE),
+                    cycle=cycle,
+                    cycle_time_s=(end - started) / 1e9,
+                    k_per_path=ks,
+                )
+            )
+            self.ctx.counters["cycles"] = cycle = cycle + 1
