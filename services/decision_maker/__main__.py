@@ -63,11 +63,7 @@ class DecisionMaker(Node):
         self.apply(self.conditions.current, self.ctx.common.clock.now_ns())
 
     def apply(self, c: Condition, t_ns: int) -> None:
-        self.conditions.apply(c, t_ns)
-        if (f := self.conditions.fixed) is not None:
-            self.ctx.state = f"fixed at k = {f.k} of {f.n} (fixed_k = {c.fixed_k!r})"
-        else:
-            self.ctx.state = "running" if self.decider.params else "waiting for calibration"
+        self.ctx.state = self.conditions.apply(c, t_ns, self.decider.params is not None)
 
     async def adopt(self, record: DecisionRecord) -> None:
         await asyncio.to_thread(self.decider.persist, record)  # persisted before it is announced
@@ -124,9 +120,7 @@ class DecisionMaker(Node):
         if c.mode == "adaptive":
             if self.decider.record is None:
                 raise QueryError("no calibration yet: condition (c) needs RR_r (`cadence calibrate`)")
-            again = self.decider.calibrated(self.decider.record.calibration, now, again=True)
-            assert again is not None  # Alg. 1 from the initial k
-            await self.adopt(again)
+            await self.adopt(self.decider.starting(self.decider.record.calibration, now))
         await asyncio.to_thread(store_condition, self.data, c)
         self.apply(c, now)
         log.info("condition %s%s set by %r", c.mode, f" (k {c.fixed_k})" if c.mode == "fixed" else "", c.by)

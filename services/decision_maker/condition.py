@@ -84,9 +84,13 @@ class Conditions:
                 problems.append(f"{CONDITION_FILE}: {exc} (n = {self.n}); the config's condition holds")
         return problems
 
-    def apply(self, c: Condition, t_ns: int) -> None:
+    def apply(self, c: Condition, t_ns: int, calibrated: bool) -> str:
+        """Put ``c`` in force; the service's state that says so."""
         self.current = c
         self.fixed = fixed_selection(c.fixed_k, self.n, t_ns) if c.mode == "fixed" else None
+        if self.fixed is not None:
+            return f"fixed at k = {self.fixed.k} of {self.n} (fixed_k = {c.fixed_k!r})"
+        return "running" if calibrated else "waiting for calibration"
 
     def requested(self, params: dict[str, str], t_ns: int) -> Condition:
         """The condition a session asks for, once the calibration it names (if any) is in force."""

@@ -106,11 +106,14 @@ class Decider:
             rr_stress_max_s=positive(p.rr_stress_max),
         )
 
-    def calibrated(self, cal: Calibration, t_ns: int, again: bool = False) -> DecisionRecord | None:
-        """The record that starts a calibration at the initial k; None when it is the one in use, unless
-        ``again`` (a session of condition (c) starts from the initial k)."""
-        if not again and self.record is not None and same_calibration(self.record.calibration, cal):
+    def calibrated(self, cal: Calibration, t_ns: int) -> DecisionRecord | None:
+        """The record that starts a calibration at the initial k; None when it is the one in use."""
+        if self.record is not None and same_calibration(self.record.calibration, cal):
             return None
+        return self.starting(cal, t_ns)
+
+    def starting(self, cal: Calibration, t_ns: int) -> DecisionRecord:
+        """Alg. 1 at its initial k on ``cal`` (a session of condition (c) starts there again)."""
         initial = State.initial(params_of(cal, self.n))
         seq = self.record.seq + 1 if self.record is not None else 1
         return DecisionRecord(

@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import sys
-from pathlib import Path
 
 from common.motion import Event
 from common.runtime.bus import Request
@@ -30,9 +28,8 @@ from schemas.operator import OperatorSignal
 from schemas.robot import RobotEvent
 from schemas.topology import OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION
 from services.executor.backends import backend_for
-from services.executor.cores import claim_core, default_lock_dir
 from services.executor.cycles import Cycles
-from services.executor.servo import ServoLoop
+from services.executor.servo import servo_for
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
 from services.executor.telemetry import Telemetry
@@ -51,15 +48,9 @@ class Executor(Node):
         s, speed = self.ctx.settings, self.ctx.common.speed
         task = load_task(s.task)
         self.backend = backend_for(s, task, speed)
-        self.claim = claim_core(os.sched_getaffinity(0), Path(s.lock_dir or default_lock_dir()), s.servo_core)
-        if self.claim.note:
-            log.warning("%s", self.claim.note)
-        if (core := self.claim.core) is not None:
-            self.ctx.counters["servo_core"] = core
-        fifo = s.fifo_priority if core is not None else 0
-        self.loop = ServoLoop(self.backend, core=core, fifo_priority=fifo, lock_memory=s.lock_memory,
-                              speed=speed, spin_us=s.spin_us, overrun_limit=s.overrun_limit,
-                              realtime=self.backend.realtime)  # fmt: skip
+        self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime)
+        if self.claim.core is not None:
+            self.ctx.counters["servo_core"] = self.claim.core
         self.safety = Supervisor(self, self.backend, s)
         self.cycles = Cycles(self, self.safety, task, self.backend, self.loop)
         self.telemetry = Telemetry(self, self.backend, task)
@@ -114,9 +105,7 @@ class Executor(Node):
         await asyncio.to_thread(self.loop.close)
         await asyncio.to_thread(self.backend.close)
         self.claim.release()
-        t = self.loop.summary()
-        log.info("servo timing: %d ticks, p99.9 error %.1f µs, max %.1f µs, %d overruns",
-                 t.ticks, t.p999_err_us, t.max_err_us, t.overruns)  # fmt: skip
+        log.info("servo timing: %s", self.loop.summary())
 
 
 main = node_main(Executor)

@@ -25,6 +25,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import gc
+import logging
 import math
 import os
 import queue
@@ -33,12 +34,16 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal, Protocol
 
 import numpy as np
 
+from services.executor.cores import CoreClaim, claim_core, default_lock_dir
+from services.executor.settings import Settings
 from services.executor.timing import TickSummary, summarise
 
+log = logging.getLogger("cadence.executor")
 PERIOD_NS = 2_000_000  # 500 Hz: one e-Series controller step
 MCL_CURRENT, MCL_FUTURE = 1, 2
 PR_SET_TIMERSLACK = 29
@@ -225,3 +230,18 @@ class ServoLoop:
         self.ticks += tick
         self.overruns += overruns
         return MotionResult(outcome, sent, tick, overruns)
+
+
+def servo_for(
+    backend: ServoBackend, settings: Settings, speed: float, realtime: bool
+) -> tuple[ServoLoop, CoreClaim]:
+    """The executor's loop, on a core it claimed (cores.py); FIFO only there, so that two executors on one
+    host never share a core at FIFO priority."""
+    s = settings
+    claim = claim_core(os.sched_getaffinity(0), Path(s.lock_dir or default_lock_dir()), s.servo_core)
+    if claim.note:
+        log.warning("%s", claim.note)
+    fifo = s.fifo_priority if claim.core is not None else 0
+    loop = ServoLoop(backend, core=claim.core, fifo_priority=fifo, lock_memory=s.lock_memory, speed=speed,
+                     spin_us=s.spin_us, overrun_limit=s.overrun_limit, realtime=realtime)  # fmt: skip
+    return loop, claim

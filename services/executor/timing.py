@@ -21,6 +21,10 @@ class TickSummary:
     def as_dict(self) -> dict[str, float | int]:
         return asdict(self)
 
+    def __str__(self) -> str:
+        return (f"{self.ticks} ticks, p99.9 error {self.p999_err_us:.1f} µs, max {self.max_err_us:.1f} µs, "
+                f"{self.overruns} overruns")  # fmt: skip
+
 
 def summarise(errors_ns: NDArray[np.int64], ticks: int, overruns: int, period_ns: int) -> TickSummary:
     """Percentiles of |tick time − deadline| over the ticks the ring still holds (the last len(ring))."""
