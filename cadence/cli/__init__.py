@@ -1,6 +1,6 @@
 """`cadence`: the one console script (DESIGN §10). Every subcommand has --help; bad input exits 2 with
 one line naming the file and field; nothing is written when the input is bad. One module per family of
-commands; each adds its parsers with ``add``."""
+commands; each declares a command above the function that runs it (``Commands`` in _common.py)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"cadence {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for family in (plan, bench, cell, lab, hrv, deploy):
-        family.add(sub)
+        family.cli.add(sub)
     return parser
 
 

@@ -1,11 +1,13 @@
-"""What the command families share: the consoles, argument types, the planner's flags, the bus options."""
+"""What the command families share: the consoles, argument types, the planner's flags, the bus options, and
+``Commands``, with which each family declares a command beside the function that runs it."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-from dataclasses import replace
-from typing import Literal
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal, TypeVar
 
 from msgspec import structs
 from rich.console import Console
@@ -21,6 +23,67 @@ err = Console(stderr=True)
 
 # `cadence run NAME`: the services of the graph, and the UR emulator that stands in for a robot
 SERVICES = {name: f"services.{name}.__main__" for name in (*GRAPH_SERVICES, "ur_emulator")}
+
+
+Run = Callable[[argparse.Namespace], int]
+R = TypeVar("R", bound=Run)
+Setup = Callable[[argparse.ArgumentParser], None]
+_ARGS = "_cadence_arguments"
+
+
+def arg(*flags: str, **options: Any) -> Callable[[R], R]:
+    """One argument of the command declared above it (``argparse``'s ``add_argument``)."""
+    return flags_from(lambda p: p.add_argument(*flags, **options))
+
+
+def flags_from(setup: Callable[..., None], *args: Any, **kwargs: Any) -> Callable[[R], R]:
+    """Arguments several commands share (``add_bus_flags``, 15.0): ``setup(parser, *args, **kwargs)``."""
+
+    def mark(fn: R) -> R:
+        add: Setup = lambda p: setup(p, *args, **kwargs)  # noqa: E731
+        setattr(fn, _ARGS, [add, *getattr(fn, _ARGS, [])])  # decorators apply upwards
+        return fn
+
+    return mark
+
+
+@dataclass
+class _Declared:
+    path: tuple[str, ...]
+    options: dict[str, Any]
+    arguments: list[Setup] = field(default_factory=list)
+    run: Run | None = None
+    steps: dict[str, Any] | None = None  # a group's ``add_subparsers`` options
+
+
+class Commands:
+    """A family's commands, each declared where it is implemented: ``@cli.command("robot resume", help=…)``
+    above its ``@arg``s and its function; ``cli.group("robot", …)`` for a command made of steps. The
+    parsers are built in the order of declaration."""
+
+    def __init__(self) -> None:
+        self.declared: list[_Declared] = []
+
+    def command(self, path: str, **options: Any) -> Callable[[R], R]:
+        def declare(fn: R) -> R:
+            self.declared.append(_Declared(tuple(path.split()), options, getattr(fn, _ARGS, []), fn))
+            return fn
+
+        return declare
+
+    def group(self, path: str, steps: dict[str, Any], **options: Any) -> None:
+        self.declared.append(_Declared(tuple(path.split()), options, steps=steps))
+
+    def add(self, sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+        parents: dict[tuple[str, ...], argparse._SubParsersAction[argparse.ArgumentParser]] = {(): sub}
+        for d in self.declared:
+            parser = parents[d.path[:-1]].add_parser(d.path[-1], **d.options)
+            for setup in d.arguments:
+                setup(parser)
+            if d.steps is not None:
+                parents[d.path] = parser.add_subparsers(required=True, **d.steps)
+            if d.run is not None:
+                parser.set_defaults(func=d.run)
 
 
 def positive_int(minimum: int):

@@ -12,7 +12,16 @@ from typing import TYPE_CHECKING
 from rich.progress import Progress
 from rich.table import Table
 
-from cadence.cli._common import add_planner_flags, err, out, positive_int, task_with_overrides
+from cadence.cli._common import (
+    Commands,
+    add_planner_flags,
+    arg,
+    err,
+    flags_from,
+    out,
+    positive_int,
+    task_with_overrides,
+)
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 
@@ -21,6 +30,25 @@ if TYPE_CHECKING:
     from cadence.bench.hrv_scoring import WindowScore
 
 
+cli = Commands()
+
+
+cli.group(
+    "bench",
+    steps={"dest": "bench", "metavar": "BENCH"},
+    help="benchmarks that print their figures and ratios to baselines",
+)
+
+
+@cli.command(
+    "bench plan",
+    help="planning time vs the straightforward evaluation; hull vs exact vs Ruckig",
+    description="On the longest path of TASK: full planning time, the same NSGA-II generations "
+    "evaluated the straightforward way, both hypervolumes, and the fastest t_f under hull and exact "
+    "limits and as Ruckig stop-at-every-waypoint moves. The last line is the figures as JSON.",
+)
+@arg("--repeat", type=positive_int(1), default=3, help="timed repetitions (best is kept)")
+@flags_from(add_planner_flags, task_option=True)
 def cmd_bench_plan(args: argparse.Namespace) -> int:
     from cadence.bench import bench_plan
 
@@ -75,6 +103,16 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command(
+    "bench convergence",
+    help="hypervolume against generations, as a share of a long reference run's",
+    description="How the default number of NSGA-II generations was chosen: for the longest path of "
+    "TASK, the archive's hypervolume after each checkpoint for several seeds, as a share of a long "
+    "reference run's, under the reference front's normalisation.",
+)
+@arg("--seeds", type=positive_int(1), default=5, help="number of seeds (default 5)")
+@arg("--reference", type=positive_int(10), default=1500, help="reference generations (1500)")
+@flags_from(add_planner_flags, task_option=True)
 def cmd_bench_convergence(args: argparse.Namespace) -> int:
     from cadence.bench import convergence
     from common.trajectory.planner import DEFAULT_GENERATIONS
@@ -103,6 +141,14 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command(
+    "bench store",
+    help="query latency of the Pareto store on loopback, stored and while planning",
+    description="Starts pareto_store as a process on a fresh data folder, queries it while it plans "
+    "TASK's paths and then for a stored set; prints the latency percentiles.",
+)
+@arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+@arg("--queries", type=positive_int(1), default=500, help="queries of the stored set")
 def cmd_bench_store(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -121,6 +167,21 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command(
+    "bench executor",
+    help="tick timing of the 500 Hz servo loop, and the time to prepare a path's samples",
+    description="Runs the executor's servo loop (pinned, SCHED_FIFO when permitted) on a backend for "
+    "SECONDS, servoing the longest path of TASK forward and back while the state is read at 50 Hz, and "
+    "prints the tick error percentiles (|tick time - deadline|), the overruns and prepare_ms (h to "
+    "validated 500 Hz samples for the slowest trajectory of that path). The last line is JSON.",
+)
+@arg("--backend", choices=("sim", "ur_rtde"), default="sim")
+@arg("--seconds", type=float, default=20.0, help="how long to servo (default 20)")
+@arg("--host", default="127.0.0.1", help="ur_rtde: the controller's address")
+@arg("--core", type=int, default=None, help="core for the servo thread (default: the last)")
+@arg("--fifo-priority", type=int, default=80, help="SCHED_FIFO priority; 0 for none")
+@arg("--task", default=None, metavar="TASK.toml", help="default: box_filling")
+@arg("--json", action="store_true", help="print only the JSON line")
 def cmd_bench_executor(args: argparse.Namespace) -> int:
     from cadence.bench import bench_executor
     from services.executor.backends import RobotUnavailable
@@ -248,6 +309,46 @@ def _bench_hrv_cv(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command(
+    "bench hrv",
+    help="R-peak detection vs established detectors on the annotated recordings",
+    description="On every annotated record of DATA, resampled to --fs: sensitivity, PPV and F1 (150 ms) "
+    "of Cadence's detector and of NeuroKit2's and py-ecg-detectors' (optional: uv sync --extra bench), "
+    "throughput, Cadence's publication latency and its 30 s window mean-RR error.",
+)
+@arg(
+    "--data",
+    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "ecg"),
+    metavar="DIR",
+    help="annotated WFDB records (default ../shared/data/ecg)",
+)
+@arg("--fs", type=float, default=130.0, help="sample rate to resample to (default 130, the H10's)")
+@arg(
+    "--windows",
+    action="store_true",
+    help="score the 30 s windows instead: how far each window marked good is from the annotated NN "
+    "mean (p95, over 10 and 20 ms, the share held), for Cadence and NeuroKit2, per noise variant",
+)
+@arg(
+    "--variants",
+    metavar="V,…",
+    help="with --windows: noise variants (clean, white12, white6, wander, motion; default all)",
+)
+@arg("--records", metavar="R,…", help="with --windows: only these records (default all)")
+@arg(
+    "--gudb",
+    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "gudb"),
+    metavar="DIR",
+    help="with --windows or --cv: GUDB subjects' annotated chest-strap beats, scored as a strap's RR "
+    "(default ../shared/data/gudb; skipped when absent)",
+)
+@arg(
+    "--cv",
+    action="store_true",
+    help="cross-validate the cleaning's thresholds: leave one record (or GUDB subject) out, choose on "
+    "the rest from a grid, score the one left out; prints the held-out figures and the choices "
+    "(a few minutes)",
+)
 def cmd_bench_hrv(args: argparse.Namespace) -> int:
     from cadence.bench import bench_hrv
 
@@ -296,99 +397,3 @@ def cmd_bench_hrv(args: argparse.Namespace) -> int:
         )
     )
     return 0
-
-
-def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    bench = sub.add_parser("bench", help="benchmarks that print their figures and ratios to baselines")
-    bench_sub = bench.add_subparsers(dest="bench", required=True, metavar="BENCH")
-    bp = bench_sub.add_parser(
-        "plan",
-        help="planning time vs the straightforward evaluation; hull vs exact vs Ruckig",
-        description="On the longest path of TASK: full planning time, the same NSGA-II generations "
-        "evaluated the straightforward way, both hypervolumes, and the fastest t_f under hull and exact "
-        "limits and as Ruckig stop-at-every-waypoint moves. The last line is the figures as JSON.",
-    )
-    bp.add_argument("--repeat", type=positive_int(1), default=3, help="timed repetitions (best is kept)")
-    add_planner_flags(bp, task_option=True)
-    bp.set_defaults(func=cmd_bench_plan)
-    bc = bench_sub.add_parser(
-        "convergence",
-        help="hypervolume against generations, as a share of a long reference run's",
-        description="How the default number of NSGA-II generations was chosen: for the longest path of "
-        "TASK, the archive's hypervolume after each checkpoint for several seeds, as a share of a long "
-        "reference run's, under the reference front's normalisation.",
-    )
-    bc.add_argument("--seeds", type=positive_int(1), default=5, help="number of seeds (default 5)")
-    bc.add_argument("--reference", type=positive_int(10), default=1500, help="reference generations (1500)")
-    add_planner_flags(bc, task_option=True)
-    bc.set_defaults(func=cmd_bench_convergence)
-    bs = bench_sub.add_parser(
-        "store",
-        help="query latency of the Pareto store on loopback, stored and while planning",
-        description="Starts pareto_store as a process on a fresh data folder, queries it while it plans "
-        "TASK's paths and then for a stored set; prints the latency percentiles.",
-    )
-    bs.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
-    bs.add_argument("--queries", type=positive_int(1), default=500, help="queries of the stored set")
-    bs.set_defaults(func=cmd_bench_store)
-
-    be = bench_sub.add_parser(
-        "executor",
-        help="tick timing of the 500 Hz servo loop, and the time to prepare a path's samples",
-        description="Runs the executor's servo loop (pinned, SCHED_FIFO when permitted) on a backend for "
-        "SECONDS, servoing the longest path of TASK forward and back while the state is read at 50 Hz, and "
-        "prints the tick error percentiles (|tick time - deadline|), the overruns and prepare_ms (h to "
-        "validated 500 Hz samples for the slowest trajectory of that path). The last line is JSON.",
-    )
-    be.add_argument("--backend", choices=("sim", "ur_rtde"), default="sim")
-    be.add_argument("--seconds", type=float, default=20.0, help="how long to servo (default 20)")
-    be.add_argument("--host", default="127.0.0.1", help="ur_rtde: the controller's address")
-    be.add_argument("--core", type=int, default=None, help="core for the servo thread (default: the last)")
-    be.add_argument("--fifo-priority", type=int, default=80, help="SCHED_FIFO priority; 0 for none")
-    be.add_argument("--task", default=None, metavar="TASK.toml", help="default: box_filling")
-    be.add_argument("--json", action="store_true", help="print only the JSON line")
-    be.set_defaults(func=cmd_bench_executor)
-
-    bh = bench_sub.add_parser(
-        "hrv",
-        help="R-peak detection vs established detectors on the annotated recordings",
-        description="On every annotated record of DATA, resampled to --fs: sensitivity, PPV and F1 (150 ms) "
-        "of Cadence's detector and of NeuroKit2's and py-ecg-detectors' (optional: uv sync --extra bench), "
-        "throughput, Cadence's publication latency and its 30 s window mean-RR error.",
-    )
-    bh.add_argument(
-        "--data",
-        default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "ecg"),
-        metavar="DIR",
-        help="annotated WFDB records (default ../shared/data/ecg)",
-    )
-    bh.add_argument(
-        "--fs", type=float, default=130.0, help="sample rate to resample to (default 130, the H10's)"
-    )
-    bh.add_argument(
-        "--windows",
-        action="store_true",
-        help="score the 30 s windows instead: how far each window marked good is from the annotated NN "
-        "mean (p95, over 10 and 20 ms, the share held), for Cadence and NeuroKit2, per noise variant",
-    )
-    bh.add_argument(
-        "--variants",
-        metavar="V,…",
-        help="with --windows: noise variants (clean, white12, white6, wander, motion; default all)",
-    )
-    bh.add_argument("--records", metavar="R,…", help="with --windows: only these records (default all)")
-    bh.add_argument(
-        "--gudb",
-        default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "gudb"),
-        metavar="DIR",
-        help="with --windows or --cv: GUDB subjects' annotated chest-strap beats, scored as a strap's RR "
-        "(default ../shared/data/gudb; skipped when absent)",
-    )
-    bh.add_argument(
-        "--cv",
-        action="store_true",
-        help="cross-validate the cleaning's thresholds: leave one record (or GUDB subject) out, choose on "
-        "the rest from a grid, score the one left out; prints the held-out figures and the choices "
-        "(a few minutes)",
-    )
-    bh.set_defaults(func=cmd_bench_hrv)

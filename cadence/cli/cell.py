@@ -13,9 +13,12 @@ import msgspec
 
 from cadence.cli._common import (
     SERVICES,
+    Commands,
     add_bus_flags,
+    arg,
     bus_config,
     err,
+    flags_from,
     joining,
     out,
     say_when_alone,
@@ -29,9 +32,15 @@ from schemas.topology import DEFAULT_CELL, OPERATOR_ERROR, OPERATOR_SIGNAL, Topi
 if TYPE_CHECKING:
     from common.runtime.bus import Bus
 
+cli = Commands()
+
+
 M = TypeVar("M", bound=Message)
 
 
+@cli.command("run", help="run one service (production: one systemd unit each)")
+@arg("service", choices=sorted(SERVICES))
+@arg("args", nargs=argparse.REMAINDER, help="the service's options (--config, --data-dir, --cell)")
 def cmd_run(args: argparse.Namespace) -> int:
     import importlib
 
@@ -39,6 +48,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     return int(module.run(args.args))
 
 
+@cli.command("router", help="run a Zenoh router (no zenohd binary needed)")
+@arg(
+    "--listen",
+    action="append",
+    default=None,
+    metavar="ENDPOINT",
+    help="default: the config file's, else tcp/127.0.0.1:7447 (loopback only)",
+)
+@arg("--connect", action="append", metavar="ENDPOINT", help="other routers")
+@arg("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
 def cmd_router(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -61,6 +80,20 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command(
+    "record",
+    help="record bus traffic into an MCAP file",
+    description="Records every message under the key expressions (default cadence/<cell>/**) into "
+    "FILE.mcap, one channel per key with the message type's JSON schema. Stops on Ctrl-C, SIGTERM or "
+    "after --duration; the file is complete in every case.",
+)
+@arg("keys", nargs="*", metavar="KEYEXPR", help="key expressions (default cadence/<cell>/**)")
+@arg("-o", "--output", required=True, metavar="FILE.mcap")
+@arg("--duration", type=float, help="stop after this many seconds")
+@arg("--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack")
+@arg("--cell", default=DEFAULT_CELL, help=f"robot cell (default {DEFAULT_CELL})")
+@arg("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+@arg("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
 def cmd_record(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -93,6 +126,18 @@ def cmd_record(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+@cli.command(
+    "replay",
+    help="republish a recording with its original data time",
+    description="Republishes the recorded payloads on their keys, paced by the recorded arrival times "
+    "divided by --speed. Services work on data time, so they give what they gave live.",
+)
+@arg("recording", metavar="FILE.mcap")
+@arg("--speed", type=float, default=1.0, help="× the recorded pace; 0 as fast as possible")
+@arg("--keys", nargs="+", metavar="KEYEXPR", help="replay only these key expressions")
+@arg("--wait", type=float, help="seconds to wait after joining the bus before replaying")
+@arg("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+@arg("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
 def cmd_replay(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -117,6 +162,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+@cli.command("get", help="query a key (e.g. cadence/cell1/pareto/b1_to_b2) and print JSON")
+@arg("key", help="key expression or selector")
+@arg("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+@arg("--timeout", type=float, default=5.0, help="seconds (default 5)")
+@arg(
+    "--wait",
+    type=float,
+    default=0.0,
+    metavar="S",
+    help="ask again until a reply comes or S seconds have passed (a router or a service still starting)",
+)
+@arg("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
 def cmd_get(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -159,6 +216,17 @@ def cmd_get(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+@cli.command(
+    "top",
+    help="the cell's keys (type, publishers, rate, last message) and services (alive, state, drops)",
+    description="Watches every key under cadence/<cell>/: per key its message type, its publishers and "
+    "readers from the graph, its rate over the last 10 s, the age of its last message, and what did not "
+    "decode; per service whether its status still comes, its state, uptime, dropped messages "
+    "(decode errors, rejections) and handler errors. Ctrl-C ends it.",
+)
+@flags_from(add_bus_flags, 5.0)
+@arg("--once", type=float, metavar="S", help="print one view after S seconds and exit")
+@arg("--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)")
 def cmd_top(args: argparse.Namespace) -> int:
     """The cell's keys and services, live; with --once S, one table after S seconds (for scripts)."""
     import asyncio
@@ -190,6 +258,17 @@ def cmd_top(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+@cli.command(
+    "view",
+    help="the cell in Foxglove: every key as a channel, the arm in 3D (WebSocket server)",
+    description="Runs the Foxglove SDK's WebSocket server: every key of the graph is a channel (JSON, "
+    "with its message type's JSON schema), robot/state also as /robot/joint_states "
+    "(foxglove.JointStates) and /tf (foxglove.FrameTransforms of the UR16e's links, from its DH "
+    "table). Open ws://HOST:PORT in Foxglove and import the layout deploy/foxglove/cadence.layout.json.",
+)
+@flags_from(add_bus_flags, 5.0)
+@arg("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+@arg("--port", type=int, default=8765, help="port (default 8765; 0: any free one)")
 def cmd_view(args: argparse.Namespace) -> int:
     """The cell in Foxglove: a WebSocket server that bridges every key (cadence/view.py)."""
     import asyncio
@@ -226,6 +305,18 @@ def cmd_view(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+cli.group("robot", steps={"dest": "robot_command"}, help="the robot's executor: clear a latched stop")
+
+
+@cli.command(
+    "robot resume",
+    help="clear a latched stop (protective stop, overruns, lost controller) once its cause is seen to",
+    description="Ask the cell's executor to clear its latched stop. On a real UR16e this also unlocks "
+    "the controller's protective stop (its dashboard refuses within 5 s of the stop). Prints the "
+    "state it reached; exit 1 when the robot is still stopped after it.",
+)
+@arg("--by", help="who resumes, for the record (default: your user name)")
+@flags_from(add_bus_flags, 15.0)
 def cmd_robot_resume(args: argparse.Namespace) -> int:
     """Clear a latched stop: ask the executor of the cell on ``robot/resume`` and print what it did."""
     import asyncio
@@ -292,12 +383,36 @@ def _tell_once(args: argparse.Namespace, topic: Topic[M], msg: M) -> int:
     return 0
 
 
+@cli.command(
+    "signal",
+    help="say what a task step waits for (a part placed): publish operator/signal NAME",
+    description="Publishes NAME on operator/signal, as a push-button would: the executor's wait_for "
+    "step of that name goes on. Waits until something reads the key (exit 1 if nothing does).",
+)
+@arg("name", metavar="NAME", help="the wait_for name in the task program, e.g. part_a2")
+@arg("--source", default="cli", help="who says it, for the record (default cli)")
+@flags_from(add_bus_flags, 10.0)
 def cmd_signal(args: argparse.Namespace) -> int:
     """A part placed (or any step's signal), from a person at a terminal: what a button would send."""
     signal = OperatorSignal(t_ns=time.time_ns(), seq=0, name=args.name, source=args.source)
     return _tell_once(args, OPERATOR_SIGNAL, signal)
 
 
+cli.group(
+    "mark", steps={"dest": "mark", "metavar": "MARK"}, help="the experimenter's marks on a running session"
+)
+
+
+@cli.command(
+    "mark error",
+    help="an error of the operator's (for ε): publish operator/error, source experimenter",
+    description="Publishes an OperatorError with the kind and note given. Something must read "
+    "operator/error (a recording or a session), or the mark would be lost: exit 1 if nothing does.",
+)
+@arg("--kind", choices=("wrong_object", "late", "other"), default="other")
+@arg("--cycle", type=int, help="the robot's cycle it happened in, if known")
+@arg("--note", default="", help="what happened")
+@flags_from(add_bus_flags, 10.0)
 def cmd_mark_error(args: argparse.Namespace) -> int:
     """The experimenter's mark: an error of the operator's, for the error rate ε."""
     error = OperatorError(
@@ -309,133 +424,3 @@ def cmd_mark_error(args: argparse.Namespace) -> int:
         source="experimenter",
     )
     return _tell_once(args, OPERATOR_ERROR, error)
-
-
-def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    rec = sub.add_parser(
-        "record",
-        help="record bus traffic into an MCAP file",
-        description="Records every message under the key expressions (default cadence/<cell>/**) into "
-        "FILE.mcap, one channel per key with the message type's JSON schema. Stops on Ctrl-C, SIGTERM or "
-        "after --duration; the file is complete in every case.",
-    )
-    rec.add_argument("keys", nargs="*", metavar="KEYEXPR", help="key expressions (default cadence/<cell>/**)")
-    rec.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
-    rec.add_argument("--duration", type=float, help="stop after this many seconds")
-    rec.add_argument(
-        "--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack"
-    )
-    rec.add_argument("--cell", default=DEFAULT_CELL, help=f"robot cell (default {DEFAULT_CELL})")
-    rec.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    rec.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
-    rec.set_defaults(func=cmd_record)
-    rep = sub.add_parser(
-        "replay",
-        help="republish a recording with its original data time",
-        description="Republishes the recorded payloads on their keys, paced by the recorded arrival times "
-        "divided by --speed. Services work on data time, so they give what they gave live.",
-    )
-    rep.add_argument("recording", metavar="FILE.mcap")
-    rep.add_argument("--speed", type=float, default=1.0, help="× the recorded pace; 0 as fast as possible")
-    rep.add_argument("--keys", nargs="+", metavar="KEYEXPR", help="replay only these key expressions")
-    rep.add_argument("--wait", type=float, help="seconds to wait after joining the bus before replaying")
-    rep.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    rep.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
-    rep.set_defaults(func=cmd_replay)
-    run = sub.add_parser("run", help="run one service (production: one systemd unit each)")
-    run.add_argument("service", choices=sorted(SERVICES))
-    run.add_argument(
-        "args", nargs=argparse.REMAINDER, help="the service's options (--config, --data-dir, --cell)"
-    )
-    run.set_defaults(func=cmd_run)
-
-    get = sub.add_parser("get", help="query a key (e.g. cadence/cell1/pareto/b1_to_b2) and print JSON")
-    get.add_argument("key", help="key expression or selector")
-    get.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    get.add_argument("--timeout", type=float, default=5.0, help="seconds (default 5)")
-    get.add_argument(
-        "--wait",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="ask again until a reply comes or S seconds have passed (a router or a service still starting)",
-    )
-    get.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
-    get.set_defaults(func=cmd_get)
-
-    top = sub.add_parser(
-        "top",
-        help="the cell's keys (type, publishers, rate, last message) and services (alive, state, drops)",
-        description="Watches every key under cadence/<cell>/: per key its message type, its publishers and "
-        "readers from the graph, its rate over the last 10 s, the age of its last message, and what did not "
-        "decode; per service whether its status still comes, its state, uptime, dropped messages "
-        "(decode errors, rejections) and handler errors. Ctrl-C ends it.",
-    )
-    add_bus_flags(top, 5.0)
-    top.add_argument("--once", type=float, metavar="S", help="print one view after S seconds and exit")
-    top.add_argument(
-        "--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)"
-    )
-    top.set_defaults(func=cmd_top)
-
-    view = sub.add_parser(
-        "view",
-        help="the cell in Foxglove: every key as a channel, the arm in 3D (WebSocket server)",
-        description="Runs the Foxglove SDK's WebSocket server: every key of the graph is a channel (JSON, "
-        "with its message type's JSON schema), robot/state also as /robot/joint_states "
-        "(foxglove.JointStates) and /tf (foxglove.FrameTransforms of the UR16e's links, from its DH "
-        "table). Open ws://HOST:PORT in Foxglove and import the layout deploy/foxglove/cadence.layout.json.",
-    )
-    add_bus_flags(view, 5.0)
-    view.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
-    view.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free one)")
-    view.set_defaults(func=cmd_view)
-
-    robot = sub.add_parser("robot", help="the robot's executor: clear a latched stop")
-    robot_sub = robot.add_subparsers(dest="robot_command", required=True)
-    resume = robot_sub.add_parser(
-        "resume",
-        help="clear a latched stop (protective stop, overruns, lost controller) once its cause is seen to",
-        description="Ask the cell's executor to clear its latched stop. On a real UR16e this also unlocks "
-        "the controller's protective stop (its dashboard refuses within 5 s of the stop). Prints the "
-        "state it reached; exit 1 when the robot is still stopped after it.",
-    )
-    resume.add_argument("--by", help="who resumes, for the record (default: your user name)")
-    add_bus_flags(resume, 15.0)
-    resume.set_defaults(func=cmd_robot_resume)
-
-    router = sub.add_parser("router", help="run a Zenoh router (no zenohd binary needed)")
-    router.add_argument(
-        "--listen",
-        action="append",
-        default=None,
-        metavar="ENDPOINT",
-        help="default: the config file's, else tcp/127.0.0.1:7447 (loopback only)",
-    )
-    router.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers")
-    router.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file")
-    router.set_defaults(func=cmd_router)
-
-    signal = sub.add_parser(
-        "signal",
-        help="say what a task step waits for (a part placed): publish operator/signal NAME",
-        description="Publishes NAME on operator/signal, as a push-button would: the executor's wait_for "
-        "step of that name goes on. Waits until something reads the key (exit 1 if nothing does).",
-    )
-    signal.add_argument("name", metavar="NAME", help="the wait_for name in the task program, e.g. part_a2")
-    signal.add_argument("--source", default="cli", help="who says it, for the record (default cli)")
-    add_bus_flags(signal, 10.0)
-    signal.set_defaults(func=cmd_signal)
-    mark = sub.add_parser("mark", help="the experimenter's marks on a running session")
-    mark_sub = mark.add_subparsers(dest="mark", required=True, metavar="MARK")
-    error = mark_sub.add_parser(
-        "error",
-        help="an error of the operator's (for ε): publish operator/error, source experimenter",
-        description="Publishes an OperatorError with the kind and note given. Something must read "
-        "operator/error (a recording or a session), or the mark would be lost: exit 1 if nothing does.",
-    )
-    error.add_argument("--kind", choices=("wrong_object", "late", "other"), default="other")
-    error.add_argument("--cycle", type=int, help="the robot's cycle it happened in, if known")
-    error.add_argument("--note", default="", help="what happened")
-    add_bus_flags(error, 10.0)
-    error.set_defaults(func=cmd_mark_error)

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from rich.progress import BarColumn, Progress, TextColumn
 
-from cadence.cli._common import err, out, positive_int
+from cadence.cli._common import Commands, arg, err, flags_from, out, positive_int
 from common.runtime.errors import CadenceError, InputError
 
 if TYPE_CHECKING:
@@ -21,6 +21,35 @@ if TYPE_CHECKING:
     from common.runtime.bus import Bus
     from schemas import Calibration, HrvWindow
     from schemas.operator import Posture
+
+
+cli = Commands()
+
+
+PEAKS = 'one JSON object {"fs", "peaks_s"}: R-peak times from the record start'
+
+
+WINDOWS = "one JSON line per tumbling window: mean RR, RMSSD, SDNN, beats, excluded, quality"
+
+
+def add_record(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "record",
+        metavar="RECORD",
+        help="WFDB record path without extension, a CSV (s, µV), a Polar Sensor Logger export "
+        "(…_ECG.txt; for windows also …_RR.txt), or RR intervals one per line (s or ms)",
+    )
+    p.add_argument("--fs", type=float, default=None, help="resample to this rate first (130: as the H10)")
+
+
+def add_posture(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--posture",
+        choices=("rest", "working"),
+        default="rest",
+        help="rest: seated at rest, as the paper; working: at the task with the robot at its slowest "
+        "solution (k = 1), so moving and standing are in the baseline; the level at rest is kept beside it",
+    )
 
 
 def _record_peaks(args: argparse.Namespace):
@@ -31,6 +60,11 @@ def _record_peaks(args: argparse.Namespace):
     return rec, detect_peaks(rec.uv, rec.fs, chunk=round(rec.fs))
 
 
+cli.group("hrv", steps={"dest": "hrv", "metavar": "TOOL"}, help="offline heart-rate tools on a recording")
+
+
+@cli.command("hrv peaks", help=PEAKS, description=f"Prints {PEAKS}.")
+@flags_from(add_record)
 def cmd_hrv_peaks(args: argparse.Namespace) -> int:
     from common.hrv.records import is_rr_file
 
@@ -41,6 +75,9 @@ def cmd_hrv_peaks(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command("hrv windows", help=WINDOWS, description=f"Prints {WINDOWS}.")
+@flags_from(add_record)
+@arg("--window", type=float, default=30.0, help="window length [s] (default 30)")
 def cmd_hrv_windows(args: argparse.Namespace) -> int:
     """Windows of an ECG (its detected beats) or of an RR-only file (beats at the intervals' running sum,
     as the H10's own RR output is read with ``input = "rr"``)."""
@@ -78,6 +115,17 @@ def cmd_hrv_windows(args: argparse.Namespace) -> int:
 DECIDE_MIN_S, DECIDE_MAX_S = 0.2, 3  # a window's mean RR that a heart can have (300 to 20 beats per minute)
 
 
+@cli.command(
+    "decide",
+    help="the decision rule (paper Alg. 1) on mean RR values read from standard input",
+    description="Reads one mean RR per line (seconds) from standard input and prints the selected k "
+    "after each window, one per line. RR_s = RR_r - offset. Exact on decimal values.",
+)
+@arg("--rr-rest", required=True, type=str, metavar="S", help="RR_r: the resting mean RR [s]")
+@arg("--n", type=positive_int(1), default=15, help="number of solutions N (default 15)")
+@arg("--sigma-r", type=str, default="0.14", metavar="S", help="σ_r [s] (default 0.14)")
+@arg("--rr-s-offset", type=str, default="0.08", metavar="S", help="RR_r − RR_s [s] (0.08)")
+@arg("--sigma-s", type=str, default="0.08", metavar="S", help="σ_s [s] (default 0.08)")
 def cmd_decide(args: argparse.Namespace) -> int:
     from common.decision import Params, State, dec, step
 
@@ -171,6 +219,26 @@ def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bo
     return lines + level.verdict.lines()
 
 
+@cli.command(
+    "calibrate",
+    help="record windows at rest or at work, compute RR_r, store and publish the subject's calibration",
+    description="Listens to hrv/window for MINUTES of data time (the ECG gateway and HRV analyser must "
+    "run), averages the good windows' mean RR into RR_r, writes DATA_DIR/calibration.json and publishes "
+    "it on operator/calibration. Ends with a verdict: the share of readable windows, why the others "
+    "were held, and 'this ECG cannot be read reliably: …' (exit 2) when too few are good.",
+)
+@arg("--minutes", type=float, default=5.0, help="time to record (default 5)")
+@flags_from(add_posture)
+@arg("--subject", default="subject", help="who is calibrated")
+@arg(
+    "--measured-sigma",
+    action="store_true",
+    help="use the measured spread of the windows' mean RR as σ_r instead of the paper's 0.14 s (moves "
+    "the initial k)",
+)
+@arg("--config", metavar="FILE.toml", help="deployment config ([cadence], [bus])")
+@arg("--data-dir", help="data folder (default from the config or CADENCE_DATA_DIR)")
+@arg("--cell", help="robot cell name")
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -208,74 +276,3 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         out.print(line)
     out.print(f"stored in {calibration_path(data_dir)} and published on operator/calibration")
     return 0
-
-
-def add_posture(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--posture",
-        choices=("rest", "working"),
-        default="rest",
-        help="rest: seated at rest, as the paper; working: at the task with the robot at its slowest "
-        "solution (k = 1), so moving and standing are in the baseline; the level at rest is kept beside it",
-    )
-
-
-def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    hrv = sub.add_parser("hrv", help="offline heart-rate tools on a recording")
-    hrv_sub = hrv.add_subparsers(dest="hrv", required=True, metavar="TOOL")
-    for name, func, what in (
-        ("peaks", cmd_hrv_peaks, 'one JSON object {"fs", "peaks_s"}: R-peak times from the record start'),
-        (
-            "windows",
-            cmd_hrv_windows,
-            "one JSON line per tumbling window: mean RR, RMSSD, SDNN, beats, excluded, quality",
-        ),
-    ):
-        p = hrv_sub.add_parser(name, help=what, description=f"Prints {what}.")
-        p.add_argument(
-            "record",
-            metavar="RECORD",
-            help="WFDB record path without extension, a CSV (s, µV), a Polar Sensor Logger export "
-            "(…_ECG.txt; for windows also …_RR.txt), or RR intervals one per line (s or ms)",
-        )
-        p.add_argument("--fs", type=float, default=None, help="resample to this rate first (130: as the H10)")
-        if name == "windows":
-            p.add_argument("--window", type=float, default=30.0, help="window length [s] (default 30)")
-        p.set_defaults(func=func)
-
-    cal = sub.add_parser(
-        "calibrate",
-        help="record windows at rest or at work, compute RR_r, store and publish the subject's calibration",
-        description="Listens to hrv/window for MINUTES of data time (the ECG gateway and HRV analyser must "
-        "run), averages the good windows' mean RR into RR_r, writes DATA_DIR/calibration.json and publishes "
-        "it on operator/calibration. Ends with a verdict: the share of readable windows, why the others "
-        "were held, and 'this ECG cannot be read reliably: …' (exit 2) when too few are good.",
-    )
-    cal.add_argument("--minutes", type=float, default=5.0, help="time to record (default 5)")
-    add_posture(cal)
-    cal.add_argument("--subject", default="subject", help="who is calibrated")
-    cal.add_argument(
-        "--measured-sigma",
-        action="store_true",
-        help="use the measured spread of the windows' mean RR as σ_r instead of the paper's 0.14 s (moves "
-        "the initial k)",
-    )
-    cal.add_argument("--config", metavar="FILE.toml", help="deployment config ([cadence], [bus])")
-    cal.add_argument("--data-dir", help="data folder (default from the config or CADENCE_DATA_DIR)")
-    cal.add_argument("--cell", help="robot cell name")
-    cal.set_defaults(func=cmd_calibrate)
-
-    decide = sub.add_parser(
-        "decide",
-        help="the decision rule (paper Alg. 1) on mean RR values read from standard input",
-        description="Reads one mean RR per line (seconds) from standard input and prints the selected k "
-        "after each window, one per line. RR_s = RR_r - offset. Exact on decimal values.",
-    )
-    decide.add_argument(
-        "--rr-rest", required=True, type=str, metavar="S", help="RR_r: the resting mean RR [s]"
-    )
-    decide.add_argument("--n", type=positive_int(1), default=15, help="number of solutions N (default 15)")
-    decide.add_argument("--sigma-r", type=str, default="0.14", metavar="S", help="σ_r [s] (default 0.14)")
-    decide.add_argument("--rr-s-offset", type=str, default="0.08", metavar="S", help="RR_r − RR_s [s] (0.08)")
-    decide.add_argument("--sigma-s", type=str, default="0.08", metavar="S", help="σ_s [s] (default 0.08)")
-    decide.set_defaults(func=cmd_decide)

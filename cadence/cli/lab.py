@@ -14,7 +14,16 @@ from typing import TYPE_CHECKING
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cadence.cli._common import add_bus_flags, err, out, positive_float, positive_int
+from cadence.cli._common import (
+    Commands,
+    add_bus_flags,
+    arg,
+    err,
+    flags_from,
+    out,
+    positive_float,
+    positive_int,
+)
 from cadence.cli.hrv import add_posture
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
@@ -29,6 +38,42 @@ if TYPE_CHECKING:
     from schemas.session import SessionEnd
 
 
+cli = Commands()
+
+
+def add_cohort_flags(p: argparse.ArgumentParser, out_default: str) -> None:
+    p.add_argument("--subjects", type=positive_int(2), default=12, help="simulated subjects (default 12)")
+    p.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
+    p.add_argument("--calibrate", type=float, default=5.0, help="minutes at rest per subject (default 5)")
+    p.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
+    p.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+    p.add_argument("--out", default=out_default, metavar="DIR", help=f"output folder (default {out_default})")
+
+
+@cli.command(
+    "demo",
+    help="the whole closed loop on this machine: operator twin, every service, simulated UR16e",
+    description="Opens a Zenoh router on loopback, plans the task if its sets are not stored, starts "
+    "every service as its own process (ECG gateway with the operator twin, HRV analyser, Pareto store, "
+    "decision maker, executor with the simulated UR16e), restarts any that dies, shows a live view, "
+    "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time), "
+    "DIR/cycles.png (joint positions of the first and last cycle), DIR/pareto.png (the sets) and "
+    "DIR/index.html (the report that shows them).",
+)
+@arg("--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)")
+@arg("--speed", type=positive_float, default=8.0, help="data time per wall time (default 8)")
+@arg("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
+@arg("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
+@arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+@arg(
+    "--kill",
+    action="append",
+    default=[],
+    metavar="SERVICE@S",
+    help="SIGKILL a service at data time S (repeatable): shows the supervisor restarting it",
+)
+@arg("--no-live", action="store_true", help="no live view (for logs and CI)")
+@arg("--listen", metavar="ENDPOINT", help="the router's endpoint (default: a free port on 127.0.0.1)")
 def cmd_demo(args: argparse.Namespace) -> int:
     from cadence.demo import ORDER, DemoOptions, run_demo
 
@@ -85,6 +130,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command(
+    "report",
+    help="figures and an index.html (φ, ε, cycle times, events) from a recording or a demo folder",
+    description="Reads an MCAP recording or a `cadence demo` folder and writes to DIR: rr_k.png (mean RR "
+    "per window and the selected k, like the paper's Fig. 6), pareto.png (each path's front, its N "
+    "solutions and the k actually used), cycles.png (q, q̇, q̈ and jerk of the first and last cycle) "
+    "and index.html with the production rate φ, the error rate ε, cycle times and events.",
+)
+@arg("source", metavar="FILE.mcap|DEMO_DIR")
+@arg("--out", required=True, metavar="DIR")
+@arg("--sets", metavar="FOLDER", help="Pareto sets cached by an executor (<data>/executor)")
+@arg("--rr-rest", type=float, help="the operator's resting mean RR for the figure, s")
 def cmd_report(args: argparse.Namespace) -> int:
     from cadence.report import from_demo, from_mcap, write_report
 
@@ -160,6 +217,29 @@ def session_files(sources: list[str]) -> list[Path]:
     return files
 
 
+cli.group(
+    "study",
+    steps={"dest": "study", "metavar": "STEP"},
+    help="the paper's study: analyse session files; simulate one with operator twins",
+    description="`analyse` reads session files (from `cadence session`) and writes the paper's Table I, "
+    "Wilcoxon signed-rank tests paired by subject, figures and index.html; `simulate` writes session "
+    "files for simulated subjects (labelled so) and analyses them the same way.",
+)
+
+
+@cli.command(
+    "study analyse",
+    help="Table I, Wilcoxon tests, figures and index.html from session files",
+    description="Per subject and condition: φ (cycles per minute), ε (errors per cycle), mean RR of the "
+    "good windows and mean RR over the subject's RR_r, between the session's start and end. Per "
+    "condition their mean ± sd over subjects; per pair of conditions and measure a Wilcoxon "
+    "signed-rank test paired by subject (scipy; exact where possible, else the normal approximation, "
+    "said beside the p-value). Writes DIR/study.json, DIR/conditions.png (like Fig. 7), one "
+    "DIR/subject_<id>.png per subject (like Fig. 6) and DIR/index.html. A file that was not closed, has "
+    "no calibration, mixes cells or mixes clocks is refused with the reason.",
+)
+@arg("sessions", nargs="+", metavar="SESSION.mcap|FOLDER")
+@arg("--out", required=True, metavar="DIR")
 def cmd_study_analyse(args: argparse.Namespace) -> int:
     from cadence.analysis import analyse, write_study
     from cadence.session import load_session
@@ -222,11 +302,31 @@ def _simulated_study(
     return study, fitted
 
 
+@cli.command(
+    "study simulate",
+    help="session files for simulated subjects (operator twins), then their analysis",
+    description="Each subject is an operator twin with its own seed, resting RR and tolerance. It is "
+    "calibrated at rest, then runs conditions (a) minimum time, (b) minimum jerk and (c) tuned online "
+    "in simulated time, as fast as the machine allows; each run is written as a session file (the "
+    "message types and metadata of a live session, marked simulated) to DIR/sessions and analysed "
+    "as `cadence study analyse` would.",
+)
+@flags_from(add_cohort_flags, "study-out")
 def cmd_study_simulate(args: argparse.Namespace) -> int:
     _simulated_study(args)
     return 0
 
 
+@cli.command(
+    "study fit",
+    help="fit the operator twin to the paper's Table I on (a) and (b); predict (c) and the RR tests",
+    description="Fits the twin's handling time to φ_b/φ_a and its error model (error_base, "
+    "error_stress) to ε_a and ε_b of the paper's Table I, on a cohort of --fit-subjects, then runs "
+    "`study simulate` with the fitted twin and sets its (c) and RR tests beside the paper's. Writes "
+    "DIR/fit.json, DIR/fit.png and the simulated study. A simulation, labelled so.",
+)
+@flags_from(add_cohort_flags, "fit-out")
+@arg("--fit-subjects", type=positive_int(1), default=6, help="of them, fit on (default 6)")
 def cmd_study_fit(args: argparse.Namespace) -> int:
     from cadence.fit import PAPER, PAPER_RR_P, write_fit
 
@@ -308,6 +408,43 @@ def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
     return t
 
 
+@cli.command(
+    "session",
+    help="one subject's session in one condition on a running cell, recorded to one MCAP",
+    description="Checks the cell first (a status from every service, the robot ready, a good HRV "
+    "window), calibrates the subject at rest or at work if asked (--calibrate, --posture; stored and "
+    "published as `cadence calibrate` does) or takes the stored calibration, waits until the person's "
+    "windows are good and near the baseline (--settle-timeout), sets the condition on the decision maker "
+    "((a) minimum time: k = N; (b) minimum jerk: k = 1; (c) tuned online: Alg. 1 from the initial k), "
+    "and records the cell's traffic for MINUTES of data time, with a live view. The file carries the "
+    "session's description (subject, condition, calibration, task hash, software, start and end in "
+    "data time); Ctrl-C ends it early, complete and marked cut short (exit 1). For the study: "
+    "`cadence study analyse`.",
+)
+@arg("--subject", required=True, help="the subject's ID (as in the calibration)")
+@arg("--condition", required=True, choices=("a", "b", "c"))
+@arg("--minutes", type=float, default=10.0, help="data time to record (default 10)")
+@arg(
+    "--calibrate",
+    type=float,
+    metavar="MINUTES",
+    help="calibrate first, for MINUTES (the paper: 5 at rest; not the 5-minute familiarisation)",
+)
+@flags_from(add_posture)
+@arg(
+    "--settle-timeout",
+    type=float,
+    default=600.0,
+    metavar="S",
+    help="before the condition starts, wait up to S wall seconds for two good windows within 40 ms of "
+    "RR_r (the person settled where the calibration put them); 0: no wait (default 600)",
+)
+@arg("--measured-sigma", action="store_true", help="as `cadence calibrate`")
+@arg("--out", metavar="FILE.mcap", help="default: SUBJECT_CONDITION.mcap")
+@arg("--data-dir", help="where the calibration is stored (default CADENCE_DATA_DIR)")
+@arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="the executor's task")
+@arg("--note", default="", help="free text kept in the file (e.g. the experimenter)")
+@flags_from(add_bus_flags, 120.0)
 def cmd_session(args: argparse.Namespace) -> int:
     from rich.live import Live
 
@@ -383,144 +520,3 @@ def cmd_session(args: argparse.Namespace) -> int:
     )
     out.print(table)
     return 0 if end.complete else 1
-
-
-def add_cohort_flags(p: argparse.ArgumentParser, out_default: str) -> None:
-    p.add_argument("--subjects", type=positive_int(2), default=12, help="simulated subjects (default 12)")
-    p.add_argument("--minutes", type=float, default=10.0, help="per condition and subject (default 10)")
-    p.add_argument("--calibrate", type=float, default=5.0, help="minutes at rest per subject (default 5)")
-    p.add_argument("--seed", type=int, default=1, help="the cohort's seed (default 1)")
-    p.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
-    p.add_argument("--out", default=out_default, metavar="DIR", help=f"output folder (default {out_default})")
-
-
-def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    report = sub.add_parser(
-        "report",
-        help="figures and an index.html (φ, ε, cycle times, events) from a recording or a demo folder",
-        description="Reads an MCAP recording or a `cadence demo` folder and writes to DIR: rr_k.png (mean RR "
-        "per window and the selected k, like the paper's Fig. 6), pareto.png (each path's front, its N "
-        "solutions and the k actually used), cycles.png (q, q̇, q̈ and jerk of the first and last cycle) "
-        "and index.html with the production rate φ, the error rate ε, cycle times and events.",
-    )
-    report.add_argument("source", metavar="FILE.mcap|DEMO_DIR")
-    report.add_argument("--out", required=True, metavar="DIR")
-    report.add_argument(
-        "--sets", metavar="FOLDER", help="Pareto sets cached by an executor (<data>/executor)"
-    )
-    report.add_argument("--rr-rest", type=float, help="the operator's resting mean RR for the figure, s")
-    report.set_defaults(func=cmd_report)
-
-    study = sub.add_parser(
-        "study",
-        help="the paper's study: analyse session files; simulate one with operator twins",
-        description="`analyse` reads session files (from `cadence session`) and writes the paper's Table I, "
-        "Wilcoxon signed-rank tests paired by subject, figures and index.html; `simulate` writes session "
-        "files for simulated subjects (labelled so) and analyses them the same way.",
-    )
-    study_sub = study.add_subparsers(dest="study", required=True, metavar="STEP")
-    analyse = study_sub.add_parser(
-        "analyse",
-        help="Table I, Wilcoxon tests, figures and index.html from session files",
-        description="Per subject and condition: φ (cycles per minute), ε (errors per cycle), mean RR of the "
-        "good windows and mean RR over the subject's RR_r, between the session's start and end. Per "
-        "condition their mean ± sd over subjects; per pair of conditions and measure a Wilcoxon "
-        "signed-rank test paired by subject (scipy; exact where possible, else the normal approximation, "
-        "said beside the p-value). Writes DIR/study.json, DIR/conditions.png (like Fig. 7), one "
-        "DIR/subject_<id>.png per subject (like Fig. 6) and DIR/index.html. A file that was not closed, has "
-        "no calibration, mixes cells or mixes clocks is refused with the reason.",
-    )
-    analyse.add_argument("sessions", nargs="+", metavar="SESSION.mcap|FOLDER")
-    analyse.add_argument("--out", required=True, metavar="DIR")
-    analyse.set_defaults(func=cmd_study_analyse)
-    sim = study_sub.add_parser(
-        "simulate",
-        help="session files for simulated subjects (operator twins), then their analysis",
-        description="Each subject is an operator twin with its own seed, resting RR and tolerance. It is "
-        "calibrated at rest, then runs conditions (a) minimum time, (b) minimum jerk and (c) tuned online "
-        "in simulated time, as fast as the machine allows; each run is written as a session file (the "
-        "message types and metadata of a live session, marked simulated) to DIR/sessions and analysed "
-        "as `cadence study analyse` would.",
-    )
-    add_cohort_flags(sim, "study-out")
-    sim.set_defaults(func=cmd_study_simulate)
-    fit_p = study_sub.add_parser(
-        "fit",
-        help="fit the operator twin to the paper's Table I on (a) and (b); predict (c) and the RR tests",
-        description="Fits the twin's handling time to φ_b/φ_a and its error model (error_base, "
-        "error_stress) to ε_a and ε_b of the paper's Table I, on a cohort of --fit-subjects, then runs "
-        "`study simulate` with the fitted twin and sets its (c) and RR tests beside the paper's. Writes "
-        "DIR/fit.json, DIR/fit.png and the simulated study. A simulation, labelled so.",
-    )
-    add_cohort_flags(fit_p, "fit-out")
-    fit_p.add_argument("--fit-subjects", type=positive_int(1), default=6, help="of them, fit on (default 6)")
-    fit_p.set_defaults(func=cmd_study_fit)
-
-    session = sub.add_parser(
-        "session",
-        help="one subject's session in one condition on a running cell, recorded to one MCAP",
-        description="Checks the cell first (a status from every service, the robot ready, a good HRV "
-        "window), calibrates the subject at rest or at work if asked (--calibrate, --posture; stored and "
-        "published as `cadence calibrate` does) or takes the stored calibration, waits until the person's "
-        "windows are good and near the baseline (--settle-timeout), sets the condition on the decision maker "
-        "((a) minimum time: k = N; (b) minimum jerk: k = 1; (c) tuned online: Alg. 1 from the initial k), "
-        "and records the cell's traffic for MINUTES of data time, with a live view. The file carries the "
-        "session's description (subject, condition, calibration, task hash, software, start and end in "
-        "data time); Ctrl-C ends it early, complete and marked cut short (exit 1). For the study: "
-        "`cadence study analyse`.",
-    )
-    session.add_argument("--subject", required=True, help="the subject's ID (as in the calibration)")
-    session.add_argument("--condition", required=True, choices=("a", "b", "c"))
-    session.add_argument("--minutes", type=float, default=10.0, help="data time to record (default 10)")
-    session.add_argument(
-        "--calibrate",
-        type=float,
-        metavar="MINUTES",
-        help="calibrate first, for MINUTES (the paper: 5 at rest; not the 5-minute familiarisation)",
-    )
-    add_posture(session)
-    session.add_argument(
-        "--settle-timeout",
-        type=float,
-        default=600.0,
-        metavar="S",
-        help="before the condition starts, wait up to S wall seconds for two good windows within 40 ms of "
-        "RR_r (the person settled where the calibration put them); 0: no wait (default 600)",
-    )
-    session.add_argument("--measured-sigma", action="store_true", help="as `cadence calibrate`")
-    session.add_argument("--out", metavar="FILE.mcap", help="default: SUBJECT_CONDITION.mcap")
-    session.add_argument("--data-dir", help="where the calibration is stored (default CADENCE_DATA_DIR)")
-    session.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="the executor's task")
-    session.add_argument("--note", default="", help="free text kept in the file (e.g. the experimenter)")
-    add_bus_flags(session, 120.0)
-    session.set_defaults(func=cmd_session)
-
-    demo = sub.add_parser(
-        "demo",
-        help="the whole closed loop on this machine: operator twin, every service, simulated UR16e",
-        description="Opens a Zenoh router on loopback, plans the task if its sets are not stored, starts "
-        "every service as its own process (ECG gateway with the operator twin, HRV analyser, Pareto store, "
-        "decision maker, executor with the simulated UR16e), restarts any that dies, shows a live view, "
-        "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time), "
-        "DIR/cycles.png (joint positions of the first and last cycle), DIR/pareto.png (the sets) and "
-        "DIR/index.html (the report that shows them).",
-    )
-    demo.add_argument(
-        "--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)"
-    )
-    demo.add_argument("--speed", type=positive_float, default=8.0, help="data time per wall time (default 8)")
-    demo.add_argument("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
-    demo.add_argument("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
-    demo.add_argument("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
-    demo.add_argument(
-        "--kill",
-        action="append",
-        default=[],
-        metavar="SERVICE@S",
-        help="SIGKILL a service at data time S (repeatable): shows the supervisor restarting it",
-    )
-    demo.add_argument("--no-live", action="store_true", help="no live view (for logs and CI)")
-    demo.add_argument(
-        "--listen", metavar="ENDPOINT", help="the router's endpoint (default: a free port on 127.0.0.1)"
-    )
-    demo.set_defaults(func=cmd_demo)

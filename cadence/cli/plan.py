@@ -10,10 +10,22 @@ from pathlib import Path
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cadence.cli._common import add_planner_flags, err, out, task_with_overrides
+from cadence.cli._common import Commands, add_planner_flags, arg, err, flags_from, out, task_with_overrides
 from common.trajectory.task import continuity_gaps
 
+cli = Commands()
 
+
+@cli.command(
+    "plan",
+    help="compute the time/jerk Pareto set of every path of a task program",
+    description="For every path of TASK: NSGA-II over the time intervals, ASF downsampling to N "
+    "solutions; writes DIR/<path_id>.json and DIR/<path_id>.png.",
+)
+@arg("task", metavar="TASK.toml", help="task program (see deploy/tasks/box_filling.toml)")
+@arg("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+@arg("--no-plots", action="store_true", help="write the JSON files only")
+@flags_from(add_planner_flags)
 def cmd_plan(args: argparse.Namespace) -> int:
     from cadence.plots import pareto_figure
     from common.runtime.storage import write_readable
@@ -77,17 +89,3 @@ def cmd_plan(args: argparse.Namespace) -> int:
         )
     out.print(table)
     return 0
-
-
-def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    plan = sub.add_parser(
-        "plan",
-        help="compute the time/jerk Pareto set of every path of a task program",
-        description="For every path of TASK: NSGA-II over the time intervals, ASF downsampling to N "
-        "solutions; writes DIR/<path_id>.json and DIR/<path_id>.png.",
-    )
-    plan.add_argument("task", metavar="TASK.toml", help="task program (see deploy/tasks/box_filling.toml)")
-    plan.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
-    plan.add_argument("--no-plots", action="store_true", help="write the JSON files only")
-    add_planner_flags(plan)
-    plan.set_defaults(func=cmd_plan)
