@@ -4,12 +4,14 @@ The graph (``schemas/topology.py``, ``ROLES``) declares once what each role read
 A node implements that declaration: a method per input (``@on``), per query it answers (``@answers``)
 and per timer (``@every``). Handlers take a typed message and return the messages to publish; they never
 touch the bus, so a node's logic is tested by calling them, or served on the in-memory ``MockBus``
-(common/runtime/mock_bus.py), with nothing else to fake.
+(common/runtime/mock_bus.py), with nothing else to fake. Work that runs beside the handlers (the
+executor's cycles) publishes through ``Node.publish``, routed the same way.
 
 ``node_main(Node)`` gives the ``main`` that ``service_main`` serves: it checks the class against its role's
 declaration (a handler for a port the graph does not give the role, or a declared port with no handler,
 stops the service at start), opens exactly the declared ports, publishes what handlers return on the
-output that carries each message's type, and runs the timers until the service stops.
+output that carries each message's type, and runs the timers and the node's ``work`` until the service
+stops.
 """
 
 from __future__ import annotations
