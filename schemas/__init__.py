@@ -2,7 +2,7 @@
 
 from schemas.base import Message
 from schemas.decision import Selection
-from schemas.ecg import EcgChunk, RrIntervals
+from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
 from schemas.hrv import Beats, HrvWindow
 from schemas.operator import Calibration, OperatorError, OperatorSignal
@@ -10,6 +10,7 @@ from schemas.pareto import ParetoSet, ParetoSolution, ParetoSolutionReply, PlanP
 from schemas.robot import CycleReport, RobotEvent, RobotState
 
 __all__ = [
+    "AccChunk",
     "Beats",
     "Calibration",
     "CycleReport",

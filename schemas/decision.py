@@ -9,7 +9,8 @@ import msgspec
 from schemas.base import RR_MAX_S, Message, TimeNs
 
 # "fixed": a condition that holds one k (the study's a and b: decision_maker mode = "fixed")
-Reason = Literal["initial", "stress", "rest", "cumulative", "hold", "low-quality", "fixed"]
+# "movement": held, the wearer moved well above their level at work (RR then says nothing of mental load)
+Reason = Literal["initial", "stress", "rest", "cumulative", "hold", "low-quality", "fixed", "movement"]
 MAX_N = 1000  # solutions per Pareto set; the paper's N is 15
 
 SolutionIndex = Annotated[int, msgspec.Meta(ge=1, le=MAX_N)]

@@ -1,4 +1,5 @@
-"""ECG from the strap (or a replay, or the operator twin): ``ecg/samples`` and ``ecg/rr``."""
+"""ECG from the strap (or a replay, or the operator twin): ``ecg/samples``, ``ecg/rr``, and the strap's
+accelerometer, ``ecg/acc``."""
 
 from __future__ import annotations
 
@@ -39,3 +40,31 @@ class RrIntervals(Message, frozen=True, tag="ecg.rr.v1"):
     rr_s: Annotated[list[RrSeconds], msgspec.Meta(max_length=64)]
     gap: bool = False
     source: Name = ""
+
+
+# The H10's accelerometer (PMD measurement type 2): 25, 50, 100 or 200 Hz, ±2, 4 or 8 g, in mg. A value
+# beyond 16 g is no movement of a person's chest: a broken frame.
+ACC_RATES_HZ = (25.0, 50.0, 100.0, 200.0)
+MAX_ACC_MG = 16_000
+Milligravity = Annotated[int, msgspec.Meta(ge=-MAX_ACC_MG, le=MAX_ACC_MG)]
+_MAX_ACC = round(MAX_CHUNK_S * max(ACC_RATES_HZ))
+
+
+class AccChunk(Message, frozen=True, tag="ecg.acc.v1"):
+    """Consecutive 3-axis accelerometer samples from the strap, in mg; ``t_ns`` is the data time of the
+    first one, on the clock of the ECG from the same strap. ``gap``: samples missing before this chunk."""
+
+    fs_hz: float
+    x_mg: Annotated[list[Milligravity], msgspec.Meta(max_length=_MAX_ACC)]
+    y_mg: Annotated[list[Milligravity], msgspec.Meta(max_length=_MAX_ACC)]
+    z_mg: Annotated[list[Milligravity], msgspec.Meta(max_length=_MAX_ACC)]
+    gap: bool = False
+    source: Name = ""
+
+    def __post_init__(self) -> None:
+        if self.fs_hz not in ACC_RATES_HZ:
+            raise ValueError(f"fs_hz = {self.fs_hz} is not a rate the accelerometer has {ACC_RATES_HZ}")
+        if not len(self.x_mg) == len(self.y_mg) == len(self.z_mg):
+            raise ValueError("x_mg, y_mg and z_mg must have one entry per sample")
+        if len(self.x_mg) > MAX_CHUNK_S * self.fs_hz:
+            raise ValueError(f"{len(self.x_mg)} samples is over {MAX_CHUNK_S:g} s at {self.fs_hz:g} Hz")

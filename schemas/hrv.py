@@ -45,6 +45,11 @@ class HrvWindow(Message, frozen=True, tag="hrv.window.v1"):
     rmssd_s: Spread | None = None
     sdnn_s: Spread | None = None
     reason: HoldReason | None = None  # why the window is not good (a new field: old decoders skip it)
+    # the wearer's movement over the window, from the strap's accelerometer (None: no accelerometer data
+    # for enough of it): the mean dynamic acceleration (gravity removed), and the share of its seconds
+    # spent moving
+    movement_mg: Annotated[float, msgspec.Meta(ge=0.0, le=32_000.0)] | None = None
+    moving_fraction: Fraction | None = None
 
     def __post_init__(self) -> None:
         if not self.start_ns < self.end_ns:

@@ -32,6 +32,10 @@ class Calibration(Message, frozen=True, tag="operator.calibration.v1"):
     sigma_stress_s: Spread = 0.08
     posture: Posture = "rest"  # new fields: old decoders skip them
     rr_resting_s: RrSeconds | None = None
+    # the movement in the calibration's windows (mean and spread of their movement_mg), when the strap
+    # sent its accelerometer: a working calibration's is the task's own level of movement
+    movement_mg: Annotated[float, msgspec.Meta(ge=0.0, le=32_000.0)] | None = None
+    movement_sd_mg: Annotated[float, msgspec.Meta(ge=0.0, le=32_000.0)] | None = None
 
     def __post_init__(self) -> None:
         if self.rr_rest_s - self.rr_stress_offset_s - self.sigma_stress_s <= 0:

@@ -22,7 +22,7 @@ import msgspec
 
 from schemas.base import Message
 from schemas.decision import Selection
-from schemas.ecg import EcgChunk, RrIntervals
+from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
 from schemas.hrv import Beats, HrvWindow
 from schemas.operator import Calibration, OperatorError, OperatorSignal
@@ -77,6 +77,8 @@ class Topic(Generic[M]):
 
 ECG_SAMPLES = Topic("ecg/samples", EcgChunk)
 ECG_RR = Topic("ecg/rr", RrIntervals)
+# the strap's accelerometer: movement, told apart from mental load (a source without one sends none)
+ECG_ACC = Topic("ecg/acc", AccChunk)
 HRV_BEATS = Topic("hrv/beats", Beats)
 HRV_WINDOW = Topic("hrv/window", HrvWindow)
 CALIBRATION = Topic("operator/calibration", Calibration)
@@ -127,8 +129,8 @@ ROLES: tuple[Role, ...] = (
         answers=(SELECTION, DECISION_CONDITION),
     ),
     # ecg/rr is read only with input = rr
-    Role("hrv_analyser", "service", inputs=(ECG_SAMPLES, ECG_RR), outputs=(HRV_BEATS, HRV_WINDOW)),
-    Role("ecg_gateway", "service", outputs=(ECG_SAMPLES, ECG_RR)),
+    Role("hrv_analyser", "service", inputs=(ECG_SAMPLES, ECG_RR, ECG_ACC), outputs=(HRV_BEATS, HRV_WINDOW)),
+    Role("ecg_gateway", "service", outputs=(ECG_SAMPLES, ECG_RR, ECG_ACC)),
     Role(
         "executor",
         "service",
@@ -143,7 +145,7 @@ ROLES: tuple[Role, ...] = (
         "operator_twin",
         "service",
         inputs=(ROBOT_STATE, ROBOT_CYCLE),
-        outputs=(ECG_SAMPLES, OPERATOR_SIGNAL, OPERATOR_ERROR),
+        outputs=(ECG_SAMPLES, ECG_ACC, OPERATOR_SIGNAL, OPERATOR_ERROR),
     ),
     Role(
         "operator",
@@ -174,6 +176,7 @@ def _view(family: str) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...
 TOPICS: tuple[Topic[Any], ...] = (
     ECG_SAMPLES,
     ECG_RR,
+    ECG_ACC,
     HRV_BEATS,
     HRV_WINDOW,
     CALIBRATION,
@@ -196,6 +199,7 @@ ECG_SOURCES = tuple(p for p in ECG_SAMPLES.publishers if p in SERVICES)
 # Every message type, as one tagged union: what a reader of unknown keys accepts.
 AnyMessage = (
     EcgChunk
+    | AccChunk
     | RrIntervals
     | Beats
     | HrvWindow

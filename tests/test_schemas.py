@@ -6,6 +6,7 @@ import msgspec
 import pytest
 
 from schemas import (
+    AccChunk,
     Beats,
     Calibration,
     CycleReport,
@@ -65,6 +66,7 @@ SAMPLES = [
     ServiceStatus(t_ns=1, seq=12, service="x", state="running", uptime_s=3.0, counters={"decode_errors": 0}),
     OperatorSignal(t_ns=1, seq=13, name="part_a2"),
     OperatorError(t_ns=1, seq=14, cycle=3, description="wrong part"),
+    AccChunk(t_ns=1, seq=0, fs_hz=25.0, x_mg=[-990, -985], y_mg=[30, 31], z_mg=[-237, -230], source="polar"),
 ]
 
 
@@ -113,6 +115,21 @@ def test_an_unknown_tag_is_rejected() -> None:
     d["type"] = "decision.selection.v9"
     with pytest.raises(msgspec.ValidationError, match=r"Invalid value .decision\.selection\.v9."):
         msgspec.msgpack.Decoder(AnyMessage).decode(msgspec.msgpack.encode(d))
+
+
+@pytest.mark.parametrize(
+    ("change", "where"),
+    [
+        ({"fs_hz": 400.0}, "not a rate the accelerometer has"),  # an impossible rate
+        ({"x_mg": [-990, 40_000]}, r"\$.x_mg\[1\]"),  # beyond 16 g: no movement of a chest
+        ({"y_mg": [30]}, "one entry per sample"),
+        ({"x_mg": [0] * 300, "y_mg": [0] * 300, "z_mg": [0] * 300}, "over 10 s at 25 Hz"),
+    ],
+)
+def test_an_impossible_accelerometer_chunk_does_not_decode(change: dict, where: str) -> None:
+    d = {**as_dict(SAMPLES[-1]), **change}
+    with pytest.raises(msgspec.ValidationError, match=where):
+        msgspec.msgpack.Decoder(AccChunk).decode(msgspec.msgpack.encode(d))
 
 
 def test_constraints_hold_at_the_edge() -> None:

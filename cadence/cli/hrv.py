@@ -216,6 +216,14 @@ def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bo
         )
     how = "measured: the spread of the windows' means" if measured_sigma else "the paper default"
     lines.append(f"σ_r = {cal.sigma_rest_s:.3f} s ({how}; measured {level.sigma_s:.3f} s)")
+    if cal.movement_mg is None:
+        lines.append("movement: no accelerometer; every window will be read as mental load")
+    elif cal.posture == "working":
+        lines.append(f"movement at work: {cal.movement_mg:.0f} ± {cal.movement_sd_mg or 0:.0f} mg; a window "
+                     "well above it is not read as stress")  # fmt: skip
+    else:
+        lines.append(f"movement at rest: {cal.movement_mg:.0f} mg; the level at work is learnt from the "
+                     "first windows of work")  # fmt: skip
     return lines + level.verdict.lines()
 
 

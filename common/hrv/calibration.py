@@ -133,8 +133,16 @@ def calibration(
 ) -> tuple[Calibration, RestingLevel]:
     """The message for a subject's calibration windows: σ_r stays the paper's (the message's default)
     unless ``measured_sigma`` asks for the spread of the good windows' means. A working calibration keeps
-    ``resting``'s level (the same subject's stored calibration at rest), when there is one."""
+    ``resting``'s level (the same subject's stored calibration at rest), when there is one. Windows with a
+    movement figure (a strap with its accelerometer) give the level of movement the calibration saw: the
+    median, robust to a person settling the strap, and the spread."""
     level = resting_level(wins)
+    moves = [m for w in wins if (m := getattr(w, "movement_mg", None)) is not None]
+    movement = (
+        {"movement_mg": round(float(np.median(moves)), 1), "movement_sd_mg": round(float(np.std(moves)), 1)}
+        if len(moves) >= 2
+        else {}
+    )
     sigma = {"sigma_rest_s": round(level.sigma_s, 6)} if measured_sigma and level.sigma_s > 0 else {}
     kept = None
     if posture == "working" and resting is not None and resting.subject == subject:
@@ -147,6 +155,7 @@ def calibration(
         posture=posture,
         rr_resting_s=kept,
         **sigma,
+        **movement,
     )
     return cal, level
 

@@ -2,8 +2,9 @@
 
 ``HrvStream`` works in seconds from its own start; this keeps what the wire adds around it: the stream's
 origin in ns, the time line that admits a chunk or drops it (common/runtime/admission.py), the restart
-when a run of chunks agrees on another data time (the old stream flushed first), and the sequence
-numbers of what it sends.
+when a run of chunks agrees on another data time (the old stream flushed first), the sequence numbers of
+what it sends, and the wearer's movement (common/hrv/movement.py) from the accelerometer's own stream,
+which has a time line of its own and lands on each window as it is sent.
 """
 
 from __future__ import annotations
@@ -11,9 +12,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+import msgspec
+import numpy as np
+
+from common.hrv.movement import Movement
 from common.hrv.stream import RR_RESYNC_S, Beat, HrvStream, Window, beats_message, window_message
 from common.runtime.admission import TimeLine, Verdict
-from schemas.ecg import EcgChunk, RrIntervals
+from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.hrv import Beats, HrvWindow
 
 RR_RESOLUTION_HZ = 1024.0  # device RR comes in 1/1024 s; no detector runs on this input
@@ -23,6 +28,9 @@ MAX_GAP_S = 120.0
 CONFIRM_CHUNKS = 10  # about 5.6 s of H10 ECG
 CHUNK_TOLERANCE_S = 0.012  # a chunk may start this much before the last one ended (1.5 samples at 130 Hz)
 CONFIRM_RR = 5  # notifications, about 5 s
+# an accelerometer chunk may start this much before the last one ended: the strap's nominal 25 Hz is
+# 25.3 Hz measured, so a frame's first sample, reckoned at the nominal rate, lands a little early
+ACC_TOLERANCE_S = 0.1
 
 
 @dataclass
@@ -44,6 +52,19 @@ class LiveHrv:
         self.stream: HrvStream | None = None
         self.origin_ns = 0
         self.seq = {"beats": 0, "windows": 0}
+        self.acc_line = TimeLine(MAX_GAP_S, tolerance_s=ACC_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
+        self.movement = Movement()
+
+    def acc(self, chunk: AccChunk, clock_ns: int) -> Verdict | None:
+        """Accelerometer samples: kept for the windows to come; None for an empty chunk."""
+        if not chunk.x_mg:
+            return None
+        end_ns = chunk.t_ns + round(len(chunk.x_mg) * 1e9 / chunk.fs_hz)
+        verdict = self.acc_line.admit(chunk.t_ns, end_ns, chunk.fs_hz, clock_ns=clock_ns)
+        if verdict.acted_on:
+            xyz = np.column_stack([chunk.x_mg, chunk.y_mg, chunk.z_mg]).astype(float)
+            self.movement.feed(chunk.t_ns, chunk.fs_hz, xyz, chunk.gap or verdict.action == "restart")
+        return verdict
 
     def samples(self, chunk: EcgChunk, clock_ns: int) -> Taken:
         if not chunk.samples_uv:
@@ -85,7 +106,10 @@ class LiveHrv:
         out: list[Beats | HrvWindow] = []
         if beats:
             out.append(beats_message(beats, self.origin_ns, self._next("beats")))
-        out += [window_message(w, self.origin_ns, self._next("windows")) for w in wins]
+        for w in wins:
+            msg = window_message(w, self.origin_ns, self._next("windows"))
+            mg, moving = self.movement.over(msg.start_ns, msg.end_ns)
+            out.append(msgspec.structs.replace(msg, movement_mg=mg, moving_fraction=moving))
         return out
 
     def _next(self, what: str) -> int:

@@ -1,7 +1,8 @@
 """Reading ECG recordings for replay and offline checks: WFDB records (with their reference beat
 annotations), CSV files (time, µV), the Polar Sensor Logger app's exports (the most common way H10 data
-is saved: ``…_ECG.txt``, ``;``-separated, µV, and ``…_RR.txt``, RR in ms) and plain RR files (one
-interval per line, in s or ms), resampled to the strap's rate. A broken file is an InputError naming it."""
+is saved: ``…_ECG.txt``, ``;``-separated, µV, ``…_RR.txt``, RR in ms, and ``…_ACC.txt``, the
+accelerometer in mg) and plain RR files (one interval per line, in s or ms), resampled to the strap's
+rate. A broken file is an InputError naming it."""
 
 from __future__ import annotations
 
@@ -36,6 +37,19 @@ class Recording:
     fs: float
     uv: NDArray[np.float64]  # one lead, µV
     beats_s: NDArray[np.float64] | None  # reference beat times, if annotated
+    sensor_start_ns: int | None = None  # a Polar export: its first sample on the strap's clock
+
+
+@dataclass(frozen=True, slots=True)
+class AccRecording:
+    """A Polar Sensor Logger accelerometer export: each sample on the strap's clock (the ECG's), mg."""
+
+    sensor_ns: NDArray[np.int64]
+    xyz_mg: NDArray[np.int64]  # (n, 3)
+
+    @property
+    def fs(self) -> float:
+        return float(1e9 / np.median(np.diff(self.sensor_ns)))
 
 
 def resample(x: NDArray[np.float64], fs_in: float, fs_out: float) -> NDArray[np.float64]:
@@ -108,7 +122,28 @@ def read_record(path: str, fs: float | None = None, lead: int = 0) -> Recording:
         )
     if fs is None or fs == rec.fs:
         return rec
-    return Recording(fs, resample(rec.uv, rec.fs, fs), rec.beats_s)
+    return Recording(fs, resample(rec.uv, rec.fs, fs), rec.beats_s, rec.sensor_start_ns)
+
+
+def read_acc(path: str) -> AccRecording:
+    """``Phone timestamp;sensor timestamp [ns];X [mg];Y [mg];Z [mg]``: times must increase, and no value
+    may be beyond what a chest strap's accelerometer measures (16 g)."""
+    from schemas.ecg import MAX_ACC_MG
+
+    p = Path(path)
+    if not p.is_file() or "X [mg]" not in _header(p):
+        raise InputError(f"{path}: not a Polar Sensor Logger accelerometer export (…_ACC.txt, 'X [mg]')")
+    try:
+        data = np.loadtxt(p, delimiter=";", skiprows=1, usecols=(1, 2, 3, 4), ndmin=2, dtype=np.int64)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{p}: cannot read as a Polar Sensor Logger accelerometer export: {exc}") from None
+    if len(data) < 3:
+        raise InputError(f"{p}: expected at least 3 samples")
+    if np.any(dt := np.diff(data[:, 0]) <= 0):
+        raise InputError(f"{p}: row {int(np.argmax(dt)) + 2}: time does not increase")
+    if np.any(big := np.abs(data[:, 1:]) > MAX_ACC_MG):
+        raise InputError(f"{p}: row {int(np.argmax(big.any(axis=1))) + 2}: beyond ±{MAX_ACC_MG} mg")
+    return AccRecording(data[:, 0], data[:, 1:])
 
 
 def _read_wfdb(p: Path, lead: int) -> Recording:
@@ -157,10 +192,11 @@ def _from_times(p: Path, t_s: NDArray[np.float64], uv: NDArray[np.float64]) -> R
 def _read_polar_ecg(p: Path) -> Recording:
     """Phone timestamp;sensor timestamp [ns];timestamp [ms];ecg [uV]: the sensor's own clock."""
     try:
-        data = np.loadtxt(p, delimiter=";", skiprows=1, usecols=(1, 3), ndmin=2, dtype=float)
+        data = np.loadtxt(p, delimiter=";", skiprows=1, usecols=(1, 3), ndmin=2, dtype=np.int64)
     except (OSError, ValueError) as exc:
         raise InputError(f"{p}: cannot read as a Polar Sensor Logger ECG export: {exc}") from None
-    return _from_times(p, (data[:, 0] - data[0, 0]) / 1e9, data[:, 1])
+    rec = _from_times(p, (data[:, 0] - data[0, 0]) / 1e9, data[:, 1].astype(float))
+    return Recording(rec.fs, rec.uv, None, int(data[0, 0]))
 
 
 def _read_ns_mv(p: Path) -> Recording:

@@ -27,7 +27,7 @@ from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
 from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, SELECTION
 from services.decision_maker.condition import Condition, Conditions, FixedK, store_condition
-from services.decision_maker.state import Decider, DecisionRecord, resume
+from services.decision_maker.state import Decider, DecisionRecord, MovementRule, resume
 
 log = logging.getLogger("cadence.decision_maker")
 NAME = "decision_maker"
@@ -44,6 +44,13 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # these and is kept in condition.json, so that a restart mid-session stays in it.
     mode: Literal["adaptive", "fixed"] = "adaptive"
     fixed_k: FixedK = "a"
+    # Movement (DESIGN §7): a window whose movement is over the wearer's level at work by more than this
+    # (or three spreads of it), and each window within movement_recovery_s after one, is held: mean RR
+    # then says nothing of mental load. The level comes from a working calibration, else from the first
+    # movement_learn_windows windows at work. Windows without movement (no accelerometer) are never held.
+    movement_margin_mg: Annotated[float, msgspec.Meta(ge=5.0, le=2000.0)] = 40.0
+    movement_recovery_s: Annotated[float, msgspec.Meta(ge=0.0, le=1800.0)] = 60.0
+    movement_learn_windows: Annotated[int, msgspec.Meta(ge=1, le=100)] = 4
 
     def __post_init__(self) -> None:
         fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start
@@ -54,7 +61,8 @@ class DecisionMaker(Node):
 
     async def setup(self) -> None:
         s, self.data = self.ctx.settings, self.ctx.common.data_path
-        self.decider = Decider(self.data, s.n)
+        rule = MovementRule(s.movement_margin_mg, s.movement_recovery_s, s.movement_learn_windows)
+        self.decider = Decider(self.data, s.n, rule)
         self.conditions = Conditions(Condition(mode=s.mode, fixed_k=s.fixed_k), s.n)
         problems = await asyncio.to_thread(resume, self.decider, self.data, s.rr_rest_s)
         problems += await asyncio.to_thread(self.conditions.resume, self.data)
@@ -91,7 +99,8 @@ class DecisionMaker(Node):
         if verdict.action == "restart":
             log.warning("hrv/window: %s", verdict.detail)
             self.ctx.counters["window_line_restarts"] += 1
-        await self.adopt(self.decider.answer(w))
+        await self.adopt(record := self.decider.answer(w))
+        self.ctx.counters["windows_held_for_movement"] += record.reason == "movement"
         return await self.current()
 
     @on(CALIBRATION)

@@ -1,18 +1,20 @@
 """The decision maker's state and its file (DESIGN §7, §9): k, RR_{i-1}, the last window answered and the
-selection that announced them, for one calibration. The file is validated on load as strictly as a
-message; a damaged one is moved aside and the service starts afresh at the initial k."""
+selection that announced them, for one calibration, and what it knows of the wearer's movement at work. The
+file is validated on load as strictly as a message; a damaged one is moved aside and the service starts afresh
+at the initial k."""
 
 from __future__ import annotations
 
 import logging
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 import msgspec
 
-from common.decision import Params, State, step
+from common.decision import Params, State, Step, step
 from common.hrv.calibration import load_calibration as load_stored_calibration
+from common.hrv.movement import Baseline, baseline_of, moved
 from common.runtime.admission import TimeLine
 from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
@@ -43,6 +45,7 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     reason: Reason
     t_ns: TimeNs
     window_end_ns: TimeNs | None
+    movement: Baseline = Baseline()
 
     def __post_init__(self) -> None:
         if self.k > self.n:
@@ -71,13 +74,22 @@ def load_record(path: Path) -> Loaded[DecisionRecord]:
     return load_checked(path, lambda b: msgspec.json.decode(b, type=DecisionRecord))
 
 
+class MovementRule(NamedTuple):
+    """When a window is held for movement (common/hrv/movement.py, ``moved``)."""
+
+    margin_mg: float = 40.0
+    recovery_s: float = 60.0
+    learn_windows: int = 4
+
+
 class Decider:
     """The service's state. A change is proposed as a new record, persisted, and only then adopted and
     announced (``commit``), so what is published is always what a restart would resume."""
 
-    def __init__(self, data_dir: Path, n: int) -> None:
+    def __init__(self, data_dir: Path, n: int, rule: MovementRule | None = None) -> None:
         self.path = data_dir / STATE_FILE
         self.n = n
+        self.rule = rule or MovementRule()
         self.record: DecisionRecord | None = None
         self.params: Params | None = None
         self.line = TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S)
@@ -116,6 +128,12 @@ class Decider:
         """Alg. 1 at its initial k on ``cal`` (a session of condition (c) starts there again)."""
         initial = State.initial(params_of(cal, self.n))
         seq = self.record.seq + 1 if self.record is not None else 1
+        if cal.posture == "working" and cal.movement_mg is not None:  # the task's own level
+            movement = baseline_of(cal.movement_mg, cal.movement_sd_mg)
+        elif self.record is not None and same_calibration(self.record.calibration, cal):
+            movement = Baseline(self.record.movement.level_mg, self.record.movement.sd_mg)
+        else:  # learnt from the first windows at work: a calibration at rest says nothing of it
+            movement = Baseline()
         return DecisionRecord(
             calibration=cal,
             n=self.n,
@@ -127,14 +145,21 @@ class Decider:
             reason="initial",
             t_ns=t_ns,
             window_end_ns=None,
+            movement=movement,
         )
 
     def answer(self, w: HrvWindow) -> DecisionRecord:
         """Alg. 1 on a window that the time line admitted."""
         assert self.record is not None and self.params is not None
-        r = step(self.params, self.record.state, w.mean_rr_s, good_quality=w.quality == "good")
+        held, movement = moved(self.record.movement, w.movement_mg, w.start_ns, w.end_ns, *self.rule)
+        good = w.quality == "good" and w.mean_rr_s is not None
+        if held and good:  # mean RR says nothing of mental load while the body works: k and RR_{i-1} stay
+            r = Step(self.record.state, 0, "movement")
+        else:
+            r = step(self.params, self.record.state, w.mean_rr_s, good_quality=good)
         return msgspec.structs.replace(
             self.record,
+            movement=movement,
             k=r.state.k,
             rr_prev=str(r.state.rr_prev),
             last_end_ns=w.end_ns,

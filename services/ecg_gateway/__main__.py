@@ -1,6 +1,10 @@
-"""ecg_gateway: an ECG source → ``ecg/samples`` and ``ecg/rr`` (DESIGN §1, §6). Sources behind one
-interface: ``polar`` (the H10 over BLE) and ``replay`` (a recording). A cell without a strap runs the
-operator twin (services/operator_twin) in this service's place."""
+"""ecg_gateway: an ECG source → ``ecg/samples``, ``ecg/rr`` and the strap's accelerometer, ``ecg/acc``
+(DESIGN §1, §6). Sources behind one interface: ``polar`` (the H10 over BLE) and ``replay`` (a recording,
+with a Polar accelerometer export beside it if there is one). A cell without a strap runs the operator
+twin (services/operator_twin) in this service's place.
+
+A source without an accelerometer, or whose accelerometer stops while its ECG goes on, works as before
+(the windows carry no movement, and Alg. 1 reads every window as it always did); the status says so."""
 
 from __future__ import annotations
 
@@ -16,13 +20,14 @@ from common.runtime.errors import ConfigError
 from common.runtime.node import Node, Out, node_main
 from common.runtime.service import service_main
 from schemas.base import TimeNs
-from schemas.ecg import EcgChunk, RrIntervals
-from schemas.topology import ECG_RR, ECG_SAMPLES
+from schemas.ecg import AccChunk, EcgChunk, RrIntervals
+from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
-from services.ecg_gateway.sources import FS_HZ, EcgSource, ReplaySource, RrChunk
+from services.ecg_gateway.sources import FS_HZ, AccSamples, EcgSource, ReplaySource, RrChunk
 
 NAME = "ecg_gateway"
 LISTENER_WAIT_S = 30.0
+ACC_SILENT_S = 5.0  # ECG this far past the accelerometer's last sample: it has stopped
 log = logging.getLogger("cadence.ecg_gateway")
 
 
@@ -33,14 +38,17 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
     speed: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 1.0  # replay: × real time; 0 = at once
     start_ns: TimeNs | None = None  # replay: data time of the first sample (default: now)
+    acc_record: str | None = None  # replay: a Polar Sensor Logger accelerometer export (…_ACC.txt)
+    acc_hz: Literal[25, 50, 100, 200, 0] = 25  # polar: the accelerometer's rate; 0: do not ask for it
 
 
 def make_source(settings: Settings) -> EcgSource:
     if settings.source == "polar":
-        return PolarSource(bleak_connector(settings.strap), settings.gap_timeout_s)
+        acc_hz = settings.acc_hz or None
+        return PolarSource(bleak_connector(settings.strap), settings.gap_timeout_s, acc_hz=acc_hz)
     if settings.record is None:
         raise ConfigError(f"[{NAME}] record: the replay source needs a record (WFDB path or CSV)")
-    return ReplaySource(settings.record, settings.speed, settings.start_ns)
+    return ReplaySource(settings.record, settings.speed, settings.start_ns, settings.acc_record)
 
 
 class EcgGateway(Node):
@@ -49,6 +57,17 @@ class EcgGateway(Node):
 
     async def setup(self) -> None:
         self.source = make_source(self.ctx.settings)
+        self.acc_until_ns: int | None = None  # where the accelerometer's data ends, so far
+
+    def say_accelerometer(self, ecg_ns: int) -> None:
+        """The status says when the windows are read without movement, and why."""
+        if not self.source.accelerometer:
+            self.ctx.detail = "no accelerometer: windows are read without movement (ECG only)"
+        elif self.acc_until_ns is not None and ecg_ns - self.acc_until_ns > ACC_SILENT_S * 1e9:
+            self.ctx.detail = (f"no accelerometer for {(ecg_ns - self.acc_until_ns) / 1e9:.0f} s: windows "
+                               "are read without movement until it comes back")  # fmt: skip
+        else:
+            self.ctx.detail = ""
 
     async def stream(self) -> AsyncIterator[Out]:
         if self.source.waits_for_listener:
@@ -65,6 +84,15 @@ class EcgGateway(Node):
             if isinstance(chunk, RrChunk):
                 yield [RrIntervals(t_ns=chunk.t_ns, seq=self.next_seq(ECG_RR), rr_s=chunk.rr_s, source=name)]
                 continue
+            if isinstance(chunk, AccSamples):
+                self.ctx.counters["acc_chunks"] += 1
+                self.acc_until_ns = chunk.t_ns + round(len(chunk.xyz_mg) * 1e9 / chunk.fs_hz)
+                x, y, z = (list(axis) for axis in zip(*chunk.xyz_mg, strict=True))
+                seq = self.next_seq(ECG_ACC)
+                yield [AccChunk(t_ns=chunk.t_ns, seq=seq, fs_hz=chunk.fs_hz, x_mg=x, y_mg=y, z_mg=z,
+                                gap=chunk.gap, source=name)]  # fmt: skip
+                continue
+            self.say_accelerometer(chunk.t_ns)
             self.ctx.counters["chunks"] += 1
             self.ctx.counters["gaps"] += int(chunk.gap)
             yield [EcgChunk(t_ns=chunk.t_ns, seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ,

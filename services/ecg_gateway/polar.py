@@ -2,8 +2,11 @@
 
 The source asks a *connector* for a connected GATT client. The real one scans with bleak and connects
 through bleak-retry-connector's ``establish_connection``; tests pass a fake client with the same methods
-(``fake_h10.py``). Then it starts the PMD ECG stream at 130 Hz and the heart-rate notifications, and
-yields chunks on data time. The H10's clock counts from 2000-01-01 and stamps each frame's last sample.
+(``fake_h10.py``). Then it starts the PMD ECG stream at 130 Hz and the heart-rate notifications, and,
+once the strap has started ECG, its accelerometer (``acc_hz``; None: not asked); it yields chunks on
+data time. The H10's clock counts from 2000-01-01 and stamps each frame's last sample, ECG and
+accelerometer alike. A strap that refuses the accelerometer keeps streaming ECG (``accelerometer``
+turns False, and the gateway says so).
 
 A link can go silent without a disconnect callback, so a data-gap watchdog reconnects after
 ``gap_timeout_s`` without a frame. Connection failures are retried with back-off. The first chunk after
@@ -22,15 +25,20 @@ from typing import Protocol, cast
 
 from common.hrv.polar import (
     HR_MEASUREMENT,
+    PMD_ACC,
     PMD_CONTROL,
     PMD_DATA,
+    PMD_ECG,
     FrameError,
+    acc_start_request,
     ecg_start_request,
+    measurement_type,
+    parse_acc_frame,
     parse_control_response,
     parse_ecg_frame,
     parse_heart_rate,
 )
-from services.ecg_gateway.sources import FS_HZ, Chunk, EcgSource, RrChunk
+from services.ecg_gateway.sources import FS_HZ, AccSamples, Chunk, EcgSource, Item, RrChunk
 
 log = logging.getLogger("cadence.ecg_gateway.polar")
 
@@ -96,15 +104,33 @@ class PolarSource(EcgSource):
     name = "polar"
 
     def __init__(
-        self, connector: Connector, gap_timeout_s: float = 5.0, backoff_s: tuple[float, ...] = BACKOFF_S
+        self,
+        connector: Connector,
+        gap_timeout_s: float = 5.0,
+        backoff_s: tuple[float, ...] = BACKOFF_S,
+        acc_hz: int | None = 25,
     ):
         self.connector = connector
         self.gap_timeout_s = gap_timeout_s
         self.backoff_s = backoff_s
+        self.acc_hz = acc_hz
+        self.accelerometer = acc_hz is not None
         self.bad_frames = 0
         self.reconnects = 0
+        self.acc_expected_ns: int | None = None
+        self.acc_gap = False  # accelerometer samples were lost (a reconnect) before the next chunk
 
-    async def chunks(self) -> AsyncIterator[Chunk | RrChunk]:
+    def _acc(self, data: bytes) -> AccSamples:
+        assert self.acc_hz is not None
+        frame = parse_acc_frame(data)
+        n, fs = len(frame.samples_mg), float(self.acc_hz)
+        first_ns = POLAR_EPOCH_NS + frame.timestamp_ns - round((n - 1) * 1e9 / fs)
+        expected, self.acc_expected_ns = self.acc_expected_ns, first_ns + round(n * 1e9 / fs)
+        gap = self.acc_gap or (expected is not None and abs(first_ns - expected) > 1.5e9 / fs)
+        self.acc_gap = False
+        return AccSamples(first_ns, fs, frame.samples_mg, gap)
+
+    async def chunks(self) -> AsyncIterator[Item]:
         attempt = 0
         gap = False
         expected_ns: int | None = None
@@ -122,7 +148,7 @@ class PolarSource(EcgSource):
             attempt = 0
             try:
                 await client.start_notify(PMD_CONTROL, _feeder(queue, "control"))
-                await client.start_notify(PMD_DATA, _feeder(queue, "ecg"))
+                await client.start_notify(PMD_DATA, _feeder(queue, "pmd"))
                 await client.start_notify(HR_MEASUREMENT, _feeder(queue, "hr"))
                 await client.write_gatt_char(PMD_CONTROL, ecg_start_request(), response=True)
                 while True:
@@ -134,8 +160,18 @@ class PolarSource(EcgSource):
                     try:
                         if kind == "control":
                             resp = parse_control_response(data)
-                            if not resp.ok:
+                            if resp.measurement == PMD_ACC and not resp.ok:
+                                log.warning("the strap refused its accelerometer (status %d): ECG only",
+                                            resp.status)  # fmt: skip
+                                self.accelerometer = False
+                            elif not resp.ok:
                                 raise StrapError(f"the strap refused to start ECG (status {resp.status})")
+                            elif resp.measurement == PMD_ECG and self.accelerometer and self.acc_hz:
+                                request = acc_start_request(self.acc_hz)
+                                await client.write_gatt_char(PMD_CONTROL, request, response=True)
+                        elif kind == "pmd" and measurement_type(data) == PMD_ACC:
+                            if self.accelerometer:
+                                yield self._acc(data)
                         elif kind == "hr":
                             hr = parse_heart_rate(data)
                             if hr.rr_s and expected_ns is not None:
@@ -156,6 +192,7 @@ class PolarSource(EcgSource):
                 log.warning("ECG stream interrupted (%s); reconnecting", exc or "no data")
                 self.reconnects += 1
                 gap = True
+                self.acc_gap, self.acc_expected_ns = self.acc_expected_ns is not None, None
             finally:
                 with contextlib.suppress(Exception):
                     await client.disconnect()

@@ -1,7 +1,8 @@
 """ECG sources behind one interface (STYLE 4: the fake is chosen by argument, like bleak's backends).
 
 A source yields chunks: the data time of their first sample (ns), µV samples at 130 Hz, and whether
-samples are missing before this chunk. ``replay`` plays a recording; ``polar`` is the H10 over BLE (the
+samples are missing before this chunk; and, when it has an accelerometer, its samples (mg) on the same
+clock. ``replay`` plays a recording; ``polar`` is the H10 over BLE (the
 simulated operator is a node of its own, services/operator_twin, that sends its ECG in this one's place).
 """
 
@@ -15,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.hrv.records import read_record
-from schemas.ecg import H10_CHUNK, H10_FS_HZ
+from common.hrv.records import AccRecording, read_acc, read_record
+from schemas.ecg import ACC_RATES_HZ, H10_CHUNK, H10_FS_HZ
 
 FS_HZ, CHUNK = H10_FS_HZ, H10_CHUNK
 
@@ -36,30 +37,66 @@ class RrChunk:
     rr_s: list[float]
 
 
+@dataclass(frozen=True, slots=True)
+class AccSamples:
+    """Accelerometer samples (x, y, z in mg) at ``fs_hz`` from data time ``t_ns``."""
+
+    t_ns: int
+    fs_hz: float
+    xyz_mg: list[tuple[int, int, int]]
+    gap: bool = False
+
+
+Item = Chunk | RrChunk | AccSamples
+
+
 class EcgSource(abc.ABC):
     name: str
     # A recording is worth nothing to nobody: a replay waits for a subscriber before its first chunk
     # (Zenoh drops a put that has no known subscriber). A live strap streams whoever listens.
     waits_for_listener: bool = False
+    # whether it sends the accelerometer: a strap that refuses it, a recording without one, do not
+    accelerometer: bool = False
 
     @abc.abstractmethod
-    def chunks(self) -> AsyncIterator[Chunk | RrChunk]: ...
+    def chunks(self) -> AsyncIterator[Item]: ...
 
 
 class ReplaySource(EcgSource):
     """A WFDB record or CSV, resampled to 130 Hz, cut into H10-sized chunks with data times from
-    ``start_ns``, paced at ``speed`` × real time (0: as fast as the consumer allows)."""
+    ``start_ns``, paced at ``speed`` × real time (0: as fast as the consumer allows). With ``acc``, a
+    Polar accelerometer export, its samples go out beside the ECG: on the strap's clock when the ECG is
+    a Polar export of the same session, else from the ECG's start."""
 
     name = "replay"
     waits_for_listener = True
 
-    def __init__(self, record: str, speed: float = 1.0, start_ns: int | None = None) -> None:
+    def __init__(
+        self, record: str, speed: float = 1.0, start_ns: int | None = None, acc: str | None = None
+    ) -> None:
         self.recording = read_record(record, fs=FS_HZ)  # InputError on a broken file, at start
+        self.acc: AccRecording | None = read_acc(acc) if acc is not None else None
+        self.accelerometer = self.acc is not None
         self.speed = speed
         self.start_ns = time.time_ns() if start_ns is None else start_ns
 
-    async def chunks(self) -> AsyncIterator[Chunk]:
+    def _acc_items(self) -> list[AccSamples]:
+        """The accelerometer in one-second chunks, each at its own data time (the strap's rate is
+        nominal: 25 Hz measures as 25.3 on the export)."""
+        if self.acc is None:
+            return []
+        origin = self.recording.sensor_start_ns or int(self.acc.sensor_ns[0])
+        fs = min(ACC_RATES_HZ, key=lambda r: abs(r - self.acc.fs))  # type: ignore[union-attr]
+        n = round(fs)
+        return [
+            AccSamples(self.start_ns + int(self.acc.sensor_ns[i]) - origin, fs,
+                       [(int(a), int(b), int(c)) for a, b, c in self.acc.xyz_mg[i : i + n]])
+            for i in range(0, len(self.acc.sensor_ns), n)
+        ]  # fmt: skip
+
+    async def chunks(self) -> AsyncIterator[Item]:
         x = np.rint(self.recording.uv).astype(int)
+        acc = [a for a in self._acc_items() if a.t_ns >= self.start_ns]
         t_wall0 = time.monotonic()
         for i in range(0, len(x), CHUNK):
             if self.speed > 0:
@@ -67,4 +104,8 @@ class ReplaySource(EcgSource):
                 await asyncio.sleep(max(0.0, due - time.monotonic()))
             else:
                 await asyncio.sleep(0)
-            yield Chunk(self.start_ns + round(i * 1e9 / FS_HZ), x[i : i + CHUNK].tolist())
+            t_ns = self.start_ns + round(i * 1e9 / FS_HZ)
+            yield Chunk(t_ns, x[i : i + CHUNK].tolist())
+            end_ns = t_ns + round(CHUNK * 1e9 / FS_HZ)
+            while acc and acc[0].t_ns + round(len(acc[0].xyz_mg) * 1e9 / acc[0].fs_hz) <= end_ns:
+                yield acc.pop(0)  # sent once its last sample exists, as the strap does

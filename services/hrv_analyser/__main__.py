@@ -5,7 +5,8 @@
 the H10's own RR leaves out premature beats, so samples are the default and the better input.
 
 A chunk far from the stream's data time, or at another sample rate, is dropped and counted; a run of
-them that agree with each other starts the stream afresh there (common/hrv/live.py)."""
+them that agree with each other starts the stream afresh there (common/hrv/live.py). The strap's
+accelerometer (``ecg/acc``), when its source has one, gives each window the wearer's movement."""
 
 from __future__ import annotations
 
@@ -17,9 +18,9 @@ import msgspec
 from common.hrv.live import LiveHrv, Taken
 from common.runtime.node import Node, Out, Rejected, node_main, on
 from common.runtime.service import service_main
-from schemas.ecg import EcgChunk, RrIntervals
+from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.hrv import Beats
-from schemas.topology import ECG_RR, ECG_SAMPLES, Topic
+from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES, Topic
 
 NAME = "hrv_analyser"
 
@@ -36,7 +37,7 @@ class HrvAnalyser(Node):
         self.live = LiveHrv(self.ctx.settings.window_s, self.ctx.settings.input)
 
     def reads(self, topic: Topic[Any]) -> bool:  # ecg/rr only with input = rr, ecg/samples only without
-        return (topic.suffix == ECG_RR.suffix) == (self.ctx.settings.input == "rr")
+        return topic is ECG_ACC or (topic.suffix == ECG_RR.suffix) == (self.ctx.settings.input == "rr")
 
     @on(ECG_SAMPLES, maxsize=10_000)
     async def on_chunk(self, chunk: EcgChunk) -> Out:
@@ -45,6 +46,14 @@ class HrvAnalyser(Node):
     @on(ECG_RR, maxsize=10_000)
     async def on_rr(self, msg: RrIntervals) -> Out:
         return self.sent(self.live.rr(msg, self.ctx.common.clock.now_ns()))
+
+    @on(ECG_ACC, maxsize=10_000)
+    async def on_acc(self, chunk: AccChunk) -> Out:
+        verdict = self.live.acc(chunk, self.ctx.common.clock.now_ns())
+        if verdict is not None and not verdict.acted_on:
+            raise Rejected(verdict.code, verdict.detail)
+        self.ctx.counters["acc_chunks"] += 1
+        return []
 
     def sent(self, taken: Taken) -> Out:
         if taken.verdict is not None and not taken.verdict.acted_on:
@@ -56,6 +65,7 @@ class HrvAnalyser(Node):
                 self.ctx.counters["beats"] += len(m.rr_s)
             else:
                 self.ctx.counters["windows"] += 1
+                self.ctx.counters["windows_without_movement"] += m.movement_mg is None
         return taken.out
 
 
