@@ -75,6 +75,20 @@ class DemoOptions:
     kill: tuple[tuple[str, float], ...] = ()  # (service, data time s): SIGKILL it then
     live: bool = True
     listen: str | None = None  # the router's endpoint; a free loopback port when None
+    twin: tuple[tuple[str, bool | int | float], ...] = ()  # TwinParams fields over the demo's own
+
+
+def twin_table(opts: DemoOptions) -> dict[str, bool | int | float]:
+    """The twin's parameters in the demo: its seed, a co-worker less tolerant than the default, and what
+    ``--twin`` asks."""
+    return {"seed": opts.seed, "tolerance": DEMO_TOLERANCE, **dict(opts.twin)}
+
+
+def inline_toml(table: dict[str, bool | int | float]) -> str:
+    def value(v: bool | int | float) -> str:
+        return ("true" if v else "false") if isinstance(v, bool) else repr(v)
+
+    return "{ " + ", ".join(f"{k} = {value(v)}" for k, v in table.items()) + " }"
 
 
 def free_port() -> int:
@@ -147,7 +161,8 @@ class Observed:
         return round((t_ns - self.epoch_ns) / 1e9, 3)
 
     def on_window(self, w: HrvWindow) -> None:
-        self.windows.append({"end_s": self.t(w.end_ns), "mean_rr_s": w.mean_rr_s, "quality": w.quality})
+        self.windows.append({"end_s": self.t(w.end_ns), "mean_rr_s": w.mean_rr_s, "quality": w.quality,
+                             "movement_mg": w.movement_mg})  # fmt: skip
 
     def on_selection(self, s: Selection) -> None:
         last = self.selections[-1] if self.selections else None
@@ -211,7 +226,7 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
         # a co-worker less tolerant than the twin's default: the example task's waits for the operator
         # (B2 clear, the parts) leave the arm idle part of each cycle, and the demo should show Alg. 1 at
         # work, stress first and relief after, within its first minutes
-        "operator_twin": {"twin": f"{{ seed = {opts.seed}, tolerance = {DEMO_TOLERANCE} }}"},
+        "operator_twin": {"twin": inline_toml(twin_table(opts))},
         "executor": {
             "task": task,
             "backend": "sim",
@@ -223,14 +238,15 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
 def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, Supervised]) -> Group:
     shown = min(now_s, opts.duration_s)  # the run ends at its duration, whatever a late message says
     t = Table(title=f"cadence demo — data time {shown:6.0f} / {opts.duration_s:.0f} s at {opts.speed:g}×")
-    for col in ("mean RR (last window)", "k", "cycles", "last cycle", "errors", "restarts"):
+    for col in ("mean RR (last window)", "movement", "k", "cycles", "last cycle", "errors", "restarts"):
         t.add_column(col, justify="right")
     w = obs.windows[-1] if obs.windows else None
     rr = f"{w['mean_rr_s']:.3f} s ({w['quality']})" if w and w["mean_rr_s"] else "—"
+    moved = f"{w['movement_mg']:.0f} mg" if w and w.get("movement_mg") is not None else "—"
     k = str(obs.selections[-1]["k"]) if obs.selections else "—"
     last = f"{obs.cycles[-1].cycle_time_s:.1f} s" if obs.cycles else "—"
     restarts = ", ".join(f"{n} {p.restarts}" for n, p in procs.items() if p.restarts) or "none"
-    t.add_row(rr, k, str(len(obs.cycles)), last, str(obs.errors), restarts)
+    t.add_row(rr, moved, k, str(len(obs.cycles)), last, str(obs.errors), restarts)
     ev = Table(show_header=False, box=None)
     for e in obs.events[-5:]:
         ev.add_row(f"{e['t_s']:7.1f} s", e["source"], e["kind"], e["message"][:90])

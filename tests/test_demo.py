@@ -108,3 +108,45 @@ def test_the_live_view_explains_a_protective_stop_of_a_busy_machine() -> None:
     obs.on_event("executor", "protective_stop", "25 servo overruns in a row during 'b1_to_b2'", 5 * 10**9)
     text = shown()
     assert "1 protective stop(s): the servo loop missed its deadlines" in text and "8×" in text
+
+
+HEAVY = (150.0, 300.0)  # data time: the twin carries heavier parts
+
+
+def test_carrying_heavier_parts_steps_k_down_only_without_the_accelerometer(tmp_path: Path) -> None:
+    """One demo cell, run twice with the same twin: a co-worker the robot's pace does not stress
+    (tolerance 5), who carries heavier parts for a stretch. Their heart answers the effort (mean RR falls
+    about 110 ms). With the strap's accelerometer the stretch and the minute after it are held for movement
+    and k never steps down; without it the same fall is read as stress and k steps down."""
+    out = tmp_path / "demo"
+    runs = {}
+    for acc in (True, False):
+        r = subprocess.run(
+            [sys.executable, "-m", "cadence", "demo", "--duration", "480", "--speed", "16", "--out", str(out),
+             "--no-live", "--twin", "tolerance=5", "--twin", f"heavy_from_s={HEAVY[0]}",
+             "--twin", f"heavy_until_s={HEAVY[1]}", "--twin", f"accelerometer={str(acc).lower()}"],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stdout + r.stderr
+        runs[acc] = json.loads((out / "summary.json").read_text())  # the second run reuses the sets
+
+    def during(s: dict) -> tuple[list[dict], list[dict]]:
+        """The windows ending within the stretch and the minute after, and their selections."""
+        span = (HEAVY[0] + 20.0, HEAVY[1] + 60.0)
+        wins = [w for w in s["windows"] if span[0] < w["end_s"] <= span[1]]
+        sel = [x for x in s["selections"] if x["reason"] != "initial" and span[0] < x["t_s"] <= span[1]]
+        return wins, sel
+
+    moving, held = during(runs[True])
+    still = [w for w in runs[True]["windows"] if w["end_s"] <= HEAVY[0]]
+    assert still and all(w["movement_mg"] < 60 for w in still)  # at work: handling parts now and then
+    assert len(moving) >= 4 and all(w["movement_mg"] > 150 for w in moving[:3])
+    assert min(w["mean_rr_s"] for w in moving) < min(w["mean_rr_s"] for w in still) - 0.06  # the heart
+    assert {x["reason"] for x in held} == {"movement"} and all(x["delta"] == 0 for x in held)
+    assert runs[True]["k_steps_down"] == 0
+
+    blind, read = during(runs[False])
+    assert blind and all(w["movement_mg"] is None for w in runs[False]["windows"])
+    assert min(w["mean_rr_s"] for w in blind) < 0.76  # the same heart: the same fall
+    assert any(x["delta"] < 0 and x["reason"] == "stress" for x in read)
+    assert runs[False]["k_steps_down"] >= 1

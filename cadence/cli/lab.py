@@ -7,10 +7,12 @@ import asyncio
 import os
 import sys
 import time
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import msgspec
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -74,8 +76,17 @@ def add_cohort_flags(p: argparse.ArgumentParser, out_default: str) -> None:
 )
 @arg("--no-live", action="store_true", help="no live view (for logs and CI)")
 @arg("--listen", metavar="ENDPOINT", help="the router's endpoint (default: a free port on 127.0.0.1)")
+@arg(
+    "--twin",
+    action="append",
+    default=[],
+    metavar="KEY=VALUE",
+    help="a parameter of the operator twin (common/sim/twin.py; repeatable), e.g. heavy_from_s=120 "
+    "heavy_until_s=300 (a stretch of heavier parts) or accelerometer=false (a strap without one)",
+)
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cadence.demo import ORDER, DemoOptions, run_demo
+    from cadence.demo import ORDER, DemoOptions, run_demo, twin_table
+    from common.sim.twin import TwinParams
 
     kills = []
     for spec in args.kill:
@@ -85,6 +96,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
                 f"--kill {spec}: expected SERVICE@SECONDS with SERVICE one of {', '.join(ORDER)}"
             )
         kills.append((name, float(at)))
+    twin = []
+    for spec in args.twin:
+        key, _, text = spec.partition("=")
+        try:
+            twin.append((key.strip(), tomllib.loads(f"v = {text}")["v"]))
+        except tomllib.TOMLDecodeError:
+            raise InputError(f"--twin {spec}: expected KEY=VALUE, the value a number or true/false") from None
     opts = DemoOptions(
         duration_s=args.duration,
         speed=args.speed,
@@ -94,7 +112,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
         kill=tuple(kills),
         live=not args.no_live,
         listen=args.listen,
+        twin=tuple(twin),
     )
+    try:  # a parameter the twin does not have, or out of its range: said now, not by a service at start
+        msgspec.convert(twin_table(opts), TwinParams)
+    except msgspec.ValidationError as exc:
+        raise InputError(f"--twin: {exc}") from None
     t0 = time.monotonic()
     summary = asyncio.run(run_demo(opts, out))
     wall = time.monotonic() - t0

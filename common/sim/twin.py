@@ -10,8 +10,16 @@ A simulation model for demos and tests, not a claim about real people. Every par
 - Stress S in [0, 1] follows S* = clip((u − tolerance) / span, 0, 1), the personal tolerance, with time
   constant ``tau_up_s`` while rising and ``tau_down_s`` while easing. Fatigue F grows slowly with
   exposure and never eases within a shift.
-- Mean RR = rr_rest − rr_range · S − fatigue_rr · F. Each interval adds respiratory sinus arrhythmia
-  (a sine at the breathing rate) and AR(1) noise.
+- Movement M (mg of dynamic acceleration at the chest): ``movement_base_mg`` at work, ``handling_mg``
+  while the operator handles a part (reaching, placing), and ``heavy_mg`` all through a stretch of heavier
+  parts (``heavy_from_s`` to ``heavy_until_s``, data time). Exertion E in [0, 1] follows
+  clip((M − movement_base_mg) / exertion_span_mg, 0, 1) with ``tau_exert_up_s`` / ``tau_exert_down_s``:
+  the heart answers effort within tens of seconds and recovers in about a minute.
+- Mean RR = rr_rest − rr_range · S − fatigue_rr · F − exertion_rr · E. Each interval adds respiratory
+  sinus arrhythmia (a sine at the breathing rate) and AR(1) noise.
+- The strap's accelerometer (``accelerometer``): gravity (the H10's orientation on a chest) plus noise
+  whose mean magnitude is M, at 25 Hz, from a generator of its own, so that the heart's draws are the same
+  with or without it.
 - ECG at 130 Hz: per beat a sum of Gaussians for P, Q, R, S and T (ECGSYN-like; the waves' offsets
   scale with √RR, as the QT interval does), plus baseline wander and white noise, in µV, so that the
   real R-peak detector has to find the beats.
@@ -39,6 +47,8 @@ WAVES = np.array(
     ]
 )
 REACH_S = 0.6  # a beat's waves are negligible further than this from its R peak
+ACC_FS_HZ = 25.0
+GRAVITY_MG = np.array([-993.0, 30.0, -237.0])  # an H10 on a chest (the shared Polar export's first row)
 
 
 def _in(lo: float, hi: float) -> msgspec.Meta:
@@ -76,6 +86,16 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     error_pace: Share = 0.15
     error_stress: Share = 0.25
     handling_s: Annotated[float, _in(0.0, 600.0)] = 1.2  # time to put a part once the robot waits
+    movement_base_mg: Annotated[float, _in(0.0, 2000.0)] = 15.0
+    handling_mg: Annotated[float, _in(0.0, 2000.0)] = 90.0
+    heavy_mg: Annotated[float, _in(0.0, 2000.0)] = 260.0
+    heavy_from_s: Annotated[float, _in(0.0, 1e6)] | None = None  # a stretch of heavier parts
+    heavy_until_s: Annotated[float, _in(0.0, 1e6)] | None = None
+    exertion_rr_s: Annotated[float, _in(0.0, 0.4)] = 0.12
+    exertion_span_mg: Positive = 250.0
+    tau_exert_up_s: Positive = 20.0
+    tau_exert_down_s: Positive = 25.0
+    accelerometer: bool = True  # the strap sends its accelerometer
 
 
 class Operator:
@@ -86,6 +106,9 @@ class Operator:
         self.rng = np.random.default_rng(p.seed)
         self.stress = 0.0
         self.fatigue = 0.0
+        self.exertion = 0.0
+        self._handling: deque[tuple[float, float]] = deque()  # (from, until): parts being handled
+        self._acc_rng = np.random.default_rng([p.seed, 1])
         self.t = 0.0  # data time up to which the state is integrated
         self._obs: deque[tuple[float, float, float]] = deque()  # (t, speed, accel)
         self._last_qd: tuple[float, NDArray[np.float64]] | None = None
@@ -120,8 +143,24 @@ class Operator:
             accel += a0 * dt
         return (speed / p.pace_ref_rad_s + p.accel_weight * accel / p.accel_ref_rad_s2) / p.window_s
 
+    def handle(self, t: float, duration_s: float) -> None:
+        """The operator handles a part from data time t for ``duration_s``: a burst of movement."""
+        self._handling.append((t, t + duration_s))
+
+    def movement(self, t: float) -> float:
+        """M at data time t, mg."""
+        p = self.p
+        while self._handling and self._handling[0][1] < t - 60.0:
+            self._handling.popleft()
+        level = p.movement_base_mg
+        if p.heavy_from_s is not None and p.heavy_from_s <= t < (p.heavy_until_s or math.inf):
+            level = p.heavy_mg
+        if any(a <= t < b for a, b in self._handling):
+            level = max(level, p.handling_mg)
+        return level
+
     def advance(self, t: float) -> None:
-        """Integrate stress and fatigue up to data time t."""
+        """Integrate stress, fatigue and exertion up to data time t."""
         p = self.p
         dt = t - self.t
         if dt <= 0:
@@ -131,11 +170,25 @@ class Operator:
         tau = p.tau_up_s if target > self.stress else p.tau_down_s
         self.stress += (target - self.stress) * (1.0 - math.exp(-dt / tau))
         self.fatigue += dt / 3600.0 * p.fatigue_per_hour * u
+        effort = min(1.0, max(0.0, (self.movement(t) - p.movement_base_mg) / p.exertion_span_mg))
+        tau = p.tau_exert_up_s if effort > self.exertion else p.tau_exert_down_s
+        self.exertion += (effort - self.exertion) * (1.0 - math.exp(-dt / tau))
         self.t = t
 
     def mean_rr(self) -> float:
         p = self.p
-        return p.rr_rest_s - p.rr_range_s * self.stress - p.fatigue_rr_s * self.fatigue
+        return (
+            p.rr_rest_s
+            - p.rr_range_s * self.stress
+            - p.fatigue_rr_s * self.fatigue
+            - p.exertion_rr_s * self.exertion
+        )
+
+    def acc(self, t0: float, n: int, fs: float = ACC_FS_HZ) -> NDArray[np.int64]:
+        """n accelerometer samples (x, y, z in mg) at fs from data time t0."""
+        level = np.array([self.movement(t0 + i / fs) for i in range(n)])
+        dyn = self._acc_rng.normal(0.0, 1.0, (n, 3)) * (level / math.sqrt(8.0 / math.pi))[:, None]
+        return np.rint(GRAVITY_MG + dyn).astype(np.int64)
 
     def error_probability(self) -> float:
         p = self.p

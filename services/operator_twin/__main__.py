@@ -2,15 +2,18 @@
 
 It watches the robot (``robot/state``: joint velocities, what the robot waits for; ``robot/cycle``) and
 produces what a real worker with a strap would: an ECG at 130 Hz on ``ecg/samples`` in the ECG gateway's
-place, the parts the task waits for (``operator/signal``, after a handling time), and errors
-(``operator/error``). Data time comes from the shared clock, so the twin runs at the demo's speed with
-every other service. A robot state far from the states before it is dropped (common/runtime/admission.py).
+place, the strap's accelerometer on ``ecg/acc`` (unless ``accelerometer = false``: a strap without one), the
+parts the task waits for (``operator/signal``, after a handling time, moving while handling them), and
+errors (``operator/error``). Data time comes from the shared clock, so the twin runs at the demo's speed
+with every other service. A robot state far from the states before it is dropped
+(common/runtime/admission.py).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import sys
 from collections.abc import AsyncIterator
 
@@ -20,14 +23,14 @@ import numpy as np
 from common.runtime.admission import TimeLine
 from common.runtime.node import Node, Out, Rejected, node_main, on
 from common.runtime.service import service_main
-from common.sim.twin import Operator, TwinParams
+from common.sim.twin import ACC_FS_HZ, Operator, TwinParams
 from schemas.base import Message
 from schemas.ecg import H10_CHUNK as CHUNK
 from schemas.ecg import H10_FS_HZ as FS_HZ
-from schemas.ecg import EcgChunk
+from schemas.ecg import AccChunk, EcgChunk
 from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport, RobotState
-from schemas.topology import ECG_SAMPLES, OPERATOR_ERROR, OPERATOR_SIGNAL, ROBOT_CYCLE, ROBOT_STATE
+from schemas.topology import ECG_ACC, ECG_SAMPLES, OPERATOR_ERROR, OPERATOR_SIGNAL, ROBOT_CYCLE, ROBOT_STATE
 
 NAME = "operator_twin"
 log = logging.getLogger("cadence.operator_twin")
@@ -48,6 +51,7 @@ class OperatorTwin(Node):
         self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
         self.waiting_for: str | None = None
         self.line = TimeLine(STATE_AHEAD_S, tolerance_s=0.0, confirm=STATE_CONFIRM)
+        self.acc_samples = 0  # accelerometer samples sent
 
     def ns(self, t_s: float) -> int:
         return self.origin_ns + round(t_s * 1e9)
@@ -60,7 +64,9 @@ class OperatorTwin(Node):
         t = (state.t_ns - self.origin_ns) / 1e9
         self.operator.observe(t, np.array(state.qd))
         if state.waiting_for is not None and state.waiting_for != self.waiting_for:
-            self.pending.append((t + self.operator.handling_time(), state.waiting_for))
+            handling = self.operator.handling_time()
+            self.operator.handle(t, handling)
+            self.pending.append((t + handling, state.waiting_for))
         self.waiting_for = state.waiting_for
         return []
 
@@ -72,6 +78,16 @@ class OperatorTwin(Node):
         seq = self.next_seq(OPERATOR_ERROR)
         return [OperatorError(t_ns=report.t_ns, seq=seq, cycle=report.cycle, description=why,
                               kind="wrong_object", source="twin")]  # fmt: skip
+
+    def accelerometer(self, until_s: float) -> Out:
+        """The samples whose time has come by ``until_s``, as one chunk."""
+        j0, j1 = self.acc_samples, math.ceil(until_s * ACC_FS_HZ)
+        if j1 <= j0:
+            return []
+        self.acc_samples = j1
+        xyz = self.operator.acc(j0 / ACC_FS_HZ, j1 - j0).T.tolist()
+        return [AccChunk(t_ns=self.ns(j0 / ACC_FS_HZ), seq=self.next_seq(ECG_ACC), fs_hz=ACC_FS_HZ,
+                         x_mg=xyz[0], y_mg=xyz[1], z_mg=xyz[2], source="twin")]  # fmt: skip
 
     async def stream(self) -> AsyncIterator[Out]:
         """The ECG, chunk by chunk as the strap sends it (a chunk exists once its last sample does), and
@@ -86,6 +102,8 @@ class OperatorTwin(Node):
                     t_ns=self.ns(t0), seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ, samples_uv=x, source="twin"
                 )
             ]
+            if self.operator.p.accelerometer:
+                out += self.accelerometer(t1)
             for when, name in [p for p in self.pending if p[0] <= t1]:
                 seq = self.next_seq(OPERATOR_SIGNAL)
                 out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
@@ -93,8 +111,9 @@ class OperatorTwin(Node):
             self.ctx.counters["chunks"] += 1
             if i % (CHUNK * 54) == 0:  # about every 30 s of data time
                 op = self.operator
-                log.info("twin at %.0f s: exposure %.2f, stress %.2f, mean RR %.3f s, fatigue %.3f", t0,
-                         op.exposure(op.t), op.stress, op.mean_rr(), op.fatigue)  # fmt: skip
+                log.info("twin at %.0f s: exposure %.2f, stress %.2f, exertion %.2f, mean RR %.3f s, "
+                         "fatigue %.3f", t0, op.exposure(op.t), op.stress, op.exertion, op.mean_rr(),
+                         op.fatigue)  # fmt: skip
             yield out
 
 
