@@ -287,3 +287,67 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
         assert r.value.code == "unknown_signal"
     finally:
         await node.close()
+
+
+@needs_data
+@pytest.mark.asyncio
+@pytest.mark.parametrize("with_acc", [True, False], ids=["with its accelerometer", "ECG only"])
+async def test_the_gateway_replays_the_polar_export_with_its_accelerometer_or_says_it_has_none(
+    tmp_path: Path, with_acc: bool
+) -> None:
+    from schemas import AccChunk, EcgChunk, ServiceStatus
+    from services.ecg_gateway.__main__ import EcgGateway
+    from services.ecg_gateway.__main__ import Settings as GatewaySettings
+
+    polar = ECG / "polar_h10"
+    settings = GatewaySettings(
+        record=str(polar / "Polar_H10_55354125_20210516_080846_ECG.txt"),
+        acc_record=str(polar / "Polar_H10_55354125_20210516_080900_ACC.txt") if with_acc else None,
+        speed=50.0,  # 3 s: its status comes while it runs
+    )
+    network, stop = MockNetwork(), asyncio.Event()
+    service = MockBus(role="ecg_gateway", network=network)
+    common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
+    task = asyncio.ensure_future(
+        serve("ecg_gateway", node_main(EcgGateway), common, None, settings, stop,  # type: ignore[arg-type]
+              install_signals=False, bus=service)
+    )  # fmt: skip
+    async with MockBus(network=network) as test:
+        acc = test.subscribe(test.key("ecg/acc"), AccChunk, maxsize=10_000)
+        ecg = test.subscribe(test.key("ecg/samples"), EcgChunk, maxsize=10_000)
+        status = test.subscribe(test.key("health/ecg_gateway"), ServiceStatus, maxsize=10_000)
+        first = (await ecg.receive(10))[1]
+        said = (await status.receive(10))[1]
+        while said.counters.get("chunks", 0) < 50:  # its status once the replay is under way
+            said = (await status.receive(10))[1]
+        if with_acc:
+            got = [(await acc.receive(10))[1] for _ in range(100)]  # 100 s, one chunk a second
+            assert (got[0].t_ns - first.t_ns) / 1e9 == pytest.approx(11.03, abs=0.01)
+            assert [len(c.x_mg) for c in got] == [25] * 100 and got[0].x_mg[:2] == [-993, -993]
+            assert "accelerometer" not in said.detail
+        else:
+            assert said.detail.startswith("no accelerometer: windows are read without movement")
+        async with asyncio.timeout(30):
+            await task  # the replay ended
+
+
+@pytest.mark.asyncio
+async def test_a_strap_whose_accelerometer_stops_mid_session_is_said_on_the_gateways_status(
+    tmp_path: Path,
+) -> None:
+    from types import SimpleNamespace
+
+    from services.ecg_gateway.__main__ import EcgGateway
+    from services.ecg_gateway.__main__ import Settings as GatewaySettings
+
+    ctx = ServiceContext("ecg_gateway", MockBus(role="ecg_gateway"), CommonSettings(data_dir=str(tmp_path)),
+                         GatewaySettings(source="polar"), asyncio.Event())  # fmt: skip
+    node = EcgGateway(ctx)
+    node.source, node.acc_until_ns = SimpleNamespace(accelerometer=True), 100 * S  # type: ignore[assignment]
+    node.say_accelerometer(102 * S)  # the last accelerometer frame 2 s before this ECG: on time
+    assert ctx.detail == ""
+    node.say_accelerometer(112 * S)
+    assert ctx.detail.startswith("no accelerometer for 12 s: windows are read without movement")
+    node.acc_until_ns = 111 * S  # it came back
+    node.say_accelerometer(112 * S)
+    assert ctx.detail == ""

@@ -8,8 +8,12 @@ import struct
 import pytest
 
 from common.hrv.polar import (
+    PMD_ACC,
     FrameError,
+    acc_start_request,
     ecg_start_request,
+    measurement_type,
+    parse_acc_frame,
     parse_control_response,
     parse_ecg_frame,
     parse_heart_rate,
@@ -83,3 +87,68 @@ def test_the_start_request_asks_for_130_hz_ecg_and_a_response_is_parsed() -> Non
     assert not parse_control_response(bytes([0xF0, 0x02, 0x00, 0x06])).ok
     with pytest.raises(FrameError):
         parse_control_response(bytes([0x02, 0x00]))
+
+
+def test_the_accelerometer_start_request_asks_for_its_rate_16_bits_and_8_g() -> None:
+    req = acc_start_request(50)
+    # start, measurement 2; sample rate (0x00), one value, 50; resolution (0x01), 16; range (0x02), 8 g
+    assert req == bytes([0x02, 0x02, 0x00, 0x01, 50, 0, 0x01, 0x01, 16, 0, 0x02, 0x01, 8, 0])
+    with pytest.raises(ValueError, match="25, 50, 100 or 200"):
+        acc_start_request(52)
+
+
+def acc_frame(ts: int, frame_type: int, xyz: list[tuple[int, int, int]]) -> bytes:
+    fmt = {0: "<3b", 1: "<3h"}
+    if frame_type in fmt:
+        body = b"".join(struct.pack(fmt[frame_type], *v) for v in xyz)
+    else:  # int24: three bytes each, little-endian, signed
+        body = b"".join(int(a).to_bytes(3, "little", signed=True) for v in xyz for a in v)
+    return bytes([PMD_ACC]) + struct.pack("<Q", ts) + bytes([frame_type]) + body
+
+
+@pytest.mark.parametrize(
+    ("frame_type", "xyz"),
+    [
+        (0, [(-100, 3, 127), (-128, 0, 1)]),
+        (1, [(-993, 30, -237), (-1000, 29, -239), (32_767, -32_768, 0)]),
+        (2, [(-993, 30, -237), (8_388_607, -8_388_608, 5)]),
+    ],
+    ids=["int8", "int16 (the H10's)", "int24"],
+)
+def test_an_accelerometer_frame_gives_its_timestamp_and_signed_x_y_z(
+    frame_type: int, xyz: list[tuple[int, int, int]]
+) -> None:
+    data = acc_frame(674_467_737_249_392_677, frame_type, xyz)
+    assert measurement_type(data) == PMD_ACC
+    f = parse_acc_frame(data)
+    assert f.timestamp_ns == 674_467_737_249_392_677 and f.samples_mg == xyz
+    with pytest.raises(FrameError):
+        measurement_type(b"")
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"",
+        bytes([PMD_ACC]) + bytes(8),
+        acc_frame(1, 1, [(1, 2, 3)])[:-1],  # an axis cut short
+        acc_frame(1, 1, [(1, 2, 3)])[:-2],  # a whole sample less one axis
+        acc_frame(1, 1, []),
+        acc_frame(1, 1, [(1, 2, 3)])[:9] + bytes([0x81]) + bytes(6),  # delta-compressed
+        acc_frame(1, 1, [(1, 2, 3)])[:9] + bytes([0x07]) + bytes(6),  # unknown frame type
+        bytes([0x00]) + acc_frame(1, 1, [(1, 2, 3)])[1:],  # an ECG frame
+    ],
+    ids=[
+        "empty",
+        "short",
+        "partial axis",
+        "partial sample",
+        "no samples",
+        "compressed",
+        "unknown type",
+        "ecg",
+    ],
+)
+def test_garbled_accelerometer_frames_are_frame_errors(data: bytes) -> None:
+    with pytest.raises(FrameError):
+        parse_acc_frame(data)

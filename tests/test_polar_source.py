@@ -7,7 +7,7 @@ import pytest
 
 from services.ecg_gateway.fake_h10 import FakeH10
 from services.ecg_gateway.polar import PolarSource, StrapError
-from services.ecg_gateway.sources import CHUNK, Chunk, RrChunk
+from services.ecg_gateway.sources import CHUNK, AccSamples, Chunk, RrChunk
 
 pytestmark = pytest.mark.asyncio
 START = 1_800_000_000_000_000_000
@@ -74,3 +74,56 @@ async def test_a_strap_out_of_range_is_retried_with_back_off() -> None:
     source = PolarSource(connector({}, fail_first=2), backoff_s=(0.01, 0.02))
     chunks, _ = await take(source, 5)
     assert [frame_of(c) for c in chunks] == [0, 1, 2, 3, 4] and not chunks[0].gap
+
+
+# 2 s of a person leaning and swinging: x, y, z in mg at 25 Hz, from the ECG's first sample
+ACC = (
+    np.column_stack(
+        [-990 + 200 * np.sin(np.arange(25 * 60) / 3.0), 30 + np.arange(25 * 60) % 7, np.full(25 * 60, -240)]
+    )
+    .round()
+    .astype(int)
+)
+
+
+async def take_all(source: PolarSource, n_ecg: int) -> tuple[list[Chunk], list[AccSamples]]:
+    ecg, acc = [], []
+    async for c in source.chunks():
+        if isinstance(c, AccSamples):
+            acc.append(c)
+        elif isinstance(c, Chunk):
+            ecg.append(c)
+            if len(ecg) == n_ecg:
+                break
+    return ecg, acc
+
+
+async def test_the_accelerometer_comes_beside_ecg_on_the_same_clock_byte_for_byte() -> None:
+    """The strap is asked for its accelerometer once it has started ECG; every sample arrives as sent
+    (int16 frames), each chunk's data time on the ECG's clock (the H10's 2000 epoch, last-sample stamps)."""
+    source = PolarSource(connector({"acc": ACC}), acc_hz=25)
+    ecg, acc = await take_all(source, 80)
+    assert source.accelerometer and ecg[0].t_ns == START
+    got = np.array([v for c in acc for v in c.xyz_mg])
+    assert len(got) >= 25 * 40 and (got == ACC[: len(got)]).all()
+    for c in acc:  # 0.2 s frames, each starting where the samples before it ended
+        i = round((c.t_ns - START) * 25 / 1e9)
+        assert abs(c.t_ns - (START + round(i * 1e9 / 25))) <= 1 and c.fs_hz == 25.0 and not c.gap
+    assert [round((c.t_ns - START) * 25 / 1e9) for c in acc] == list(range(0, 5 * len(acc), 5))
+
+
+async def test_a_strap_that_refuses_its_accelerometer_or_stops_it_keeps_streaming_ecg() -> None:
+    refusing = PolarSource(connector({"acc": None}), acc_hz=25)
+    ecg, acc = await take_all(refusing, 40)
+    assert len(ecg) == 40 and acc == [] and not refusing.accelerometer
+    stopping = PolarSource(connector({"acc": ACC, "acc_stops_after": 10}), acc_hz=25)
+    ecg, acc = await take_all(stopping, 40)
+    assert len(ecg) == 40 and 0 < len(acc) <= 10 * 73 / 130 * 5 + 1
+    assert acc[-1].t_ns < ecg[-1].t_ns - 10 * 10**9  # the ECG went on well past it
+
+
+async def test_after_a_dropped_link_the_accelerometer_says_its_gap() -> None:
+    source = PolarSource(connector({"acc": ACC, "drop_after": 20}, {"acc": ACC, "start": 30}), acc_hz=25)
+    ecg, acc = await take_all(source, 45)
+    gaps = [c for c in acc if c.gap]
+    assert len(gaps) == 1 and gaps[0].t_ns > ecg[19].t_ns  # the first after the reconnect

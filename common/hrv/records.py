@@ -140,7 +140,7 @@ def read_acc(path: str) -> AccRecording:
     if len(data) < 3:
         raise InputError(f"{p}: expected at least 3 samples")
     if np.any(dt := np.diff(data[:, 0]) <= 0):
-        raise InputError(f"{p}: row {int(np.argmax(dt)) + 2}: time does not increase")
+        raise InputError(f"{p}: row {int(np.argmax(dt)) + 3}: time does not increase")  # rows count from 1
     if np.any(big := np.abs(data[:, 1:]) > MAX_ACC_MG):
         raise InputError(f"{p}: row {int(np.argmax(big.any(axis=1))) + 2}: beyond ±{MAX_ACC_MG} mg")
     return AccRecording(data[:, 0], data[:, 1:])

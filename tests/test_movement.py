@@ -1,0 +1,195 @@
+"""Movement from the strap's accelerometer (common/hrv/movement.py) and what the decision does with it:
+gravity removed, a real Polar export read beside its ECG, each window's figures, the analyser's time line
+for accelerometer chunks, and Alg. 1 unchanged where the wearer moves at their level."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from common.decision import Params, State, step
+from common.hrv.calibration import calibration
+from common.hrv.live import LiveHrv
+from common.hrv.movement import MOVING_MG, Baseline, Movement, dynamic_mg, moved
+from common.hrv.records import read_acc
+from common.runtime.errors import InputError
+from common.sim.twin import Operator, TwinParams
+from schemas import AccChunk, Calibration, HrvWindow
+from services.decision_maker.state import Decider, MovementRule
+from services.ecg_gateway.sources import AccSamples, Chunk, ReplaySource
+from tests.conftest import now_ns
+from tests.test_rpeaks import ECG, needs_data
+
+S = 1_000_000_000
+POLAR = ECG / "polar_h10"
+POLAR_ECG = POLAR / "Polar_H10_55354125_20210516_080846_ECG.txt"
+POLAR_ACC = POLAR / "Polar_H10_55354125_20210516_080900_ACC.txt"
+
+
+def noise(level_mg: float, n: int, seed: int = 3) -> np.ndarray:
+    """Dynamic acceleration whose mean magnitude is ``level_mg``, on a chest's gravity."""
+    rng = np.random.default_rng(seed)
+    return np.array([-993.0, 30.0, -237.0]) + rng.normal(0, level_mg / math.sqrt(8 / math.pi), (n, 3))
+
+
+def test_gravity_is_removed_and_a_change_of_posture_fades_within_seconds() -> None:
+    still = np.tile([-993.0, 30.0, -237.0], (25 * 20, 1))
+    leaned = still.copy()
+    leaned[25 * 10 :] = [-700.0, 30.0, -714.0]  # bent forward: gravity moves from x toward z
+    dyn, _ = dynamic_mg(leaned, 25.0)
+    assert dyn[: 25 * 10].max() < 1e-9  # a still strap moves by nothing, at any tilt
+    assert dyn[25 * 10] > 400 and dyn[25 * 15 :].max() < 5  # the lean shows, then gravity follows it
+    moving, _ = dynamic_mg(noise(120.0, 25 * 60), 25.0)
+    assert moving.mean() == pytest.approx(120.0, rel=0.06)  # mean magnitude: the level
+
+
+def test_chunked_or_whole_the_movement_is_the_same() -> None:
+    x = noise(80.0, 25 * 90)
+    whole, pieces, g = dynamic_mg(x, 25.0)[0], [], None
+    for i in range(0, len(x), 7):
+        d, g = dynamic_mg(x[i : i + 7], 25.0, g)
+        pieces.append(d)
+    assert np.allclose(whole, np.concatenate(pieces))
+
+
+def test_a_window_has_its_mean_movement_and_share_of_seconds_moving_or_none_without_data() -> None:
+    m, t0 = Movement(), 1_000 * S
+    x = np.concatenate([noise(10.0, 25 * 20), noise(200.0, 25 * 10, seed=4)])  # 20 s still, 10 s moving
+    for i in range(0, len(x), 25):
+        m.feed(t0 + i * S // 25, 25.0, x[i : i + 25])
+    mg, share = m.over(t0, t0 + 30 * S)
+    assert mg is not None and share is not None
+    assert mg == pytest.approx((20 * 10 + 10 * 200) / 30, rel=0.1) and share == pytest.approx(
+        10 / 31, abs=0.05
+    )
+    assert m.over(t0 + 60 * S, t0 + 90 * S) == (None, None)  # nothing there
+    assert m.over(t0 + 20 * S, t0 + 50 * S)[0] is None  # a third of it covered: too little
+
+
+@needs_data
+def test_the_polar_export_reads_with_its_strap_clock_and_a_broken_one_is_refused(tmp_path: Path) -> None:
+    acc = read_acc(str(POLAR_ACC))
+    assert len(acc.sensor_ns) == 3456 and acc.fs == pytest.approx(25.3, abs=0.1)
+    assert acc.xyz_mg[0].tolist() == [-993, 30, -237]
+    rows = POLAR_ACC.read_text().splitlines()
+    swapped = [rows[0], rows[2], rows[1], *rows[3:10]]
+    twenty_g = [rows[0], *rows[1:5], rows[5].rsplit(";", 1)[0] + ";-20000"]
+    for bad, why in ((swapped, "row 3: time does not increase"), (twenty_g, "row 6: beyond")):
+        f = tmp_path / "bad_ACC.txt"
+        f.write_text("\n".join(bad) + "\n")
+        with pytest.raises(InputError, match=why):
+            read_acc(str(f))
+    with pytest.raises(InputError, match="not a Polar Sensor Logger accelerometer export"):
+        read_acc(str(POLAR_ECG))
+
+
+@needs_data
+@pytest.mark.asyncio
+async def test_a_replay_of_the_real_export_puts_the_wearers_movement_on_their_windows() -> None:
+    """The shared H10 session: ECG from 08:08:48, the accelerometer from 11.03 s later on the strap's
+    clock. The wearer sits still but for about 10 s of moving 12-24 s into the accelerometer's record
+    (23-35 s into the ECG's): the windows holding it read as moving, the still ones do not."""
+    start = now_ns()
+    source = ReplaySource(str(POLAR_ECG), speed=0.0, start_ns=start, acc=str(POLAR_ACC))
+    assert source.accelerometer
+    live, wins, acc_starts = LiveHrv(30.0, "samples"), [], []
+    async for item in source.chunks():
+        if isinstance(item, AccSamples):
+            acc_starts.append(item.t_ns)
+            x, y, z = (list(a) for a in zip(*item.xyz_mg, strict=True))
+            chunk = AccChunk(t_ns=item.t_ns, seq=0, fs_hz=item.fs_hz, x_mg=x, y_mg=y, z_mg=z)
+            assert live.acc(chunk, start).acted_on  # type: ignore[union-attr]
+        elif isinstance(item, Chunk):
+            from schemas import EcgChunk
+
+            ecg = EcgChunk(t_ns=item.t_ns, seq=0, fs_hz=130.0, samples_uv=item.samples_uv)
+            wins += [w for w in live.samples(ecg, start).out if isinstance(w, HrvWindow)]
+    assert (acc_starts[0] - start) / 1e9 == pytest.approx(11.03, abs=0.01)
+    assert len(wins) >= 4
+    first, tail, *still = wins  # the burst, then its last seconds (30-35 s), then sitting still
+    assert first.movement_mg is not None and first.movement_mg > 2 * MOVING_MG
+    assert first.moving_fraction is not None and first.moving_fraction > 0.2
+    assert tail.moving_fraction is not None and 0 < tail.moving_fraction < first.moving_fraction
+    assert still and all(w.movement_mg is not None and w.movement_mg < 25 for w in still)
+    assert all(w.moving_fraction == 0.0 for w in still)
+
+
+def test_accelerometer_chunks_out_of_line_are_dropped_and_a_window_without_them_has_no_movement() -> None:
+    live, t0 = LiveHrv(30.0, "samples"), now_ns()
+    x = noise(30.0, 25).round().astype(int).T.tolist()
+    chunk = AccChunk(t_ns=t0, seq=0, fs_hz=25.0, x_mg=x[0], y_mg=x[1], z_mg=x[2])
+    assert live.acc(chunk, t0).acted_on  # type: ignore[union-attr]
+    ahead = live.acc(msgspec.structs.replace(chunk, t_ns=t0 + 3600 * S), t0)
+    assert ahead is not None and not ahead.acted_on and ahead.code == "ahead"
+    behind = live.acc(msgspec.structs.replace(chunk, t_ns=t0 - 20 * S), t0)
+    assert behind is not None and not behind.acted_on
+    assert live.acc(msgspec.structs.replace(chunk, x_mg=[], y_mg=[], z_mg=[]), t0) is None
+
+
+def window(i: int, rr: float, movement: float | None, t0: int = 1_000 * S) -> HrvWindow:
+    end = t0 + (i + 1) * 30 * S
+    return HrvWindow(t_ns=end, seq=i, start_ns=end - 30 * S, end_ns=end, mean_rr_s=rr, n_beats=36,
+                     excluded_fraction=0.0, quality="good", movement_mg=movement)  # fmt: skip
+
+
+def test_the_gate_learns_the_level_holds_what_is_well_above_it_and_the_minute_after() -> None:
+    rule = MovementRule(margin_mg=40.0, recovery_s=60.0, learn_windows=3)
+    b, held = Baseline(), []
+    for i, mg in enumerate([20.0, 26.0, 23.0, 60.0, 62.0, 250.0, 30.0, 25.0, 24.0, 22.0, None]):
+        w = window(i, 0.8, mg)
+        h, b = moved(b, w.movement_mg, w.start_ns, w.end_ns, *rule)
+        held.append(h)
+    assert b.level_mg == 23.0 and b.sd_mg == pytest.approx(2.45, abs=0.01)  # the first three
+    # 60 and 62 mg are within the margin (23 + 40); 250 is held, and the two windows that start within a
+    # minute of its end; none without a figure (no accelerometer: Alg. 1 as ever)
+    assert held == [False, False, False, False, False, True, True, True, False, False, False]
+
+
+def test_alg_1_is_exact_where_the_wearer_moves_at_their_level_and_holds_rr_where_they_move_more(
+    tmp_path: Path,
+) -> None:
+    cal = Calibration(t_ns=1, seq=0, subject="s", rr_rest_s=0.85, posture="working", movement_mg=25.0,
+                      movement_sd_mg=4.0)  # fmt: skip
+    at_level, heavy = Decider(tmp_path / "a", 15), Decider(tmp_path / "b", 15)
+    rrs = [0.84, 0.80, 0.76, 0.74, 0.80, 0.86, 0.88]
+    p, state = Params.of(0.85), State.initial(Params.of(0.85))
+    for d in (at_level, heavy):
+        (tmp_path / ("a" if d is at_level else "b")).mkdir()
+        d.commit(d.starting(cal, 1))
+    for i, rr in enumerate(rrs):
+        r = at_level.answer(window(i, rr, 30.0))
+        at_level.commit(r)
+        want = step(p, state, rr)
+        state = want.state
+        assert (r.k, r.delta, r.reason, r.rr_prev) == (want.state.k, want.delta, want.reason, str(rr))
+    for i, (rr, mg) in enumerate(zip(rrs, [30.0, 30.0, 240.0, 250.0, 30.0, 30.0, 30.0], strict=True)):
+        heavy.commit(heavy.answer(window(i, rr, mg)))
+        if i in (2, 3, 4, 5):  # moving, and the minute after it: k and RR_{i-1} stay
+            assert heavy.record is not None and heavy.record.reason == "movement" and heavy.record.delta == 0
+            assert heavy.record.rr_prev == "0.8"
+    assert heavy.record is not None and heavy.record.reason != "movement"
+
+
+def test_a_calibration_keeps_the_movement_it_saw() -> None:
+    wins = [window(i, 0.8, mg) for i, mg in enumerate([18.0, 22.0, 90.0, 20.0, 21.0])]
+    cal, _ = calibration(wins, "s", 1, measured_sigma=False, posture="working")
+    assert (cal.movement_mg, cal.movement_sd_mg) == (21.0, 27.9)  # the median; the spread (population sd)
+    blind = [msgspec.structs.replace(w, movement_mg=None) for w in wins]
+    assert calibration(blind, "s", 1, measured_sigma=False)[0].movement_mg is None
+
+
+def test_the_twins_strap_moves_as_the_twin_does() -> None:
+    p = TwinParams(heavy_from_s=60.0, heavy_until_s=120.0)
+    op = Operator(p)
+    op.handle(10.0, 2.0)
+    for t, want in ((5.0, p.movement_base_mg), (11.0, p.handling_mg), (90.0, p.heavy_mg), (130.0, 15.0)):
+        assert op.movement(t) == want
+    rr_before = op.mean_rr()
+    op.advance(115.0)
+    assert op.exertion > 0.9 and op.mean_rr() < rr_before - 0.1  # the heart answers the effort
+    heavy, _ = dynamic_mg(op.acc(70.0, 25 * 40).astype(float), 25.0)
+    assert heavy[50:].mean() == pytest.approx(p.heavy_mg, rel=0.1)
