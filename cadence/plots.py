@@ -80,10 +80,25 @@ def rr_k_figure(
     """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
     decision thresholds RR_s, RR_s^max (the paper's defaults about RR_r) as lines, k on integer ticks,
     cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and shaded the
-    spans in which the robot did not work (``motion.idle_spans``): a k chosen there moved nothing."""
+    spans in which the robot did not work (``motion.idle_spans``): a k chosen there moved nothing. With
+    the strap's accelerometer, a panel below gives each window's movement, and the windows the decision
+    held for it are shaded above."""
     from common.decision import Params
 
-    fig, ax = plt.subplots(figsize=(11, 4.5), constrained_layout=True)
+    moving = [w for w in windows if w.get("movement_mg") is not None]
+    if moving:
+        fig, (ax, axm) = plt.subplots(2, 1, figsize=(11, 6), sharex=True, height_ratios=[3, 1],
+                                      constrained_layout=True)  # fmt: skip
+        axm.bar([w["end_s"] for w in moving], [w["movement_mg"] for w in moving], width=-25.0, align="edge",
+                color="tab:green", label="movement (mean dynamic acceleration)")  # fmt: skip
+        axm.set_ylabel("movement [mg]", color="tab:green")
+        axm.legend(loc="upper left", fontsize=8)
+    else:
+        fig, ax = plt.subplots(figsize=(11, 4.5), constrained_layout=True)
+    held = [x["t_s"] for x in selections if x["reason"] == "movement"]
+    for i, end in enumerate(held):
+        ax.axvspan(end - 30.0, end, color="tab:green", alpha=0.12, lw=0,
+                   label="held: moving (not read as stress)" if i == 0 else None)  # fmt: skip
     good = [w for w in windows if w["mean_rr_s"] is not None and w["quality"] == "good"]
     low = [w for w in windows if w["mean_rr_s"] is not None and w["quality"] != "good"]
     ax.plot(
@@ -110,7 +125,9 @@ def rr_k_figure(
         ax.axvline(at, ymin=0.95, ymax=1.0, c="tab:orange", lw=1.5, label=label)
     marks = (("bottom: cycle ends", cycle_ends_s), ("top: errors", error_times_s))
     ticks = [what for what, there in marks if there]
-    ax.set_xlabel("data time [s]" + (f" (ticks at the {'; '.join(ticks)})" if ticks else ""))
+    (axm if moving else ax).set_xlabel(
+        "data time [s]" + (f" (ticks at the {'; '.join(ticks)})" if ticks else "")
+    )
     ax.set_ylabel("mean RR per window [s]", color="tab:red")
     ax2 = ax.twinx()
     if selections:

@@ -117,7 +117,8 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     run = Run(str(path), (max(data_times) - t0) / 1e9)
     for m in msgs:
         if isinstance(m, HrvWindow):
-            run.windows.append({"end_s": t(m.end_ns), "mean_rr_s": m.mean_rr_s, "quality": m.quality})
+            run.windows.append({"end_s": t(m.end_ns), "mean_rr_s": m.mean_rr_s, "quality": m.quality,
+                                "movement_mg": m.movement_mg})  # fmt: skip
         elif isinstance(m, Selection):
             last = run.selections[-1] if run.selections else None
             if last is None or (last["k"], last.get("window_end_ns")) != (m.k, m.window_end_ns):
@@ -147,11 +148,22 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     return run
 
 
+def movement_row(run: Run) -> str:
+    mg = [w["movement_mg"] for w in run.windows if w.get("movement_mg") is not None]
+    if not mg:
+        return "no accelerometer: every window read as mental load"
+    held = sum(s["reason"] == "movement" for s in run.selections)
+    return (f"median {np.median(mg):.0f} mg, max {max(mg):.0f} mg; {held} window{'s' * (held != 1)} held "
+            "for movement")  # fmt: skip
+
+
 CAPTIONS = {
     "rr_k.png": "Each window's mean RR (red; crosses: held windows) against data time, with RR_r and the "
     "decision thresholds RR_s and RR_s^max; the selected k on the right axis (blue); cycle ends as ticks "
     "along the bottom, the operator's errors as orange ticks along the top; shaded grey, the spans in which "
-    "the robot was stopped or waiting (a k chosen there moved nothing). Like the paper's Fig. 6.",
+    "the robot was stopped or waiting (a k chosen there moved nothing). Like the paper's Fig. 6. With the "
+    "strap's accelerometer, each window's movement below (green), and shaded green above the windows the "
+    "decision held because the operator moved well above their level at work.",
     "pareto.png": "Each path's Pareto front, normalised (grey), its N chosen solutions (blue) and the k the "
     "robot ran with, circled by how often (red).",
     "cycles.png": "Joint positions, velocities, accelerations and jerk of the first and last cycle as "
@@ -213,6 +225,7 @@ def _html(run: Run, figures: list[str]) -> str:
             f"mean {np.mean(times):.2f} s, min {min(times):.2f} s, max {max(times):.2f} s" if times else "—",
         ),
         ("windows", f"{len(run.windows)} ({sum(w['quality'] == 'good' for w in run.windows)} good)"),
+        ("movement", movement_row(run)),
         ("selections", " → ".join(str(s["k"]) for s in run.selections) or "—"),
     ]
     table = "\n".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)

@@ -1,7 +1,8 @@
 """`cadence top`: the cell's graph, live, in a terminal (what `ros2 topic hz` and `rqt_graph` give a ROS
 user): every key that carries traffic with its message type, its publishers and readers from the graph,
 its rate, the age of its last message and what did not decode; every service with its state, its age
-(a status older than three periods: gone), and the messages it dropped or failed to handle."""
+(a status older than three periods: gone), and the messages it dropped or failed to handle; and the
+operator as the cell reads them: the last window's mean RR and movement beside the k decided on it."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import msgspec
 from rich.console import Group
 from rich.table import Table
 
-from schemas import ServiceStatus
+from schemas import HrvWindow, Selection, ServiceStatus
 from schemas.topology import ECG_SOURCES, HEALTH, SERVICES, decode_any, topic_of
 from schemas.topology import key as key_of
 
@@ -41,6 +42,8 @@ class Top:
     cell: str
     keys: dict[str, KeyStats] = field(default_factory=dict)
     statuses: dict[str, tuple[float, ServiceStatus]] = field(default_factory=dict)
+    window: HrvWindow | None = None
+    selection: Selection | None = None
 
     def on(self, key: str, payload: bytes, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
@@ -56,6 +59,27 @@ class Top:
         k.type_name = type(msg).__struct_config__.tag  # type: ignore[assignment]
         if isinstance(msg, ServiceStatus):
             self.statuses[msg.service] = (now, msg)
+        elif isinstance(msg, HrvWindow):
+            self.window = msg
+        elif isinstance(msg, Selection):
+            self.selection = msg
+
+    def operator(self) -> Table:
+        t = Table(title="the operator (last window) and the decision")
+        for col in ("mean RR", "quality", "movement", "seconds moving", "k", "why"):
+            t.add_column(col, justify="right")
+        w, sel = self.window, self.selection
+        rr = f"{w.mean_rr_s:.3f} s" if w is not None and w.mean_rr_s is not None else "—"
+        if w is None:
+            moved = "—"
+        elif w.movement_mg is None:
+            moved = "no accelerometer"
+        else:
+            moved = f"{w.movement_mg:.0f} mg"
+        share = f"{w.moving_fraction:.0%}" if w is not None and w.moving_fraction is not None else "—"
+        k = f"{sel.k} of {sel.n}" if sel is not None else "—"
+        t.add_row(rr, w.quality if w else "—", moved, share, k, sel.reason if sel else "—")
+        return t
 
     def view(self, status_period_s: float = 5.0, now: float | None = None) -> Group:
         now = time.monotonic() if now is None else now
@@ -106,4 +130,6 @@ class Top:
                 str(failed),
                 st.detail[:60],
             )
-        return Group(keys, services)
+        if self.window is None and self.selection is None:
+            return Group(keys, services)
+        return Group(keys, self.operator(), services)

@@ -9,11 +9,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 from rich.console import Console
 
 from cadence.top import Top
-from schemas import Selection, ServiceStatus
+from schemas import HrvWindow, Selection, ServiceStatus
 from schemas.topology import encode
 
 
@@ -42,6 +43,20 @@ def test_rates_ages_bad_payloads_and_gone_services_are_counted() -> None:
     assert "gone 9 s" in row and "moving" in row and " 3 " in row and " 4 " in row  # dropped 3, failed 4
     assert "no status" in next(line for line in text.splitlines() if line.startswith("│ pareto_store "))
     assert "executor → (tools)" in text  # health/executor: its own publisher
+
+
+def test_the_operator_is_shown_with_their_movement_beside_rr_and_k() -> None:
+    top = Top("cell1")
+    assert "the operator" not in render(top, now=1.0)  # nothing read yet: nothing said
+    win = HrvWindow(t_ns=30, seq=0, start_ns=0, end_ns=30, mean_rr_s=0.742, n_beats=40, excluded_fraction=0.0,
+                    quality="good", movement_mg=251.0, moving_fraction=0.9)  # fmt: skip
+    top.on("cadence/cell1/hrv/window", encode(win), now=1.0)
+    top.on("cadence/cell1/decision/selection",
+           encode(Selection(t_ns=30, seq=1, k=10, n=15, delta=0, reason="movement")), now=1.0)  # fmt: skip
+    row = render(top, now=2.0).split("the operator")[1].splitlines()[4]
+    assert all(part in row for part in ("0.742 s", "good", "251 mg", "90%", "10 of 15", "movement")), row
+    top.on("cadence/cell1/hrv/window", encode(msgspec.structs.replace(win, movement_mg=None)), now=3.0)
+    assert "no accelerometer" in render(top, now=3.0)
 
 
 @pytest.mark.asyncio

@@ -151,3 +151,4 @@ def test_the_shipped_layout_names_only_channels_and_fields_the_bridge_gives() ->
     selection = "/cadence/cell1/decision/selection"
     thresholds = {f"{selection}.rr_rest_s", f"{selection}.rr_stress_s", f"{selection}.rr_stress_max_s"}
     assert thresholds | {"/cadence/cell1/hrv/window.mean_rr_s"} <= plotted
+    assert "/cadence/cell1/hrv/window.movement_mg" in plotted  # and movement beside them
