@@ -127,3 +127,27 @@ async def test_after_a_dropped_link_the_accelerometer_says_its_gap() -> None:
     ecg, acc = await take_all(source, 45)
     gaps = [c for c in acc if c.gap]
     assert len(gaps) == 1 and gaps[0].t_ns > ecg[19].t_ns  # the first after the reconnect
+
+
+async def test_accelerometer_frames_of_an_unknown_type_or_stream_are_counted_and_skipped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Frames the strap should not send (a compressed accelerometer frame, a stream nobody asked for)
+    are bad frames: counted and skipped; the ECG goes on, and the samples they held show as a gap."""
+    from services.ecg_gateway import fake_h10
+
+    real, sent = fake_h10.acc_frame_bytes, [0]
+
+    def sometimes_odd(last_ns: int, xyz: np.ndarray, frame_type: int = 1) -> bytes:
+        sent[0] += 1
+        if sent[0] % 4 == 0:
+            return real(last_ns, xyz)[:9] + bytes([0x81]) + bytes(30)  # delta-compressed
+        if sent[0] % 4 == 1:
+            return bytes([0x09]) + real(last_ns, xyz)[1:]  # measurement type 9
+        return real(last_ns, xyz)
+
+    monkeypatch.setattr(fake_h10, "acc_frame_bytes", sometimes_odd)
+    source = PolarSource(connector({"acc": ACC}), acc_hz=25)
+    ecg, acc = await take_all(source, 40)
+    assert [frame_of(c) for c in ecg] == list(range(40))
+    assert source.bad_frames >= 20 and len(acc) >= 20 and sum(c.gap for c in acc) >= 10

@@ -94,6 +94,8 @@ class EcgGateway(Node):
                 continue
             self.say_accelerometer(chunk.t_ns)
             self.ctx.counters["chunks"] += 1
+            # what the strap sent that did not parse: truncated, garbled, an unknown stream or frame type
+            self.ctx.counters["bad_frames"] = getattr(self.source, "bad_frames", 0)
             self.ctx.counters["gaps"] += int(chunk.gap)
             yield [EcgChunk(t_ns=chunk.t_ns, seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ,
                             samples_uv=chunk.samples_uv, gap=chunk.gap, source=name)]  # fmt: skip
