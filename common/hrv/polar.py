@@ -123,15 +123,19 @@ class EcgFrame:
     samples_uv: list[int]
 
 
-def parse_ecg_frame(data: bytes) -> EcgFrame:
+def _frame(data: bytes, measurement: int, what: str) -> tuple[int, int, bytes]:
+    """A data frame's timestamp, frame type and samples' bytes, once it is one of ``measurement``."""
     if len(data) < 10:
         raise FrameError(f"PMD frame of {len(data)} bytes")
-    if data[0] != PMD_ECG:
-        raise FrameError(f"PMD measurement type {data[0]} is not ECG")
-    ts = struct.unpack_from("<Q", data, 1)[0]
-    if data[9] != 0x00:
-        raise FrameError(f"ECG frame type {data[9]} is not supported (expected 0: raw int24)")
-    body = data[10:]
+    if data[0] != measurement:
+        raise FrameError(f"PMD measurement type {data[0]} is not {what}")
+    return struct.unpack_from("<Q", data, 1)[0], data[9], data[10:]
+
+
+def parse_ecg_frame(data: bytes) -> EcgFrame:
+    ts, frame_type, body = _frame(data, PMD_ECG, "ECG")
+    if frame_type != 0x00:
+        raise FrameError(f"ECG frame type {frame_type} is not supported (expected 0: raw int24)")
     if len(body) % 3 or not body:
         raise FrameError(f"ECG payload of {len(body)} bytes is not a whole number of int24 samples")
     samples = [int.from_bytes(body[k : k + 3], "little", signed=True) for k in range(0, len(body), 3)]
@@ -155,16 +159,12 @@ def measurement_type(data: bytes) -> int:
 
 
 def parse_acc_frame(data: bytes) -> AccFrame:
-    if len(data) < 10:
-        raise FrameError(f"PMD frame of {len(data)} bytes")
-    if data[0] != PMD_ACC:
-        raise FrameError(f"PMD measurement type {data[0]} is not the accelerometer")
-    ts = struct.unpack_from("<Q", data, 1)[0]
-    width = _ACC_BYTES.get(data[9])
+    ts, frame_type, body = _frame(data, PMD_ACC, "the accelerometer")
+    width = _ACC_BYTES.get(frame_type)
     if width is None:
-        what = "a compressed frame" if data[9] & 0x80 else "unknown"
-        raise FrameError(f"accelerometer frame type {data[9]:#04x} is not supported ({what})")
-    body, step = data[10:], 3 * width
+        what = "a compressed frame" if frame_type & 0x80 else "unknown"
+        raise FrameError(f"accelerometer frame type {frame_type:#04x} is not supported ({what})")
+    step = 3 * width
     if len(body) % step or not body:
         raise FrameError(f"accelerometer payload of {len(body)} bytes is not whole x, y, z samples")
     values = [int.from_bytes(body[k : k + width], "little", signed=True) for k in range(0, len(body), width)]
