@@ -44,7 +44,7 @@ from schemas import (
     ServiceStatus,
 )
 from schemas.operator import ErrorKind, OperatorSignal, Posture
-from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo
+from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo, Tlx
 from schemas.topology import (
     DEFAULT_CELL,
     ECG_SOURCES,
@@ -126,8 +126,39 @@ class Session:
         return sum(self.inside(c.t_ns) for c in self.cycles)
 
     @property
+    def counted_errors(self) -> list[OperatorError]:
+        """The errors inside the session, less the experimenter's marks they withdrew (kind ``undo``:
+        the last mark of theirs before it)."""
+        kept: list[OperatorError] = []
+        for e in sorted((e for e in self.errors if self.inside(e.t_ns)), key=lambda e: (e.t_ns, e.seq)):
+            if e.kind != "undo":
+                kept.append(e)
+            elif marks := [i for i, m in enumerate(kept) if m.source == "experimenter"]:
+                kept.pop(marks[-1])
+        return kept
+
+    @property
     def n_errors(self) -> int:
-        return sum(self.inside(e.t_ns) for e in self.errors)
+        return len(self.counted_errors)
+
+    @property
+    def mean_k(self) -> float:
+        """The k in force, averaged over the session's data time (what a yoked session holds)."""
+        sels = sorted(self.selections, key=lambda x: x.t_ns)
+        start, end = self.info.start_ns, self.end.end_ns
+        if not sels:
+            return float("nan")
+        k = next((x.k for x in reversed(sels) if x.t_ns <= start), sels[0].k)
+        total, t = 0.0, start
+        for x in sels:
+            if start < x.t_ns <= end:
+                total += k * (x.t_ns - t)
+                k, t = x.k, x.t_ns
+        return (total + k * (end - t)) / (end - start)
+
+    @property
+    def tlx_raw(self) -> float:
+        return self.end.tlx.raw if self.end.tlx is not None else float("nan")
 
     @property
     def productivity_per_min(self) -> float:
@@ -182,8 +213,8 @@ def _struct(path: Path, records: dict[str, dict[str, str]], name: str, typ: type
         raise InputError(f"{path}: the {name} record is damaged ({exc})") from None
 
 
-def load_session(path: Path) -> Session:
-    """A session file, checked (see the module's docstring); ``InputError`` says what is wrong."""
+def read_records(path: Path) -> tuple[SessionInfo, SessionEnd]:
+    """A session file's description and end record, without its traffic."""
     records = _metadata(path)
     if SESSION_RECORD not in records:
         raise InputError(
@@ -194,7 +225,12 @@ def load_session(path: Path) -> Session:
         raise InputError(
             f"{path}: incomplete: no {SESSION_END_RECORD} record (the recorder did not close it)"
         )
-    end = _struct(path, records, SESSION_END_RECORD, SessionEnd)
+    return info, _struct(path, records, SESSION_END_RECORD, SessionEnd)
+
+
+def load_session(path: Path) -> Session:
+    """A session file, checked (see the module's docstring); ``InputError`` says what is wrong."""
+    info, end = read_records(path)
     if info.calibration is None:
         raise InputError(
             f"{path}: subject {info.subject}, condition {info.condition}: no calibration, so no RR_r to "
@@ -287,6 +323,11 @@ class SessionOptions:
     notes: str = ""
     posture: Posture = "rest"  # of a calibration this session takes (--calibrate)
     settle_timeout_s: float | None = 600.0  # wall time the settle gate waits; None: no gate
+    training_minutes: float = 0.0  # data time in the condition before it counts (recorded, not analysed)
+    yoked_k: int | None = None  # condition y: the k it holds
+    study: str = ""  # with a study plan: its name, the session's place, the last session's end (data time)
+    period: int | None = None
+    previous_end_ns: int | None = None
 
 
 @dataclass
@@ -327,7 +368,7 @@ class Watch:
         elif isinstance(msg, CycleReport) and counting:
             self.cycles += 1
         elif isinstance(msg, OperatorError) and counting:
-            self.errors += 1
+            self.errors += 1 if msg.kind != "undo" else -1 if self.errors else 0
         self.changed.set()
 
     async def next_change(self, timeout_s: float) -> None:
@@ -370,7 +411,10 @@ async def ask_condition(
     decision maker must have before it starts (c) from it (it says "not received yet" until then)."""
     from schemas.topology import CALIBRATION_NOT_YET, DECISION_CONDITION
 
-    mode = "mode=adaptive" if opts.condition == "c" else f"mode=fixed;k={opts.condition}"
+    if opts.condition == "y" and opts.yoked_k is None:
+        raise InputError("condition y holds the subject's mean k of (c): none given (their (c) session?)")
+    k = opts.yoked_k if opts.condition == "y" else opts.condition
+    mode = "mode=adaptive" if opts.condition == "c" else f"mode=fixed;k={k}"
     params = f"{mode};by=session {opts.subject}/{opts.condition}"
     if calibrated_ns is not None:
         params += f";calibration={calibrated_ns}"
@@ -408,12 +452,13 @@ def stored_calibration(opts: SessionOptions) -> Calibration:
     return cal
 
 
-ERROR_KEYS: dict[str, ErrorKind] = {"e": "wrong_object", "l": "late", "o": "other"}
+ERROR_KEYS: dict[str, ErrorKind] = {"e": "wrong_object", "l": "late", "o": "other", "u": "undo"}
 
 
 def key_message(key: str, signals: list[str], t_ns: int) -> OperatorError | OperatorSignal | None:
     """What a key in the live view means: ``e``/``l``/``o`` the experimenter marks an error (wrong object,
-    late, other); ``1``…``9`` a part placed, the task's n-th ``wait_for`` signal; anything else nothing."""
+    late, other), ``u`` withdraws their last mark; ``1``…``9`` a part placed, the task's n-th
+    ``wait_for`` signal; anything else nothing."""
     if key in ERROR_KEYS:
         return OperatorError(t_ns=t_ns, seq=0, kind=ERROR_KEYS[key], source="experimenter",
                              description="marked in the session's live view")  # fmt: skip
@@ -429,11 +474,14 @@ async def run_session(
     show: Callable[[str, Watch, SessionOptions], None],
     calibrate: Callable[[], Awaitable[Calibration]],
     keys: asyncio.Queue[str] | None = None,
+    questionnaire: Callable[[], Awaitable[Tlx | None]] | None = None,
 ) -> SessionEnd:
     """Check the cell, calibrate (``calibrate``: `cadence calibrate`'s, bound to this bus) or take the
-    stored calibration, set the condition, and record until ``minutes`` of data time have passed or
-    ``stop``. ``show(phase, watch, opts)`` is called as things change (the live view); ``keys`` are the
-    experimenter's keys in it (``key_message``), acted on while the condition runs."""
+    stored calibration, train (``training_minutes`` in the condition, recorded and not analysed), set the
+    condition, and record until ``minutes`` of data time have passed or ``stop``. ``show(phase, watch,
+    opts)`` is called as things change (the live view); ``keys`` are the experimenter's keys in it
+    (``key_message``), acted on while the condition runs; ``questionnaire`` asks the subject's NASA-TLX
+    once the condition has ended, and its answer is kept in the end record."""
     cal = None if opts.calibrate_minutes else stored_calibration(opts)
     signals = list(dict.fromkeys(s.wait_for for s in load_task(opts.task).cycle if s.wait_for))
     errors_out, signals_out = bus.publisher(OPERATOR_ERROR), bus.publisher(OPERATOR_SIGNAL)
@@ -489,11 +537,23 @@ async def run_session(
                         "calibrate again)"
                     )
                 await watch.next_change(0.5)
-        # 3. the condition, and from then on the session counts
+        # 3. training: the condition in force, recorded, before the span the analysis reads
+        fresh = cal.t_ns if cal is not None and opts.calibrate_minutes else None
+        training_ns = None
+        if opts.training_minutes and cal is not None and not stop.is_set():
+            trial = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
+            training_ns, fresh = trial.t_ns, None
+            until = trial.t_ns + round(opts.training_minutes * 60e9)
+            while watch.data_ns < until and not stop.is_set():
+                show("training (recorded, not analysed)", watch, opts)
+                await watch.next_change(0.25)
+        # 4. the condition, set afresh ((c) starts Alg. 1 again), and from then on the session counts
         if not stop.is_set() and cal is not None:
-            fresh = cal.t_ns if opts.calibrate_minutes else None
             first = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
             watch.start_ns = first.t_ns
+            rest = (
+                None if opts.previous_end_ns is None else max(0.0, (first.t_ns - opts.previous_end_ns) / 1e9)
+            )
             writer.begin(
                 SessionInfo(
                     subject=opts.subject,
@@ -506,6 +566,11 @@ async def run_session(
                     task_sha256=task_digest(opts.task),
                     software=software(),
                     notes=opts.notes,
+                    study=opts.study,
+                    period=opts.period,
+                    break_s=rest,
+                    training_start_ns=training_ns,
+                    yoked_k=opts.yoked_k,
                 )
             )
             began = True
@@ -520,6 +585,9 @@ async def run_session(
                                  reason="interrupted (Ctrl-C or a stop signal)")  # fmt: skip
             else:
                 end = SessionEnd(end_ns=planned, complete=True, reason="on time")
+            if questionnaire is not None:
+                show("questionnaire (NASA-TLX)", watch, opts)
+                end = msgspec.structs.replace(end, tlx=await questionnaire())
     except BaseException as exc:
         if began:
             end = SessionEnd(end_ns=max(watch.data_ns, (watch.start_ns or 0) + 1), complete=False,

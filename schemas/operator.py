@@ -51,7 +51,8 @@ class OperatorSignal(Message, frozen=True, tag="operator.signal.v1"):
 
 
 # wrong_object: the wrong part placed; late: a part not there in time to be picked; other: anything else
-ErrorKind = Literal["wrong_object", "late", "other"]
+# "undo": the experimenter withdraws their last mark (`cadence mark undo`): it counts for nothing itself
+ErrorKind = Literal["wrong_object", "late", "other", "undo"]
 
 
 class OperatorError(Message, frozen=True, tag="operator.error.v1"):

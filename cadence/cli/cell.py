@@ -424,3 +424,18 @@ def cmd_mark_error(args: argparse.Namespace) -> int:
         source="experimenter",
     )
     return _tell_once(args, OPERATOR_ERROR, error)
+
+
+@cli.command(
+    "mark undo",
+    help="withdraw the experimenter's last mark (keyed by mistake): publish operator/error kind undo",
+    description="Publishes an OperatorError of kind undo, source experimenter: the session and the "
+    "analysis count the experimenter's last mark before it as withdrawn (an undo counts for nothing "
+    "itself). Exit 1 if nothing reads operator/error.",
+)
+@arg("--note", default="", help="why (kept in the file)")
+@flags_from(add_bus_flags, 10.0)
+def cmd_mark_undo(args: argparse.Namespace) -> int:
+    undo = OperatorError(t_ns=time.time_ns(), seq=0, description=args.note or "withdraws the last mark",
+                         kind="undo", source="experimenter")  # fmt: skip
+    return _tell_once(args, OPERATOR_ERROR, undo)

@@ -8,7 +8,7 @@ import os
 import sys
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -34,10 +34,11 @@ from common.trajectory.task import load_task
 if TYPE_CHECKING:
     from cadence.analysis import Study
     from cadence.fit import Fit
+    from cadence.registry import StudyPlan
     from cadence.session import SessionOptions, Watch
     from cadence.study import Model
     from schemas import Calibration
-    from schemas.session import SessionEnd
+    from schemas.session import SessionEnd, Tlx
 
 
 cli = Commands()
@@ -251,6 +252,52 @@ cli.group(
 
 
 @cli.command(
+    "study plan",
+    help="a study's plan: pseudonymous subjects, a counterbalanced order of conditions each, a registry",
+    description="Writes PLAN.toml: subjects S01…SNN, each with an order of the conditions from a Williams "
+    "design (every condition equally often in each place and after each other; 6 sequences for three "
+    "conditions, dealt out in seeded shuffled blocks of 6), the minutes per session, the training before "
+    "a subject's first session, the least break between two, and the sessions folder beside it. Beside "
+    "it, demographics.csv, one row per ID to fill in by hand: who is who stays out of the session files. "
+    "`cadence session --study PLAN.toml --subject S01` runs that subject's next session.",
+)
+@arg("--subjects", type=positive_int(1), required=True, help="how many")
+@arg("--out", required=True, metavar="PLAN.toml")
+@arg("--name", help="the study's name (default: the file's stem)")
+@arg(
+    "--conditions",
+    default="abc",
+    help="the conditions, in letters: abc (the paper's) or abcy (with the yoked control, which holds the "
+    "subject's own mean k of (c): it comes last, after the counterbalanced others)",
+)
+@arg("--seed", type=int, default=1, help="the deal of sequences to subjects (default 1)")
+def cmd_study_plan(args: argparse.Namespace) -> int:
+    from cadence.registry import make_plan, write_plan
+    from schemas.session import CONDITION_NAMES
+
+    conditions = list(dict.fromkeys(args.conditions))
+    if (
+        not conditions
+        or any(c not in CONDITION_NAMES for c in conditions)
+        or len(conditions) != len(args.conditions)
+    ):
+        raise InputError(f"--conditions {args.conditions}: distinct letters of {''.join(CONDITION_NAMES)}")
+    path = Path(args.out)
+    if path.exists():
+        raise InputError(f"{path}: exists; a study's plan is never overwritten (subjects may have run)")
+    plan = make_plan(args.name or path.stem, args.subjects, conditions, args.seed)
+    written = write_plan(plan, path)
+    table = Table(title=f"study {plan.name}: {len(plan.subjects)} subjects")
+    for col in ("subject", *(f"period {i + 1}" for i in range(len(conditions)))):
+        table.add_column(col)
+    for subject in plan.subjects:
+        table.add_row(subject.id, *(f"({c}) {CONDITION_NAMES[c]}" for c in subject.order))
+    out.print(table)
+    out.print(f"written: {', '.join(map(str, written))}; sessions go to {path.parent / plan.sessions}")
+    return 0
+
+
+@cli.command(
     "study analyse",
     help="Table I, Wilcoxon tests, figures and index.html from session files",
     description="Per subject and condition: φ (cycles per minute), ε (errors per cycle), mean RR of the "
@@ -399,13 +446,121 @@ def tty_keys(q: asyncio.Queue[str]) -> Callable[[], None] | None:
     return lambda: termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
 
+def planned(args: argparse.Namespace) -> StudyPlan | None:
+    """With --study: the subject's next session by the plan, filled into ``args`` (condition, minutes,
+    training, place, the last session's end); the plan. Without: the defaults, and no plan."""
+    from cadence.registry import load_plan, next_session
+    from schemas.session import CONDITION_NAMES
+
+    args.period = args.previous_end_ns = None
+    if not args.study:
+        if args.condition is None:
+            raise InputError("--condition: required without --study")
+        args.minutes = args.minutes or 10.0
+        return None
+    plan = load_plan(Path(args.study))
+    nxt = next_session(plan, sessions_folder(plan, args), args.subject)
+    if nxt is None:
+        raise InputError(f"subject {args.subject} has a complete session in every condition of {args.study}")
+    if args.condition not in (None, nxt.condition):
+        raise InputError(
+            f"subject {args.subject}'s next session in {args.study} is ({nxt.condition}), period "
+            f"{nxt.period}, not ({args.condition}): the order is the study's design"
+        )
+    args.condition, args.period = nxt.condition, nxt.period
+    args.minutes = args.minutes or plan.minutes
+    if args.training is None:
+        args.training = plan.training_minutes if nxt.training else 0.0
+    if nxt.previous is not None:
+        args.previous_end_ns = nxt.previous.end.end_ns
+    periods = len(plan.subject(args.subject).order)
+    err.print(f"study {plan.name}: subject {args.subject}, period {nxt.period} of {periods}: condition "
+              f"({nxt.condition}) {CONDITION_NAMES[nxt.condition]}"
+              + (f", {args.training:g} min of training first" if args.training else ""))  # fmt: skip
+    return plan
+
+
+def sessions_folder(plan: StudyPlan, args: argparse.Namespace) -> Path:
+    return Path(args.study).parent / plan.sessions
+
+
+def fresh_path(folder: Path, subject: str, condition: str) -> Path:
+    """SUBJECT_CONDITION.mcap in ``folder``: a run after a cut-short one gets _2, _3, …"""
+    path, n = folder / f"{subject}_{condition}.mcap", 1
+    while path.exists():
+        n += 1
+        path = folder / f"{subject}_{condition}_{n}.mcap"
+    return path
+
+
+def yoked_k(args: argparse.Namespace, plan: StudyPlan | None) -> int | None:
+    """Condition y: the subject's mean k of (c), rounded, from their (c) session."""
+    from cadence.registry import sessions_of
+    from cadence.session import load_session
+
+    if args.condition != "y":
+        return None
+    if args.yoked_to:
+        source = Path(args.yoked_to)
+    else:
+        done = (
+            [d for d in sessions_of(plan, sessions_folder(plan, args), args.subject)
+             if d.info.condition == "c" and d.end.complete] if plan else []
+        )  # fmt: skip
+        if not done:
+            raise InputError(f"condition y: no complete (c) session of subject {args.subject} to yoke to")
+        source = done[-1].path
+    s = load_session(source)
+    if s.info.subject != args.subject or s.info.condition != "c":
+        raise InputError(f"{source}: not subject {args.subject}'s (c) session")
+    k = round(s.mean_k)
+    err.print(f"condition y: k = {k}, the mean k of {source.name} ({s.mean_k:.2f})")
+    return k
+
+
+TLX_ITEMS = ("mental", "physical", "temporal", "performance", "effort", "frustration")
+
+
+def parse_tlx(text: str) -> Tlx:
+    from schemas.session import Tlx
+
+    try:
+        values = [int(v) for v in text.split(",")]
+        return msgspec.convert(dict(zip(TLX_ITEMS, values, strict=True)), Tlx)
+    except (ValueError, msgspec.ValidationError) as exc:
+        raise InputError(f"--tlx {text}: six integers 0-100, mental to frustration ({exc})") from None
+
+
+def ask_tlx(given: Tlx | None) -> Callable[[], Awaitable[Tlx | None]]:
+    """The questionnaire at the end: the scores given, or each item asked on the terminal."""
+
+    async def ask() -> Tlx | None:
+        if given is not None:
+            return given
+        answers = []
+        for item in TLX_ITEMS:
+            while True:
+                text = await asyncio.to_thread(
+                    input, f"NASA-TLX {item} (0-100, empty: skip the questionnaire): "
+                )
+                if not text.strip():
+                    return None
+                if text.strip().isdecimal() and 0 <= int(text) <= 100:
+                    answers.append(text.strip())
+                    break
+        return parse_tlx(",".join(answers))
+
+    return ask
+
+
 def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
     """The experimenter's view: the checks until the cell is ready, then RR, k, cycles, errors, time left."""
     from cadence.session import STALE_S
 
     t = Table(
         title=f"cadence session — subject {opts.subject}, condition ({opts.condition}): {phase}",
-        caption="keys: e wrong object, l late, o other error · 1…9 the task's n-th signal · Ctrl-C ends",
+        caption="keys: e wrong object, l late, o other error, u undo the last mark · 1…9 the task's n-th "
+        "signal · Ctrl-C ends",
     )
     if w.start_ns is None:
         t.add_column("check")
@@ -444,9 +599,35 @@ def session_view(phase: str, w: Watch, opts: SessionOptions) -> Table:
     "data time); Ctrl-C ends it early, complete and marked cut short (exit 1). For the study: "
     "`cadence study analyse`.",
 )
-@arg("--subject", required=True, help="the subject's ID (as in the calibration)")
-@arg("--condition", required=True, choices=("a", "b", "c"))
-@arg("--minutes", type=float, default=10.0, help="data time to record (default 10)")
+@arg("--subject", required=True, help="the subject's ID (as in the calibration, and the study plan)")
+@arg(
+    "--study",
+    metavar="PLAN.toml",
+    help="the study plan (`cadence study plan`): refuses a subject not in it, runs the subject's next "
+    "condition, records its place and the break before it, trains before their first session, and files "
+    "the session in the plan's sessions folder",
+)
+@arg(
+    "--condition",
+    choices=("a", "b", "c", "y"),
+    help="(a), (b), (c), or (y) yoked: k fixed at the subject's mean k of their (c) session; with "
+    "--study, the plan's next one (another is refused)",
+)
+@arg("--minutes", type=float, help="data time to record (default: the plan's, else 10)")
+@arg(
+    "--training",
+    type=float,
+    metavar="MINUTES",
+    help="familiarisation in the condition before it counts, recorded and not analysed (default: the "
+    "plan's training_minutes before a subject's first session, else none)",
+)
+@arg(
+    "--tlx",
+    metavar="M,P,T,P,E,F",
+    help="the subject's NASA-TLX, six scores 0-100 (mental, physical, temporal, performance, effort, "
+    "frustration); without it a session of a study asks at the end when run in a terminal",
+)
+@arg("--yoked-to", metavar="C_SESSION.mcap", help="condition y without a plan: the subject's (c) session")
 @arg(
     "--calibrate",
     type=float,
@@ -477,11 +658,14 @@ def cmd_session(args: argparse.Namespace) -> int:
     from common.runtime.bus import Bus
     from common.runtime.config import CommonSettings
 
-    out_path = Path(args.out) if args.out else Path(f"{args.subject}_{args.condition}.mcap")
+    plan = planned(args)
+    folder = sessions_folder(plan, args) if plan else Path(".")
+    out_path = Path(args.out) if args.out else fresh_path(folder, args.subject, args.condition)
     if out_path.exists():
         raise InputError(f"{out_path}: exists; a session file is evidence and is never overwritten")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or CommonSettings().data_dir)
+    tlx = parse_tlx(args.tlx) if args.tlx else None
     opts = SessionOptions(
         subject=args.subject,
         condition=args.condition,
@@ -496,8 +680,14 @@ def cmd_session(args: argparse.Namespace) -> int:
         notes=args.note,
         posture=args.posture,
         settle_timeout_s=None if args.settle_timeout == 0 else args.settle_timeout,
+        training_minutes=args.training or 0.0,
+        yoked_k=yoked_k(args, plan),
+        study=plan.name if plan else "",
+        period=args.period,
+        previous_end_ns=args.previous_end_ns,
     )
     task_digest(opts.task)  # a task file that is not there is said before the session starts
+    ask = None if tlx is None and not (plan and sys.stdin.isatty()) else ask_tlx(tlx)
 
     async def go() -> SessionEnd:
         stop = stop_on_signals()
@@ -520,7 +710,7 @@ def cmd_session(args: argparse.Namespace) -> int:
                 keys: asyncio.Queue[str] = asyncio.Queue()
                 restore = tty_keys(keys)
                 try:
-                    return await run_session(bus, opts, stop, show, calib, keys)
+                    return await run_session(bus, opts, stop, show, calib, keys, ask)
                 finally:
                     if restore is not None:
                         restore()
