@@ -140,7 +140,9 @@ def simulate(
     state = State.initial(params)
     fixed = {"a": n, "b": 1}.get(condition)
     t, end = 0.0, minutes * 60.0
-    cycles = errors = 0
+    cycles = 0
+    cycle_ends: list[float] = []
+    error_times: list[float] = []
     beats: list[float] = [op.beats[-1]]
     win_start, rr_norm, ks = 0.0, [], []
     seq = dict.fromkeys(("window", "selection", "cycle", "error"), 0)
@@ -163,8 +165,7 @@ def simulate(
     select(0.0, 0, "fixed" if fixed is not None else "initial", None)
 
     def error(t_s: float, kind: ErrorKind, source: str, description: str) -> None:
-        nonlocal errors
-        errors += 1
+        error_times.append(t_s)
         msg = OperatorError(t_ns=ns(t_s), seq=seq["error"], cycle=cycles, kind=kind, source=source,
                             description=description)  # fmt: skip
         emit(OPERATOR_ERROR.suffix, "error", msg)
@@ -184,7 +185,7 @@ def simulate(
             )
             w = window_stats(win_start, win_start + WINDOW_S, iv)
             if w.mean_rr_s is not None and w.quality == "good":
-                rr_norm.append(w.mean_rr_s / rr_rest)
+                rr_norm.append((w.mean_rr_s / rr_rest, w.end_s))
             emit(HRV_WINDOW.suffix, "window", window_message(w, ORIGIN_NS, seq["window"]))
             if fixed is None:
                 r = step(params, state, w.mean_rr_s, w.quality == "good")
@@ -221,17 +222,21 @@ def simulate(
             t_ns=ns(t), seq=seq["cycle"], cycle=cycles, cycle_time_s=t - start, k_per_path=used
         )
         emit(ROBOT_CYCLE.suffix, "cycle", report)
+        cycle_ends.append(t)
         op.advance(t)
         if op.makes_error():  # as the twin in the ECG gateway does at each cycle's report
             error(t, "wrong_object", "twin", f"simulated (stress {op.stress:.2f})")
         cycles += 1
+    # the session ends at its planned minutes, as a live one does: the cycle running then (recorded, as
+    # live) ends after it and is not counted, nor what it brought
+    counted = sum(1 for c in cycle_ends if c <= end)
     return Outcome(
         subject.index,
         condition,
-        cycles,
-        errors,
-        t / 60.0,
-        float(np.mean(rr_norm)) if rr_norm else float("nan"),
+        counted,
+        sum(1 for e in error_times if e <= end),
+        minutes,
+        float(np.mean([r for r, e in rr_norm if e <= end])) if rr_norm else float("nan"),
         ks,
     )
 
@@ -276,6 +281,5 @@ def simulate_session(
     except BaseException:
         writer.close(SessionEnd(end_ns=ORIGIN_NS + 1, complete=False, reason="the simulation failed"))
         raise
-    end_ns = ORIGIN_NS + round(outcome.minutes * 60e9)
-    writer.close(SessionEnd(end_ns=end_ns, complete=True, reason="on time"))
+    writer.close(SessionEnd(end_ns=ORIGIN_NS + round(minutes * 60e9), complete=True, reason="on time"))
     return outcome

@@ -216,3 +216,120 @@ async def cut_short(endpoint: str, tmp_path: Path):
 
     async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1", role="operator") as bus:
         return await run_session(bus, opts, stop, show, never, keys)
+
+
+def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> None:
+    """The README's procedure with a plan: `study plan`, S01's first session (training, calibration at
+    work, a TLX) by the command line, then the first subject whose order starts with another condition,
+    with two marks of which one is undone, then `study analyse --csv`."""
+    import csv
+
+    from cadence.registry import load_plan
+
+    lab = tmp_path / "lab"
+    r = subprocess.run([sys.executable, "-m", "cadence", "study", "plan", "--subjects", "6", "--out",
+                        str(lab / "study.toml")], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    plan = load_plan(lab / "study.toml")
+    first = plan.subjects[0]
+    other = next(s for s in plan.subjects if s.order[0] != first.order[0])
+    assert (lab / "demographics.csv").read_text().splitlines()[1] == "S01,,,,"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", "--duration", "3000", "--speed", SPEED, "--no-live",
+         "--listen", endpoint, "--out", str(tmp_path / "demo")],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
+        r = subprocess.run(
+            [sys.executable, "-m", "cadence", "session", "--study", str(lab / "study.toml"),
+             "--subject", "S01", "--minutes", "1", "--training", "0.5", "--calibrate", "1",
+             "--posture", "working", "--settle-timeout", "0", "--tlx", "55,20,60,35,50,25",
+             "--connect", endpoint, "--data-dir", str(tmp_path / "cal"), "--timeout", "240"],
+            capture_output=True, text=True, timeout=400,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert f"period 1 of 3: condition ({first.order[0]})" in r.stderr
+        refused = subprocess.run(
+            [sys.executable, "-m", "cadence", "session", "--study", str(lab / "study.toml"),
+             "--subject", "S1", "--connect", endpoint],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert (
+            refused.returncode == 2 and "subject 'S1' is not in study 'study' (S01 … S06)" in refused.stderr
+        )
+        asyncio.run(marked_session(endpoint, tmp_path, plan, other.id))
+    finally:
+        demo.terminate()
+        demo.wait(timeout=60)
+
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "study", "analyse", str(lab / "sessions"),
+         "--out", str(tmp_path / "out"), "--csv", str(tmp_path / "csv")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = list(csv.DictReader((tmp_path / "csv" / "sessions.csv").open()))
+    by = {row["subject"]: row for row in rows}
+    assert set(by) == {"S01", other.id}
+    assert (by["S01"]["condition"], by["S01"]["period"], by["S01"]["training"]) == (
+        first.order[0],
+        "1",
+        "True",
+    )
+    assert [by["S01"][f"tlx_{i}"] for i in ("mental", "frustration")] == ["55", "25"]
+    assert float(by["S01"]["tlx_raw"]) == pytest.approx((55 + 20 + 60 + 35 + 50 + 25) / 6)
+    assert by[other.id]["condition"] == other.order[0] != first.order[0]
+    from cadence.session import load_session
+
+    marked = load_session(next((lab / "sessions").glob(f"{other.id}_*.mcap")))
+    keyed = [e.kind for e in marked.errors if e.source == "experimenter" and marked.inside(e.t_ns)]
+    assert keyed == ["wrong_object", "wrong_object", "undo"]
+    kept = [e for e in marked.counted_errors if e.source == "experimenter"]
+    assert len(kept) == 1 and kept[0].t_ns == min(e.t_ns for e in marked.errors if e.source == "experimenter")
+    twin = sum(1 for e in marked.errors if e.source != "experimenter" and marked.inside(e.t_ns))
+    assert by[other.id]["errors"] == str(twin + 1)  # two marks, the last withdrawn, and the twin's own
+
+    s01 = load_session(next((lab / "sessions").glob("S01_*.mcap")))
+    assert s01.info.study == "study" and s01.info.training_start_ns is not None
+    assert s01.info.training_start_ns < s01.info.start_ns  # the training came first, outside the analysis
+    assert (s01.info.start_ns - s01.info.training_start_ns) / 60e9 >= 0.5
+    windows = list(csv.DictReader((tmp_path / "csv" / "windows.csv").open()))
+    assert windows and all(0 < float(w["end_s"]) <= 60.0 for w in windows)
+    assert {w["subject"] for w in windows} == {"S01", other.id}
+
+
+async def marked_session(endpoint: str, tmp_path: Path, plan, subject: str) -> None:
+    """The other subject's first session, with the experimenter marking two errors and undoing the last."""
+    from cadence.registry import next_session
+    from cadence.session import SessionOptions, run_session
+    from common.runtime.bus import Bus, BusConfig
+    from common.runtime.resources import EXAMPLE_TASK
+
+    nxt = next_session(plan, tmp_path / "lab" / "sessions", subject)
+    assert nxt is not None and nxt.period == 1
+    keys: asyncio.Queue[str] = asyncio.Queue()
+    seen = 0
+
+    def show(phase: str, watch, _) -> None:
+        nonlocal seen
+        if phase == "running":
+            seen += 1
+            if seen == 5:
+                for key in "eeu":
+                    keys.put_nowait(key)
+
+    async def calibrated():
+        from cadence.cli.hrv import calibrate
+
+        return (await calibrate(bus, 1.0, subject, tmp_path / "cal2", False, posture="working"))[0]
+
+    opts = SessionOptions(subject=subject, condition=nxt.condition, minutes=1.0,
+                          out=tmp_path / "lab" / "sessions" / f"{subject}_{nxt.condition}.mcap",
+                          data_dir=tmp_path / "cal2", task=EXAMPLE_TASK, ready_timeout_s=240,
+                          settle_timeout_s=None, calibrate_minutes=1.0, posture="working", study=plan.name,
+                          period=nxt.period)  # fmt: skip
+    async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1", role="operator") as bus:
+        end = await run_session(bus, opts, asyncio.Event(), show, calibrated, keys)
+    assert end.complete

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cadence.analysis import analyse, to_json
 from cadence.session import load_session
@@ -53,6 +54,41 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
         info = load_session(f).info
         assert info.calibration is not None and info.calibration.subject == info.subject
     assert redo["table"] == doc["table"] and redo["wilcoxon"] == doc["wilcoxon"]
+    the_statistics_are_scipys_and_statsmodels(doc)
+
+
+def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
+    """Friedman, Holm and the TOST of study.json recomputed from its per-session values with scipy and
+    statsmodels, and the rank-biserial from scipy's signed-rank sums."""
+    from scipy.stats import friedmanchisquare, wilcoxon
+    from statsmodels.stats.multitest import multipletests
+    from statsmodels.stats.weightstats import ttost_paired
+
+    from cadence.analysis import MARGINS, METRICS
+
+    value = {(r["subject"], r["condition"]): r for r in doc["sessions"]}
+    subjects = sorted({r["subject"] for r in doc["sessions"]})
+
+    def column(c: str, m: str) -> np.ndarray:
+        return np.array([value[(x, c)][m] for x in subjects])
+
+    for m in METRICS:
+        f = friedmanchisquare(*(column(c, m) for c in "abc"))
+        assert doc["friedman"][m]["p"] == pytest.approx(f.pvalue)
+        p_tost = ttost_paired(column("c", m), column("b", m), -MARGINS[m], MARGINS[m])[0]
+        assert doc["equivalence_b_c"][m]["p"] == pytest.approx(p_tost)
+        for pair in ("a-b", "a-c", "b-c"):
+            d = column(pair[2], m) - column(pair[0], m)
+            nz = d[d != 0]
+            if len(nz):
+                t_plus = wilcoxon(nz, alternative="greater").statistic
+                total = len(nz) * (len(nz) + 1) / 2
+                assert doc["wilcoxon"][pair][m]["rank_biserial"] == pytest.approx(
+                    (2 * t_plus - total) / total
+                )
+    family = [(pair, m) for pair in doc["wilcoxon"] for m in METRICS]
+    held = multipletests([doc["wilcoxon"][pair][m]["p"] for pair, m in family], method="holm")[1]
+    assert [doc["wilcoxon"][pair][m]["p_holm"] for pair, m in family] == pytest.approx(list(held))
 
 
 def readme_tables_are(doc: dict) -> None:

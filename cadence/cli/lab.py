@@ -202,29 +202,38 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def print_study(study: Study) -> None:
-    from cadence.analysis import LABELS, METRICS, stars
+    from cadence.analysis import LABELS, stars
     from schemas.session import CONDITION_NAMES
 
     what = "SIMULATED study (operator twins, not people)" if study.simulated else "study"
     subjects = len({s.info.subject for s in study.sessions})
     table = Table(title=f"{what}: {subjects} subjects, {len(study.sessions)} sessions (like Table I)")
     table.add_column("condition")
-    for m in METRICS:
+    for m in study.metrics:
         table.add_column(LABELS[m], justify="right")
     for c in study.conditions:
         cells = (f"{mean:.3f} ± {sd:.3f}" for mean, sd, _ in study.table[c].values())
         table.add_row(f"({c}) {CONDITION_NAMES[c]}", *cells)
     out.print(table)
-    tests = Table(title="Wilcoxon signed-rank, paired by subject: p (n, method)")
+    tests = Table(
+        title="Friedman, then Wilcoxon signed-rank paired by subject: p, Holm-adjusted p, r_rb [95 % CI]"
+    )
     tests.add_column("pair")
-    for m in METRICS:
+    for m in study.metrics:
         tests.add_column(LABELS[m], justify="right")
+    tests.add_row("Friedman", *(f"{f.p:.2g} {stars(f.p)} (n {f.n})" for f in study.friedman.values()))
     for pair, row in study.tests.items():
-        tests.add_row(
-            pair, *(f"{t.p:.2g} {stars(t.p)} (n {t.n}, {'exact' if t.method == 'exact' else 'approx'})"
-                    for t in row.values())
-        )  # fmt: skip
+        tests.add_row(pair, *(f"{t.p:.2g}, Holm {t.p_holm:.2g} {stars(t.p_holm)}\nr_rb {t.rank_biserial:.2f} "
+                              f"[{t.rank_biserial_ci[0]:.2f}, {t.rank_biserial_ci[1]:.2f}] (n {t.n})"
+                              for t in row.values()))  # fmt: skip
+    if study.equivalence:
+        tests.add_row("b ≈ c (TOST)", *(f"±{e.margin:g}: p {e.p:.2g}" + (" equivalent" if e.p < 0.05 else "")
+                                        for e in study.equivalence.values()))  # fmt: skip
     out.print(tests)
+    for f, why in study.excluded:
+        out.print(f"left out: {f.name}: {why}")
+    for note in study.notes:
+        out.print(f"note: {note}")
 
 
 def session_files(sources: list[str]) -> list[Path]:
@@ -310,14 +319,37 @@ def cmd_study_plan(args: argparse.Namespace) -> int:
 )
 @arg("sessions", nargs="+", metavar="SESSION.mcap|FOLDER")
 @arg("--out", required=True, metavar="DIR")
+@arg("--csv", metavar="DIR", help="also long-format CSV for R, JASP or SPSS: sessions.csv and windows.csv")
+@arg("--include-incomplete", action="store_true", help="count sessions cut short (default: left out, listed)")
+@arg(
+    "--margin",
+    action="append",
+    default=[],
+    metavar="MEASURE=VALUE",
+    help="the equivalence margin of the TOST for (b) ≈ (c), per measure (productivity_per_min, error_rate, "
+    "mean_rr_s, mean_rr_norm, tlx_raw); default 0.1, 0.02, 0.02, 0.025, 10",
+)
 def cmd_study_analyse(args: argparse.Namespace) -> int:
-    from cadence.analysis import analyse, write_study
+    from cadence.analysis import MARGINS, analyse, write_csv, write_study
     from cadence.session import load_session
 
-    study = analyse([load_session(f) for f in session_files(args.sessions)])
+    margins = {}
+    for spec in args.margin:
+        name, _, value = spec.partition("=")
+        try:
+            margins[name] = float(value)
+        except ValueError:
+            margins[name] = float("nan")
+        if name not in MARGINS or not margins[name] > 0:
+            raise InputError(
+                f"--margin {spec}: expected MEASURE=VALUE above 0, MEASURE one of {', '.join(MARGINS)}"
+            )
+    study = analyse([load_session(f) for f in session_files(args.sessions)], args.include_incomplete, margins)
     print_study(study)
     written = write_study(study, Path(args.out))
     out.print(f"written to {args.out}: {', '.join(written)}")
+    if args.csv:
+        out.print(f"written to {args.csv}: {', '.join(write_csv(study, Path(args.csv)))}")
     return 0
 
 
