@@ -38,24 +38,35 @@ def holm(ps: ArrayLike) -> NDArray[np.float64]:
     return out
 
 
-def rank_biserial(diff: ArrayLike) -> float:
-    """Matched-pairs rank-biserial correlation of the differences (zeros left out); NaN if none is left."""
+def _rank_biserial_rows(d: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per row of differences: zeros are left out, the rest ranked by size (ties averaged)."""
     from scipy.stats import rankdata
 
-    d = np.asarray(diff, dtype=float)
-    d = d[d != 0]
-    if len(d) == 0:
-        return float("nan")
-    r = rankdata(np.abs(d))
-    return float((r[d > 0].sum() - r[d < 0].sum()) / r.sum())
+    ranks = rankdata(np.where(d == 0, np.nan, np.abs(d)), axis=1, nan_policy="omit")
+    pos = np.nansum(np.where(d > 0, ranks, 0.0), axis=1)
+    neg = np.nansum(np.where(d < 0, ranks, 0.0), axis=1)
+    total = pos + neg
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0, (pos - neg) / total, np.nan)
+
+
+def _d_z_rows(d: NDArray[np.float64]) -> NDArray[np.float64]:
+    sd = np.std(d, axis=1, ddof=1) if d.shape[1] > 1 else np.zeros(len(d))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(sd > 0, np.mean(d, axis=1) / sd, np.nan)
+
+
+_ROWS = {"rank_biserial": _rank_biserial_rows, "d_z": _d_z_rows}
+
+
+def rank_biserial(diff: ArrayLike) -> float:
+    """Matched-pairs rank-biserial correlation of the differences (zeros left out); NaN if none is left."""
+    return float(_rank_biserial_rows(np.asarray(diff, dtype=float)[None, :])[0])
 
 
 def d_z(diff: ArrayLike) -> float:
     """Cohen's d_z: the mean difference over its standard deviation (n − 1)."""
-    d = np.asarray(diff, dtype=float)
-    if len(d) < 2 or np.std(d, ddof=1) == 0:
-        return float("nan")
-    return float(np.mean(d) / np.std(d, ddof=1))
+    return float(_d_z_rows(np.asarray(diff, dtype=float)[None, :])[0])
 
 
 def bootstrap_ci(diff: ArrayLike, stat: str, level: float = 0.95) -> tuple[float, float]:
@@ -63,9 +74,8 @@ def bootstrap_ci(diff: ArrayLike, stat: str, level: float = 0.95) -> tuple[float
     d = np.asarray(diff, dtype=float)
     if len(d) < 3:
         return float("nan"), float("nan")
-    fn = {"rank_biserial": rank_biserial, "d_z": d_z}[stat]
     rng = np.random.default_rng(BOOTSTRAP_SEED)
-    draws = np.array([fn(d[rng.integers(0, len(d), len(d))]) for _ in range(BOOTSTRAP_RESAMPLES)])
+    draws = _ROWS[stat](d[rng.integers(0, len(d), (BOOTSTRAP_RESAMPLES, len(d)))])
     draws = draws[np.isfinite(draws)]
     if len(draws) < BOOTSTRAP_RESAMPLES // 2:
         return float("nan"), float("nan")

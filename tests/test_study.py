@@ -55,6 +55,47 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
         assert info.calibration is not None and info.calibration.subject == info.subject
     assert redo["table"] == doc["table"] and redo["wilcoxon"] == doc["wilcoxon"]
     the_statistics_are_scipys_and_statsmodels(doc)
+    the_policies_hold([load_session(f) for f in files])
+
+
+def the_policies_hold(sessions: list) -> None:
+    """Periods by a plan's order give their means and Friedman's test; a session cut short is left out
+    and listed unless included; another task file is refused; another software version is said."""
+    import dataclasses
+
+    import msgspec
+    from scipy.stats import friedmanchisquare
+
+    from cadence.registry import williams
+    from common.runtime.errors import InputError
+
+    seqs = williams(3)
+    subjects = sorted({s.info.subject for s in sessions})
+    placed = []
+    for s in sessions:
+        order = ["abc"[c] for c in seqs[subjects.index(s.info.subject) % 6]]
+        period = order.index(s.info.condition) + 1
+        placed.append(dataclasses.replace(s, info=msgspec.structs.replace(s.info, period=period)))
+    doc = to_json(analyse(placed))
+    by = {(s.info.subject, s.info.period): s.productivity_per_min for s in placed}
+    cols = [np.array([by[(x, p)] for x in subjects]) for p in (1, 2, 3)]
+    period = doc["periods"]["productivity_per_min"]
+    assert period["means"] == {
+        str(p): pytest.approx(float(np.mean(c))) for p, c in zip((1, 2, 3), cols, strict=True)
+    }
+    assert period["p"] == pytest.approx(friedmanchisquare(*cols).pvalue) and period["n"] == 12
+
+    cut = dataclasses.replace(placed[0], end=msgspec.structs.replace(placed[0].end, complete=False,
+                                                                     reason="interrupted"))  # fmt: skip
+    left = to_json(analyse([cut, *placed[1:]]))
+    assert left["excluded"] == [{"file": str(cut.path), "why": "cut short: interrupted"}]
+    assert len(left["sessions"]) == len(placed) - 1
+    assert len(to_json(analyse([cut, *placed[1:]], include_incomplete=True))["sessions"]) == len(placed)
+    other = dataclasses.replace(placed[1], info=msgspec.structs.replace(placed[1].info, task_sha256="0" * 64))
+    with pytest.raises(InputError, match="different task files"):
+        analyse([placed[0], other, *placed[2:]])
+    newer = dataclasses.replace(placed[1], info=msgspec.structs.replace(placed[1].info, software="cadence 9"))
+    assert "different software" in to_json(analyse([placed[0], newer, *placed[2:]]))["notes"][0]
 
 
 def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
