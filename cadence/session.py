@@ -404,6 +404,16 @@ def check_ready(readiness: dict[str, str | None]) -> str | None:
     return "; ".join(problems) or None
 
 
+def condition_parameters(opts: SessionOptions, calibrated_ns: int | None = None) -> str:
+    """What `decision/condition` is asked: (c) is Alg. 1; (a), (b) and the yoked (y) are a fixed k."""
+    if opts.condition == "y" and opts.yoked_k is None:
+        raise InputError("condition y holds the subject's mean k of (c): none given (their (c) session?)")
+    k = opts.yoked_k if opts.condition == "y" else opts.condition
+    mode = "mode=adaptive" if opts.condition == "c" else f"mode=fixed;k={k}"
+    params = f"{mode};by=session {opts.subject}/{opts.condition}"
+    return params if calibrated_ns is None else f"{params};calibration={calibrated_ns}"
+
+
 async def ask_condition(
     bus: Bus, opts: SessionOptions, timeout: float, calibrated_ns: int | None = None
 ) -> Selection:
@@ -411,13 +421,7 @@ async def ask_condition(
     decision maker must have before it starts (c) from it (it says "not received yet" until then)."""
     from schemas.topology import CALIBRATION_NOT_YET, DECISION_CONDITION
 
-    if opts.condition == "y" and opts.yoked_k is None:
-        raise InputError("condition y holds the subject's mean k of (c): none given (their (c) session?)")
-    k = opts.yoked_k if opts.condition == "y" else opts.condition
-    mode = "mode=adaptive" if opts.condition == "c" else f"mode=fixed;k={k}"
-    params = f"{mode};by=session {opts.subject}/{opts.condition}"
-    if calibrated_ns is not None:
-        params += f";calibration={calibrated_ns}"
+    params = condition_parameters(opts, calibrated_ns)
     give_up = time.monotonic() + timeout
     while True:
         replies = await bus.get(DECISION_CONDITION, timeout=timeout, parameters=params)

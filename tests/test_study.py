@@ -34,6 +34,7 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
     assert len(files) == 12 * 3
     doc = json.loads((tmp_path / "study.json").read_text())
     assert doc["simulated"] is True and len(doc["sessions"]) == 12 * 3
+    assert {row["minutes"] for row in doc["sessions"]} == {10.0}  # each ends at its planned minutes, as live
     readme_tables_are(doc)
     m = {c: {k: v["mean"] for k, v in doc["table"][c].items()} for c in "abc"}
     # (a) fastest and most stressful, (b) slowest and most relaxed, (c) in between on all three
