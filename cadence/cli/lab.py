@@ -308,12 +308,15 @@ def cmd_study_plan(args: argparse.Namespace) -> int:
 
 @cli.command(
     "study analyse",
-    help="Table I, Wilcoxon tests, figures and index.html from session files",
+    help="Table I, Friedman and Wilcoxon tests (Holm, effect sizes, TOST), figures, index.html, CSV",
     description="Per subject and condition: φ (cycles per minute), ε (errors per cycle), mean RR of the "
-    "good windows and mean RR over the subject's RR_r, between the session's start and end. Per "
-    "condition their mean ± sd over subjects; per pair of conditions and measure a Wilcoxon "
-    "signed-rank test paired by subject (scipy; exact where possible, else the normal approximation, "
-    "said beside the p-value). Writes DIR/study.json, DIR/conditions.png (like Fig. 7), one "
+    "good windows, mean RR over the subject's RR_r and the raw NASA-TLX, between the session's start and "
+    "end. Per condition their mean ± sd over subjects; per measure Friedman's test; per pair of "
+    "conditions and measure a Wilcoxon signed-rank test paired by subject (scipy; exact where possible, "
+    "else the normal approximation, said beside the p-value), Holm-adjusted over all of them, with the "
+    "rank-biserial correlation and d_z and their bootstrap CIs; a TOST for (b) ≈ (c); period effects "
+    "with a study plan. Sessions cut short are left out and listed unless --include-incomplete. Writes "
+    "DIR/study.json, DIR/conditions.png (like Fig. 7), one "
     "DIR/subject_<id>.png per subject (like Fig. 6) and DIR/index.html. A file that was not closed, has "
     "no calibration, mixes cells or mixes clocks is refused with the reason.",
 )
@@ -764,4 +767,9 @@ def cmd_session(args: argparse.Namespace) -> int:
         f"{s.mean_rr_s:.3f} / {s.rr_rest_s:.3f} s",
     )
     out.print(table)
+    if s.info.break_s is not None:
+        least = f" (the plan asks at least {plan.break_minutes:g})" if plan else ""
+        out.print(f"break before it: {s.info.break_s / 60:.1f} min of data time{least}")
+    if s.end.tlx is not None:
+        out.print(f"NASA-TLX raw: {s.end.tlx.raw:.1f}")
     return 0 if end.complete else 1
