@@ -109,6 +109,7 @@ class Operator:
         self.exertion = 0.0
         self._handling: deque[tuple[float, float]] = deque()  # (from, until): parts being handled
         self._acc_rng = np.random.default_rng([p.seed, 1])
+        self._acc_sent = 0  # accelerometer samples given (acc_until)
         self.t = 0.0  # data time up to which the state is integrated
         self._obs: deque[tuple[float, float, float]] = deque()  # (t, speed, accel)
         self._last_qd: tuple[float, NDArray[np.float64]] | None = None
@@ -183,6 +184,20 @@ class Operator:
             - p.fatigue_rr_s * self.fatigue
             - p.exertion_rr_s * self.exertion
         )
+
+    def __str__(self) -> str:
+        return (f"exposure {self.exposure(self.t):.2f}, stress {self.stress:.2f}, "
+                f"exertion {self.exertion:.2f}, mean RR {self.mean_rr():.3f} s, "
+                f"fatigue {self.fatigue:.3f}")  # fmt: skip
+
+    def acc_until(self, until_s: float) -> tuple[float, NDArray[np.int64]] | None:
+        """The accelerometer samples whose time has come by ``until_s`` and were not given yet: the first
+        one's data time and the samples; None when none is due."""
+        j0, j1 = self._acc_sent, math.ceil(until_s * ACC_FS_HZ)
+        if j1 <= j0:
+            return None
+        self._acc_sent = j1
+        return j0 / ACC_FS_HZ, self.acc(j0 / ACC_FS_HZ, j1 - j0)
 
     def acc(self, t0: float, n: int, fs: float = ACC_FS_HZ) -> NDArray[np.int64]:
         """n accelerometer samples (x, y, z in mg) at fs from data time t0."""

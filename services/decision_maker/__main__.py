@@ -55,14 +55,17 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     def __post_init__(self) -> None:
         fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start
 
+    @property
+    def rule(self) -> MovementRule:
+        return MovementRule(self.movement_margin_mg, self.movement_recovery_s, self.movement_learn_windows)
+
 
 class DecisionMaker(Node):
     role = NAME
 
     async def setup(self) -> None:
         s, self.data = self.ctx.settings, self.ctx.common.data_path
-        rule = MovementRule(s.movement_margin_mg, s.movement_recovery_s, s.movement_learn_windows)
-        self.decider = Decider(self.data, s.n, rule)
+        self.decider = Decider(self.data, s.n, s.rule)
         self.conditions = Conditions(Condition(mode=s.mode, fixed_k=s.fixed_k), s.n)
         problems = await asyncio.to_thread(resume, self.decider, self.data, s.rr_rest_s)
         problems += await asyncio.to_thread(self.conditions.resume, self.data)

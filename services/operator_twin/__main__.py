@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import sys
 from collections.abc import AsyncIterator
 
@@ -51,7 +50,6 @@ class OperatorTwin(Node):
         self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
         self.waiting_for: str | None = None
         self.line = TimeLine(STATE_AHEAD_S, tolerance_s=0.0, confirm=STATE_CONFIRM)
-        self.acc_samples = 0  # accelerometer samples sent
 
     def ns(self, t_s: float) -> int:
         return self.origin_ns + round(t_s * 1e9)
@@ -79,16 +77,6 @@ class OperatorTwin(Node):
         return [OperatorError(t_ns=report.t_ns, seq=seq, cycle=report.cycle, description=why,
                               kind="wrong_object", source="twin")]  # fmt: skip
 
-    def accelerometer(self, until_s: float) -> Out:
-        """The samples whose time has come by ``until_s``, as one chunk."""
-        j0, j1 = self.acc_samples, math.ceil(until_s * ACC_FS_HZ)
-        if j1 <= j0:
-            return []
-        self.acc_samples = j1
-        xyz = self.operator.acc(j0 / ACC_FS_HZ, j1 - j0).T.tolist()
-        return [AccChunk(t_ns=self.ns(j0 / ACC_FS_HZ), seq=self.next_seq(ECG_ACC), fs_hz=ACC_FS_HZ,
-                         x_mg=xyz[0], y_mg=xyz[1], z_mg=xyz[2], source="twin")]  # fmt: skip
-
     async def stream(self) -> AsyncIterator[Out]:
         """The ECG, chunk by chunk as the strap sends it (a chunk exists once its last sample does), and
         the parts put down by then."""
@@ -102,18 +90,17 @@ class OperatorTwin(Node):
                     t_ns=self.ns(t0), seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ, samples_uv=x, source="twin"
                 )
             ]
-            if self.operator.p.accelerometer:
-                out += self.accelerometer(t1)
+            if self.operator.p.accelerometer and (acc := self.operator.acc_until(t1)) is not None:
+                xyz = acc[1].T.tolist()
+                out.append(AccChunk(t_ns=self.ns(acc[0]), seq=self.next_seq(ECG_ACC), fs_hz=ACC_FS_HZ,
+                                    x_mg=xyz[0], y_mg=xyz[1], z_mg=xyz[2], source="twin"))  # fmt: skip
             for when, name in [p for p in self.pending if p[0] <= t1]:
                 seq = self.next_seq(OPERATOR_SIGNAL)
                 out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
             self.pending = [p for p in self.pending if p[0] > t1]
             self.ctx.counters["chunks"] += 1
             if i % (CHUNK * 54) == 0:  # about every 30 s of data time
-                op = self.operator
-                log.info("twin at %.0f s: exposure %.2f, stress %.2f, exertion %.2f, mean RR %.3f s, "
-                         "fatigue %.3f", t0, op.exposure(op.t), op.stress, op.exertion, op.mean_rr(),
-                         op.fatigue)  # fmt: skip
+                log.info("twin at %.0f s: %s", t0, self.operator)
             yield out
 
 
