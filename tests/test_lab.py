@@ -89,17 +89,27 @@ def counted(path: Path) -> dict:
     }
 
 
-def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
+def demo_cell(tmp_path: Path) -> tuple[subprocess.Popen[str], str]:
+    """The demo cell, running until the test ends it, once its router listens; and that endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     demo = subprocess.Popen(
         [sys.executable, "-m", "cadence", "demo", "--duration", "3000", "--speed", SPEED, "--no-live",
          "--listen", endpoint, "--out", str(tmp_path / "demo")],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
+    try:
+        wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
+    except BaseException:
+        demo.terminate()
+        raise
+    return demo, endpoint
+
+
+def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
+    demo, endpoint = demo_cell(tmp_path)
     sessions, lab = tmp_path / "sessions", tmp_path / "lab"
     sessions.mkdir()
     try:
-        wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
         # (b) runs two minutes: a minimum-jerk cycle takes about 40 s, and the test wants one whole cycle
         # inside it even when a busy machine's protective stop costs some time
         # (a) calibrates at work (the robot at k = 1 meanwhile), then waits for the twin to settle near its
@@ -234,14 +244,8 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
     first = plan.subjects[0]
     other = next(s for s in plan.subjects if s.order[0] != first.order[0])
     assert (lab / "demographics.csv").read_text().splitlines()[1] == "S01,,,,"
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    demo = subprocess.Popen(
-        [sys.executable, "-m", "cadence", "demo", "--duration", "3000", "--speed", SPEED, "--no-live",
-         "--listen", endpoint, "--out", str(tmp_path / "demo")],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
+    demo, endpoint = demo_cell(tmp_path)
     try:
-        wait_for_line(lines_of(demo), "the demo cell's router", timeout=120)
         r = subprocess.run(
             [sys.executable, "-m", "cadence", "session", "--study", str(lab / "study.toml"),
              "--subject", "S01", "--minutes", "1", "--training", "0.5", "--calibrate", "1",
