@@ -19,7 +19,7 @@ import msgspec
 
 from common.decision import fixed_k
 from common.runtime.bus import QueryError, Request
-from common.runtime.node import Answer, Node, Out, Rejected, answers, every, node_main, on
+from common.runtime.node import Answer, Node, Out, answers, every, node_main, on
 from common.runtime.service import service_main
 from schemas.base import RrSeconds
 from schemas.decision import MAX_N, Selection
@@ -96,12 +96,7 @@ class DecisionMaker(Node):
         if self.decider.params is None:
             self.ctx.counters["windows_without_calibration"] += 1
             return []
-        verdict = self.decider.line.admit(w.start_ns, w.end_ns, clock_ns=self.ctx.common.clock.now_ns())
-        if not verdict.acted_on:
-            raise Rejected(verdict.code, verdict.detail)
-        if verdict.action == "restart":
-            log.warning("hrv/window: %s", verdict.detail)
-            self.ctx.counters["window_line_restarts"] += 1
+        self.ctx.counters["window_line_restarts"] += self.decider.admit(w, self.ctx.common.clock.now_ns())
         await self.adopt(record := self.decider.answer(w))
         self.ctx.counters["windows_held_for_movement"] += record.reason == "movement"
         return await self.current()

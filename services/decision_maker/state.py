@@ -16,6 +16,7 @@ from common.decision import Params, State, Step, step
 from common.hrv.calibration import load_calibration as load_stored_calibration
 from common.hrv.movement import Baseline, baseline_of, moved
 from common.runtime.admission import TimeLine
+from common.runtime.node import Rejected
 from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
 from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
@@ -147,6 +148,16 @@ class Decider:
             window_end_ns=None,
             movement=movement,
         )
+
+    def admit(self, w: HrvWindow, clock_ns: int) -> bool:
+        """Whether the window's time line starts afresh with it (logged); ``Rejected`` for a window that
+        must not be answered (common/runtime/admission.py: answered already, far from the others)."""
+        verdict = self.line.admit(w.start_ns, w.end_ns, clock_ns=clock_ns)
+        if not verdict.acted_on:
+            raise Rejected(verdict.code, verdict.detail)
+        if verdict.action == "restart":
+            log.warning("hrv/window: %s", verdict.detail)
+        return verdict.action == "restart"
 
     def answer(self, w: HrvWindow) -> DecisionRecord:
         """Alg. 1 on a window that the time line admitted."""

@@ -6,27 +6,22 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
-import multiprocessing
-import os
 import sys
 import time
 from collections.abc import AsyncIterator
-from concurrent.futures import ProcessPoolExecutor
 from typing import Annotated
 
 import msgspec
 
 from common.runtime.bus import QueryError, Request
 from common.runtime.config import CommonSettings
-from common.runtime.lifetime import die_with_parent
 from common.runtime.node import Node, Out, answers, node_main
 from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.service import service_main
-from common.trajectory.planner import content_hash
 from common.trajectory.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
 from schemas.topology import PARETO_SET, PARETO_SOLUTION, PLAN_PROGRESS, key, validated
-from services.pareto_store.jobs import lower_priority, plan_job
+from services.pareto_store.jobs import abandon, lower_priority, plan_job, worker_pool
 from services.pareto_store.store import SetStore
 
 log = logging.getLogger("cadence.pareto_store")
@@ -76,23 +71,16 @@ class ParetoStore(Node):
     role = NAME
 
     async def setup(self) -> None:
-        self.task = task = load_task(self.ctx.settings.task)
+        self.task = load_task(self.ctx.settings.task)
         self.store, problem = await asyncio.to_thread(
             SetStore.open, self.ctx.common.data_path / "pareto.sqlite"
         )
         if problem:
             log.error("%s", problem)
             self.ctx.detail = problem
-        self.sets: dict[str, ParetoSet] = {}
-        self.digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
-        for pid, digest in self.digests.items():
-            if (stored := await asyncio.to_thread(self.store.load, pid, digest)) is not None:
-                self.sets[pid] = stored
+        self.digests, self.sets = await asyncio.to_thread(self.store.current, self.task)
         self.reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
-        # started from this (the loop's) thread; a worker outlives no store, however it ends
-        self.pool = ProcessPoolExecutor(max_workers=self.ctx.settings.workers,
-                                        mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=die_with_parent, initargs=(os.getpid(),))  # fmt: skip
+        self.pool = worker_pool(self.ctx.settings.workers)
 
     def progress(self, pid: str, state: PlanState, message: str = "") -> PlanProgress:
         done = sum(1 for p in self.task.paths if p in self.sets)
@@ -134,11 +122,7 @@ class ParetoStore(Node):
         self.ctx.state = "serving"
 
     async def close(self) -> None:
-        """A plan still in flight is abandoned: its worker is ended, not waited for."""
-        workers = list((getattr(self.pool, "_processes", None) or {}).values())
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        for proc in workers:
-            proc.terminate()
+        abandon(self.pool)
         self.store.close()
 
 

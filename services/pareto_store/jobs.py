@@ -4,10 +4,12 @@ can import it whether the service was started as `python -m services.pareto_stor
 from __future__ import annotations
 
 import contextlib
+import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 
+from common.runtime.lifetime import die_with_parent
 from common.trajectory.planner import plan_path
 from common.trajectory.task import PathPlan, PlannerSettings, Task
 from schemas.pareto import Limits, ParetoSet, ParetoSolution
@@ -43,3 +45,18 @@ def lower_priority(pool: ProcessPoolExecutor) -> None:
     for proc in list((getattr(pool, "_processes", None) or {}).values()):
         with contextlib.suppress(OSError):
             os.setpriority(os.PRIO_PROCESS, proc.pid, _NICE)
+
+
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """Spawned (a fork would copy the service's threads), from the loop's thread; a worker outlives no
+    store, however it ends."""
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=die_with_parent, initargs=(os.getpid(),))  # fmt: skip
+
+
+def abandon(pool: ProcessPoolExecutor) -> None:
+    """A plan still in flight is abandoned: its worker is ended, not waited for."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in workers:
+        proc.terminate()

@@ -13,6 +13,8 @@ from pathlib import Path
 import msgspec
 
 from common.runtime.storage import quarantine
+from common.trajectory.planner import content_hash
+from common.trajectory.task import Task
 from schemas.pareto import ParetoSet
 
 log = logging.getLogger("cadence.pareto_store")
@@ -60,6 +62,13 @@ class SetStore:
                     extra.rename(moved.with_name(moved.name + side))
             problem = f"{path}: {exc}; moved aside to {moved.name}, the sets will be planned again"
             return cls(path), problem
+
+    def current(self, task: Task) -> tuple[dict[str, str], dict[str, ParetoSet]]:
+        """Each path's content hash (its waypoints, limits and planner settings), and the stored sets that
+        have it: a set planned for anything else is never served."""
+        digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
+        stored = {pid: self.load(pid, digest) for pid, digest in digests.items()}
+        return digests, {pid: s for pid, s in stored.items() if s is not None}
 
     def load(self, path_id: str, content_hash: str) -> ParetoSet | None:
         row = self._db.execute(
