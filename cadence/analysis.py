@@ -34,7 +34,7 @@ from cadence.session import Session
 from cadence.stats import Equivalence, Omnibus, bootstrap_ci, d_z, friedman, holm, rank_biserial, tost_paired
 from common.runtime.errors import InputError
 from common.runtime.storage import write_readable
-from schemas.session import CONDITION_NAMES
+from schemas.session import CONDITION_NAMES, Tlx
 
 METRICS = ("productivity_per_min", "error_rate", "mean_rr_s", "mean_rr_norm")
 TLX = "tlx_raw"
@@ -284,7 +284,6 @@ def write_csv(study: Study, folder: Path) -> list[str]:
     """Long format for R, JASP or SPSS: sessions.csv, one row per subject × condition (with the TLX items),
     and windows.csv, one row per window of each session (data time from the session's start)."""
     folder.mkdir(parents=True, exist_ok=True)
-    items = ("mental", "physical", "temporal", "performance", "effort", "frustration")
     rows = []
     for s in study.sessions:
         row = session_row(s, study.metrics) | {
@@ -292,15 +291,14 @@ def write_csv(study: Study, folder: Path) -> list[str]:
             "training": s.info.training_start_ns is not None,
         }
         tlx = s.end.tlx
-        rows.append(row | {f"tlx_{i}": getattr(tlx, i) if tlx else "" for i in items})
+        rows.append(row | {f"tlx_{i}": getattr(tlx, i) if tlx else "" for i in Tlx.__struct_fields__})
     _csv(folder / "sessions.csv", rows)
     windows = []
     for s in study.sessions:
-        ks = sorted(s.selections, key=lambda x: x.t_ns)
         for w in s.windows:
             if not s.inside(w.end_ns):
                 continue
-            k = next((x.k for x in reversed(ks) if x.t_ns <= w.end_ns), "")
+            k = s.k_at(w.end_ns)
             at = round((w.end_ns - s.info.start_ns) / 1e9, 3)
             windows.append({"subject": s.info.subject, "condition": s.info.condition, "period": s.info.period,
                             "end_s": at, "mean_rr_s": w.mean_rr_s, "quality": w.quality, "reason": w.reason,

@@ -25,8 +25,9 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
-from cadence.report import from_demo, write_report
+from cadence.report import event_row, from_demo, window_row, write_report
 from common.hrv.calibration import CALIBRATION_FILE
+from common.marks import counted
 from common.motion import routine_change
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.clock import Clock
@@ -39,6 +40,7 @@ from common.trajectory.task import load_task
 from schemas import (
     CycleReport,
     HrvWindow,
+    OperatorError,
     PlanProgress,
     Selection,
     ServiceStatus,
@@ -150,8 +152,13 @@ class Observed:
     windows: list[dict] = field(default_factory=list)
     selections: list[dict] = field(default_factory=list)
     cycles: list[CycleReport] = field(default_factory=list)
-    error_times_s: list[float] = field(default_factory=list)
+    marked: list[OperatorError] = field(default_factory=list)  # operator/error as it came
     events: list[dict] = field(default_factory=list)
+
+    @property
+    def error_times_s(self) -> list[float]:
+        """When each error that counts was marked (common/marks.py: a withdrawn mark does not)."""
+        return [self.t(e.t_ns) for e in counted(self.marked)]
 
     @property
     def errors(self) -> int:
@@ -161,8 +168,7 @@ class Observed:
         return round((t_ns - self.epoch_ns) / 1e9, 3)
 
     def on_window(self, w: HrvWindow) -> None:
-        self.windows.append({"end_s": self.t(w.end_ns), "mean_rr_s": w.mean_rr_s, "quality": w.quality,
-                             "movement_mg": w.movement_mg})  # fmt: skip
+        self.windows.append(window_row(w, self.t(w.end_ns)))
 
     def on_selection(self, s: Selection) -> None:
         last = self.selections[-1] if self.selections else None
@@ -190,8 +196,7 @@ class Observed:
         """``change``: a state change's (from, to) states."""
         if kind == "state" and routine_change(*change):
             return
-        self.events.append({"t_s": self.t(t_ns), "source": source, "kind": kind, "message": message,
-                            "from": change[0], "to": change[1]})  # fmt: skip
+        self.events.append(event_row(self.t(t_ns), source, kind, message, change))
 
     def k_steps(self) -> tuple[int, int]:
         ks = [s["k"] for s in self.selections]
@@ -321,7 +326,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state))),
         )
 
-        bus.handle(OPERATOR_ERROR, _call(lambda e: obs.error_times_s.append(obs.t(e.t_ns))))
+        bus.handle(OPERATOR_ERROR, _call(obs.marked.append))
         running: set[str] = set()
         all_up = asyncio.Event()
 

@@ -97,7 +97,7 @@ def write_plan(plan: StudyPlan, path: Path) -> list[Path]:
             w = csv.writer(f)
             w.writerow(DEMOGRAPHICS)
             for s in plan.subjects:
-                w.writerow([s.id, "", "", "", ""])
+                w.writerow([s.id, *[""] * (len(DEMOGRAPHICS) - 1)])
         written.append(sheet)
     return written
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from common.marks import counted
 from common.motion import idle_spans, routine_change
 from common.runtime.errors import InputError
 from common.runtime.storage import write_readable
@@ -92,6 +93,24 @@ def from_demo(folder: Path) -> Run:
     )
 
 
+def window_row(w: HrvWindow, end_s: float) -> dict:
+    """A window as a run keeps it (and a demo's summary.json)."""
+    return {"end_s": end_s, "mean_rr_s": w.mean_rr_s, "quality": w.quality, "movement_mg": w.movement_mg}
+
+
+def event_row(t_s: float, source: str, kind: str, message: str,
+              change: tuple[str | None, str | None] = (None, None)) -> dict:  # fmt: skip
+    """An event as a run keeps it; ``change``: a state change's (from, to)."""
+    return {
+        "t_s": t_s,
+        "source": source,
+        "kind": kind,
+        "message": message,
+        "from": change[0],
+        "to": change[1],
+    }
+
+
 def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     from cadence.recording import read
 
@@ -115,10 +134,10 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
         return round((ns - t0) / 1e9, 3)
 
     run = Run(str(path), (max(data_times) - t0) / 1e9)
+    marked: list[OperatorError] = []
     for m in msgs:
         if isinstance(m, HrvWindow):
-            run.windows.append({"end_s": t(m.end_ns), "mean_rr_s": m.mean_rr_s, "quality": m.quality,
-                                "movement_mg": m.movement_mg})  # fmt: skip
+            run.windows.append(window_row(m, t(m.end_ns)))
         elif isinstance(m, Selection):
             last = run.selections[-1] if run.selections else None
             if last is None or (last["k"], last.get("window_end_ns")) != (m.k, m.window_end_ns):
@@ -134,15 +153,15 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
         elif isinstance(m, CycleReport):
             run.cycles.append({"end_s": t(m.t_ns), "cycle_time_s": m.cycle_time_s, "k": dict(m.k_per_path)})
         elif isinstance(m, OperatorError):
-            run.errors += 1
-            run.error_times_s.append(t(m.t_ns))
+            marked.append(m)
         elif isinstance(m, RobotEvent) and not (
             m.kind == "state" and routine_change(m.from_state, m.to_state)
         ):
-            run.events.append({"t_s": t(m.t_ns), "source": "executor", "kind": m.kind, "message": m.message,
-                               "from": m.from_state, "to": m.to_state})  # fmt: skip
+            run.events.append(event_row(t(m.t_ns), "executor", m.kind, m.message, (m.from_state, m.to_state)))
         elif isinstance(m, ParetoSet):
             run.sets[m.path_id] = m
+    kept = counted(marked)
+    run.errors, run.error_times_s = len(kept), [t(e.t_ns) for e in kept]
     if sets_folder is not None:
         run.sets.update(load_sets(sets_folder))
     return run

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from cadence import version
 from cadence.recording import Recorder, read
 from common.hrv.calibration import SETTLED_WINDOWS, settled
+from common.marks import counted
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
 from common.trajectory.task import load_task
@@ -127,19 +128,17 @@ class Session:
 
     @property
     def counted_errors(self) -> list[OperatorError]:
-        """The errors inside the session, less the experimenter's marks they withdrew (kind ``undo``:
-        the last mark of theirs before it)."""
-        kept: list[OperatorError] = []
-        for e in sorted((e for e in self.errors if self.inside(e.t_ns)), key=lambda e: (e.t_ns, e.seq)):
-            if e.kind != "undo":
-                kept.append(e)
-            elif marks := [i for i, m in enumerate(kept) if m.source == "experimenter"]:
-                kept.pop(marks[-1])
-        return kept
+        """The errors inside the session that count (common/marks.py: less the marks withdrawn)."""
+        return counted(e for e in self.errors if self.inside(e.t_ns))
 
     @property
     def n_errors(self) -> int:
         return len(self.counted_errors)
+
+    def k_at(self, t_ns: int) -> int | None:
+        """The k in force at data time ``t_ns``: the latest selection at or before it."""
+        last = max((x for x in self.selections if x.t_ns <= t_ns), key=lambda x: x.t_ns, default=None)
+        return None if last is None else last.k
 
     @property
     def mean_k(self) -> float:
@@ -148,7 +147,7 @@ class Session:
         start, end = self.info.start_ns, self.end.end_ns
         if not sels:
             return float("nan")
-        k = next((x.k for x in reversed(sels) if x.t_ns <= start), sels[0].k)
+        k = self.k_at(start) or sels[0].k
         total, t = 0.0, start
         for x in sels:
             if start < x.t_ns <= end:
@@ -343,7 +342,7 @@ class Watch:
     data_wall: float = 0.0  # when it came (monotonic)
     start_ns: int | None = None
     cycles: int = 0
-    errors: int = 0
+    marked: list[OperatorError] = field(default_factory=list)  # the errors since the condition began
     isolation: str | None = None  # ``Bus.isolation()`` as last checked
     changed: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -368,8 +367,12 @@ class Watch:
         elif isinstance(msg, CycleReport) and counting:
             self.cycles += 1
         elif isinstance(msg, OperatorError) and counting:
-            self.errors += 1 if msg.kind != "undo" else -1 if self.errors else 0
+            self.marked.append(msg)
         self.changed.set()
+
+    @property
+    def errors(self) -> int:
+        return len(counted(self.marked))
 
     async def next_change(self, timeout_s: float) -> None:
         """Until the next message, or ``timeout_s``: the live view's pace when nothing comes."""

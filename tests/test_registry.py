@@ -100,3 +100,16 @@ def test_each_condition_is_asked_of_the_decision_maker_as_it_holds_k(tmp_path: P
     assert condition_parameters(opts("y", 7)) == "mode=fixed;k=7;by=session S01/y"
     with pytest.raises(InputError, match="condition y holds the subject's mean k of \\(c\\)"):
         condition_parameters(opts("y"))
+
+
+def test_an_undo_withdraws_the_experimenters_last_mark_and_counts_for_nothing() -> None:
+    from common.marks import counted
+    from schemas import OperatorError
+
+    def e(t: int, source: str, kind: str = "wrong_object") -> OperatorError:
+        return OperatorError(t_ns=T0 + t, seq=t, kind=kind, source=source)  # type: ignore[arg-type]
+
+    twin1, mark2, mark3, twin5 = e(1, "twin"), e(2, "experimenter"), e(3, "experimenter"), e(5, "twin")
+    errors = [twin5, e(6, "experimenter", "undo"), twin1, mark3, e(4, "experimenter", "undo"), mark2]
+    assert counted(errors) == [twin1, twin5]  # in data time: the undo at 4 takes 3, the one at 6 takes 2
+    assert counted([e(0, "experimenter", "undo"), twin1]) == [twin1]  # nothing of theirs to withdraw

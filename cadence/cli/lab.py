@@ -553,15 +553,12 @@ def yoked_k(args: argparse.Namespace, plan: StudyPlan | None) -> int | None:
     return k
 
 
-TLX_ITEMS = ("mental", "physical", "temporal", "performance", "effort", "frustration")
-
-
 def parse_tlx(text: str) -> Tlx:
     from schemas.session import Tlx
 
     try:
         values = [int(v) for v in text.split(",")]
-        return msgspec.convert(dict(zip(TLX_ITEMS, values, strict=True)), Tlx)
+        return msgspec.convert(dict(zip(Tlx.__struct_fields__, values, strict=True)), Tlx)
     except (ValueError, msgspec.ValidationError) as exc:
         raise InputError(f"--tlx {text}: six integers 0-100, mental to frustration ({exc})") from None
 
@@ -572,8 +569,10 @@ def ask_tlx(given: Tlx | None) -> Callable[[], Awaitable[Tlx | None]]:
     async def ask() -> Tlx | None:
         if given is not None:
             return given
+        from schemas.session import Tlx
+
         answers = []
-        for item in TLX_ITEMS:
+        for item in Tlx.__struct_fields__:
             while True:
                 text = await asyncio.to_thread(
                     input, f"NASA-TLX {item} (0-100, empty: skip the questionnaire): "

@@ -62,9 +62,9 @@ class Movement:
             cell = self.seconds.setdefault(int(s), [0.0, 0.0])
             cell[0] += float(dyn[second == s].sum())
             cell[1] += float(np.count_nonzero(second == s))
-        old = int(second[-1]) - KEEP_S
-        for s in [s for s in self.seconds if s < old]:
-            del self.seconds[s]
+        if len(self.seconds) > 2 * KEEP_S:  # now and then, not at every chunk
+            old = int(second[-1]) - KEEP_S
+            self.seconds = {s: c for s, c in self.seconds.items() if s >= old}
 
     def over(self, start_ns: int, end_ns: int) -> tuple[float | None, float | None]:
         """The window's mean dynamic acceleration (mg) and the share of its seconds spent moving; None,

@@ -79,6 +79,7 @@ class MockBus(Bus):
     ) -> Any:
         entry = _Entry(key_expr, (answers, handler), self.network, "query")
         self.network.queryables.append(entry)
+        self.network.changed.set()
         return entry
 
     async def _query(self, selector: str, timeout: float) -> list[tuple[str, bool, bytes]]:
@@ -86,7 +87,7 @@ class MockBus(Bus):
         out = []
         for entry in list(self.network.queryables):
             if _intersects(entry.key_expr, key_expr):
-                answers, handler = entry.callback  # replied on the query's key, as Bus._answer does
+                answers, handler = entry.callback  # replied on the query's key, as a Zenoh queryable does
                 ok, payload = await asyncio.wait_for(
                     answer(answers, handler, Request(key_expr, parameters)), timeout
                 )

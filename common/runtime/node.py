@@ -22,6 +22,7 @@ import inspect
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Sequence
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
+from common.runtime.admission import Verdict
 from common.runtime.bus import Request
 from common.runtime.errors import BusError
 from common.runtime.service import ServiceContext
@@ -83,6 +84,14 @@ class Rejected(Exception):
     def __init__(self, code: str, detail: str = "") -> None:
         super().__init__(detail or code)
         self.code, self.detail = code, detail
+
+
+def admitted(verdict: Verdict | None) -> Verdict | None:
+    """A receiver's time line's verdict (common/runtime/admission.py) as a handler acts on it: a message
+    the line drops is ``Rejected`` with the line's reason; else the verdict (None: nothing to judge)."""
+    if verdict is not None and not verdict.acted_on:
+        raise Rejected(verdict.code, verdict.detail)
+    return verdict
 
 
 class Node:

@@ -16,7 +16,7 @@ from common.decision import Params, State, Step, step
 from common.hrv.calibration import load_calibration as load_stored_calibration
 from common.hrv.movement import Baseline, baseline_of, moved
 from common.runtime.admission import TimeLine
-from common.runtime.node import Rejected
+from common.runtime.node import admitted
 from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
 from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
@@ -153,8 +153,7 @@ class Decider:
         """Whether the window's time line starts afresh with it (logged); ``Rejected`` for a window that
         must not be answered (common/runtime/admission.py: answered already, far from the others)."""
         verdict = self.line.admit(w.start_ns, w.end_ns, clock_ns=clock_ns)
-        if not verdict.acted_on:
-            raise Rejected(verdict.code, verdict.detail)
+        admitted(verdict)
         if verdict.action == "restart":
             log.warning("hrv/window: %s", verdict.detail)
         return verdict.action == "restart"

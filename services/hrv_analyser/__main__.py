@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from common.hrv.live import LiveHrv, Taken
-from common.runtime.node import Node, Out, Rejected, node_main, on
+from common.runtime.node import Node, Out, admitted, node_main, on
 from common.runtime.service import service_main
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.hrv import Beats
@@ -49,16 +49,12 @@ class HrvAnalyser(Node):
 
     @on(ECG_ACC, maxsize=10_000)
     async def on_acc(self, chunk: AccChunk) -> Out:
-        verdict = self.live.acc(chunk, self.ctx.common.clock.now_ns())
-        if verdict is not None and not verdict.acted_on:
-            raise Rejected(verdict.code, verdict.detail)
+        admitted(self.live.acc(chunk, self.ctx.common.clock.now_ns()))
         self.ctx.counters["acc_chunks"] += 1
         return []
 
     def sent(self, taken: Taken) -> Out:
-        if taken.verdict is not None and not taken.verdict.acted_on:
-            raise Rejected(taken.verdict.code, taken.verdict.detail)
-        if taken.verdict is not None and taken.verdict.action == "restart":
+        if (verdict := admitted(taken.verdict)) is not None and verdict.action == "restart":
             self.ctx.counters["stream_restarts"] += 1
         for m in taken.out:
             if isinstance(m, Beats):

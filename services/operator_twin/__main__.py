@@ -20,7 +20,7 @@ import msgspec
 import numpy as np
 
 from common.runtime.admission import TimeLine
-from common.runtime.node import Node, Out, Rejected, node_main, on
+from common.runtime.node import Node, Out, admitted, node_main, on
 from common.runtime.service import service_main
 from common.sim.twin import ACC_FS_HZ, Operator, TwinParams
 from schemas.base import Message
@@ -56,9 +56,7 @@ class OperatorTwin(Node):
 
     @on(ROBOT_STATE, maxsize=1000)
     async def on_state(self, state: RobotState) -> Out:
-        verdict = self.line.admit(state.t_ns, state.t_ns, clock_ns=self.clock.now_ns())
-        if not verdict.acted_on:
-            raise Rejected(verdict.code, verdict.detail)
+        admitted(self.line.admit(state.t_ns, state.t_ns, clock_ns=self.clock.now_ns()))
         t = (state.t_ns - self.origin_ns) / 1e9
         self.operator.observe(t, np.array(state.qd))
         if state.waiting_for is not None and state.waiting_for != self.waiting_for:
