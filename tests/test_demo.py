@@ -130,23 +130,28 @@ def test_carrying_heavier_parts_steps_k_down_only_without_the_accelerometer(tmp_
         assert r.returncode == 0, r.stdout + r.stderr
         runs[acc] = json.loads((out / "summary.json").read_text())  # the second run reuses the sets
 
-    def during(s: dict) -> tuple[list[dict], list[dict]]:
-        """The windows ending within the stretch and the minute after, and their selections."""
-        span = (HEAVY[0] + 20.0, HEAVY[1] + 60.0)
-        wins = [w for w in s["windows"] if span[0] < w["end_s"] <= span[1]]
-        sel = [x for x in s["selections"] if x["reason"] != "initial" and span[0] < x["t_s"] <= span[1]]
-        return wins, sel
-
-    moving, held = during(runs[True])
-    still = [w for w in runs[True]["windows"] if w["end_s"] <= HEAVY[0]]
+    # Where the stretch falls in the demo's data time depends on when the twin started (its own clock
+    # starts with it, seconds after the demo's on a busy machine): the windows are told by what they
+    # carry, not by when they end.
+    s = runs[True]
+    reason = {x["t_s"]: x["reason"] for x in s["selections"]}  # a selection is stamped with its window's end
+    still = [w for w in s["windows"] if w["end_s"] <= HEAVY[0]]  # before the twin's own 150 s, surely
+    moving = [w for w in s["windows"] if w["movement_mg"] > 150]
     assert still and all(w["movement_mg"] < 60 for w in still)  # at work: handling parts now and then
-    assert len(moving) >= 4 and all(w["movement_mg"] > 150 for w in moving[:3])
-    assert min(w["mean_rr_s"] for w in moving) < min(w["mean_rr_s"] for w in still) - 0.06  # the heart
-    assert {x["reason"] for x in held} == {"movement"} and all(x["delta"] == 0 for x in held)
-    assert runs[True]["k_steps_down"] == 0
+    assert len(moving) >= 3  # the stretch holds at least three whole windows
+    resting = min(w["mean_rr_s"] for w in still)
+    assert min(w["mean_rr_s"] for w in moving) < resting - 0.06  # the heart answers the effort
+    last = max(w["end_s"] for w in moving)
+    after = [w for w in s["windows"] if last < w["end_s"] and w["end_s"] - 30.0 < last + 60.0]
+    assert len(after) == 2  # the minute after the stretch: two windows start within it
+    assert {reason.get(w["end_s"]) for w in moving + after} == {"movement"}
+    assert s["k_steps_down"] == 0 and all(x["delta"] >= 0 for x in s["selections"])
 
-    blind, read = during(runs[False])
-    assert blind and all(w["movement_mg"] is None for w in runs[False]["windows"])
-    assert min(w["mean_rr_s"] for w in blind) < 0.76  # the same heart: the same fall
-    assert any(x["delta"] < 0 and x["reason"] == "stress" for x in read)
+    blind = runs[False]
+    assert all(w["movement_mg"] is None for w in blind["windows"])
+    rr = {w["end_s"]: w["mean_rr_s"] for w in blind["windows"]}
+    assert min(rr.values()) < 0.76  # the same heart: the same fall
+    # read as stress, on a window of the fall (the pace stresses this twin nowhere else)
+    assert any(x["delta"] < 0 and x["reason"] == "stress" and rr.get(x["t_s"], 1.0) < resting - 0.02
+               for x in blind["selections"])  # fmt: skip
     assert runs[False]["k_steps_down"] >= 1
