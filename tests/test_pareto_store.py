@@ -12,9 +12,12 @@ from pathlib import Path
 import pytest
 
 from common.runtime.bus import Bus, BusConfig
+from common.trajectory.task import load_task
 from schemas import ParetoSet, ParetoSolutionReply, ServiceStatus
 from schemas.topology import TOPICS, AnyMessage
-from services.pareto_store.__main__ import Settings, main
+from services.pareto_store.__main__ import ParetoStore, Settings, main
+from services.pareto_store.jobs import plan_job
+from services.pareto_store.store import SetStore
 from tests.conftest import InProcessService
 
 pytestmark = pytest.mark.asyncio
@@ -152,3 +155,31 @@ async def test_sigterm_stops_the_store_process_with_exit_0(
             assert await asyncio.to_thread(proc.wait, 20) == 0
         finally:
             proc.kill()
+
+
+async def test_an_edited_path_is_seeded_by_its_last_set_and_a_new_count_of_waypoints_is_not(
+    task_file: Path, tmp_path: Path
+) -> None:
+    task = load_task(task_file)
+    store = SetStore(tmp_path / "pareto.sqlite")
+    digests, _ = store.current(task)
+    for pid in ("a", "b"):
+        store.save(plan_job(task.paths[pid], task, task.planner, digests[pid], []))
+    edited = tmp_path / "edited.toml"
+    edited.write_text(
+        TASK.replace("[30, -80, 100, -100, -90, 20]", "[25, -80, 100, -100, -90, 20]").replace(
+            "waypoints = [[45, -70, 95, -110, -90, 40], [0",
+            "waypoints = [[45, -70, 95, -110, -90, 40], [9, 9, 9, 9, 9, 9], [0",
+        )
+    )
+    task2 = load_task(edited)
+    digests2, stored = store.current(task2)
+    assert stored == {}  # both changed
+    node = ParetoStore.__new__(ParetoStore)
+    node.store, node.task, node.digests = store, task2, digests2
+    warm = node.warm_starts(["a", "b"])
+    assert list(warm) == ["a"]  # b has a waypoint more: no interval maps onto another
+    assert warm["a"] == [s.h for s in store.load("a", digests["a"]).solutions]
+    seeded = plan_job(task2.paths["a"], task2, task2.planner, digests2["a"], warm["a"])
+    assert seeded.content_hash == digests2["a"] and len(seeded.solutions) == 5
+    store.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -12,8 +13,10 @@ from scipy.optimize import minimize
 
 from cadence.bench.naive import evaluate_naive
 from common.trajectory import bspline as bs
+from common.trajectory import nsga
 from common.trajectory.limits import UR16E
 from common.trajectory.planner import (
+    WARM_GENERATIONS,
     ParetoResult,
     downsample,
     evaluate,
@@ -21,7 +24,9 @@ from common.trajectory.planner import (
     interval_bounds,
     non_dominated,
     plan_path,
+    warm_seeds,
 )
+from common.trajectory.pool import plan_paths
 from common.trajectory.task import PathPlan, PlannerSettings
 from common.trajectory.validate import trajectory_problems
 from tests.conftest import random_path
@@ -196,3 +201,76 @@ def test_batched_and_straightforward_evaluations_agree() -> None:
         np.testing.assert_allclose(fast.f[:, 0], slow.f[:, 0])
         np.testing.assert_allclose(fast.f[:, 1], slow.f[:, 1], rtol=1e-3)  # trapezoid on 1000 samples
         np.testing.assert_allclose(fast.ratio, slow.ratio, rtol=1e-3, atol=1e-9)
+
+
+def test_fronts_agree_with_pymoo_sorting_front_by_front() -> None:
+    rng = np.random.default_rng(3)
+    f = np.round(rng.uniform(size=(300, 2)), 2)  # rounded: ties and duplicates on purpose
+    ours = nsga.fronts(f)
+    theirs = NonDominatedSorting().do(f)
+    # pymoo keeps duplicates on one front, ours moves a copy one front down; on distinct rows they agree
+    distinct = np.unique(f, axis=0, return_index=True)[1]
+    g = f[np.sort(distinct)]
+    assert [set(x.tolist()) for x in nsga.fronts(g)] == [set(x.tolist()) for x in NonDominatedSorting().do(g)]
+    assert sum(len(x) for x in ours) == len(f) and len(ours) >= len(theirs)
+
+
+def test_crowding_gives_the_ends_infinity_and_the_middle_its_neighbours_gap() -> None:
+    f = np.array([[0.0, 4.0], [1.0, 2.0], [3.0, 1.0], [4.0, 0.0]])
+    d = nsga.crowding(f)
+    assert np.isinf(d[0]) and np.isinf(d[-1])
+    np.testing.assert_allclose(d[1:-1], [3 / 4 + 3 / 4, 3 / 4 + 2 / 4])
+
+
+def test_crossover_and_mutation_stay_in_bounds_and_change_something() -> None:
+    rng = np.random.default_rng(4)
+    xl, xu = np.full(5, 0.1), np.full(5, 2.0)
+    a, b = rng.uniform(0.1, 2.0, (2, 200, 5))
+    kids = nsga.mutate(nsga.crossover(a, b, xl, xu, rng), xl, xu, rng)
+    assert kids.shape == (400, 5)
+    assert np.all((kids >= xl) & (kids <= xu))
+    assert np.mean(~np.isin(kids, np.concatenate([a, b]))) > 0.2
+
+
+@pytest.mark.parametrize("seed", [51, 52])
+def test_the_array_engine_finds_fronts_as_good_as_pymoos_loop(seed: int) -> None:
+    path = random_path(seed, 5)
+    ours = plan_path(path, UR16E, PlannerSettings(seed=seed))
+    theirs = plan_path(path, UR16E, PlannerSettings(seed=seed), engine="pymoo")
+    both = np.concatenate([ours.front, theirs.front])
+    ideal, nadir = both.min(axis=0), both.max(axis=0)
+    ratio = hypervolume(ours.front, ideal, nadir) / hypervolume(theirs.front, ideal, nadir)
+    print(f"hypervolume ratio array engine / pymoo: {ratio:.4f}")
+    assert ratio >= 0.995
+    check_solutions(ours, path, "exact")
+
+
+def test_a_warm_start_after_a_waypoint_edit_is_valid_and_as_good_in_fewer_generations() -> None:
+    path = random_path(61, 6)
+    before = plan_path(path, UR16E, PlannerSettings(seed=1))
+    wp = path.waypoints.copy()
+    wp[3] += np.radians(3.0)
+    edited = dataclasses.replace(path, waypoints=wp)
+    seeds = warm_seeds(edited, UR16E, 10.0, [s.h for s in before.solutions])
+    lb, ub = interval_bounds(wp, UR16E, 10.0)
+    assert seeds.shape == (15, len(lb)) and np.all((seeds >= lb) & (seeds <= ub))
+    warm = plan_path(edited, UR16E, PlannerSettings(seed=1), warm=[s.h for s in before.solutions])
+    cold = plan_path(edited, UR16E, PlannerSettings(seed=1))
+    assert warm.generations == WARM_GENERATIONS < cold.generations
+    both = np.concatenate([warm.front, cold.front])
+    ideal, nadir = both.min(axis=0), both.max(axis=0)
+    assert hypervolume(warm.front, ideal, nadir) >= 0.99 * hypervolume(cold.front, ideal, nadir)
+    check_solutions(warm, edited, "exact")
+    # a path whose number of waypoints changed has no seeds: it is planned cold
+    assert len(warm_seeds(edited, UR16E, 10.0, [np.ones(3)])) == 0
+
+
+def test_paths_planned_in_forked_processes_equal_those_planned_here() -> None:
+    paths = [dataclasses.replace(random_path(s, 4), id=f"p{s}") for s in (71, 72, 73)]
+    settings = PlannerSettings(seed=2, generations=12)
+    seen: list[tuple[str, int, int]] = []
+    apart = plan_paths(paths, UR16E, settings, workers=2, progress=lambda *a: seen.append(a))
+    here = plan_paths(paths, UR16E, settings, workers=1)
+    for p in paths:
+        assert [s.h.tolist() for s in apart[p.id].solutions] == [s.h.tolist() for s in here[p.id].solutions]
+    assert {(pid, g) for pid, g, _ in seen} == {(p.id, g) for p in paths for g in range(1, 13)}

@@ -3,6 +3,7 @@ to it measured in the same run (the machines are shared and noisy; absolute time
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -140,6 +141,85 @@ def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBe
         tf_exact=fast.solutions[-1].t_f,
         tf_hull=hull.solutions[-1].t_f,
         tf_ruckig=ruckig_stop_at_every_waypoint(path, task.limits),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Replanning:
+    """Today's planner (pymoo's loop, one path after the other) beside the fast one, in the same run.
+
+    Hypervolumes are shares of a long reference run's (``reference_generations``, another seed) under its
+    normalisation, per path; the edit moves the middle waypoint of every path by ``edit_deg`` on every
+    joint and plans it again warm (seeded by the last set) and cold.
+    """
+
+    path_id: str
+    workers: int
+    reference_generations: int
+    path_s: float  # the longest path, fast engine
+    pymoo_path_s: float
+    task_s: float  # every path, fast engine, ``workers`` forked processes, pool start-up included
+    pymoo_task_s: float  # every path, one after the other, pymoo's loop
+    warm_s: float  # every edited path, warm, in the pool
+    hv: dict[str, float]  # path → share, fast engine, cold
+    pymoo_hv: dict[str, float]
+    warm_hv: dict[str, float]
+    edit_deg: float
+
+    @property
+    def path_ratio(self) -> float:
+        return self.pymoo_path_s / self.path_s
+
+    @property
+    def task_ratio(self) -> float:
+        return self.pymoo_task_s / self.task_s
+
+
+def _edited(path: PathPlan, deg: float) -> PathPlan:
+    wp = path.waypoints.copy()
+    wp[len(wp) // 2] += np.radians(deg)
+    return dataclasses.replace(path, waypoints=wp)
+
+
+def bench_replanning(
+    task: Task, settings: PlannerSettings, workers: int = 2, reference_generations: int = 600,
+    edit_deg: float = 4.0, repeat: int = 2,
+) -> Replanning:  # fmt: skip
+    """Issue 31's figures: one path, the whole task, a warm replan after an edit, and their fronts."""
+    from common.trajectory.pool import plan_paths
+
+    paths = list(task.paths.values())
+    longest = longest_path(task)
+    path_s, _ = _best_time(lambda: plan_path(longest, task.limits, settings), repeat)
+    pymoo_path_s, _ = _best_time(lambda: plan_path(longest, task.limits, settings, engine="pymoo"), repeat)
+    task_s, fast = _best_time(lambda: plan_paths(paths, task.limits, settings, workers), repeat)
+    pymoo_task_s, slow = _best_time(
+        lambda: {p.id: plan_path(p, task.limits, settings, engine="pymoo") for p in paths}, 1
+    )
+    edited = [_edited(p, edit_deg) for p in paths]
+    warm = {p.id: [s.h for s in fast[p.id].solutions] for p in paths}
+    warm_s, warmed = _best_time(lambda: plan_paths(edited, task.limits, settings, workers, warm), repeat)
+    long = structs.replace(settings, generations=reference_generations, seed=10_000)
+    ref = plan_paths(paths, task.limits, long, workers)
+    ref_edit = plan_paths(edited, task.limits, long, workers)
+
+    def share(front: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
+        ideal, nadir = reference.min(axis=0), reference.max(axis=0)
+        return hypervolume(front, ideal, nadir) / hypervolume(reference, ideal, nadir)
+
+    return Replanning(
+        path_id=longest.id,
+        workers=workers,
+        reference_generations=reference_generations,
+        path_s=path_s,
+        pymoo_path_s=pymoo_path_s,
+        task_s=task_s,
+        pymoo_task_s=pymoo_task_s,
+        warm_s=warm_s,
+        hv={p.id: share(fast[p.id].front, ref[p.id].front) for p in paths},
+        pymoo_hv={p.id: share(slow[p.id].front, ref[p.id].front) for p in paths},
+        warm_hv={p.id: share(warmed[p.id].front, ref_edit[p.id].front) for p in paths},
+        edit_deg=edit_deg,
     )
 
 

@@ -4,6 +4,7 @@ same run."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -26,6 +27,7 @@ from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 
 if TYPE_CHECKING:
+    from cadence.bench import Replanning
     from cadence.bench.ecg_noise import Variant
     from cadence.bench.hrv_scoring import WindowScore
 
@@ -48,11 +50,15 @@ cli.group(
     "limits and as Ruckig stop-at-every-waypoint moves. The last line is the figures as JSON.",
 )
 @arg("--repeat", type=positive_int(1), default=3, help="timed repetitions (best is kept)")
+@arg("--workers", type=positive_int(1), default=2, help="processes for the whole task (default 2)")
 @flags_from(add_planner_flags, task_option=True)
 def cmd_bench_plan(args: argparse.Namespace) -> int:
-    from cadence.bench import bench_plan
+    from cadence.bench import bench_plan, bench_replanning
 
     task = task_with_overrides(args)
+    with err.status("today's planner and the fast one, path by path and the whole task …"):
+        rp = bench_replanning(task, task.planner, workers=args.workers, repeat=args.repeat)
+    replanning_table(rp)
     r = bench_plan(task, task.planner, repeat=args.repeat)
     table = Table(
         title=f"bench plan: {task.name}, path '{r.path_id}' (W = {r.n_waypoints}), "
@@ -62,9 +68,9 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
     table.add_column("Cadence", justify="right")
     table.add_column("straightforward", justify="right")
     table.add_column("ratio", justify="right")
-    table.add_row("full planning [s]", f"{r.plan_s:.3f}", f"{r.naive_plan_s:.3f}", f"{r.plan_ratio:.1f}×")
+    table.add_row("full planning (s)", f"{r.plan_s:.3f}", f"{r.naive_plan_s:.3f}", f"{r.plan_ratio:.1f}×")
     table.add_row(
-        "one generation's evaluation [ms]",
+        "one generation's evaluation (ms)",
         f"{r.eval_ms:.2f}",
         f"{r.naive_eval_ms:.1f}",
         f"{r.eval_ratio:.1f}×",
@@ -75,7 +81,7 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
     out.print(table)
     limits = Table(title="fastest t_f of the same path")
     limits.add_column("method")
-    limits.add_column("t_f [s]", justify="right")
+    limits.add_column("t_f (s)", justify="right")
     limits.add_row("hull limits (paper's control-point bounds)", f"{r.tf_hull:.3f}")
     limits.add_row("exact limits (Cadence default)", f"{r.tf_exact:.3f}")
     ruckig = "ruckig not installed (uv sync --extra bench)" if r.tf_ruckig is None else f"{r.tf_ruckig:.3f}"
@@ -99,8 +105,27 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
         "tf_exact": r.tf_exact,
         "tf_ruckig": r.tf_ruckig,
     }
+    figures["replanning"] = dataclasses.asdict(rp)
     print(json.dumps(figures))
     return 0
+
+
+def replanning_table(r: Replanning) -> None:
+    t = Table(title=f"replanning: fast engine vs today's (pymoo's loop), same run; hypervolume as a share "
+                    f"of a {r.reference_generations}-generation reference")  # fmt: skip
+    t.add_column("figure")
+    t.add_column("fast", justify="right")
+    t.add_column("today", justify="right")
+    t.add_column("ratio", justify="right")
+    t.add_row(f"one path '{r.path_id}' (s)", f"{r.path_s:.3f}", f"{r.pymoo_path_s:.3f}",
+              f"{r.path_ratio:.1f}×")  # fmt: skip
+    t.add_row(f"whole task (s, {r.workers} processes vs 1)", f"{r.task_s:.3f}", f"{r.pymoo_task_s:.3f}",
+              f"{r.task_ratio:.1f}×")  # fmt: skip
+    t.add_row(f"whole task after a {r.edit_deg:g}° edit, warm (s)", f"{r.warm_s:.3f}", "", "")
+    for pid in r.hv:
+        t.add_row(f"hypervolume '{pid}' (warm after the edit)", f"{r.hv[pid]:.4f} ({r.warm_hv[pid]:.4f})",
+                  f"{r.pymoo_hv[pid]:.4f}", f"{r.hv[pid] / r.pymoo_hv[pid]:.4f}")  # fmt: skip
+    out.print(t)
 
 
 @cli.command(
@@ -157,7 +182,7 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
     r = asyncio.run(bench_store(args.task, args.queries))
     p = StoreBench.pct
     table = Table(title="pareto_store query latency on loopback (store as a process)")
-    for col in ("queries", "n", "p50 [ms]", "p99 [ms]", "p99.9 [ms]", "max [ms]"):
+    for col in ("queries", "n", "p50 (ms)", "p99 (ms)", "p99.9 (ms)", "max (ms)"):
         table.add_column(col, justify="right" if col != "queries" else "left")
     for name, v in (("stored set", r.stored_ms), ("while planning", r.during_planning_ms)):
         table.add_row(

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from cadence.cli._common import Commands, add_planner_flags, arg, err, flags_from, out, task_with_overrides
@@ -25,17 +26,20 @@ cli = Commands()
 @arg("task", metavar="TASK.toml", help="task program (see deploy/tasks/box_filling.toml)")
 @arg("--out", required=True, metavar="DIR", help="output folder (created if missing)")
 @arg("--no-plots", action="store_true", help="write the JSON files only")
+@arg("--workers", type=int, default=None, metavar="N",
+     help="paths planned at once, one process each (default: the cores this process may use)")  # fmt: skip
 @flags_from(add_planner_flags)
 def cmd_plan(args: argparse.Namespace) -> int:
     from cadence.plots import pareto_figure
     from common.runtime.storage import write_readable
-    from common.trajectory.planner import plan_path
+    from common.trajectory.pool import plan_paths
 
     task = task_with_overrides(args)
     for gap in continuity_gaps(task):
         err.print(f"[yellow]warning[/]: {task.source}: cycle: {gap} (the executor will refuse this cycle)")
     s = task.planner
-    results = []
+    workers = args.workers or len(os.sched_getaffinity(0))
+    started = time.perf_counter()
     with Progress(
         TextColumn("{task.description}"),
         BarColumn(),
@@ -44,24 +48,25 @@ def cmd_plan(args: argparse.Namespace) -> int:
         console=err,
         transient=False,
     ) as progress:
-        for path in task.paths.values():
-            bar = progress.add_task(f"{path.id:<14} NSGA-II ({s.constraints})", total=None)
-            t0 = time.perf_counter()
+        bars = {p: progress.add_task(f"{p:<14} NSGA-II ({s.constraints})", total=None) for p in task.paths}
 
-            def advance(g: int, n: int, b: TaskID = bar) -> None:
-                progress.update(b, completed=g, total=n)
+        def advance(pid: str, g: int, n: int) -> None:
+            progress.update(bars[pid], completed=g, total=n)
 
-            result = plan_path(path, task.limits, s, progress=advance)
-            results.append((result, time.perf_counter() - t0))
+        results = plan_paths(list(task.paths.values()), task.limits, s, workers, progress=advance)
+    wall = time.perf_counter() - started
 
     # Everything is computed before anything is written: a failure leaves DIR as it was.
     outdir = Path(args.out)
-    for result, _ in results:
+    for result in results.values():
         write_readable(outdir / f"{result.path.id}.json", json.dumps(result.to_json(), indent=1).encode())
         if not args.no_plots:
             write_readable(outdir / f"{result.path.id}.png", pareto_figure(result))
 
-    table = Table(title=f"{task.name}: Pareto sets ({s.constraints} limits) → {outdir}")
+    table = Table(
+        title=f"{task.name}: Pareto sets ({s.constraints} limits) → {outdir}",
+        caption=f"{wall:.2f} s wall, {workers} process{'es' if workers > 1 else ''}",
+    )
     for col in (
         "path",
         "W",
@@ -73,7 +78,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
         "time [s]",
     ):
         table.add_column(col, justify="right" if col != "path" else "left")
-    for result, secs in results:
+    for result in results.values():
         sols = result.solutions
         if len(sols) < s.n_solutions:
             err.print(f"[yellow]warning[/]: path '{result.path.id}': only {len(sols)} distinct solutions")
@@ -85,7 +90,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
             f"{sols[0].t_f:.3f}",
             f"{sols[-1].t_f:.3f}",
             f"{sols[0].f_jerk:.4g}",
-            f"{secs:.2f}",
+            f"{result.seconds:.2f}",
         )
     out.print(table)
     return 0

@@ -16,19 +16,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pymoo.algorithms.moo.nsga2 import NSGA2
-from pymoo.core.problem import Problem
-from pymoo.core.repair import Repair
-from pymoo.decomposition.asf import ASF
-from scipy.optimize import minimize
 
 from common.runtime.errors import PlanningError
 from common.trajectory import bspline as bs
+from common.trajectory import nsga
 from common.trajectory.limits import JointLimits
 from common.trajectory.task import Constraints, PathPlan, PlannerSettings
 
@@ -117,6 +115,8 @@ def polish(
     Variables are h / h_lb, so every coordinate is of order one. Returns None when SLSQP found nothing
     better; the result is stretched onto the limits if SLSQP left it a hair outside.
     """
+    from scipy.optimize import minimize  # half a second to import: only where it is used
+
     lb, ub = bounds
     n = len(h0)
     step = 1e-7
@@ -182,8 +182,9 @@ def boundary_stretch(h: Array, path: PathPlan, limits: JointLimits, constraints:
     return feasible_stretch(evaluate(h, path, limits, constraints).ratio)
 
 
-class TrajectoryProblem(Problem):  # type: ignore[misc]  # pymoo ships no type information
-    """pymoo problem of one path; it keeps every feasible point it evaluates in a non-dominated archive."""
+class TrajectoryProblem:
+    """The problem of one path, in pymoo's terms (bounds xl/xu, ``_evaluate`` filling F and G); it keeps
+    every feasible point it evaluates in a non-dominated archive."""
 
     def __init__(
         self,
@@ -199,7 +200,8 @@ class TrajectoryProblem(Problem):  # type: ignore[misc]  # pymoo ships no type i
         self.constraints = constraints
         self.lb, self.ub = interval_bounds(path.waypoints, limits, kappa)
         d = path.waypoints.shape[1]
-        super().__init__(n_var=len(self.lb), n_obj=2, n_ieq_constr=3 * d + 1, xl=self.lb, xu=self.ub)
+        self.n_var, self.n_obj, self.n_ieq_constr = len(self.lb), 2, 3 * d + 1
+        self.xl, self.xu = self.lb, self.ub
         self._cache: dict[bytes, tuple[Array, Array]] = {}
         self.archive_h = np.empty((0, self.n_var))
         self.archive_f = np.empty((0, 2))
@@ -255,10 +257,10 @@ class TrajectoryProblem(Problem):  # type: ignore[misc]  # pymoo ships no type i
         keep = non_dominated(fs)
         self.archive_h, self.archive_f = hs[keep], fs[keep]
 
-
-class _StretchRepair(Repair):  # type: ignore[misc]  # pymoo ships no type information
-    def _do(self, problem: TrajectoryProblem, x: Array, **kwargs: object) -> Array:
-        return problem.repair(x)
+    def objectives(self, h: Array) -> tuple[Array, Array]:
+        out: dict[str, Array] = {}
+        self._evaluate(h, out)
+        return out["F"], out["G"]
 
 
 def non_dominated(f: Array) -> NDArray[np.intp]:
@@ -301,12 +303,10 @@ def downsample(front: Array, n: int) -> NDArray[np.intp]:
         return by_time_desc
     ideal, nadir = front.min(axis=0), front.max(axis=0)
     z = (front[by_time_desc] - ideal) / np.where(nadir > ideal, nadir - ideal, 1.0)
-    asf = ASF()
     picks = [0]
     for k in range(2, n):
         tau = (k - 1) / (n - 1)
-        weights = np.array([1.0 - tau, tau])
-        values = asf.do(z, weights, utopian_point=np.zeros(2))
+        values = np.max(z / np.array([1.0 - tau, tau]), axis=1)  # ASF with the utopian point at 0
         lo, hi = picks[-1] + 1, m - 1 - (n - k)
         picks.append(lo + int(np.argmin(values[lo : hi + 1])))
     picks.append(m - 1)
@@ -339,6 +339,7 @@ class ParetoResult:
     solutions: list[Solution]
     n_evaluated: int
     hypervolume_history: list[float] = field(default_factory=list)
+    seconds: float = 0.0  # wall time of the planning, in the process that planned
 
     def to_json(self) -> dict[str, object]:
         """The contract of ``DIR/<path_id>.json`` (planner issue), plus the settings used."""
@@ -402,6 +403,55 @@ def _polish_ends(problem: TrajectoryProblem, constraints: Constraints) -> list[A
     return out
 
 
+Engine = Literal["numpy", "pymoo"]
+# Generations after a waypoint edit, when the last set's solutions seed the search (``warm``): chosen
+# with `cadence bench plan`, which reports the warm run's hypervolume against a cold default run.
+WARM_GENERATIONS = 30
+
+
+def warm_seeds(path: PathPlan, limits: JointLimits, kappa: float, previous: Sequence[Array]) -> Array:
+    """The last set's interval vectors as seeds for the edited path, inside its new bounds. After an edit
+    of a few degrees the old shapes are close to the new optimum; the repair stretches each onto the new
+    limits. Empty when the number of waypoints changed (no interval maps onto another)."""
+    lb, ub = interval_bounds(path.waypoints, limits, kappa)
+    rows = [np.asarray(h, dtype=float) for h in previous]
+    rows = [h for h in rows if h.shape == lb.shape and np.all(np.isfinite(h)) and np.all(h > 0)]
+    if not rows:
+        return np.empty((0, len(lb)))
+    seeds: Array = np.clip(np.stack(rows), lb, ub)
+    return seeds
+
+
+def _pymoo_stage(
+    problem: TrajectoryProblem, x: Array, generations: int, seed: int, on_generation: Callable[[], None]
+) -> Array:
+    """Today's engine until this one: pymoo's NSGA-II loop, kept as the reference of `cadence bench
+    plan` and of the tests."""
+    from pymoo.algorithms.moo.nsga2 import NSGA2
+    from pymoo.core.problem import Problem
+    from pymoo.core.repair import Repair
+
+    class Adapter(Problem):  # type: ignore[misc]  # pymoo ships no type information
+        def __init__(self) -> None:
+            super().__init__(n_var=problem.n_var, n_obj=2, n_ieq_constr=problem.n_ieq_constr,
+                             xl=problem.lb, xu=problem.ub)  # fmt: skip
+
+        def _evaluate(self, x: Array, out: dict[str, Array], *args: object, **kwargs: object) -> None:
+            problem._evaluate(x, out)
+
+    class StretchRepair(Repair):  # type: ignore[misc]
+        def _do(self, _: object, x: Array, **kwargs: object) -> Array:
+            return problem.repair(x)
+
+    algorithm = NSGA2(pop_size=len(x), sampling=x, repair=StretchRepair(), eliminate_duplicates=False)
+    algorithm.setup(Adapter(), termination=("n_gen", generations), seed=seed, verbose=False)
+    while algorithm.has_next():
+        algorithm.next()
+        on_generation()
+    out = np.asarray(algorithm.pop.get("X"), dtype=float)
+    return out
+
+
 def plan_path(
     path: PathPlan,
     limits: JointLimits,
@@ -409,44 +459,54 @@ def plan_path(
     progress: ProgressFn | None = None,
     track_hypervolume: tuple[Array, Array] | None = None,
     evaluator: Evaluator | None = None,
+    warm: Sequence[Array] = (),
+    engine: Engine = "numpy",
 ) -> ParetoResult:
     """NSGA-II over h for one path, then ASF downsampling to N. Seeded: same inputs, same result.
 
     ``progress(gen, total)`` is called after each generation. ``track_hypervolume=(ideal, nadir)``
     records the archive's hypervolume after each generation (for convergence studies). ``evaluator``
     replaces the batched evaluation of the generations (the benchmark's straightforward baseline); the
-    polishing of the ends always uses the batched functions.
+    polishing of the ends always uses the batched functions. ``warm``: the interval vectors of the last
+    set of this path before a waypoint edit; they seed the search, which then runs ``WARM_GENERATIONS``
+    unless the settings name a number.
     """
-    generations = settings.generations or DEFAULT_GENERATIONS
+    started = time.perf_counter()
     problem = TrajectoryProblem(path, limits, settings.constraints, settings.kappa, evaluator)
     rng = np.random.default_rng(settings.seed)
+    seeds = warm_seeds(path, limits, settings.kappa, warm)
+    generations = settings.generations or (WARM_GENERATIONS if len(seeds) else DEFAULT_GENERATIONS)
     x = initial_population(problem.lb, problem.ub, settings.population, rng)
+    x[len(x) - min(len(seeds), len(x)) :] = seeds[: len(x)]  # in place of random shapes, not the stretched
     history: list[float] = []
+    gen = 0
+
+    def on_generation() -> None:
+        nonlocal gen
+        gen += 1
+        if track_hypervolume is not None:
+            history.append(hypervolume(problem.archive_f, *track_hypervolume))
+        if progress is not None:
+            progress(gen, generations)
+
     # Two stages: after the first, the ends of the archive's front are polished and put back into the
     # population, so the second stage fills in the front around them. Then the ends are polished again.
     first = max(1, round(generations * STAGE_SPLIT))
-    gen = 0
     for stage_gens in (first, generations - first):
         if stage_gens <= 0:
             continue
-        algorithm = NSGA2(
-            pop_size=settings.population, sampling=x, repair=_StretchRepair(), eliminate_duplicates=False
-        )
-        algorithm.setup(problem, termination=("n_gen", stage_gens), seed=settings.seed + gen, verbose=False)
-        while algorithm.has_next():
-            algorithm.next()
-            gen += 1
-            if track_hypervolume is not None:
-                history.append(hypervolume(problem.archive_f, *track_hypervolume))
-            if progress is not None:
-                progress(gen, generations)
+        if engine == "pymoo":
+            x = _pymoo_stage(problem, x, stage_gens, settings.seed + gen, on_generation)
+        else:
+            x = nsga.evolve(x, problem.lb, problem.ub, problem.objectives, problem.repair, stage_gens, rng,
+                            on_generation)  # fmt: skip
         if len(problem.archive_f) == 0:
             raise PlanningError(
                 f"path '{path.id}': no trajectory within the limits is slower than κ·h_lb "
                 f"(κ = {settings.kappa}); raise planner.kappa or the limits"
             )
         polished = _polish_ends(problem, settings.constraints)
-        x = algorithm.pop.get("X")
+        x = x.copy()
         x[: len(polished)] = polished
     front, front_h = problem.archive_f, problem.archive_h
     chosen = downsample(front, settings.n_solutions)
@@ -464,11 +524,12 @@ def plan_path(
         solutions=solutions,
         n_evaluated=problem.n_evaluated,
         hypervolume_history=history,
+        seconds=time.perf_counter() - started,
     )
 
 
 # Bump when the planner's output for the same inputs changes, so stored sets are recomputed.
-PLANNER_VERSION = 1
+PLANNER_VERSION = 2
 
 
 def content_hash(path: PathPlan, limits: JointLimits, settings: PlannerSettings) -> str:

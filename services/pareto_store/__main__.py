@@ -30,7 +30,7 @@ NAME = "pareto_store"
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: str = str(EXAMPLE_TASK)
-    workers: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    workers: Annotated[int, msgspec.Meta(ge=1, le=64)] = 2
 
 
 def _chunks(cell: str, req: Request) -> list[str]:
@@ -99,27 +99,48 @@ class ParetoStore(Node):
         return answer_solution(self.sets, self.task, path_id, k, next(self.reply_seq))
 
     async def stream(self) -> AsyncIterator[Out]:
-        """Plans what SQLite does not hold, one path at a time, saying how far it got."""
+        """Plans what SQLite does not hold, every path at once in the pool, saying how far it got. A
+        path whose waypoints were edited starts from its last set (a warm start)."""
         yield [self.progress(pid, "stored") for pid in self.sets]
-        for pid in [pid for pid in self.task.paths if pid not in self.sets]:
-            self.ctx.state = f"planning {pid}"
-            yield [self.progress(pid, "running")]
-            try:
-                future = self.pool.submit(plan_job, self.task.paths[pid], self.task, self.task.planner,
-                                          self.digests[pid])  # fmt: skip
-                lower_priority(self.pool)
-                # what is stored and served passes the schema's checks, as any receiver will apply them
-                msg = validated(await asyncio.wrap_future(future))
-            except Exception as exc:  # a path that cannot be planned must not stop the others
-                log.exception("planning %s failed", pid)
-                self.ctx.counters["plan_failures"] += 1
-                yield [self.progress(pid, "failed", str(exc))]
-                continue
-            await asyncio.to_thread(self.store.save, msg)
-            self.sets[pid] = msg
-            self.ctx.counters["computed"] += 1
-            yield [self.progress(pid, "done")]
+        missing = [pid for pid in self.task.paths if pid not in self.sets]
+        if not missing:
+            self.ctx.state = "serving"
+            return
+        self.ctx.state = f"planning {', '.join(missing)}"
+        warm = await asyncio.to_thread(self.warm_starts, missing)
+        futures = {}
+        for pid in missing:
+            futures[asyncio.wrap_future(self.pool.submit(plan_job, self.task.paths[pid], self.task,
+                                                         self.task.planner, self.digests[pid],
+                                                         warm.get(pid, [])))] = pid  # fmt: skip
+            yield [self.progress(pid, "running", "warm start from its last set" if pid in warm else "")]
+        lower_priority(self.pool)
+        pending = set(futures)
+        while pending:
+            done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+            for fut in done:
+                pid = futures[fut]
+                try:
+                    # what is stored and served passes the schema's checks, as any receiver will apply them
+                    msg = validated(fut.result())
+                except Exception as exc:  # a path that cannot be planned must not stop the others
+                    log.error("planning %s failed: %s", pid, exc, exc_info=exc)
+                    self.ctx.counters["plan_failures"] += 1
+                    yield [self.progress(pid, "failed", str(exc))]
+                    continue
+                await asyncio.to_thread(self.store.save, msg)
+                self.sets[pid] = msg
+                self.ctx.counters["computed"] += 1
+                yield [self.progress(pid, "done")]
         self.ctx.state = "serving"
+
+    def warm_starts(self, missing: list[str]) -> dict[str, list[list[float]]]:
+        out = {}
+        for pid in missing:
+            prev = self.store.previous(pid, self.digests[pid])
+            if prev is not None and len(prev.waypoints) == len(self.task.paths[pid].waypoints):
+                out[pid] = [s.h for s in prev.solutions]
+        return out
 
     async def close(self) -> None:
         abandon(self.pool)

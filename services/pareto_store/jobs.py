@@ -9,6 +9,8 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
+
 from common.runtime.lifetime import die_with_parent
 from common.trajectory.planner import plan_path
 from common.trajectory.task import PathPlan, PlannerSettings, Task
@@ -17,9 +19,12 @@ from schemas.pareto import Limits, ParetoSet, ParetoSolution
 _NICE = 10
 
 
-def plan_job(path: PathPlan, task: Task, settings: PlannerSettings, digest: str) -> ParetoSet:
-    """Runs in a worker process: plan one path and return it as the wire message."""
-    r = plan_path(path, task.limits, settings)
+def plan_job(
+    path: PathPlan, task: Task, settings: PlannerSettings, digest: str, warm: list[list[float]]
+) -> ParetoSet:
+    """Runs in a worker process: plan one path (seeded by ``warm``, the interval vectors of its last set
+    before an edit) and return it as the wire message."""
+    r = plan_path(path, task.limits, settings, warm=[np.array(h) for h in warm])
     start, end = path.boundary.ends()
     return ParetoSet(
         t_ns=time.time_ns(),

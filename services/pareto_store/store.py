@@ -88,6 +88,21 @@ class SetStore:
             return None
         return s if (s.path_id, s.content_hash) == (path_id, content_hash) else None
 
+    def previous(self, path_id: str, content_hash: str) -> ParetoSet | None:
+        """The newest set of this path planned for something else (a waypoint since edited): its
+        solutions seed the new search (planner.warm_seeds). None when there is none that decodes."""
+        rows = self._db.execute(
+            "SELECT payload FROM pareto_sets WHERE path_id = ? AND content_hash != ? "
+            "ORDER BY created_ns DESC",
+            (path_id, content_hash),
+        ).fetchall()
+        for (payload,) in rows:
+            try:
+                return self._decoder.decode(payload)
+            except (msgspec.ValidationError, msgspec.DecodeError):
+                continue
+        return None
+
     def delete(self, path_id: str, content_hash: str) -> None:
         with self._db:
             self._db.execute(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from cadence.bench import bench_plan
+from cadence.bench import bench_plan, bench_replanning
 from common.trajectory.task import load_task
 from tests.conftest import BENCH_QUICK, EXAMPLE_TASK
 
@@ -26,3 +26,17 @@ def test_bench_plan_prints_times_ratios_and_fronts() -> None:
     assert r.tf_exact < r.tf_hull
     if r.tf_ruckig is not None:
         assert r.tf_exact < r.tf_ruckig
+
+
+def test_bench_replanning_prints_today_beside_the_fast_engine() -> None:
+    task = load_task(EXAMPLE_TASK)
+    r = bench_replanning(task, task.planner, workers=2, reference_generations=300 if BENCH_QUICK else 600,
+                         repeat=1 if BENCH_QUICK else 2)  # fmt: skip
+    print(
+        f"\none path {r.path_id}: {r.path_s:.3f} s, today {r.pymoo_path_s:.3f} s, ratio {r.path_ratio:.1f}x\n"
+        f"whole task ({r.workers} processes): {r.task_s:.3f} s, today {r.pymoo_task_s:.3f} s, "
+        f"ratio {r.task_ratio:.1f}x\nwarm after a {r.edit_deg:g} deg edit: {r.warm_s:.3f} s"
+    )
+    for pid in r.hv:
+        print(f"hypervolume {pid}: {r.hv[pid]:.4f} (today {r.pymoo_hv[pid]:.4f}, warm {r.warm_hv[pid]:.4f})")
+    assert min(r.hv.values()) >= 0.99 and min(r.warm_hv.values()) >= 0.99
