@@ -5,7 +5,7 @@ from schemas.decision import Selection
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
 from schemas.hrv import Beats, HrvWindow
-from schemas.operator import Calibration, OperatorError, OperatorSignal
+from schemas.operator import Calibration, OperatorError, OperatorSignal, Separation
 from schemas.pareto import ParetoSet, ParetoSolution, ParetoSolutionReply, PlanProgress
 from schemas.robot import CycleReport, RobotEvent, RobotState
 
@@ -26,6 +26,7 @@ __all__ = [
     "RobotEvent",
     "RobotState",
     "RrIntervals",
+    "Separation",
     "Selection",
     "ServiceStatus",
 ]

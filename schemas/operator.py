@@ -63,3 +63,15 @@ class OperatorError(Message, frozen=True, tag="operator.error.v1"):
     description: Text = ""
     kind: ErrorKind = "other"
     source: Name | None = None  # who saw it: "twin", "experimenter" (`cadence mark error`)
+
+
+class Separation(Message, frozen=True, tag="operator.separation.v1"):
+    """The distance from the robot to the nearest person (speed and separation monitoring, ISO/TS 15066),
+    from a sensor: the twin in simulation; in a cell a safety laser scanner's or a camera's adapter
+    (README, "Separation"). ``t_ns`` is when it was measured; ``age_s`` how old the measurement already
+    was then (the sensor's own latency), so a reader's age of it is ``now − t_ns + age_s``. A sensor that
+    sees nobody says its range."""
+
+    distance_m: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)]
+    source: Name
+    age_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 0.0

@@ -33,6 +33,10 @@ class RobotState(Message, frozen=True, tag="robot.state.v1"):
     # the executor's safety state (common/motion.py) and why it is in it: why the robot does not move
     state: Name = "starting"
     reason: Text = ""
+    # the time scale σ the current path runs at (1: as planned; 0: holding on the path for a person) and
+    # the separation it was chosen for (speed and separation monitoring; None when it is off)
+    scale: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 1.0
+    separation_m: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] | None = None
 
 
 class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
@@ -43,8 +47,18 @@ class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
 
 # "state": a change of the executor's safety state (common/motion.py), "from → to: why" for a person, and
 # from_state/to_state for a program
+# "scale": the time scale changed for a person's distance; "switch": a new k took effect within a path
 EventKind = Literal[
-    "refused", "overrun", "protective_stop", "connected", "disconnected", "started", "info", "state"
+    "refused",
+    "overrun",
+    "protective_stop",
+    "connected",
+    "disconnected",
+    "started",
+    "info",
+    "state",
+    "scale",
+    "switch",
 ]
 
 

@@ -25,7 +25,7 @@ from schemas.decision import Selection
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
 from schemas.hrv import Beats, HrvWindow
-from schemas.operator import Calibration, OperatorError, OperatorSignal
+from schemas.operator import Calibration, OperatorError, OperatorSignal, Separation
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress
 from schemas.robot import CycleReport, RobotEvent, RobotState
 
@@ -86,6 +86,8 @@ CALIBRATION = Topic("operator/calibration", Calibration)
 OPERATOR_SIGNAL = Topic("operator/signal", OperatorSignal)
 # the executor publishes a part not there by its wait_for step's deadline (kind "late")
 OPERATOR_ERROR = Topic("operator/error", OperatorError)
+# the nearest person's distance, for the executor's speed and separation monitoring (common/separation.py)
+OPERATOR_SEPARATION = Topic("operator/separation", Separation, qos="drop")
 SELECTION = Topic("decision/selection", Selection)
 # the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the
 # initial k); the reply is the selection it starts with, stamped with the data time it took effect
@@ -134,7 +136,7 @@ ROLES: tuple[Role, ...] = (
     Role(
         "executor",
         "service",
-        inputs=(SELECTION, OPERATOR_SIGNAL),
+        inputs=(SELECTION, OPERATOR_SIGNAL, OPERATOR_SEPARATION),
         outputs=(ROBOT_STATE, ROBOT_CYCLE, ROBOT_EVENT, OPERATOR_SIGNAL, OPERATOR_ERROR),
         answers=(ROBOT_RESUME,),
         asks=(SELECTION, PARETO_SET),
@@ -145,13 +147,13 @@ ROLES: tuple[Role, ...] = (
         "operator_twin",
         "service",
         inputs=(ROBOT_STATE, ROBOT_CYCLE),
-        outputs=(ECG_SAMPLES, ECG_ACC, OPERATOR_SIGNAL, OPERATOR_ERROR),
+        outputs=(ECG_SAMPLES, ECG_ACC, OPERATOR_SIGNAL, OPERATOR_ERROR, OPERATOR_SEPARATION),
     ),
     Role(
         "operator",
         "tool",
         reads_all=True,
-        outputs=(CALIBRATION, OPERATOR_SIGNAL, OPERATOR_ERROR),
+        outputs=(CALIBRATION, OPERATOR_SIGNAL, OPERATOR_ERROR, OPERATOR_SEPARATION),
         asks=(*LOOKERS, DECISION_CONDITION, ROBOT_RESUME),
     ),
     Role("monitor", "tool", reads_all=True, asks=LOOKERS),
@@ -182,6 +184,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     CALIBRATION,
     OPERATOR_SIGNAL,
     OPERATOR_ERROR,
+    OPERATOR_SEPARATION,
     SELECTION,
     DECISION_CONDITION,
     PLAN_PROGRESS,
@@ -206,6 +209,7 @@ AnyMessage = (
     | Calibration
     | OperatorSignal
     | OperatorError
+    | Separation
     | Selection
     | PlanProgress
     | ParetoSet

@@ -164,7 +164,7 @@ async def test_an_edited_path_is_seeded_by_its_last_set_and_a_new_count_of_waypo
     store = SetStore(tmp_path / "pareto.sqlite")
     digests, _ = store.current(task)
     for pid in ("a", "b"):
-        store.save(plan_job(task.paths[pid], task, task.planner, digests[pid], []))
+        store.save(plan_job(task.paths[pid], task, task.planner, digests[pid]))
     edited = tmp_path / "edited.toml"
     edited.write_text(
         TASK.replace("[30, -80, 100, -100, -90, 20]", "[25, -80, 100, -100, -90, 20]").replace(

@@ -35,11 +35,12 @@ from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Literal, Protocol, cast
 
 import numpy as np
 
 from services.executor.cores import CoreClaim, claim_core, default_lock_dir
+from services.executor.playback import Samples
 from services.executor.settings import Settings
 from services.executor.timing import TickSummary, summarise
 
@@ -68,9 +69,19 @@ class MotionResult:
     overruns: int
 
 
+class Source(Protocol):
+    """What a motion sends (services/executor/playback.py): the next target, None once it has ended."""
+
+    last: object
+
+    @property
+    def done(self) -> bool: ...
+    def next(self) -> object | None: ...
+
+
 @dataclass(slots=True)
 class _Job:
-    targets: Sequence[object]
+    source: Source
     settle_ticks: int
     future: Future[MotionResult]
 
@@ -113,11 +124,12 @@ class ServoLoop:
         self._thread.start()
         self._ready.wait()
 
-    def run(self, targets: Sequence[object], settle_ticks: int = 0) -> Future[MotionResult]:
-        """Queue one motion: the targets, one per sample, then up to ``settle_ticks`` ticks holding the
-        last one until the backend says the arm has settled on it."""
+    def run(self, targets: Sequence[object] | Source, settle_ticks: int = 0) -> Future[MotionResult]:
+        """Queue one motion: the targets (a list, one per sample, or a playback), then up to
+        ``settle_ticks`` ticks holding the last one until the backend says the arm has settled on it."""
         fut: Future[MotionResult] = Future()
-        self._jobs.put(_Job(targets, settle_ticks, fut))
+        source = targets if hasattr(targets, "next") else Samples(cast(Sequence[object], targets))
+        self._jobs.put(_Job(cast(Source, source), settle_ticks, fut))
         return fut
 
     def request_stop(self) -> None:
@@ -145,7 +157,7 @@ class ServoLoop:
             gc.freeze()
             gc.disable()
             try:
-                result = self._servo(job.targets, job.settle_ticks)
+                result = self._servo(job.source, job.settle_ticks)
             except BaseException as exc:  # the future carries it to the service
                 job.future.set_exception(exc)
             else:
@@ -177,11 +189,11 @@ class ServoLoop:
                 f"memory not locked ({os.strerror(ctypes.get_errno())}); grant LimitMEMLOCK= in the unit"
             )
 
-    def _servo(self, targets: Sequence[object], settle_ticks: int) -> MotionResult:
+    def _servo(self, source: Source, settle_ticks: int) -> MotionResult:
         backend, errors, ring = self.backend, self.errors_ns, self.errors_ns.size
         period, spin, steps, limit = self.period_ns, self.spin_ns, self.steps, self.overrun_limit
         clock, sleep = time.perf_counter_ns, time.sleep
-        n, last = len(targets), targets[-1]
+        last = source.last
         sent = tick = run_of_overruns = overruns = 0
         outcome: Outcome = "done"
         braking = False  # a decelerating stop, paced like any motion
@@ -204,10 +216,15 @@ class ServoLoop:
                     at_rest = backend.brake()
                     if at_rest:
                         break
-                elif sent < n:
-                    self.index = sent
-                    ok = backend.servo(targets[sent])
-                    sent += 1
+                elif not source.done:
+                    target = source.next()
+                    if target is None:  # it ended at this step: hold the last
+                        target = last
+                        settle_ticks -= 1
+                    else:
+                        self.index = sent
+                        sent += 1
+                    ok = backend.servo(target)
                 else:
                     ok = backend.servo(last)
                     settle_ticks -= 1
@@ -225,7 +242,7 @@ class ServoLoop:
                     braking, outcome = True, "overruns"
             else:
                 run_of_overruns = 0
-            if not braking and sent >= n and (settle_ticks <= 0 or backend.settled(last)):
+            if not braking and source.done and (settle_ticks <= 0 or backend.settled(last)):
                 break
         self.ticks += tick
         self.overruns += overruns

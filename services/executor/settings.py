@@ -51,6 +51,21 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     wait_for_signals: bool = True  # false: `wait_for` steps pass at once (no operator on the bus)
     cycles: Annotated[int, _range(0, 10**9)] = 0  # stop after this many cycles; 0: run until stopped
     sim_start_deg: list[Annotated[float, _range(-360.0, 360.0)]] | None = None  # sim: pose at start
+    # A new selection during a path re-times the rest of it with the new solution (continuous to the
+    # jerk, checked), from switch_lead_s ahead; false: it waits for the next path start, as the paper does.
+    switch_within_path: bool = True
+    switch_lead_s: Annotated[float, _range(0.01, 1.0)] = 0.1
+    # Speed and separation monitoring (ISO/TS 15066; common/separation.py): the time scale follows the
+    # nearest person's distance on operator/separation; none, or none younger than separation_max_age_s,
+    # holds the arm on its path. Off: the robot always runs at the planned speed.
+    separation: bool = False
+    separation_max_age_s: Annotated[float, _range(0.01, 10.0)] = 0.3
+    human_speed_m_s: Annotated[float, _range(0.0, 5.0)] = 1.6  # v_h (ISO 13855)
+    reaction_s: Annotated[float, _range(0.0, 2.0)] = 0.2  # T_r: sensor, adapter, bus, the next ramp
+    stop_time_s: Annotated[float, _range(0.05, 5.0)] = 0.5  # T_s: the scale's ramp from 1 to 0
+    intrusion_m: Annotated[float, _range(0.0, 2.0)] = 0.2  # C
+    uncertainty_m: Annotated[float, _range(0.0, 2.0)] = 0.1  # Z_d + Z_r
+    scale_period_s: Annotated[float, _range(0.005, 1.0)] = 0.02  # how often the scale is reconsidered
 
     @property
     def state_period_s(self) -> float:

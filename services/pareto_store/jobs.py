@@ -20,11 +20,11 @@ _NICE = 10
 
 
 def plan_job(
-    path: PathPlan, task: Task, settings: PlannerSettings, digest: str, warm: list[list[float]]
+    path: PathPlan, task: Task, settings: PlannerSettings, digest: str, warm: list[list[float]] | None = None
 ) -> ParetoSet:
     """Runs in a worker process: plan one path (seeded by ``warm``, the interval vectors of its last set
     before an edit) and return it as the wire message."""
-    r = plan_path(path, task.limits, settings, warm=[np.array(h) for h in warm])
+    r = plan_path(path, task.limits, settings, warm=[np.array(h) for h in warm or []])
     start, end = path.boundary.ends()
     return ParetoSet(
         t_ns=time.time_ns(),

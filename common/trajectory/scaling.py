@@ -1,0 +1,282 @@
+"""Reacting within a path: time scaling along the trajectory, and a switch to another solution mid-path.
+
+**Time scaling.** The executor runs the path's curve q(s) at path time s(t) with ṡ = σ(t), σ ∈ [0, 1].
+The commanded motion's derivatives follow by the chain rule:
+
+    q̇ = q'σ,   q̈ = q''σ² + q'σ̇,   q⃛ = q'''σ³ + 3q''σσ̇ + q'σ̈.
+
+With σ constant these are the planned ones times σ, σ², σ³: inside the limits whenever the plan is. While
+σ changes, the terms in σ̇ and σ̈ add to them, so every change of σ is a ``Ramp`` (a quintic in time, from
+the σ, σ̇, σ̈ in force to a new σ at rest) whose commanded samples are checked against the limits before it
+is handed to the servo loop (``plan_ramp``); σ̈ is continuous, so the commanded jerk is. A plan that is at a
+limit somewhere leaves no room there, so a ramp is tried at a few start times and durations, the first
+that keeps every sample inside wins.
+
+**A switch of solution (k) mid-path.** The rest of the path is planned again from the switch instant: a
+quintic B-spline from the point reached to the remaining waypoints, its start velocity, acceleration and
+jerk those of the current curve there (so the joined curve is continuous to the jerk), its intervals the new
+solution's for the same segments, stretched as little as the limits need (``switch_curve``). The switch
+is in path time, so it composes with the scaling: the commanded motion stays continuous through both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from common.trajectory import bspline as bs
+from common.trajectory.limits import JointLimits
+from common.trajectory.task import PathPlan
+from common.trajectory.validate import trajectory_problems
+
+Array = NDArray[np.float64]
+DT = 0.002  # one controller step: the playback's time step
+LIMIT_RTOL = 1e-6  # slack on a commanded sample's limit (round-off of the chain rule)
+
+
+@dataclass(frozen=True, slots=True)
+class Curve:
+    """A piecewise quintic q(s) on [0, t_f]: span start instants (S,) and power-basis coefficients (S, 6, D).
+    Joining two curves is concatenating their spans (``joined``)."""
+
+    starts: Array
+    taylor: Array
+    t_f: float
+    sites: Array  # the path times at which the path's waypoints are passed, (W,)
+    speed: Array  # max |q'| per joint, (D,)
+
+    @classmethod
+    def of(cls, h: Array, path: PathPlan) -> Curve:
+        h2 = np.atleast_2d(np.asarray(h, dtype=float))
+        c = bs.control_points(h2, path.waypoints, path.boundary)
+        taylor = bs.span_taylor(h2, c)
+        speed = bs.span_maxima(h2, taylor)[0, 0]
+        return cls(bs.instants(h2)[0][:-1], taylor[0], float(h2.sum()), bs.waypoint_sites(h2)[0], speed)
+
+    def span(self, s: Array) -> NDArray[np.intp]:
+        i: NDArray[np.intp] = np.clip(
+            np.searchsorted(self.starts, s, side="right") - 1, 0, len(self.starts) - 1
+        )
+        return i
+
+    def at(self, s: Array, order: int = 3) -> Array:
+        """q, q', …, q^(order) at path times s (clipped to [0, t_f]): (order+1, m, D)."""
+        s = np.clip(np.asarray(s, dtype=float), 0.0, self.t_f)
+        i = self.span(s)
+        tau = (s - self.starts[i])[:, None]
+        coeffs = self.taylor[i]
+        return np.stack([bs.poly_eval(bs.poly_derivative(coeffs, d), tau) for d in range(order + 1)])
+
+    def joined(self, s_switch: float, rest: Curve) -> Curve:
+        """This curve up to ``s_switch``, then ``rest`` (whose s = 0 is ``s_switch``, and whose first
+        waypoint is the point there, not one of the path's)."""
+        keep = self.starts < s_switch
+        return Curve(
+            np.concatenate([self.starts[keep], rest.starts + s_switch]),
+            np.concatenate([self.taylor[keep], rest.taylor]),
+            s_switch + rest.t_f,
+            np.concatenate([self.sites[self.sites < s_switch], rest.sites[1:] + s_switch]),
+            np.maximum(self.speed, rest.speed),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Ramp:
+    """σ(τ) = Σ c_k τ^k on [0, duration] from t0 (the playback's time), then σ(end) for ever; s(t0) = s0.
+
+    A quintic from (σ0, σ̇0, σ̈0) to (σ1, 0, 0): the σ-state in force when it starts, so σ, σ̇ and σ̈ are
+    continuous at every change. Its jerk (the scale's) is bounded: a quadratic on a finite interval."""
+
+    t0: float
+    duration: float
+    s0: float
+    c: tuple[float, float, float, float, float, float]
+
+    @classmethod
+    def hold(cls, t0: float, s0: float, sigma: float) -> Ramp:
+        return cls(t0, 0.0, s0, (sigma, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+    @classmethod
+    def between(
+        cls, t0: float, s0: float, start: tuple[float, float, float], sigma1: float, duration: float
+    ) -> Ramp:
+        sig0, sd0, sdd0 = start
+        t = duration
+        c0, c1, c2 = sig0, sd0, sdd0 / 2.0
+        d = sigma1 - (c0 + c1 * t + c2 * t * t)
+        e = -(c1 + 2.0 * c2 * t)
+        f = -2.0 * c2
+        m = np.array([[t**3, t**4, t**5], [3 * t**2, 4 * t**3, 5 * t**4], [6 * t, 12 * t**2, 20 * t**3]])
+        c3, c4, c5 = np.linalg.solve(m, [d, e, f])
+        return cls(t0, duration, s0, (c0, c1, c2, float(c3), float(c4), float(c5)))
+
+    @property
+    def end(self) -> float:
+        return self.t0 + self.duration
+
+    @property
+    def target(self) -> float:
+        return self.state(np.array([self.end]))[1][0]
+
+    def state(self, t: Array) -> tuple[Array, Array, Array, Array]:
+        """s, σ, σ̇, σ̈ at playback times t ≥ t0."""
+        tau = np.clip(np.asarray(t, dtype=float) - self.t0, 0.0, None)
+        inside = np.minimum(tau, self.duration)
+        c = self.c
+        sig = ((((c[5] * inside + c[4]) * inside + c[3]) * inside + c[2]) * inside + c[1]) * inside + c[0]
+        sd = (((5 * c[5] * inside + 4 * c[4]) * inside + 3 * c[3]) * inside + 2 * c[2]) * inside + c[1]
+        sdd = ((20 * c[5] * inside + 12 * c[4]) * inside + 6 * c[3]) * inside + 2 * c[2]
+        integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
+            c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
+        sigma_end = sum(ck * self.duration**k for k, ck in enumerate(c))
+        s = self.s0 + integral + sigma_end * (tau - inside)
+        after = tau > self.duration
+        return s, np.where(after, sigma_end, sig), np.where(after, 0.0, sd), np.where(after, 0.0, sdd)
+
+    def rebased(self, t: float) -> Ramp:
+        """The same σ-state at playback time ``t``, as a ramp of a new playback that starts there with
+        s = 0: the scale carries from one path to the next."""
+        _, sig, sd, sdd = (float(x[0]) for x in self.state(np.array([t])))
+        if t >= self.end:
+            return Ramp.hold(0.0, 0.0, sig)
+        return Ramp.between(0.0, 0.0, (sig, sd, sdd), self.target, self.end - t)
+
+
+def commanded(curve: Curve, s: Array, sig: Array, sd: Array, sdd: Array) -> Array:
+    """q, q̇, q̈, q⃛ of the commanded motion (chain rule): (4, m, D)."""
+    q, d1, d2, d3 = curve.at(s)
+    sg, sdv, sddv = sig[:, None], sd[:, None], sdd[:, None]
+    return np.stack([q, d1 * sg, d2 * sg**2 + d1 * sdv, d3 * sg**3 + 3 * d2 * sg * sdv + d1 * sddv])
+
+
+def ramp_ratio(curve: Curve, ramp: Ramp, limits: JointLimits) -> float:
+    """The largest ratio of a commanded velocity, acceleration or jerk to its limit during the ramp,
+    sampled at every controller step (and its end); σ outside [0, 1] counts as over (2.0)."""
+    n = max(2, int(np.ceil(ramp.duration / DT)) + 1)
+    t = ramp.t0 + np.arange(n) * DT
+    s, sig, sd, sdd = ramp.state(t)
+    if np.any(sig < -1e-9) or np.any(sig > 1.0 + 1e-9):
+        return 2.0
+    moving = s < curve.t_f  # past the end the arm holds the last point
+    if not np.any(moving):
+        return 0.0
+    _, v, a, j = commanded(curve, s[moving], sig[moving], sd[moving], sdd[moving])
+    lim = limits.kinematic()
+    return float(max((np.abs(x) / lim[i]).max() for i, x in enumerate((v, a, j))))
+
+
+# Start delays and stretches of the shortest duration tried for a ramp, earliest finish first.
+DELAYS_S = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
+STRETCH = (1.0, 1.5, 2.0, 3.0, 4.0)
+# The quintic smoothstep's largest slope and curvature: σ̇ ≤ 1.875 Δσ/T, σ̈ ≤ (10/√3) Δσ/T².
+_P1, _P2 = 1.875, 10.0 / np.sqrt(3.0)
+
+
+def ramp_duration(curve: Curve, limits: JointLimits, delta: float) -> float:
+    """The shortest ramp worth trying for a change of σ by ``delta``: the one whose own terms q'σ̇ and
+    q'σ̈ alone reach the acceleration and jerk limits at the path's top joint speeds (the planned terms
+    come on top, so the search stretches it from there). At least 4 controller steps."""
+    d = abs(delta)
+    return float(max(4 * DT, _P1 * d * np.max(curve.speed / limits.acceleration),
+                     np.sqrt(_P2 * d * np.max(curve.speed / limits.jerk))))  # fmt: skip
+
+
+def plan_ramp(curve: Curve, current: Ramp, t_min: float, sigma1: float, limits: JointLimits) -> Ramp | None:
+    """The earliest-finishing ramp to ``sigma1`` starting at or after ``t_min`` (a controller step) whose
+    commanded samples stay inside the limits; None when none of the candidates does."""
+    candidates = []
+    for delay in DELAYS_S:
+        t0 = np.ceil((t_min + delay) / DT - 1e-9) * DT
+        s0, sig, sd, sdd = (float(x[0]) for x in current.state(np.array([t0])))
+        base = ramp_duration(curve, limits, sigma1 - sig)
+        for stretch in STRETCH:
+            candidates.append((t0 + base * stretch, t0, s0, (sig, sd, sdd), base * stretch))
+    for _, t0, s0, start, duration in sorted(candidates, key=lambda c: c[0]):
+        ramp = Ramp.between(t0, s0, start, sigma1, duration)
+        if ramp_ratio(curve, ramp, limits) <= 1.0 + LIMIT_RTOL:
+            return ramp
+    return None
+
+
+def stop_time(curve: Curve, limits: JointLimits, starts: int = 12) -> float:
+    """How long a stop from σ = 1 takes on this curve at worst (T_s of the separation distance): the
+    longest of the ramps to 0 found from ``starts`` instants along it."""
+    worst = 0.0
+    for t in np.linspace(0.0, curve.t_f, starts, endpoint=False):
+        ramp = plan_ramp(curve, Ramp.hold(0.0, 0.0, 1.0), float(t), 0.0, limits)
+        worst = max(
+            worst, (ramp.end - t) if ramp is not None else 4 * STRETCH[-1] * ramp_duration(curve, limits, 1)
+        )
+    return worst
+
+
+def remaining(curve: Curve, s_switch: float) -> tuple[int, float]:
+    """(index of the first waypoint after ``s_switch``, the share of its segment still ahead)."""
+    sites = curve.sites
+    m = int(np.searchsorted(sites, s_switch, side="right"))
+    m = min(max(m, 1), len(sites) - 1)
+    share = (sites[m] - s_switch) / (sites[m] - sites[m - 1])
+    return m, float(share)
+
+
+def _layout(segments: Array) -> Array:
+    """Segment durations → the B-spline's intervals (the virtual knots split the end segments: halves,
+    or thirds of a single segment), as planner.interval_bounds lays them out."""
+    if len(segments) == 1:
+        return np.repeat(segments / 3.0, 3)
+    return np.concatenate([[segments[0] / 2] * 2, segments[1:-1], [segments[-1] / 2] * 2])
+
+
+def segment_durations(h: Array) -> Array:
+    """The time between consecutive waypoints of a solution h (W+1 intervals → W-1 segments)."""
+    sites = bs.waypoint_sites(np.atleast_2d(h))[0]
+    durations: Array = np.diff(sites)
+    return durations
+
+
+@dataclass(frozen=True, slots=True)
+class Switch:
+    """The rest of a path from ``s_switch`` on, as its own path and intervals (checked), and the joined curve."""
+
+    s_switch: float
+    rest: PathPlan
+    h: Array
+    stretch: float
+    curve: Curve
+
+
+STRETCHES = np.geomspace(1.0, 4.0, 25)
+
+
+def switch_curve(
+    curve: Curve, path: PathPlan, h_new: Array, s_switch: float, limits: JointLimits
+) -> Switch | None:
+    """The joined curve that leaves the current one at ``s_switch`` for the new solution ``h_new``.
+
+    The rest starts at the current point with its velocity, acceleration and jerk (path time), passes the
+    remaining waypoints of the executor's own copy and ends as the path does. Its segments last as long as
+    the new solution's (the first: the share of it still ahead), stretched by the least α ≥ 1 that keeps
+    the exact maxima inside the limits; the whole rest is then checked as any trajectory is. None when no
+    stretch up to 4 does, or the switch is too close to the end to matter.
+    """
+    if not 0.0 < s_switch < curve.t_f - 4 * DT:
+        return None
+    q, d1, d2, d3 = (x[0] for x in curve.at(np.array([s_switch])))
+    m, share = remaining(curve, s_switch)
+    waypoints = np.concatenate([q[None], path.waypoints[m:]])
+    b = path.boundary
+    rest = PathPlan(id=path.id, waypoints=waypoints, boundary=bs.Boundary(d1, d2, d3, b.v1, b.a1, b.j1))
+    seg = segment_durations(h_new)[m - 1 :].copy()
+    seg[0] *= share
+    base = _layout(seg)
+    hs = STRETCHES[:, None] * base[None, :]
+    cps = bs.control_points(hs, rest.waypoints, rest.boundary)
+    maxima = bs.span_maxima(hs, bs.span_taylor(hs, cps))
+    ok = np.all(maxima <= limits.kinematic()[None] * (1 + 1e-9), axis=(1, 2))
+    for i in np.nonzero(ok)[0]:
+        h = hs[i]
+        if not trajectory_problems(h, rest, limits):
+            return Switch(s_switch, rest, h, float(STRETCHES[i]), curve.joined(s_switch, Curve.of(h, rest)))
+    return None
