@@ -36,7 +36,7 @@ Array = NDArray[np.float64]
 class Ssm:
     human_speed_m_s: float = 1.6  # v_h
     reaction_s: float = 0.2  # T_r
-    stop_time_s: float = 0.5  # T_s
+    stop_time_s: float = 0.5  # T_s: per path, the longest stop ramp found on it (scaling.stop_time)
     intrusion_m: float = 0.2  # C
     uncertainty_m: float = 0.1  # Z_d + Z_r
     max_age_s: float = 0.3
@@ -48,7 +48,7 @@ class Ssm:
                 + self.intrusion_m + self.uncertainty_m)  # fmt: skip
 
     def allowed_speed(self, separation_m: float) -> float:
-        """The largest robot speed whose S_p fits ``separation_m`` (0 when even a robot at rest is too close)."""
+        """The largest robot speed whose S_p fits ``separation_m`` (0: too close even for a robot at rest)."""
         room = separation_m - self.protective_distance(0.0)
         return max(0.0, room / (self.reaction_s + self.stop_time_s / 2))
 

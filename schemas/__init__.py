@@ -26,7 +26,7 @@ __all__ = [
     "RobotEvent",
     "RobotState",
     "RrIntervals",
-    "Separation",
     "Selection",
+    "Separation",
     "ServiceStatus",
 ]

@@ -118,7 +118,7 @@ class Ramp:
 
     @property
     def target(self) -> float:
-        return self.state(np.array([self.end]))[1][0]
+        return float(sum(ck * self.duration**k for k, ck in enumerate(self.c)))
 
     def state(self, t: Array) -> tuple[Array, Array, Array, Array]:
         """s, σ, σ̇, σ̈ at playback times t ≥ t0."""
@@ -155,7 +155,7 @@ def ramp_ratio(curve: Curve, ramp: Ramp, limits: JointLimits) -> float:
     """The largest ratio of a commanded velocity, acceleration or jerk to its limit during the ramp,
     sampled at every controller step (and its end); σ outside [0, 1] counts as over (2.0)."""
     n = max(2, int(np.ceil(ramp.duration / DT)) + 1)
-    t = ramp.t0 + np.arange(n) * DT
+    t = ramp.t0 + np.arange(n, dtype=np.float64) * DT
     s, sig, sd, sdd = ramp.state(t)
     if np.any(sig < -1e-9) or np.any(sig > 1.0 + 1e-9):
         return 2.0
@@ -238,7 +238,8 @@ def segment_durations(h: Array) -> Array:
 
 @dataclass(frozen=True, slots=True)
 class Switch:
-    """The rest of a path from ``s_switch`` on, as its own path and intervals (checked), and the joined curve."""
+    """The rest of a path from ``s_switch`` on, as its own path and intervals (checked), and the joined
+    curve."""
 
     s_switch: float
     rest: PathPlan
@@ -247,7 +248,11 @@ class Switch:
     curve: Curve
 
 
-STRETCHES = np.geomspace(1.0, 4.0, 25)
+# Stretches of the new solution's rest tried, nearest to 1 first: from a fast solution to a slow one the
+# arm arrives with more speed than the slow rest has room for, and a shorter rest is the smooth way out.
+STRETCHES = np.geomspace(0.25, 4.0, 49)
+_NEAREST_FIRST = np.argsort(np.abs(np.log(STRETCHES)), kind="stable")
+BETAS = (1.25, 1.5, 2.0, 3.0)  # the way to the next waypoint made longer, when the pace there is too fast
 
 
 def switch_curve(
@@ -269,14 +274,20 @@ def switch_curve(
     b = path.boundary
     rest = PathPlan(id=path.id, waypoints=waypoints, boundary=bs.Boundary(d1, d2, d3, b.v1, b.a1, b.j1))
     seg = segment_durations(h_new)[m - 1 :].copy()
-    seg[0] *= share
-    base = _layout(seg)
-    hs = STRETCHES[:, None] * base[None, :]
+    seg[0] = curve.sites[m] - s_switch  # to the next waypoint at the pace the arm is at
+    lay = _layout(seg)
+    first = 3 if len(seg) == 1 else 2  # intervals of the first segment
+    # rows: the rest stretched by α (nearest 1 first), then with the first segment also stretched by β
+    alphas = STRETCHES[_NEAREST_FIRST]
+    betas = np.array([1.0, *BETAS])
+    hs = np.repeat(alphas, len(betas))[:, None] * lay[None, :]
+    hs[:, :first] *= np.tile(betas, len(alphas))[:, None] / np.repeat(alphas, len(betas))[:, None]
     cps = bs.control_points(hs, rest.waypoints, rest.boundary)
     maxima = bs.span_maxima(hs, bs.span_taylor(hs, cps))
     ok = np.all(maxima <= limits.kinematic()[None] * (1 + 1e-9), axis=(1, 2))
     for i in np.nonzero(ok)[0]:
         h = hs[i]
         if not trajectory_problems(h, rest, limits):
-            return Switch(s_switch, rest, h, float(STRETCHES[i]), curve.joined(s_switch, Curve.of(h, rest)))
+            alpha = float(alphas[i // len(betas)])
+            return Switch(s_switch, rest, h, alpha, curve.joined(s_switch, Curve.of(h, rest)))
     return None

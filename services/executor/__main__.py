@@ -5,7 +5,9 @@ common/motion.py, which only the supervisor changes (services/executor/superviso
 path it takes the current selection k, turns that path's solution into 500 Hz samples, checks them against its
 own limits and its own copy of the waypoints, and hands them to the servo loop (services/executor/servo.py) on
 a core of its own (services/executor/cores.py). A selection arriving during a motion takes effect at the next
-path start. Whatever fails (no set, a refused trajectory, a protective stop, a lost controller) is published,
+path start, or, with ``switch_within_path``, from a tenth of a second ahead within the path; with
+``separation`` the path's time scale follows the nearest person's distance (services/executor/reaction.py).
+Whatever fails (no set, a refused trajectory, a protective stop, a lost controller) is published,
 and the robot does not move until it is resolved; a stop is latched until `cadence robot resume`. The decision
 maker or the store being down only means the last selection and the cached sets are used.
 """
@@ -24,11 +26,12 @@ from common.runtime.node import Node, Out, answers, every, node_main, on
 from common.runtime.service import service_main
 from common.trajectory.task import load_task
 from schemas.decision import Selection
-from schemas.operator import OperatorSignal
+from schemas.operator import OperatorSignal, Separation
 from schemas.robot import RobotEvent
-from schemas.topology import OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION
+from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION
 from services.executor.backends import backend_for
 from services.executor.cycles import Cycles
+from services.executor.reaction import Reactions
 from services.executor.servo import servo_for
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
@@ -52,7 +55,8 @@ class Executor(Node):
         if self.claim.core is not None:
             self.ctx.counters["servo_core"] = self.claim.core
         self.safety = Supervisor(self, self.backend, s)
-        self.cycles = Cycles(self, self.safety, task, self.backend, self.loop)
+        self.reactions = Reactions(self, self.safety, task.limits)
+        self.cycles = Cycles(self, self.safety, task, self.backend, self.loop, self.reactions)
         self.telemetry = Telemetry(self, self.backend, task)
         self.cycles.load()
         self.connected = False
@@ -65,6 +69,11 @@ class Executor(Node):
     @on(OPERATOR_SIGNAL)
     async def on_signal(self, sig: OperatorSignal) -> Out:
         self.cycles.signals.admit(sig)
+        return []
+
+    @on(OPERATOR_SEPARATION, maxsize=1)
+    async def on_separation(self, sep: Separation) -> Out:
+        self.reactions.admit(sep)
         return []
 
     @answers(ROBOT_RESUME)
@@ -82,7 +91,8 @@ class Executor(Node):
         self.loop.start()
         for w in self.loop.warnings:
             log.warning("%s", w)
-        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop())]
+        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop()),
+                   asyncio.create_task(self.reactions.keep_scale())]  # fmt: skip
         try:
             await self.cycles.start()
             await self.cycles.run()

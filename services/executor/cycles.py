@@ -19,14 +19,18 @@ from common.motion import Event, IllegalTransition, State
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.node import Node, Rejected
 from common.runtime.service import first_of
+from common.separation import Ssm
+from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan, Step, Task
-from common.trajectory.validate import validated_samples
+from common.trajectory.validate import check_trajectory
 from schemas.decision import Selection
 from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport
 from schemas.topology import OPERATOR_ERROR, ROBOT_CYCLE, SELECTION
 from services.executor.backends import Backend
 from services.executor.persist import ExecutorStore
+from services.executor.playback import Playback
+from services.executor.reaction import Reactions, Running, path_figures
 from services.executor.servo import MotionResult, ServoLoop
 from services.executor.sets import SetCache
 from services.executor.settings import Settings
@@ -72,8 +76,16 @@ class Signals:
 
 
 class Cycles:
-    def __init__(self, node: Node, safety: Supervisor, task: Task, backend: Backend, loop: ServoLoop) -> None:
-        self.node, self.ctx, self.safety = node, node.ctx, safety
+    def __init__(
+        self,
+        node: Node,
+        safety: Supervisor,
+        task: Task,
+        backend: Backend,
+        loop: ServoLoop,
+        reactions: Reactions,
+    ) -> None:
+        self.node, self.ctx, self.safety, self.reactions = node, node.ctx, safety, reactions
         self.task, self.backend, self.loop = task, backend, loop
         self.settings: Settings = node.ctx.settings
         self.clock = node.ctx.common.clock
@@ -87,6 +99,8 @@ class Cycles:
         self.k: int | None = None
         self.waiting_for: str | None = None
         self.cut_short: int | None = None  # the cycle a restart cut short, said when the cycles start
+        self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last path ended with
+        self.switching: asyncio.Task[None] | None = None
 
     def load(self) -> None:
         """What the last run left on disk: cached sets, the last selection applied, its cycle."""
@@ -102,6 +116,30 @@ class Cycles:
             self.selection = sel
             self.selection_changed.set()
             self.safety.fire(Event.SELECTION)
+            running = self.reactions.running
+            if running is not None and self.settings.switch_within_path and self.switching is None:
+                self.switching = asyncio.create_task(self.switch_within(running))
+
+    async def switch_within(self, running: Running) -> None:
+        """A new selection during a path: the rest of it at the new k, when that can join within the
+        limits (services/executor/reaction.py); otherwise, as ever, from the next path start."""
+        try:
+            s = self.sets.sets.get(running.path.id)
+            n = len(s.solutions) if s is not None else 0
+
+            def wanted() -> int:
+                return k_for_path(self.selection.k, n) if self.selection is not None else 0
+
+            while s is not None and self.selection is not None and self.reactions.running is running:
+                k, sel = wanted(), self.selection
+                if k == running.k:
+                    return
+                if not await self.reactions.switch(k, np.array(s.solutions[k - 1].h), wanted):
+                    return
+                self.k = k
+                await asyncio.to_thread(self.store.applied, sel)
+        finally:
+            self.switching = None
 
     async def start(self) -> None:
         """Before the first cycle: what a restart cut short, the current selection, the sets."""
@@ -243,21 +281,16 @@ class Cycles:
                 continue
             self.safety.ready()
             k = k_for_path(self.selection.k, len(s.solutions))
+            h = np.array(s.solutions[k - 1].h)
             try:
-                q = await asyncio.to_thread(
-                    validated_samples,
-                    np.array(s.solutions[k - 1].h),
-                    own,
-                    self.task.limits,
-                    np.array(s.waypoints),
-                )
+                curve, ssm, top = await asyncio.to_thread(self.prepare_path, h, own, np.array(s.waypoints))
             except TrajectoryRejected as exc:
                 self.safety.event("refused", f"k = {k}: {exc}", pid)
                 self.safety.fire(Event.REFUSE, f"k = {k} of '{pid}' refused")
                 self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
                 await self.until_changed()
                 continue
-            if not await self.reach(q[0], pid):
+            if not await self.reach(own.waypoints[0], pid):
                 if self.safety.motion.state is State.REFUSED:
                     await self.until_changed()
                 continue
@@ -268,9 +301,16 @@ class Cycles:
                 continue
             await asyncio.to_thread(self.store.applied, self.selection)
             self.safety.path_id, self.k = pid, k
-            targets = self.backend.prepare(q)
+            playback = Playback(curve, self.reactions.start_ramp(own, self.carried, ssm, top),
+                                lambda q: self.backend.prepare(q[None])[0])  # fmt: skip
+            running = self.reactions.running = Running(own, playback, ssm, top, k)
             settle = round(self.settings.settle_s * RATE_HZ)
-            result: MotionResult = await asyncio.wrap_future(self.loop.run(targets, settle))
+            try:
+                result: MotionResult = await asyncio.wrap_future(self.loop.run(playback, settle))
+            finally:
+                self.reactions.running = None
+                self.carried = playback.state()
+            k = self.k = running.k  # a switch within the path may have changed it
             await asyncio.to_thread(self.backend.motion_ended)
             self.ctx.counters["paths"] += 1
             self.ctx.counters["overruns"] = self.loop.overruns
@@ -293,6 +333,17 @@ class Cycles:
             self.safety.fire(Event.FAULT, why)
             self.ctx.counters["protective_stops"] += 1
         return None
+
+    def prepare_path(self, h: np.ndarray, own: PathPlan, claimed: np.ndarray) -> tuple[Curve, Ssm, float]:
+        """In a worker thread, before the motion: the trajectory checked against the executor's own
+        limits and waypoints (raises TrajectoryRejected), its curve, and with separation monitoring on,
+        the path's stop time and top speed."""
+        check_trajectory(h, own, self.task.limits, claimed)
+        curve = Curve.of(h, own)
+        if not self.settings.separation:
+            return curve, self.reactions.ssm, 0.0
+        ssm, top = path_figures(curve, self.task.limits, self.reactions.ssm)
+        return curve, ssm, top
 
     async def wait_for(self, step: Step, cycle: int) -> Literal["arrived", "stopped", "late"]:
         """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),

@@ -49,8 +49,9 @@ class Playback:
         self.sigma = float(ramp.c[0])
         self.last = convert(curve.at(np.array([curve.t_f]), order=0)[0, 0])
         self.finished = False
-        self.pending_ramp: Ramp | None = None
-        self.pending_curve: tuple[float, Curve] | None = None
+        # (the change, what it was planned from): it applies only if that is still what is in force
+        self.pending_ramp: tuple[Ramp, Ramp] | None = None
+        self.pending_curve: tuple[float, Curve, Curve] | None = None
         self.missed = 0  # offers dropped because they came too late for their step
         self.span = 0
 
@@ -62,36 +63,37 @@ class Playback:
     def t(self) -> float:
         return self.tick * DT
 
-    def offer_ramp(self, ramp: Ramp) -> bool:
-        """From another thread: take ``ramp`` at its start (a step not yet sent). False: too late."""
-        if ramp.t0 < self.t + DT / 2:
+    def offer_ramp(self, ramp: Ramp, base: Ramp) -> bool:
+        """From another thread: take ``ramp`` (planned from the σ-state of ``base``) at its start, a step
+        not yet sent. False: too late already; a later miss is counted in ``missed``."""
+        if ramp.t0 < self.t + DT / 2 or base is not self.ramp:
             return False
-        self.pending_ramp = ramp
+        self.pending_ramp = (ramp, base)
         return True
 
-    def offer_curve(self, s_switch: float, curve: Curve) -> bool:
-        """From another thread: from path time ``s_switch`` on, the joined ``curve``. False: too late."""
-        if s_switch <= self.s:
+    def offer_curve(self, s_switch: float, curve: Curve, base: Curve) -> bool:
+        """From another thread: from path time ``s_switch`` on, the joined ``curve`` (``base`` up to
+        there). False: too late already; a later miss is counted in ``missed``."""
+        if s_switch <= self.s or base is not self.curve:
             return False
-        self.pending_curve = (s_switch, curve)
+        self.pending_curve = (s_switch, curve, base)
         return True
 
     def next(self) -> object | None:
         t = self.tick * DT
-        ramp = self.pending_ramp
-        if ramp is not None:
+        offer = self.pending_ramp
+        if offer is not None and t >= offer[0].t0 - DT / 2:
             self.pending_ramp = None
-            if abs(ramp.t0 - t) < DT / 2:
-                self.ramp = ramp
-            elif ramp.t0 < t:
-                self.missed += 1
+            if abs(offer[0].t0 - t) < DT / 2 and offer[1] is self.ramp:
+                self.ramp = offer[0]
             else:
-                self.pending_ramp = ramp  # not yet
+                self.missed += 1
         s, sigma = self._state(t)
         joined = self.pending_curve
         if joined is not None and s >= joined[0]:
             self.pending_curve = None
-            if self.s < joined[0]:  # nothing past the switch was sent from the old curve
+            # nothing past the switch was sent from the old curve, and it is the one it was joined to
+            if self.s < joined[0] and joined[2] is self.curve:
                 self.curve, self.span = joined[1], 0
             else:
                 self.missed += 1

@@ -128,7 +128,7 @@ class ServoLoop:
         """Queue one motion: the targets (a list, one per sample, or a playback), then up to
         ``settle_ticks`` ticks holding the last one until the backend says the arm has settled on it."""
         fut: Future[MotionResult] = Future()
-        source = targets if hasattr(targets, "next") else Samples(cast(Sequence[object], targets))
+        source = targets if hasattr(targets, "next") else Samples(targets)
         self._jobs.put(_Job(cast(Source, source), settle_ticks, fut))
         return fut
 

@@ -39,6 +39,7 @@ class Telemetry:
         t_ns = self.node.ctx.common.clock.now_ns()
         pressed = self.pressed(t_ns)
         b, m = self.backend, safety.motion
+        sep = cycles.reactions.separation if self.node.ctx.settings.separation else None
         state = RobotState(
             t_ns=t_ns,
             seq=self.node.next_seq(ROBOT_STATE),
@@ -51,5 +52,7 @@ class Telemetry:
             waiting_for=cycles.waiting_for,
             state=m.state,
             reason=m.reason[:4000],
+            scale=min(1.0, max(0.0, cycles.reactions.scale_now())),
+            separation_m=None if sep is None else min(100.0, sep.distance_m),
         )
         return [*pressed, state]

@@ -1,0 +1,215 @@
+"""Reacting within a path (issue 31): the time scale for a person's distance and a switch of k mid-path,
+driven through the servo loop's playback one controller step at a time, every commanded sample checked."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.separation import Ssm, link_points, path_speed
+from common.sim.arm import forward_kinematics
+from common.trajectory.planner import ParetoResult, plan_path
+from common.trajectory.scaling import DT, Curve, Ramp, commanded, plan_ramp, stop_time, switch_curve
+from common.trajectory.task import PathPlan, load_task
+from services.executor.playback import Playback
+from tests.conftest import EXAMPLE_TASK
+
+TASK = load_task(EXAMPLE_TASK)
+LIMITS = TASK.limits
+
+
+@pytest.fixture(scope="module")
+def planned() -> tuple[PathPlan, ParetoResult]:
+    path = TASK.paths["b1_to_b2"]  # the longest path; its fastest solution rides the limits
+    return path, plan_path(path, LIMITS, TASK.planner)
+
+
+def finite_difference_ratios(q: np.ndarray) -> np.ndarray:
+    """max |Δ^d q / DT^d| / limit for d = 1, 2, 3 over commanded samples: what the arm is sent."""
+    lim = LIMITS.kinematic()
+    return np.array([(np.abs(np.diff(q, n=d, axis=0)) / DT**d / lim[d - 1]).max() for d in (1, 2, 3)])
+
+
+class Monitor:
+    """Stands in for the executor's reaction task: every 10 steps it reads the scripted distance and asks
+    for the σ of ISO/TS 15066 as a ramp, as services/executor/reaction.py does."""
+
+    def __init__(self, pb: Playback, ssm: Ssm, top_speed: float) -> None:
+        self.pb, self.ssm, self.top = pb, ssm, top_speed
+
+    def wanted(self, distance: float | None, age: float) -> float:
+        sigma = self.ssm.scale(distance, age, self.top)
+        return 1.0 if sigma >= 1.0 else math.floor(sigma / 0.05) * 0.05
+
+    def step(self, distance: float | None, age: float) -> None:
+        pb = self.pb
+        target = (pb.pending_ramp[0] if pb.pending_ramp else pb.ramp).target
+        want = self.wanted(distance, age)
+        if abs(want - target) > 1e-9:
+            ramp = plan_ramp(pb.curve, pb.ramp, pb.t + 0.02, want, LIMITS)
+            assert ramp is not None, f"no ramp to {want} at t = {pb.t:.3f}"
+            assert pb.offer_ramp(ramp, pb.ramp)
+
+
+def run(pb: Playback, each_step, max_steps: int = 20_000) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    """Step the playback as the servo loop does; the commanded samples and (t, σ) of every step."""
+    qs, trace = [], []
+    for _ in range(max_steps):
+        each_step(pb.t)
+        q = pb.next()
+        if q is None:
+            break
+        qs.append(np.array(q))
+        trace.append((pb.t, pb.sigma))
+    return np.array(qs), trace
+
+
+def test_the_protective_distance_is_iso_ts_15066_eq_1_and_its_inverse() -> None:
+    ssm = Ssm(human_speed_m_s=1.6, reaction_s=0.2, stop_time_s=0.8, intrusion_m=0.2, uncertainty_m=0.1)
+    v_r = 1.2
+    s_h, s_r, s_s = 1.6 * (0.2 + 0.8), v_r * 0.2, v_r * 0.8 / 2
+    assert ssm.protective_distance(v_r) == pytest.approx(s_h + s_r + s_s + 0.2 + 0.1)
+    assert ssm.allowed_speed(ssm.protective_distance(v_r)) == pytest.approx(v_r)
+    assert ssm.allowed_speed(1.0) == 0.0  # inside v_h (T_r + T_s) + C + Z: not even at rest
+    assert ssm.scale(5.0, 0.0, path_speed_m_s=1.0) == 1.0
+    assert ssm.scale(ssm.protective_distance(0.6), 0.0, 1.2) == pytest.approx(0.5)
+    assert ssm.scale(5.0, ssm.max_age_s + 0.01, 1.0) == 0.0  # stale: as if the person were at the robot
+    assert ssm.scale(None, 0.0, 1.0) == 0.0
+
+
+def test_link_points_end_at_the_tcp_and_path_speed_is_the_fastest_point() -> None:
+    q = np.radians([[10.0, -80, 100, -110, -90, 20], [-40, -95, 80, -70, -90, 60]])
+    np.testing.assert_allclose(link_points(q)[:, -1], [forward_kinematics(x)[:3] for x in q], atol=1e-12)
+    # the base turning alone: every point moves on a circle, the farthest fastest
+    t = np.arange(0, 1.0, 0.001)
+    spin = np.tile(np.radians([0.0, -90, 90, -90, -90, 0]), (len(t), 1))
+    spin[:, 0] = t  # 1 rad/s
+    radius = np.hypot(*link_points(spin[:1])[0, :, :2].T).max()
+    assert path_speed(spin, 0.001) == pytest.approx(radius, rel=1e-3)
+
+
+def test_a_ramp_joins_the_scale_state_in_force_continuously() -> None:
+    first = Ramp.between(0.0, 0.0, (1.0, 0.0, 0.0), 0.3, 0.4)
+    t = 0.2
+    s, sig, sd, sdd = (float(x[0]) for x in first.state(np.array([t])))
+    second = Ramp.between(t, s, (sig, sd, sdd), 0.8, 0.5)
+    for a, b in zip(first.state(np.array([t])), second.state(np.array([t])), strict=True):
+        assert float(a[0]) == pytest.approx(float(b[0]), abs=1e-12)
+    s_end, sig_end, sd_end, sdd_end = (float(x[0]) for x in second.state(np.array([second.end + 1.0])))
+    assert (sig_end, sd_end, sdd_end) == (pytest.approx(0.8), 0.0, 0.0)
+    # s is the integral of σ
+    grid = np.linspace(t, second.end, 20001)
+    _, sigmas, _, _ = second.state(grid)
+    assert float(second.state(np.array([second.end]))[0][0]) - s == pytest.approx(
+        np.trapezoid(sigmas, grid), rel=1e-8
+    )
+    assert second.target == pytest.approx(0.8)
+
+
+def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sample_inside_the_limits(
+    planned: tuple[PathPlan, ParetoResult],
+) -> None:
+    path, result = planned
+    curve = Curve.of(result.solutions[-1].h, path)  # k = N: on the limits somewhere
+    top = path_speed(curve.at(np.arange(0, curve.t_f, 0.01), order=0)[0], 0.01)
+    ssm = Ssm(stop_time_s=stop_time(curve, LIMITS))
+    near, middle, far = 0.9, ssm.protective_distance(0.45 * top), 4.0
+    # (from t, distance or None for no message): far, half speed, far, the sensor silent, too near, far
+    script = [(0.0, far), (0.2, middle), (1.2, far), (1.6, None), (3.6, near), (4.1, far)]
+    pb = Playback(curve, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy())
+    monitor = Monitor(pb, ssm, top)
+    last_heard = [0.0, far]
+    ramps: dict[int, Ramp] = {}
+
+    def each_step(t: float) -> None:
+        ramps[round(t / DT)] = pb.ramp
+        if round(t / DT) % 10:
+            return
+        distance = [d for t0, d in script if t0 <= t + 1e-9][-1]
+        if distance is not None:
+            last_heard[:] = [t, distance]
+        monitor.step(last_heard[1], t - last_heard[0])
+
+    q, trace = run(pb, each_step)
+    assert pb.finished and pb.missed == 0
+    np.testing.assert_allclose(q[-1], path.waypoints[-1], atol=1e-9)
+    # every commanded sample inside the limits: exactly (chain rule, the ramp in force at each step) …
+    ticks = np.arange(len(q))
+    t = ticks * DT
+    state = np.array([[float(x[0]) for x in ramps[i].state(np.array([t[i]]))] for i in ticks])
+    derivs = commanded(curve, state[:, 0], state[:, 1], state[:, 2], state[:, 3])
+    np.testing.assert_allclose(derivs[0], q, atol=1e-12)
+    lim = LIMITS.kinematic()
+    exact = [float((np.abs(derivs[d]) / lim[d - 1]).max()) for d in (1, 2, 3)]
+    assert max(exact) <= 1.0 + 1e-6, exact
+    # … and as the arm sees them: finite differences of the samples, no jump anywhere
+    fd = finite_difference_ratios(q)
+    print(f"limit ratios, exact {np.round(exact, 4)}, finite differences {np.round(fd, 4)}")
+    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1
+    # the scale follows the standard's distance: by the end of each phase, heading for (and where the
+    # phase is long enough, at) the σ of its distance
+    half = monitor.wanted(middle, 0.0)
+    assert 0.3 < half < 0.6
+    for at, want, reached in [(1.19, half, True), (1.59, 1.0, False), (3.59, 0.0, True), (4.09, 0.0, True)]:
+        i = round(at / DT)
+        assert ramps[i].target == pytest.approx(want), (at, ramps[i].target, want)
+        if reached:
+            assert trace[i - 1][1] == pytest.approx(want, abs=1e-9), (at, trace[i - 1][1], want)
+    # silent sensor: within max_age + the stop, σ = 0 and the arm holds its place on the path
+    held = [i for i, (ti, _) in enumerate(trace) if 1.6 + ssm.max_age_s + ssm.stop_time_s + 0.1 <= ti < 4.1]
+    assert len(held) > 300 and np.ptp(q[held], axis=0).max() < 1e-12
+
+
+@pytest.mark.parametrize(("k_from", "k_to"), [(3, 15), (15, 1), (8, 12)])
+def test_a_switch_of_k_mid_path_is_continuous_to_the_jerk_and_inside_the_limits(
+    planned: tuple[PathPlan, ParetoResult], k_from: int, k_to: int
+) -> None:
+    path, result = planned
+    h_from, h_to = result.solutions[k_from - 1].h, result.solutions[k_to - 1].h
+    curve = Curve.of(h_from, path)
+    s_switch = 0.37 * curve.t_f
+    sw = switch_curve(curve, path, h_to, s_switch, LIMITS)
+    assert sw is not None
+    before = curve.at(np.array([s_switch]))[:, 0]
+    after = Curve.of(sw.h, sw.rest).at(np.array([0.0]))[:, 0]
+    np.testing.assert_allclose(after, before, atol=1e-9)  # q, q', q'', q''' continuous at the switch
+    # the rest passes the remaining waypoints of the executor's own copy, and ends as the path does
+    joined = sw.curve
+    np.testing.assert_allclose(joined.at(joined.sites, order=0)[0], path.waypoints, atol=1e-9)
+    assert np.all(np.diff(joined.sites) > 0)
+    # the new k's pace: the rest lasts as the new solution's rest would, stretched only if it must be
+    rest_planned = np.sum(h_to) * (1 - s_switch / curve.t_f)
+    print(f"k {k_from} → {k_to}: stretch {sw.stretch:.3f}, rest {joined.t_f - s_switch:.3f} s "
+          f"(the new solution's share {rest_planned:.3f} s)")  # fmt: skip
+    # driven through the playback: the loop takes it at s_switch, every sample inside the limits
+    pb = Playback(curve, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy())
+    offered = []
+
+    def each_step(t: float) -> None:
+        if not offered and pb.s >= s_switch - 0.1:
+            offered.append(pb.offer_curve(s_switch, joined, pb.curve))
+
+    q, _ = run(pb, each_step)
+    assert offered == [True] and pb.curve is joined and pb.missed == 0
+    assert len(q) * DT == pytest.approx(joined.t_f, abs=2 * DT)
+    fd = finite_difference_ratios(q)
+    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1, fd
+
+
+def test_a_switch_offered_after_its_point_is_refused_and_one_planned_on_another_curve_is_missed(
+    planned: tuple[PathPlan, ParetoResult],
+) -> None:
+    path, result = planned
+    curve = Curve.of(result.solutions[4].h, path)
+    pb = Playback(curve, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy())
+    for _ in range(200):
+        pb.next()
+    sw = switch_curve(curve, path, result.solutions[9].h, pb.s - 0.01, LIMITS)
+    assert sw is not None and not pb.offer_curve(pb.s - 0.01, sw.curve, curve)
+    late = plan_ramp(curve, pb.ramp, pb.t - 0.1, 0.5, LIMITS)
+    assert late is not None and not pb.offer_ramp(late, pb.ramp)
+    other = Curve.of(result.solutions[2].h, path)
+    ahead = switch_curve(other, path, result.solutions[9].h, pb.s + 0.05, LIMITS)
+    assert ahead is not None and not pb.offer_curve(pb.s + 0.05, ahead.curve, other)
