@@ -97,7 +97,7 @@ def test_a_ramp_joins_the_scale_state_in_force_continuously() -> None:
     second = Ramp.between(t, s, (sig, sd, sdd), 0.8, 0.5)
     for a, b in zip(first.state(np.array([t])), second.state(np.array([t])), strict=True):
         assert float(a[0]) == pytest.approx(float(b[0]), abs=1e-12)
-    s_end, sig_end, sd_end, sdd_end = (float(x[0]) for x in second.state(np.array([second.end + 1.0])))
+    _, sig_end, sd_end, sdd_end = (float(x[0]) for x in second.state(np.array([second.end + 1.0])))
     assert (sig_end, sd_end, sdd_end) == (pytest.approx(0.8), 0.0, 0.0)
     # s is the integral of σ
     grid = np.linspace(t, second.end, 20001)

@@ -212,13 +212,10 @@ def stop_time(curve: Curve, limits: JointLimits, starts: int = 12) -> float:
     return worst
 
 
-def remaining(curve: Curve, s_switch: float) -> tuple[int, float]:
-    """(index of the first waypoint after ``s_switch``, the share of its segment still ahead)."""
-    sites = curve.sites
-    m = int(np.searchsorted(sites, s_switch, side="right"))
-    m = min(max(m, 1), len(sites) - 1)
-    share = (sites[m] - s_switch) / (sites[m] - sites[m - 1])
-    return m, float(share)
+def next_waypoint(curve: Curve, s_switch: float) -> int:
+    """The index of the first waypoint after ``s_switch`` (never the first waypoint)."""
+    m = int(np.searchsorted(curve.sites, s_switch, side="right"))
+    return min(max(m, 1), len(curve.sites) - 1)
 
 
 def _layout(segments: Array) -> Array:
@@ -269,7 +266,7 @@ def switch_curve(
     if not 0.0 < s_switch < curve.t_f - 4 * DT:
         return None
     q, d1, d2, d3 = (x[0] for x in curve.at(np.array([s_switch])))
-    m, share = remaining(curve, s_switch)
+    m = next_waypoint(curve, s_switch)
     waypoints = np.concatenate([q[None], path.waypoints[m:]])
     b = path.boundary
     rest = PathPlan(id=path.id, waypoints=waypoints, boundary=bs.Boundary(d1, d2, d3, b.v1, b.a1, b.j1))
