@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import msgspec
@@ -23,6 +24,7 @@ from schemas import (
     RobotEvent,
     RobotState,
     Selection,
+    Separation,
     ServiceStatus,
 )
 from schemas.topology import encode
@@ -327,3 +329,69 @@ async def test_a_bad_task_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
         timeout=60,
     )
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.toml" in r.stderr and "speed" in r.stderr
+
+
+async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_over_within_a_path(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    """Issue 31 end to end, at real-time speed: a sensor's distance on operator/separation slows, holds
+    and frees the arm within a path; a silent sensor holds it; a selection during a path takes effect in
+    it (a "switch" event, and the cycle reports the new k for that path)."""
+    distance: list[float | None] = [None]
+
+    async def sensor(bus: Bus) -> None:
+        seq = 0
+        while True:
+            if distance[0] is not None:
+                put(bus, bus.key("operator/separation"), Separation(t_ns=time.time_ns(), seq=seq,
+                                                                    distance_m=distance[0], source="test"))  # fmt: skip
+                seq += 1
+            await asyncio.sleep(0.03)
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = sim_settings(task_file, separation=True, initial_k=2)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        feeding = asyncio.create_task(sensor(bus))
+        try:
+            # no distance yet: the path has begun, and holds at its start
+            first = await next_of(states, lambda s: s.state == "moving" and s.path_id == "there")
+            assert first.scale == 0.0 and first.separation_m is None
+            said = await next_of(events, lambda e: e.kind == "scale")
+            assert "no separation yet: holding" in said.message
+            later = await next_of(states, lambda s: s.t_ns > first.t_ns + 300_000_000)
+            np.testing.assert_allclose(later.q, first.q, atol=1e-9)
+            distance[0] = 5.0  # free: full speed
+            await next_of(states, lambda s: s.scale == 1.0 and s.separation_m == 5.0)
+            distance[0] = None  # the sensor falls silent: held again within its age and a stop
+            held = await next_of(states, lambda s: s.scale == 0.0, timeout=10)
+            await next_of(
+                events, lambda e: e.kind == "scale" and e.message.endswith("old: holding on the path")
+            )
+            distance[0] = 5.0
+            await next_of(states, lambda s: s.scale == 1.0 and s.t_ns > held.t_ns)
+            distance[0] = 0.6  # too near for any speed
+            near = await next_of(
+                states, lambda s: s.scale == 0.0 and s.separation_m == 0.6 and max(map(abs, s.qd)) < 1e-4, 10
+            )
+            still = await next_of(states, lambda s: s.t_ns > near.t_ns + 300_000_000)
+            np.testing.assert_allclose(still.q, near.q, atol=1e-4)  # held on the path
+            distance[0] = 5.0
+            # in "back", a new selection: the rest of the path at k = 5
+            await next_of(
+                states, lambda s: s.path_id == "back" and s.state == "moving" and s.scale == 1.0, 20
+            )
+            put(bus, bus.key("decision/selection"),
+                Selection(t_ns=time.time_ns(), seq=1, k=5, n=5, delta=3, reason="rest", window_end_ns=1))  # fmt: skip
+            switch = await next_of(events, lambda e: e.kind == "switch", timeout=10)
+            report = await next_of(cycles, timeout=30)
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+    assert "k 2 → 5 within 'back'" in switch.message
+    assert report.k_per_path == {"there": 2, "back": 5}
+    assert ex.ctx.counters["protective_stops"] == 0 and ex.ctx.counters["ramps"] >= 4

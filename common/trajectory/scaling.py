@@ -93,10 +93,11 @@ class Ramp:
     duration: float
     s0: float
     c: tuple[float, float, float, float, float, float]
+    target: float  # σ at the end and after: exactly, not the quintic's round-off of it
 
     @classmethod
     def hold(cls, t0: float, s0: float, sigma: float) -> Ramp:
-        return cls(t0, 0.0, s0, (sigma, 0.0, 0.0, 0.0, 0.0, 0.0))
+        return cls(t0, 0.0, s0, (sigma, 0.0, 0.0, 0.0, 0.0, 0.0), sigma)
 
     @classmethod
     def between(
@@ -110,15 +111,11 @@ class Ramp:
         f = -2.0 * c2
         m = np.array([[t**3, t**4, t**5], [3 * t**2, 4 * t**3, 5 * t**4], [6 * t, 12 * t**2, 20 * t**3]])
         c3, c4, c5 = np.linalg.solve(m, [d, e, f])
-        return cls(t0, duration, s0, (c0, c1, c2, float(c3), float(c4), float(c5)))
+        return cls(t0, duration, s0, (c0, c1, c2, float(c3), float(c4), float(c5)), sigma1)
 
     @property
     def end(self) -> float:
         return self.t0 + self.duration
-
-    @property
-    def target(self) -> float:
-        return float(sum(ck * self.duration**k for k, ck in enumerate(self.c)))
 
     def state(self, t: Array) -> tuple[Array, Array, Array, Array]:
         """s, σ, σ̇, σ̈ at playback times t ≥ t0."""
@@ -130,10 +127,9 @@ class Ramp:
         sdd = ((20 * c[5] * inside + 12 * c[4]) * inside + 6 * c[3]) * inside + 2 * c[2]
         integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
             c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
-        sigma_end = sum(ck * self.duration**k for k, ck in enumerate(c))
-        s = self.s0 + integral + sigma_end * (tau - inside)
-        after = tau > self.duration
-        return s, np.where(after, sigma_end, sig), np.where(after, 0.0, sd), np.where(after, 0.0, sdd)
+        after = tau >= self.duration
+        s = self.s0 + integral + self.target * (tau - inside)
+        return s, np.where(after, self.target, sig), np.where(after, 0.0, sd), np.where(after, 0.0, sdd)
 
     def rebased(self, t: float) -> Ramp:
         """The same σ-state at playback time ``t``, as a ramp of a new playback that starts there with
@@ -188,7 +184,7 @@ def plan_ramp(curve: Curve, current: Ramp, t_min: float, sigma1: float, limits: 
     commanded samples stay inside the limits; None when none of the candidates does."""
     candidates = []
     for delay in DELAYS_S:
-        t0 = np.ceil((t_min + delay) / DT - 1e-9) * DT
+        t0 = float(np.ceil((t_min + delay) / DT - 1e-9) * DT)
         s0, sig, sd, sdd = (float(x[0]) for x in current.state(np.array([t0])))
         base = ramp_duration(curve, limits, sigma1 - sig)
         for stretch in STRETCH:

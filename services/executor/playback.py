@@ -112,6 +112,8 @@ class Playback:
         sig = ((((c[5] * inside + c[4]) * inside + c[3]) * inside + c[2]) * inside + c[1]) * inside + c[0]
         integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
             c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
+        if tau >= r.duration:
+            sig = r.target
         return r.s0 + integral + sig * (tau - inside), sig
 
     def _point(self, s: float) -> Array:

@@ -72,6 +72,7 @@ class Reactions:
         self.lock = asyncio.Lock()
         self.zone = ""  # the last zone said in an event: full, reduced, hold, unknown
         self.idle_scale = 1.0 if not s.separation else 0.0
+        self.last_speed_m_s = 1.0  # the top speed of the last path run: the scale shown between paths
 
     # --- the scale ------------------------------------------------------------------------------
 
@@ -112,8 +113,10 @@ class Reactions:
             await asyncio.sleep(period)
             r = self.running
             if r is None:
-                self.idle_scale = self.wanted(self.ssm, 0.0) if self.settings.separation else 1.0
+                self.idle_scale = self.wanted(self.ssm, self.last_speed_m_s)
+                self.say_zone(self.idle_scale)
                 continue
+            self.last_speed_m_s = r.speed_m_s
             wanted = self.wanted(r.ssm, r.speed_m_s)
             self.say_zone(wanted)
             pb = r.playback

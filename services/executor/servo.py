@@ -159,9 +159,12 @@ class ServoLoop:
             try:
                 result = self._servo(job.source, job.settle_ticks)
             except BaseException as exc:  # the future carries it to the service
-                job.future.set_exception(exc)
+                if job.future.set_running_or_notify_cancel():
+                    job.future.set_exception(exc)
             else:
-                job.future.set_result(result)
+                # a waiter that was cancelled meanwhile (the service ending) wants no result
+                if job.future.set_running_or_notify_cancel():
+                    job.future.set_result(result)
             finally:
                 gc.enable()
                 gc.unfreeze()

@@ -52,7 +52,7 @@ class Telemetry:
             waiting_for=cycles.waiting_for,
             state=m.state,
             reason=m.reason[:4000],
-            scale=min(1.0, max(0.0, cycles.reactions.scale_now())),
-            separation_m=None if sep is None else min(100.0, sep.distance_m),
+            scale=min(1.0, max(0.0, float(cycles.reactions.scale_now()))),
+            separation_m=None if sep is None else min(100.0, float(sep.distance_m)),
         )
         return [*pressed, state]
