@@ -25,7 +25,7 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
-from cadence.report import event_row, from_demo, window_row, write_report
+from cadence.report import event_row, from_demo, scale_row, window_row, write_report
 from common.hrv.calibration import CALIBRATION_FILE
 from common.marks import counted
 from common.motion import routine_change
@@ -54,6 +54,7 @@ from schemas.topology import (
     PLAN_PROGRESS,
     ROBOT_CYCLE,
     ROBOT_EVENT,
+    ROBOT_STATE,
     SELECTION,
     launch_order,
 )
@@ -154,6 +155,7 @@ class Observed:
     cycles: list[CycleReport] = field(default_factory=list)
     marked: list[OperatorError] = field(default_factory=list)  # operator/error as it came
     events: list[dict] = field(default_factory=list)
+    scale: list[dict] = field(default_factory=list)  # report.scale_row
 
     @property
     def error_times_s(self) -> list[float]:
@@ -236,6 +238,9 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
             "task": task,
             "backend": "sim",
             "start_selection": "last",
+            # the twin walks into the shared area now and then: speed and separation monitoring, unless
+            # the twin is told to publish no distance (then nothing would free the arm)
+            "separation": "true" if twin_table(opts).get("separation", True) else "false",
         },
     }
 
@@ -327,6 +332,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         )
 
         bus.handle(OPERATOR_ERROR, _call(obs.marked.append))
+        bus.handle(ROBOT_STATE, _call(lambda m: scale_row(obs.scale, m, obs.t(m.t_ns))))
         running: set[str] = set()
         all_up = asyncio.Event()
 
@@ -398,6 +404,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "cycle_ends_s": [obs.t(c.t_ns) for c in obs.cycles],
         "cycle_k": [dict(c.k_per_path) for c in obs.cycles],
         "events": obs.events,
+        "scale": obs.scale,
     }
     write_readable(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
     run = from_demo(opts.out)  # the report of the run (cadence/report.py) into the demo's own folder

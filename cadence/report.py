@@ -43,6 +43,7 @@ class Run:
     error_times_s: list[float] = field(default_factory=list)  # when each was marked
     events: list[dict] = field(default_factory=list)
     sets: dict[str, ParetoSet] = field(default_factory=dict)
+    scale: list[dict] = field(default_factory=list)  # {"t_s", "scale", "separation_m"}: scale_row
 
     @property
     def productivity_per_min(self) -> float:
@@ -90,12 +91,24 @@ def from_demo(folder: Path) -> Run:
         error_times_s=s.get("error_times_s", []),
         events=s["events"],
         sets=load_sets(folder / "data" / "executor"),
+        scale=s.get("scale", []),
     )
 
 
 def window_row(w: HrvWindow, end_s: float) -> dict:
     """A window as a run keeps it (and a demo's summary.json)."""
     return {"end_s": end_s, "mean_rr_s": w.mean_rr_s, "quality": w.quality, "movement_mg": w.movement_mg}
+
+
+SCALE_EVERY_S = 0.25  # the scale trace keeps a robot state this often (robot/state comes at 50 Hz)
+
+
+def scale_row(rows: list[dict], state: RobotState, t_s: float) -> None:
+    """Keep ``state``'s time scale and separation in ``rows`` if the last kept is ``SCALE_EVERY_S`` old,
+    or the scale changed from it by a tenth (a hold is never missed)."""
+    last = rows[-1] if rows else None
+    if last is None or t_s - last["t_s"] >= SCALE_EVERY_S or abs(state.scale - last["scale"]) >= 0.1:
+        rows.append({"t_s": t_s, "scale": round(state.scale, 3), "separation_m": state.separation_m})
 
 
 def event_row(t_s: float, source: str, kind: str, message: str,
@@ -160,6 +173,8 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
             run.events.append(event_row(t(m.t_ns), "executor", m.kind, m.message, (m.from_state, m.to_state)))
         elif isinstance(m, ParetoSet):
             run.sets[m.path_id] = m
+        elif isinstance(m, RobotState):
+            scale_row(run.scale, m, t(m.t_ns))
     kept = counted(marked)
     run.errors, run.error_times_s = len(kept), [t(e.t_ns) for e in kept]
     if sets_folder is not None:
@@ -176,6 +191,17 @@ def movement_row(run: Run) -> str:
             "for movement")  # fmt: skip
 
 
+def scale_summary(rows: list[dict]) -> str:
+    if not any(r["separation_m"] is not None for r in rows):
+        return "no separation monitoring: as planned throughout"
+    t = np.array([r["t_s"] for r in rows])
+    sc = np.array([r["scale"] for r in rows])
+    dt = np.diff(t, append=t[-1])
+    held, slowed = float(dt[sc <= 0.0].sum()), float(dt[(sc > 0.0) & (sc < 1.0)].sum())
+    mean = np.average(sc, weights=dt) if dt.sum() > 0 else sc.mean()
+    return f"mean {mean:.2f}; slowed {slowed:.0f} s, held {held:.0f} s"
+
+
 CAPTIONS = {
     "rr_k.png": "Each window's mean RR (red; crosses: held windows) against data time, with RR_r and the "
     "decision thresholds RR_s and RR_s^max; the selected k on the right axis (blue); cycle ends as ticks "
@@ -185,6 +211,9 @@ CAPTIONS = {
     "decision held because the operator moved well above their level at work.",
     "pareto.png": "Each path's Pareto front, normalised (grey), its N chosen solutions (blue) and the k the "
     "robot ran with, circled by how often (red).",
+    "separation.png": "The nearest person's distance to the robot (operator/separation, as the executor "
+    "last had it) and the time scale the robot ran at (1: as planned; 0: holding on its path), from speed "
+    "and separation monitoring (ISO/TS 15066).",
     "cycles.png": "Joint positions, velocities, accelerations and jerk of the first and last cycle as "
     "commanded (the planned trajectories, not the arm's measurement), in radians, path after path; "
     "dashed: the UR16e's limits.",
@@ -193,7 +222,7 @@ CAPTIONS = {
 
 def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[str]:
     """The figures and index.html; returns the names of the files written."""
-    from cadence.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure
+    from cadence.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure, separation_figure
 
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -225,6 +254,9 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
             pick = [with_k[0], with_k[-1]] if len(with_k) > 1 else with_k[:1]
             write_readable(out / "cycles.png", cycle_kinematics_figure(run.sets, pick))
             written.append("cycles.png")
+    if any(r["separation_m"] is not None for r in run.scale):
+        write_readable(out / "separation.png", separation_figure(run.scale, idle))
+        written.append("separation.png")
     write_readable(out / "index.html", _html(run, written).encode())
     written.append("index.html")
     return written
@@ -246,6 +278,7 @@ def _html(run: Run, figures: list[str]) -> str:
         ("windows", f"{len(run.windows)} ({sum(w['quality'] == 'good' for w in run.windows)} good)"),
         ("movement", movement_row(run)),
         ("selections", " → ".join(str(s["k"]) for s in run.selections) or "—"),
+        ("time scale", scale_summary(run.scale)),
     ]
     table = "\n".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
     cycle_rows = "\n".join(

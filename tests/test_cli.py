@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import subprocess
 import sys
@@ -120,3 +122,31 @@ def test_a_signal_name_the_schema_refuses_is_an_input_error(capsys: pytest.Captu
 
     assert main(["signal", "x" * 65, "--timeout", "0.1"]) == 2
     assert "Expected `str` of length <= 64" in capsys.readouterr().err
+
+
+@pytest.mark.asyncio
+async def test_a_sensor_adapter_pipes_distances_in_and_a_bad_line_is_named_and_skipped(endpoint: str) -> None:
+    """`cadence separation -`: a scanner driver's lines become operator/separation messages; a line that
+    is not a distance (or is out of the schema's range) is reported by number and the others still go."""
+    from common.runtime.bus import Bus, BusConfig
+    from schemas import Separation
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as cell:
+        heard = cell.subscribe(cell.key("operator/separation"), Separation)
+        relay = ["separation", "-", "--source", "scanner:front", "--connect", endpoint]
+        proc = subprocess.Popen([sys.executable, "-m", "cadence", *relay], stdin=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+        assert proc.stdin is not None
+        proc.stdin.write("near\n-3\n")
+        got = None
+        async with asyncio.timeout(30):
+            while got is None:  # the relay's first puts may precede its session knowing the reader
+                proc.stdin.write("1.25 0.04\n")
+                proc.stdin.flush()
+                with contextlib.suppress(TimeoutError):
+                    got = (await heard.receive(0.2))[1]
+        proc.stdin.close()
+        rc = await asyncio.to_thread(proc.wait, 30)
+    assert (got.distance_m, got.age_s, got.source) == (1.25, 0.04, "scanner:front")
+    stderr = proc.stderr.read() if proc.stderr else ""
+    assert "stdin line 1: 'near'" in stderr and "stdin line 2: '-3'" in stderr and rc == 1

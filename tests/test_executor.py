@@ -343,8 +343,8 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
         seq = 0
         while True:
             if distance[0] is not None:
-                put(bus, bus.key("operator/separation"), Separation(t_ns=time.time_ns(), seq=seq,
-                                                                    distance_m=distance[0], source="test"))  # fmt: skip
+                sep = Separation(t_ns=time.time_ns(), seq=seq, distance_m=distance[0], source="test")
+                put(bus, bus.key("operator/separation"), sep)
                 seq += 1
             await asyncio.sleep(0.03)
 
@@ -384,8 +384,8 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
             await next_of(
                 states, lambda s: s.path_id == "back" and s.state == "moving" and s.scale == 1.0, 20
             )
-            put(bus, bus.key("decision/selection"),
-                Selection(t_ns=time.time_ns(), seq=1, k=5, n=5, delta=3, reason="rest", window_end_ns=1))  # fmt: skip
+            sel = Selection(t_ns=time.time_ns(), seq=1, k=5, n=5, delta=3, reason="rest", window_end_ns=1)
+            put(bus, bus.key("decision/selection"), sel)
             switch = await next_of(events, lambda e: e.kind == "switch", timeout=10)
             report = await next_of(cycles, timeout=30)
             await asyncio.wait_for(ex.task, 15)

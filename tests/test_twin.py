@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from common.hrv.stream import HrvStream, match_beats
 from common.sim.twin import Operator, TwinParams
@@ -62,3 +63,19 @@ def test_errors_are_likelier_under_stress_and_the_twin_is_seeded() -> None:
     a, b, c = Operator(TwinParams(seed=5)), Operator(TwinParams(seed=5)), Operator(TwinParams(seed=6))
     assert np.array_equal(a.ecg(0.0, 1000), b.ecg(0.0, 1000))
     assert not np.array_equal(a.ecg(0.0, 1000), c.ecg(0.0, 1000))
+
+
+def test_the_twin_walks_into_the_shared_area_and_out_at_walking_speed() -> None:
+    op = Operator(TwinParams(far_m=3.5, walk_near_m=1.5, walk_m_s=1.0, walk_every_s=45.0, walk_stay_s=4.0))
+    t = np.arange(0.0, 100.0, 0.01)
+    d = np.array([op.separation(x) for x in t])
+    assert np.all(d[t < 45.0] == 3.5) and d.min() == pytest.approx(1.5) and d.max() == 3.5
+    near = t[d <= 1.5 + 1e-9]
+    # walks in for 2 s from 45 s, stays 4 s, walks out for 2 s; again from 90 s
+    assert near.min() == pytest.approx(47.0, abs=0.011) and near[near < 60].max() == pytest.approx(
+        51.0, abs=0.011
+    )
+    assert op.separation(52.0) == pytest.approx(2.5) and op.separation(54.0) == 3.5
+    assert np.abs(np.diff(d)).max() <= 1.0 * 0.01 + 1e-9  # never faster than walking
+    assert {op.separation(x) for x in (10.0, 60.0)} == {3.5}
+    assert Operator(TwinParams(walk_every_s=0.0)).separation(500.0) == TwinParams().far_m

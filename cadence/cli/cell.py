@@ -26,8 +26,15 @@ from cadence.cli._common import (
 )
 from common.runtime.errors import BusError, InputError
 from schemas.base import Message
-from schemas.operator import OperatorError, OperatorSignal
-from schemas.topology import DEFAULT_CELL, OPERATOR_ERROR, OPERATOR_SIGNAL, Topic, validated
+from schemas.operator import OperatorError, OperatorSignal, Separation
+from schemas.topology import (
+    DEFAULT_CELL,
+    OPERATOR_ERROR,
+    OPERATOR_SEPARATION,
+    OPERATOR_SIGNAL,
+    Topic,
+    validated,
+)
 
 if TYPE_CHECKING:
     from common.runtime.bus import Bus
@@ -396,6 +403,60 @@ def cmd_signal(args: argparse.Namespace) -> int:
     """A part placed (or any step's signal), from a person at a terminal: what a button would send."""
     signal = OperatorSignal(t_ns=time.time_ns(), seq=0, name=args.name, source=args.source)
     return _tell_once(args, OPERATOR_SIGNAL, signal)
+
+
+def separation_line(line: str, source: str, seq: int) -> Separation:
+    """``DISTANCE [AGE_S]`` (metres, seconds) as a message; InputError says what is wrong with it."""
+    fields = line.split()
+    if not 1 <= len(fields) <= 2:
+        raise InputError("expected DISTANCE_M [AGE_S]")
+    try:
+        values = [float(f) for f in fields]
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    age = values[1] if len(values) == 2 else 0.0
+    return _checked(Separation(t_ns=time.time_ns(), seq=seq, distance_m=values[0], source=source, age_s=age))
+
+
+@cli.command(
+    "separation",
+    help="publish the nearest person's distance (operator/separation): a sensor's adapter",
+    description="The interface of a cell's safety laser scanner or camera to the executor's speed and "
+    "separation monitoring: DISTANCE in metres once, or - to read one measurement per line from stdin, "
+    "'DISTANCE_M [AGE_S]' (AGE_S: how old it already is, the sensor's latency), each published at once. "
+    "A bad line is reported with its number and skipped. Pipe a driver into it: "
+    "`scanner-driver | cadence separation - --source scanner:front`.",
+)
+@arg("distance", metavar="DISTANCE|-", help="metres, or - for lines on stdin")
+@arg("--source", default="cli", help="the sensor, for the record (default cli)")
+@flags_from(add_bus_flags, 10.0)
+def cmd_separation(args: argparse.Namespace) -> int:
+    """A sensor's distances onto the bus. Unheard, the executor holds the arm (stale separation)."""
+    import asyncio
+    import sys
+
+    from common.runtime.bus import Bus
+
+    if args.distance != "-":
+        return _tell_once(args, OPERATOR_SEPARATION, separation_line(args.distance, args.source, 0))
+
+    async def relay() -> int:
+        bad = 0
+        async with await Bus.open(joining(args), args.cell, role="operator") as bus:
+            pub = bus.publisher(OPERATOR_SEPARATION)
+            n = 0
+            while line := await asyncio.to_thread(sys.stdin.readline):  # the loop stays free meanwhile
+                n += 1
+                if not line.strip():
+                    continue
+                try:
+                    pub.put(separation_line(line, args.source, n))
+                except InputError as exc:
+                    bad += 1
+                    err.print(f"stdin line {n}: {line.strip()!r}: {exc}; skipped", markup=False)
+        return 1 if bad else 0
+
+    return asyncio.run(relay())
 
 
 cli.group(

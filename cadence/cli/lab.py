@@ -144,7 +144,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     out.print(table)
     out.print(
-        f"written: {args.out}/summary.json and a report (index.html, rr_k.png, pareto.png, cycles.png); "
+        f"written: {args.out}/summary.json and a report (index.html, rr_k.png, pareto.png, cycles.png, "
+        "separation.png); "
         f"service logs in {args.out}/logs"
     )
     bad = {n: c for n, c in summary["exit_codes"].items() if c != 0}

@@ -24,6 +24,9 @@ A simulation model for demos and tests, not a claim about real people. Every par
   scale with √RR, as the QT interval does), plus baseline wander and white noise, in µV, so that the
   real R-peak detector has to find the beats.
 - Errors: per cycle, probability error_base + error_pace · max(0, u − tolerance) + error_stress · S.
+- Separation (the distance a safety scanner would measure, ``operator/separation``): ``far_m`` at the
+  operator's own place; every ``walk_every_s`` (data time, from ``walk_every_s`` on) the operator walks
+  into the shared area at ``walk_m_s``, down to ``walk_near_m``, stays ``walk_stay_s`` and walks back out.
 """
 
 from __future__ import annotations
@@ -96,6 +99,12 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     tau_exert_up_s: Positive = 20.0
     tau_exert_down_s: Positive = 25.0
     accelerometer: bool = True  # the strap sends its accelerometer
+    separation: bool = True  # publish the distance to the robot (operator/separation)
+    far_m: Annotated[float, _in(0.0, 100.0)] = 3.5
+    walk_near_m: Annotated[float, _in(0.0, 100.0)] = 1.5
+    walk_m_s: Annotated[float, msgspec.Meta(gt=0.0, le=5.0)] = 1.0
+    walk_every_s: Annotated[float, _in(0.0, 1e6)] = 45.0  # 0: the operator never comes near
+    walk_stay_s: Annotated[float, _in(0.0, 1e6)] = 4.0
 
 
 class Operator:
@@ -204,6 +213,17 @@ class Operator:
         level = np.array([self.movement(t0 + i / fs) for i in range(n)])
         dyn = self._acc_rng.normal(0.0, 1.0, (n, 3)) * (level / math.sqrt(8.0 / math.pi))[:, None]
         return np.rint(GRAVITY_MG + dyn).astype(np.int64)
+
+    def separation(self, t: float) -> float:
+        """The distance to the robot at data time t: a trapezoid from far_m down to walk_near_m and back,
+        once every walk_every_s."""
+        p = self.p
+        if p.walk_every_s <= 0 or t < p.walk_every_s:
+            return p.far_m
+        walk_s = max(0.0, p.far_m - p.walk_near_m) / p.walk_m_s
+        into = (t - p.walk_every_s) % p.walk_every_s  # since this walk in began
+        away = max(walk_s - into, into - (walk_s + p.walk_stay_s), 0.0)  # seconds of walking from near
+        return min(p.far_m, p.walk_near_m + p.walk_m_s * away)
 
     def error_probability(self) -> float:
         p = self.p

@@ -310,6 +310,7 @@ class Cycles:
             finally:
                 self.reactions.running = None
                 self.carried = playback.state()
+                self.reactions.idle_scale = playback.sigma  # what the arm ended at, until the next look
             k = self.k = running.k  # a switch within the path may have changed it
             await asyncio.to_thread(self.backend.motion_ended)
             self.ctx.counters["paths"] += 1

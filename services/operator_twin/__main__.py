@@ -15,21 +15,30 @@ import asyncio
 import logging
 import sys
 from collections.abc import AsyncIterator
+from typing import Annotated
 
 import msgspec
 import numpy as np
 
 from common.runtime.admission import TimeLine
-from common.runtime.node import Node, Out, admitted, node_main, on
+from common.runtime.node import Node, Out, admitted, every, node_main, on
 from common.runtime.service import service_main
 from common.sim.twin import ACC_FS_HZ, Operator, TwinParams
 from schemas.base import Message
 from schemas.ecg import H10_CHUNK as CHUNK
 from schemas.ecg import H10_FS_HZ as FS_HZ
 from schemas.ecg import AccChunk, EcgChunk
-from schemas.operator import OperatorError, OperatorSignal
+from schemas.operator import OperatorError, OperatorSignal, Separation
 from schemas.robot import CycleReport, RobotState
-from schemas.topology import ECG_ACC, ECG_SAMPLES, OPERATOR_ERROR, OPERATOR_SIGNAL, ROBOT_CYCLE, ROBOT_STATE
+from schemas.topology import (
+    ECG_ACC,
+    ECG_SAMPLES,
+    OPERATOR_ERROR,
+    OPERATOR_SEPARATION,
+    OPERATOR_SIGNAL,
+    ROBOT_CYCLE,
+    ROBOT_STATE,
+)
 
 NAME = "operator_twin"
 log = logging.getLogger("cadence.operator_twin")
@@ -39,6 +48,7 @@ STATE_CONFIRM = 25  # half a second of robot states
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     twin: TwinParams = TwinParams()  # the simulated operator's parameters (common/sim/twin.py)
+    separation_period_s: Annotated[float, msgspec.Meta(ge=0.005, le=1.0)] = 0.05  # wall s, as a scanner
 
 
 class OperatorTwin(Node):
@@ -74,6 +84,16 @@ class OperatorTwin(Node):
         seq = self.next_seq(OPERATOR_ERROR)
         return [OperatorError(t_ns=report.t_ns, seq=seq, cycle=report.cycle, description=why,
                               kind="wrong_object", source="twin")]  # fmt: skip
+
+    @every("separation_period_s")
+    async def separation(self) -> Out:
+        """As a safety scanner would: the distance now, at a wall-clock rate (the executor judges its age
+        on the wall clock, whatever the demo's speed)."""
+        if not self.operator.p.separation:
+            return []
+        now = self.clock.now_ns()
+        d = self.operator.separation((now - self.origin_ns) / 1e9)
+        return [Separation(t_ns=now, seq=self.next_seq(OPERATOR_SEPARATION), distance_m=d, source="twin")]
 
     async def stream(self) -> AsyncIterator[Out]:
         """The ECG, chunk by chunk as the strap sends it (a chunk exists once its last sample does), and
