@@ -22,6 +22,7 @@ from schemas import (
     RobotState,
     RrIntervals,
     Selection,
+    Separation,
     ServiceStatus,
 )
 from schemas.pareto import Limits, PathEnd
@@ -65,6 +66,7 @@ SAMPLES = [
     RobotEvent(t_ns=1, seq=11, kind="refused", message="over a limit", path_id="p"),
     ServiceStatus(t_ns=1, seq=12, service="x", state="running", uptime_s=3.0, counters={"decode_errors": 0}),
     OperatorSignal(t_ns=1, seq=13, name="part_a2"),
+    Separation(t_ns=1, seq=14, distance_m=1.8, source="scanner:front", age_s=0.03),
     OperatorError(t_ns=1, seq=14, cycle=3, description="wrong part"),
     AccChunk(t_ns=1, seq=0, fs_hz=25.0, x_mg=[-990, -985], y_mg=[30, 31], z_mg=[-237, -230], source="polar"),
 ]
