@@ -117,6 +117,19 @@ class Ramp:
     def end(self) -> float:
         return self.t0 + self.duration
 
+    def at(self, t: float) -> tuple[float, float]:
+        """s and σ at one playback time, in plain floats: what the servo loop asks every step."""
+        tau = t - self.t0
+        inside = min(max(tau, 0.0), self.duration)
+        c = self.c
+        if tau >= self.duration:
+            sig = self.target
+        else:
+            sig = ((((c[5] * inside + c[4]) * inside + c[3]) * inside + c[2]) * inside + c[1]) * inside + c[0]
+        integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
+            c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
+        return self.s0 + integral + sig * (tau - inside), sig
+
     def state(self, t: Array) -> tuple[Array, Array, Array, Array]:
         """s, σ, σ̇, σ̈ at playback times t ≥ t0."""
         tau = np.clip(np.asarray(t, dtype=float) - self.t0, 0.0, None)

@@ -88,7 +88,7 @@ class Playback:
                 self.ramp = offer[0]
             else:
                 self.missed += 1
-        s, sigma = self._state(t)
+        s, sigma = self.ramp.at(t)
         joined = self.pending_curve
         if joined is not None and s >= joined[0]:
             self.pending_curve = None
@@ -103,18 +103,6 @@ class Playback:
         self.tick += 1
         self.s, self.sigma = s, sigma
         return self.convert(self._point(s))
-
-    def _state(self, t: float) -> tuple[float, float]:
-        r = self.ramp
-        tau = t - r.t0
-        inside = min(max(tau, 0.0), r.duration)
-        c = r.c
-        sig = ((((c[5] * inside + c[4]) * inside + c[3]) * inside + c[2]) * inside + c[1]) * inside + c[0]
-        integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
-            c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
-        if tau >= r.duration:
-            sig = r.target
-        return r.s0 + integral + sig * (tau - inside), sig
 
     def _point(self, s: float) -> Array:
         starts, spans = self.curve.starts, len(self.curve.starts)
