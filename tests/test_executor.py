@@ -377,14 +377,20 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
             near = await next_of(
                 states, lambda s: s.scale == 0.0 and s.separation_m == 0.6 and max(map(abs, s.qd)) < 1e-4, 10
             )
+            # a new selection while held: it waits for the arm to move again, and the scale does not
+            # wait for it (the demo once held an arm for good so)
+            sel = Selection(t_ns=time.time_ns(), seq=1, k=5, n=5, delta=3, reason="rest", window_end_ns=1)
+            put(bus, bus.key("decision/selection"), sel)
             still = await next_of(states, lambda s: s.t_ns > near.t_ns + 300_000_000)
             np.testing.assert_allclose(still.q, near.q, atol=1e-4)  # held on the path
             distance[0] = 5.0
-            # in "back", a new selection: the rest of the path at k = 5
+            await next_of(states, lambda s: s.scale == 1.0 and s.t_ns > still.t_ns, 10)
+            held_switch = await next_of(events, lambda e: e.kind == "switch", timeout=10)
+            # in "back", at full speed, another: the rest of the path at k = 3
             await next_of(
                 states, lambda s: s.path_id == "back" and s.state == "moving" and s.scale == 1.0, 20
             )
-            sel = Selection(t_ns=time.time_ns(), seq=1, k=5, n=5, delta=3, reason="rest", window_end_ns=1)
+            sel = Selection(t_ns=time.time_ns(), seq=2, k=3, n=5, delta=-2, reason="stress", window_end_ns=2)
             put(bus, bus.key("decision/selection"), sel)
             switch = await next_of(events, lambda e: e.kind == "switch", timeout=10)
             report = await next_of(cycles, timeout=30)
@@ -392,6 +398,6 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
         finally:
             feeding.cancel()
             await store.close()
-    assert "k 2 → 5 within 'back'" in switch.message
-    assert report.k_per_path == {"there": 2, "back": 5}
+    assert "k 2 → 5 within 'there'" in held_switch.message and "k 5 → 3 within 'back'" in switch.message
+    assert report.k_per_path == {"there": 5, "back": 3}
     assert ex.ctx.counters["protective_stops"] == 0 and ex.ctx.counters["ramps"] >= 4

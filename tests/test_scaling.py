@@ -11,7 +11,17 @@ import pytest
 from common.separation import Ssm, link_points, path_speed
 from common.sim.arm import forward_kinematics
 from common.trajectory.planner import ParetoResult, plan_path
-from common.trajectory.scaling import DT, Curve, Ramp, commanded, plan_ramp, stop_time, switch_curve
+from common.trajectory.scaling import (
+    DT,
+    LIMIT_RTOL,
+    Curve,
+    Ramp,
+    commanded,
+    plan_ramp,
+    ramp_ratio,
+    stop_time,
+    switch_curve,
+)
 from common.trajectory.task import PathPlan, load_task
 from services.executor.playback import Playback
 from tests.conftest import EXAMPLE_TASK
@@ -213,3 +223,36 @@ def test_a_switch_offered_after_its_point_is_refused_and_one_planned_on_another_
     other = Curve.of(result.solutions[2].h, path)
     ahead = switch_curve(other, path, result.solutions[9].h, pb.s + 0.05, LIMITS)
     assert ahead is not None and not pb.offer_curve(pb.s + 0.05, ahead.curve, other)
+
+
+def test_a_ramp_from_a_hold_with_a_switch_pending_keeps_both_curves_inside_the_limits(
+    planned: tuple[PathPlan, ParetoResult],
+) -> None:
+    """A selection that comes while the arm is held waits, joined, for the arm to move: the ramp that frees
+    the arm is run on the joined curve from the switch on, so it is chosen inside the limits on both (the
+    demo once kept an arm held for good when the first ramp fit the old curve only and was refused)."""
+    path, result = planned
+    slow = Curve.of(result.solutions[0].h, path)
+    pb = Playback(slow, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy())
+    for _ in range(400):
+        pb.next()
+    stop = plan_ramp(slow, pb.ramp, pb.t + 0.02, 0.0, LIMITS)
+    assert stop is not None and pb.offer_ramp(stop, pb.ramp)
+    while pb.t < stop.end + 0.1:
+        pb.next()
+    assert pb.sigma == 0.0
+    sw = switch_curve(slow, path, result.solutions[-1].h, pb.s + 0.005, LIMITS)  # to k = N, on the limits
+    assert sw is not None and pb.offer_curve(sw.s_switch, sw.curve, slow)
+    mine = plan_ramp(slow, pb.ramp, pb.t + 0.02, 1.0, LIMITS)  # fits the slow curve only
+    assert mine is not None and ramp_ratio(sw.curve, mine, LIMITS) > 1.1
+    free = plan_ramp(slow, pb.ramp, pb.t + 0.02, 1.0, LIMITS, also=[sw.curve])
+    assert free is not None
+    assert (
+        ramp_ratio(slow, free, LIMITS) <= 1 + LIMIT_RTOL
+        and ramp_ratio(sw.curve, free, LIMITS) <= 1 + LIMIT_RTOL
+    )
+    assert pb.offer_ramp(free, pb.ramp)
+    q, _ = run(pb, lambda t: None)
+    assert pb.curve is sw.curve and pb.missed == 0 and pb.done
+    fd = finite_difference_ratios(q)
+    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1, fd

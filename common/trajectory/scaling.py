@@ -21,6 +21,7 @@ is in path time, so it composes with the scaling: the commanded motion stays con
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,19 +193,23 @@ def ramp_duration(curve: Curve, limits: JointLimits, delta: float) -> float:
                      np.sqrt(_P2 * d * np.max(curve.speed / limits.jerk))))  # fmt: skip
 
 
-def plan_ramp(curve: Curve, current: Ramp, t_min: float, sigma1: float, limits: JointLimits) -> Ramp | None:
+def plan_ramp(
+    curve: Curve, current: Ramp, t_min: float, sigma1: float, limits: JointLimits, also: Sequence[Curve] = ()
+) -> Ramp | None:
     """The earliest-finishing ramp to ``sigma1`` starting at or after ``t_min`` (a controller step) whose
-    commanded samples stay inside the limits; None when none of the candidates does."""
+    commanded samples stay inside the limits, on ``curve`` and on each of ``also`` (a switched curve the
+    loop may take during the ramp); None when none of the candidates does."""
+    curves = [curve, *also]
     candidates = []
     for delay in DELAYS_S:
         t0 = float(np.ceil((t_min + delay) / DT - 1e-9) * DT)
         s0, sig, sd, sdd = (float(x[0]) for x in current.state(np.array([t0])))
-        base = ramp_duration(curve, limits, sigma1 - sig)
+        base = max(ramp_duration(c, limits, sigma1 - sig) for c in curves)
         for stretch in STRETCH:
             candidates.append((t0 + base * stretch, t0, s0, (sig, sd, sdd), base * stretch))
     for _, t0, s0, start, duration in sorted(candidates, key=lambda c: c[0]):
         ramp = Ramp.between(t0, s0, start, sigma1, duration)
-        if ramp_ratio(curve, ramp, limits) <= 1.0 + LIMIT_RTOL:
+        if all(ramp_ratio(c, ramp, limits) <= 1.0 + LIMIT_RTOL for c in curves):
             return ramp
     return None
 

@@ -132,15 +132,8 @@ class Reactions:
         base = pb.ramp
         t_min = pb.t + LEAD_S * self.node.ctx.common.speed  # playback time runs at the clock's speed
         joined = pb.pending_curve  # one read: the loop may take it meanwhile
-        curves = [pb.curve] + ([joined[1]] if joined is not None else [])
-
-        def plan() -> Ramp | None:
-            ramp = plan_ramp(curves[0], base, t_min, sigma, self.limits)
-            if ramp is None or any(ramp_ratio(c, ramp, self.limits) > 1 + LIMIT_RTOL for c in curves[1:]):
-                return None
-            return ramp
-
-        ramp = await asyncio.to_thread(plan)
+        also = [joined[1]] if joined is not None else []
+        ramp = await asyncio.to_thread(plan_ramp, pb.curve, base, t_min, sigma, self.limits, also)
         if ramp is None:
             self.node.ctx.counters["ramps_refused"] += 1
             return
@@ -176,9 +169,12 @@ class Reactions:
     async def switch(self, k: int, h_new: np.ndarray, wanted: Callable[[], int]) -> bool:
         """Re-time the rest of the running path with solution ``k`` (its intervals ``h_new``), from
         ``switch_lead_s`` ahead. ``wanted()`` says the k wanted now: a newer selection wins. True when
-        the loop took it."""
-        async with self.lock:
-            for _ in range(3):  # the loop may pass the switch point while it is planned: try again
+        the loop took it.
+
+        The lock covers the planning and the offer only: a held arm (σ = 0) reaches the switch point only
+        when the scale rises again, and that ramp needs the lock."""
+        for _ in range(3):  # the loop may pass the switch point while it is planned: try again
+            async with self.lock:
                 r = self.running
                 if r is None or wanted() != k or k == r.k:
                     return False
@@ -193,15 +189,14 @@ class Reactions:
                     )
                     self.safety.event("info", why, r.path.id)
                     return False
-                missed = pb.missed
                 if not pb.offer_curve(s_switch, joined, base):
                     continue
-                while pb.pending_curve is not None and not pb.finished:  # the loop takes it at s_switch
-                    await asyncio.sleep(DT)
-                if pb.missed == missed and pb.curve is joined:
-                    text = (f"k {r.k} → {k} within '{r.path.id}' at s = {s_switch:.3f} s of "
-                            f"{base.t_f:.3f} s; it now ends at {joined.t_f:.3f} s")  # fmt: skip
-                    self.safety.event("switch", text, r.path.id)
-                    r.k = k
-                    return True
-            return False
+            while pb.pending_curve is not None and not pb.finished and self.running is r:
+                await asyncio.sleep(DT)  # the loop takes it at s_switch
+            if pb.curve is joined:
+                text = (f"k {r.k} → {k} within '{r.path.id}' at s = {s_switch:.3f} s of "
+                        f"{base.t_f:.3f} s; it now ends at {joined.t_f:.3f} s")  # fmt: skip
+                self.safety.event("switch", text, r.path.id)
+                r.k = k
+                return True
+        return False
