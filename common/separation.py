@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from common.sim.arm import DH_A, DH_ALPHA, DH_D
 
 Array = NDArray[np.float64]
+QUANTUM = 0.05  # σ is chosen in steps of this (rounded down: the safe side), so a walk is a few ramps
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +60,11 @@ class Ssm:
         if path_speed_m_s <= 0.0:
             return 1.0
         return min(1.0, self.allowed_speed(separation_m) / path_speed_m_s)
+
+
+def stepped(sigma: float) -> float:
+    """σ as the executor asks for it: 1, or rounded down to a step of ``QUANTUM``."""
+    return 1.0 if sigma >= 1.0 else math.floor(sigma / QUANTUM + 1e-9) * QUANTUM
 
 
 def link_points(q: Array) -> Array:

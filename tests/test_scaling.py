@@ -3,12 +3,10 @@ driven through the servo loop's playback one controller step at a time, every co
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
-from common.separation import Ssm, link_points, path_speed
+from common.separation import Ssm, link_points, path_speed, stepped
 from common.sim.arm import forward_kinematics
 from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.scaling import (
@@ -50,8 +48,7 @@ class Monitor:
         self.pb, self.ssm, self.top = pb, ssm, top_speed
 
     def wanted(self, distance: float | None, age: float) -> float:
-        sigma = self.ssm.scale(distance, age, self.top)
-        return 1.0 if sigma >= 1.0 else math.floor(sigma / 0.05) * 0.05
+        return stepped(self.ssm.scale(distance, age, self.top))
 
     def step(self, distance: float | None, age: float) -> None:
         pb = self.pb
@@ -87,6 +84,10 @@ def test_the_protective_distance_is_iso_ts_15066_eq_1_and_its_inverse() -> None:
     assert ssm.scale(ssm.protective_distance(0.6), 0.0, 1.2) == pytest.approx(0.5)
     assert ssm.scale(5.0, ssm.max_age_s + 0.01, 1.0) == 0.0  # stale: as if the person were at the robot
     assert ssm.scale(None, 0.0, 1.0) == 0.0
+    # asked for in steps, rounded down (slower), where a step is meant exactly despite round-off
+    assert [stepped(x) for x in (1.3, 1.0, 0.999, 3 * 0.05, 0.1499, 0.04, 0.0)] == pytest.approx(
+        [1.0, 1.0, 0.95, 0.15, 0.1, 0.0, 0.0]
+    )
 
 
 def test_link_points_end_at_the_tcp_and_path_speed_is_the_fastest_point() -> None:

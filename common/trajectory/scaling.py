@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +34,7 @@ from common.trajectory.task import PathPlan
 from common.trajectory.validate import trajectory_problems
 
 Array = NDArray[np.float64]
+_X = TypeVar("_X", float, Array)
 DT = 0.002  # one controller step: the playback's time step
 LIMIT_RTOL = 1e-6  # slack on a commanded sample's limit (round-off of the chain rule)
 
@@ -83,6 +85,19 @@ class Curve:
         )
 
 
+Coefficients = tuple[float, float, float, float, float, float]
+
+
+def _sigma(c: Coefficients, x: _X) -> _X:
+    """σ at ramp time x (a float for the servo loop, an array for the checks: the same arithmetic)."""
+    return ((((c[5] * x + c[4]) * x + c[3]) * x + c[2]) * x + c[1]) * x + c[0]
+
+
+def _integral(c: Coefficients, x: _X) -> _X:
+    """∫₀ˣ σ: the path time gained during the ramp."""
+    return x * (c[0] + x * (c[1] / 2 + x * (c[2] / 3 + x * (c[3] / 4 + x * (c[4] / 5 + x * c[5] / 6)))))
+
+
 @dataclass(frozen=True, slots=True)
 class Ramp:
     """σ(τ) = Σ c_k τ^k on [0, duration] from t0 (the playback's time), then σ(end) for ever; s(t0) = s0.
@@ -93,7 +108,7 @@ class Ramp:
     t0: float
     duration: float
     s0: float
-    c: tuple[float, float, float, float, float, float]
+    c: Coefficients
     target: float  # σ at the end and after: exactly, not the quintic's round-off of it
 
     @classmethod
@@ -122,28 +137,24 @@ class Ramp:
         """s and σ at one playback time, in plain floats: what the servo loop asks every step."""
         tau = t - self.t0
         inside = min(max(tau, 0.0), self.duration)
-        c = self.c
-        if tau >= self.duration:
-            sig = self.target
-        else:
-            sig = ((((c[5] * inside + c[4]) * inside + c[3]) * inside + c[2]) * inside + c[1]) * inside + c[0]
-        integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
-            c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
-        return self.s0 + integral + sig * (tau - inside), sig
+        sig = self.target if tau >= self.duration else _sigma(self.c, inside)
+        return self.s0 + _integral(self.c, inside) + sig * (tau - inside), sig
 
     def state(self, t: Array) -> tuple[Array, Array, Array, Array]:
         """s, σ, σ̇, σ̈ at playback times t ≥ t0."""
         tau = np.clip(np.asarray(t, dtype=float) - self.t0, 0.0, None)
         inside = np.minimum(tau, self.duration)
         c = self.c
-        sig = ((((c[5] * inside + c[4]) * inside + c[3]) * inside + c[2]) * inside + c[1]) * inside + c[0]
         sd = (((5 * c[5] * inside + 4 * c[4]) * inside + 3 * c[3]) * inside + 2 * c[2]) * inside + c[1]
         sdd = ((20 * c[5] * inside + 12 * c[4]) * inside + 6 * c[3]) * inside + 2 * c[2]
-        integral = inside * (c[0] + inside * (c[1] / 2 + inside * (c[2] / 3 + inside * (c[3] / 4 + inside * (
-            c[4] / 5 + inside * c[5] / 6)))))  # fmt: skip
         after = tau >= self.duration
-        s = self.s0 + integral + self.target * (tau - inside)
-        return s, np.where(after, self.target, sig), np.where(after, 0.0, sd), np.where(after, 0.0, sdd)
+        s = self.s0 + _integral(c, inside) + self.target * (tau - inside)
+        return (
+            s,
+            np.where(after, self.target, _sigma(c, inside)),
+            np.where(after, 0.0, sd),
+            np.where(after, 0.0, sdd),
+        )
 
     def rebased(self, t: float) -> Ramp:
         """The same σ-state at playback time ``t``, as a ramp of a new playback that starts there with

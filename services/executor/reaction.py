@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from common.runtime.node import Node
-from common.separation import Ssm, path_speed
+from common.separation import Ssm, path_speed, stepped
 from common.trajectory.limits import JointLimits
 from common.trajectory.scaling import (
     DT,
@@ -36,7 +36,6 @@ from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
 
 log = logging.getLogger("cadence.executor")
-QUANTUM = 0.05  # σ is chosen in steps of this (rounded down: the safe side), so a walk is a few ramps
 RAISE_BY = 0.1  # a higher σ is taken only when it is this much higher (or 1): no ramp per centimetre
 LEAD_S = 0.02  # a ramp starts at least this far ahead of the loop (wall s): time to plan and hand it over
 
@@ -92,7 +91,7 @@ class Reactions:
         age = self.age_s()
         distance = None if self.separation is None or age is None else self.separation.distance_m
         sigma = ssm.scale(distance, age if age is not None else np.inf, speed_m_s)
-        return 1.0 if sigma >= 1.0 else float(np.floor(sigma / QUANTUM) * QUANTUM)
+        return stepped(sigma)
 
     def scale_now(self) -> float:
         r = self.running
