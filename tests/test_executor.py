@@ -401,3 +401,52 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
     assert "k 2 → 5 within 'there'" in held_switch.message and "k 5 → 3 within 'back'" in switch.message
     assert report.k_per_path == {"there": 5, "back": 3}
     assert ex.ctx.counters["protective_stops"] == 0 and ex.ctx.counters["ramps"] >= 4
+
+
+async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm(
+    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The scale's task outlives a failure of one look (here: planning a ramp raises once): it says so, and
+    the next look slows the arm for the person as ever."""
+    import services.executor.reaction as reaction
+
+    real, calls = reaction.plan_ramp, []
+
+    def flaky(*args: object, **kwargs: object) -> object:
+        calls.append(args[3])
+        if len(calls) == 1:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(reaction, "plan_ramp", flaky)
+    distance = [5.0]
+
+    async def sensor(bus: Bus) -> None:
+        seq = 0
+        while True:
+            sep = Separation(t_ns=time.time_ns(), seq=seq, distance_m=distance[0], source="test")
+            put(bus, bus.key("operator/separation"), sep)
+            seq += 1
+            await asyncio.sleep(0.03)
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        feeding = asyncio.create_task(sensor(bus))
+        settings = sim_settings(task_file, separation=True)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        try:
+            await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
+            distance[0] = 0.6
+            said = await next_of(
+                events, lambda e: e.kind == "info" and "could not be planned" in e.message, 10
+            )
+            held = await next_of(states, lambda s: s.scale == 0.0 and max(map(abs, s.qd)) < 1e-4, 10)
+            ex.ctx.stop.set()
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+    assert "LinAlgError('Singular matrix')" in said.message and held.separation_m == 0.6
+    assert ex.ctx.counters["scale_errors"] == 1 and len(calls) >= 2 and calls[1] == calls[0]  # tried again

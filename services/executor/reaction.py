@@ -106,25 +106,38 @@ class Reactions:
         return carried
 
     async def keep_scale(self) -> None:
-        """Every ``scale_period_s``: the σ wanted for the distance now, planned as a ramp when it differs."""
+        """Every ``scale_period_s``: the σ wanted for the distance now, planned as a ramp when it differs.
+        A look that fails is said and tried again at the next: this task dying would leave the arm at
+        whatever scale it had, near a person or not."""
         period = self.settings.scale_period_s
         while not self.node.ctx.stop.is_set():
             await asyncio.sleep(period)
-            r = self.running
-            if r is None:
-                self.idle_scale = self.wanted(self.ssm, self.last_speed_m_s)
-                self.say_zone(self.idle_scale)
-                continue
-            self.last_speed_m_s = r.speed_m_s
-            wanted = self.wanted(r.ssm, r.speed_m_s)
-            self.say_zone(wanted)
-            pb = r.playback
-            pending = pb.pending_ramp
-            current = (pending[0] if pending is not None else pb.ramp).target
-            if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
-                continue
-            async with self.lock:
-                await self.offer_ramp(r, wanted)
+            try:
+                await self.look()
+            except Exception as e:  # any failure of one look: the next one runs
+                self.node.ctx.counters["scale_errors"] += 1
+                if self.node.ctx.counters["scale_errors"] == 1:  # the traceback once, not 50 times a second
+                    log.exception("the scale's look failed")
+                r = self.running
+                self.safety.event("info", f"the time scale could not be planned ({e!r}): trying again",
+                                  r.path.id if r else None)  # fmt: skip
+
+    async def look(self) -> None:
+        r = self.running
+        if r is None:
+            self.idle_scale = self.wanted(self.ssm, self.last_speed_m_s)
+            self.say_zone(self.idle_scale)
+            return
+        self.last_speed_m_s = r.speed_m_s
+        wanted = self.wanted(r.ssm, r.speed_m_s)
+        self.say_zone(wanted)
+        pb = r.playback
+        pending = pb.pending_ramp
+        current = (pending[0] if pending is not None else pb.ramp).target
+        if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
+            return
+        async with self.lock:
+            await self.offer_ramp(r, wanted)
 
     async def offer_ramp(self, r: Running, sigma: float) -> None:
         pb = r.playback
