@@ -331,6 +331,17 @@ async def test_a_bad_task_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.toml" in r.stderr and "speed" in r.stderr
 
 
+async def sensor(bus: Bus, distance: list[float | None]) -> None:
+    """A distance sensor at about 33 Hz: ``distance[0]``, or silent while it is None."""
+    seq = 0
+    while True:
+        if distance[0] is not None:
+            sep = Separation(t_ns=time.time_ns(), seq=seq, distance_m=distance[0], source="test")
+            put(bus, bus.key("operator/separation"), sep)
+            seq += 1
+        await asyncio.sleep(0.03)
+
+
 async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_over_within_a_path(
     task_file: Path, tmp_path: Path, endpoint: str
 ) -> None:
@@ -338,16 +349,6 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
     and frees the arm within a path; a silent sensor holds it; a selection during a path takes effect in
     it (a "switch" event, and the cycle reports the new k for that path)."""
     distance: list[float | None] = [None]
-
-    async def sensor(bus: Bus) -> None:
-        seq = 0
-        while True:
-            if distance[0] is not None:
-                sep = Separation(t_ns=time.time_ns(), seq=seq, distance_m=distance[0], source="test")
-                put(bus, bus.key("operator/separation"), sep)
-                seq += 1
-            await asyncio.sleep(0.03)
-
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
@@ -355,7 +356,7 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file, separation=True, initial_k=2)
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
-        feeding = asyncio.create_task(sensor(bus))
+        feeding = asyncio.create_task(sensor(bus, distance))
         try:
             # no distance yet: the path has begun, and holds at its start
             first = await next_of(states, lambda s: s.state == "moving" and s.path_id == "there")
@@ -419,21 +420,12 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
         return real(*args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(reaction, "plan_ramp", flaky)
-    distance = [5.0]
-
-    async def sensor(bus: Bus) -> None:
-        seq = 0
-        while True:
-            sep = Separation(t_ns=time.time_ns(), seq=seq, distance_m=distance[0], source="test")
-            put(bus, bus.key("operator/separation"), sep)
-            seq += 1
-            await asyncio.sleep(0.03)
-
+    distance: list[float | None] = [5.0]
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
-        feeding = asyncio.create_task(sensor(bus))
+        feeding = asyncio.create_task(sensor(bus, distance))
         settings = sim_settings(task_file, separation=True)
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
         try:
