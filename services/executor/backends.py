@@ -42,6 +42,7 @@ class Backend(Protocol):
     def reconnect(self) -> None: ...  # restore the link only; a protective stop stays
     def reset_fault(self) -> None: ...  # a person's resume: unlock a protective stop, restart control
     def prepare(self, q: Array) -> Sequence[object]: ...  # the targets in the form servo takes
+    def target(self, q: Array) -> object: ...  # one row in that form, touching nothing (the servo thread's)
     def servo(self, target: object) -> bool: ...
     def brake(self) -> bool: ...
     def settled(self, target: object) -> bool: ...
@@ -107,6 +108,9 @@ class SimBackend:
 
     def prepare(self, q: Array) -> Sequence[object]:
         return list(np.ascontiguousarray(q, dtype=float))  # row views: indexing allocates nothing
+
+    def target(self, q: Array) -> object:
+        return q
 
     def servo(self, target: object) -> bool:
         return self.arm.servo(cast(Array, target), self.lookahead, self.gain)  # what prepare gave: a row
@@ -263,6 +267,9 @@ class UrRtdeBackend:
             self._c.setWatchdog(self.watchdog_hz)
             self._watchdog = True
         return np.asarray(q, dtype=float).tolist()
+
+    def target(self, q: Array) -> object:
+        return q.tolist()
 
     def servo(self, target: object) -> bool:
         # The receive interface sees a vanished controller at once (its reader thread gets EOF). Asking

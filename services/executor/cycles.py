@@ -40,14 +40,6 @@ log = logging.getLogger("cadence.executor")
 RATE_HZ = 500.0
 
 
-def _as_list(q: np.ndarray) -> object:
-    return q.tolist()
-
-
-def _as_row(q: np.ndarray) -> object:
-    return q
-
-
 class Signals:
     """Operator signals by name. A ``wait_for`` is met by a signal that arrived since the last wait for
     the same name, so a part put down before the robot got there is not missed. Only the names the task
@@ -310,10 +302,10 @@ class Cycles:
             await asyncio.to_thread(self.store.applied, self.selection)
             self.safety.path_id, self.k = pid, k
             # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
-            # converted to the form prepare gives (a list for ur_rtde, the row for the sim), touching nothing
-            listed = isinstance(self.backend.prepare(own.waypoints[:1])[0], list)
+            # converted to the form servo takes (backend.target), touching nothing
+            self.backend.prepare(own.waypoints[:1])
             playback = Playback(curve, self.reactions.start_ramp(own, self.carried, ssm, top),
-                                _as_list if listed else _as_row)  # fmt: skip
+                                self.backend.target)  # fmt: skip
             running = self.reactions.running = Running(own, playback, ssm, top, k)
             settle = round(self.settings.settle_s * RATE_HZ)
             try:
