@@ -191,8 +191,13 @@ def movement_row(run: Run) -> str:
             "for movement")  # fmt: skip
 
 
+def monitored(rows: list[dict]) -> bool:
+    """Whether the run had speed and separation monitoring: a distance in its scale trace."""
+    return any(r["separation_m"] is not None for r in rows)
+
+
 def scale_summary(rows: list[dict]) -> str:
-    if not any(r["separation_m"] is not None for r in rows):
+    if not monitored(rows):
         return "no separation monitoring: as planned throughout"
     t = np.array([r["t_s"] for r in rows])
     sc = np.array([r["scale"] for r in rows])
@@ -254,7 +259,7 @@ def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[st
             pick = [with_k[0], with_k[-1]] if len(with_k) > 1 else with_k[:1]
             write_readable(out / "cycles.png", cycle_kinematics_figure(run.sets, pick))
             written.append("cycles.png")
-    if any(r["separation_m"] is not None for r in run.scale):
+    if monitored(run.scale):
         write_readable(out / "separation.png", separation_figure(run.scale, idle))
         written.append("separation.png")
     write_readable(out / "index.html", _html(run, written).encode())
