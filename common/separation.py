@@ -17,17 +17,39 @@ Solved for the largest v_r whose S_p fits the measured separation S:
 v_r is the speed of the fastest point of the arm; the path's own top speed at σ = 1 (``path_speed``) turns
 it into σ. Unknown separation (none yet, or older than ``max_age_s``) is read as a person at the robot:
 σ = 0, the arm holds its place on the path until a fresh distance frees it.
+
+Which distance (``Sources``): every fresh reading of every source counts, and the nearest wins. A far
+reading, from a second sensor, a rogue publisher or one under a real sensor's own name, can never hide a
+near one while that is fresh; a wrong near one can only slow the arm. Fresh is judged on the receiver's
+clock twice over: by the sender's stamp (``now − t_ns + age_s``) and by arrival (a reading lives at most
+``max_age_s`` from the moment it came, less the age it came with), so neither a sender's clock that runs
+ahead nor a late relay makes a reading live longer. A stamp ahead of the receiver's clock by more than the
+cell's skew bound is refused, not clamped. A source declared in the settings that has no fresh reading
+holds the arm even while others speak: a scanner that died is not a scanner that sees nobody.
+
+T_r, the reaction time, is the sum of what lies between a person's move and the arm's answer to it (the
+executor's settings, README "Separation"): the sensor's own latency where its messages do not carry it
+(``age_s``), the oldest reading accepted (``max_age_s``: the adapter, the bus and the wait for the next
+look are inside it, for a reading older than that is not used), the clock skew between hosts (a stamp may
+say a reading is younger than it is by that much), the lead of a ramp (it starts a little ahead of the
+loop), and the robot's own command delay (servoJ's lookahead: the arm follows its target that much later).
+T_s is the longest stop of the path actually played (``common/trajectory/scaling.stop_time``, from every
+controller step), and v_r its top link speed; a switch to another solution within a path is taken only at
+the σ the distance allows on the joined curve, with the joined curve's T_s and v_r.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from common.sim.arm import DH_A, DH_ALPHA, DH_D
+from common.trajectory.limits import JointLimits
+from common.trajectory.scaling import Curve, stop_time
 
 Array = NDArray[np.float64]
 QUANTUM = 0.05  # σ is chosen in steps of this (rounded down: the safe side), so a walk is a few ramps
@@ -92,3 +114,127 @@ def path_speed(q: Array, dt: float) -> float:
         return 0.0
     p = link_points(q)
     return float(np.linalg.norm(np.diff(p, axis=0), axis=2).max() / dt)
+
+
+@dataclass(frozen=True, slots=True)
+class Figures:
+    """What S_p needs of the curve being played: its top link speed at σ = 1 (v_r / σ) and its longest stop
+    (T_s), both from path time ``s_from`` on."""
+
+    speed_m_s: float
+    stop_time_s: float
+
+    @classmethod
+    def of(cls, curve: Curve, limits: JointLimits, s_from: float = 0.0, dt: float = 0.002) -> Figures:
+        """Before the curve is played (a path's, or a joined one before a switch is accepted): in a worker
+        thread, some tenths of a second for a long path."""
+        s = np.append(np.arange(s_from, curve.t_f, dt), curve.t_f)
+        return cls(path_speed(curve.at(s, order=0)[0], dt), stop_time(curve, limits, s_from))
+
+    def worst(self, other: Figures) -> Figures:
+        """The conservative reading of two (a switch pending: either curve may be played)."""
+        return Figures(max(self.speed_m_s, other.speed_m_s), max(self.stop_time_s, other.stop_time_s))
+
+    def ssm(self, base: Ssm) -> Ssm:
+        return replace(base, stop_time_s=max(base.stop_time_s, self.stop_time_s))
+
+    def scale(self, base: Ssm, distance_m: float | None) -> float:
+        """σ, stepped, for a person at ``distance_m`` (None: unknown, a hold)."""
+        return stepped(self.ssm(base).scale(distance_m, 0.0, self.speed_m_s))
+
+
+OTHERS = "(others)"  # where readings of sources past ``max_sources`` are kept, together
+
+
+@dataclass(slots=True)
+class _Readings:
+    """One source's fresh readings that can still be the nearest: (fresh until, distance), fresh until
+    rising, distance rising (a reading farther than a later-expiring one can never be the nearest)."""
+
+    kept: deque[tuple[float, float]] = field(default_factory=deque)
+
+    def add(self, until: float, distance: float, keep: int) -> None:
+        if any(u >= until and d <= distance for u, d in self.kept):
+            return  # one as near that lives as long: this one never wins
+        kept = deque((u, d) for u, d in self.kept if not (u <= until and d >= distance))
+        i = next((n for n, (u, _) in enumerate(kept) if u > until), len(kept))
+        kept.insert(i, (until, distance))
+        while len(kept) > keep:  # a flood: the two latest become one, nearer and longer-lived (safe side)
+            u2, d2 = kept.pop()
+            u1, d1 = kept.pop()
+            kept.append((max(u1, u2), min(d1, d2)))
+        self.kept = kept
+
+    def nearest(self, now: float) -> float | None:
+        while self.kept and self.kept[0][0] < now:
+            self.kept.popleft()
+        return self.kept[0][1] if self.kept else None
+
+
+@dataclass(frozen=True, slots=True)
+class Nearest:
+    distance_m: float | None  # None: hold the arm
+    source: str  # whose reading it is, or what holds the arm
+    why: str = ""  # when None: why, in words
+
+
+class Sources:
+    """The distances of every source, the nearest fresh one winning (module docstring). Times are the
+    receiver's clock in seconds (``now``); a reading's age comes with it.
+
+    ``declared``: sources that must each have a fresh reading, or the arm holds. ``keep`` bounds what one
+    source keeps and ``max_sources`` how many names are told apart; past either, readings are merged on the
+    safe side (the nearer distance, the longer life), never dropped."""
+
+    def __init__(
+        self,
+        max_age_s: float,
+        skew_s: float,
+        declared: tuple[str, ...] = (),
+        keep: int = 32,
+        max_sources: int = 32,
+    ) -> None:
+        self.max_age_s, self.skew_s, self.declared = max_age_s, skew_s, tuple(declared)
+        self.keep, self.max_sources = keep, max_sources
+        self.readings: dict[str, _Readings] = {name: _Readings() for name in self.declared}
+        self.heard = False
+
+    def admit(
+        self, source: str, distance_m: float, stamp_age_s: float, sensor_age_s: float, now: float
+    ) -> str:
+        """Take one reading: ``stamp_age_s`` is the receiver's clock minus the sender's stamp (negative: the
+        stamp is ahead), ``sensor_age_s`` the age it says it had when stamped. Returns "" when taken, else
+        why not: "ahead" (stamped ahead of the receiver's clock by more than the skew), "stale" (too old
+        already), "far" (not a number)."""
+        if stamp_age_s < -self.skew_s:
+            return "ahead"
+        if not math.isfinite(distance_m):
+            return "far"
+        age = max(stamp_age_s, 0.0) + sensor_age_s
+        if age >= self.max_age_s:
+            return "stale"
+        if source not in self.readings and len(self.readings) >= self.max_sources:
+            source = OTHERS
+        self.readings.setdefault(source, _Readings()).add(now + self.max_age_s - age, distance_m, self.keep)
+        self.heard = True
+        return ""
+
+    def nearest(self, now: float) -> Nearest:
+        best: tuple[float, str] | None = None
+        silent = []
+        for name, readings in list(self.readings.items()):
+            d = readings.nearest(now)
+            if d is None:
+                if name in self.declared:
+                    silent.append(name)
+                else:
+                    del self.readings[name]  # heard again, it is tracked again
+                continue
+            if best is None or d < best[0]:
+                best = (d, name)
+        if silent:
+            return Nearest(None, silent[0], f"no fresh distance from {', '.join(silent)} (declared)")
+        if best is None:
+            old = f"the last separation is over {self.max_age_s:.2f} s old"
+            return Nearest(None, "", old if self.heard else "no separation yet")
+        return Nearest(best[0], best[1])

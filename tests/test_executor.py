@@ -409,9 +409,9 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
 ) -> None:
     """The scale's task outlives a failure of one look (here: planning a ramp raises once): it says so, and
     the next look slows the arm for the person as ever."""
-    import services.executor.reaction as reaction
+    import services.executor.pathrun as pathrun
 
-    real, calls = reaction.plan_ramp, []
+    real, calls = pathrun.plan_ramp, []
 
     def flaky(*args: object, **kwargs: object) -> object:
         calls.append(args[3])
@@ -419,7 +419,7 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
             raise np.linalg.LinAlgError("Singular matrix")
         return real(*args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(reaction, "plan_ramp", flaky)
+    monkeypatch.setattr(pathrun, "plan_ramp", flaky)
     distance: list[float | None] = [5.0]
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)

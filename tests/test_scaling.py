@@ -21,7 +21,7 @@ from common.trajectory.scaling import (
     switch_curve,
 )
 from common.trajectory.task import PathPlan, load_task
-from services.executor.playback import Playback
+from services.executor.playback import Playback, Switch
 from tests.conftest import EXAMPLE_TASK
 
 TASK = load_task(EXAMPLE_TASK)
@@ -52,12 +52,11 @@ class Monitor:
 
     def step(self, distance: float | None, age: float) -> None:
         pb = self.pb
-        target = (pb.pending_ramp[0] if pb.pending_ramp else pb.ramp).target
         want = self.wanted(distance, age)
-        if abs(want - target) > 1e-9:
+        if abs(want - pb.now.target) > 1e-9:
             ramp = plan_ramp(pb.curve, pb.ramp, pb.t + 0.02, want, LIMITS)
             assert ramp is not None, f"no ramp to {want} at t = {pb.t:.3f}"
-            assert pb.offer_ramp(ramp, pb.ramp)
+            assert pb.offer(ramp=ramp)
 
 
 def run(pb: Playback, each_step, max_steps: int = 20_000) -> tuple[np.ndarray, list[tuple[float, float]]]:
@@ -200,7 +199,7 @@ def test_a_switch_of_k_mid_path_is_continuous_to_the_jerk_and_inside_the_limits(
 
     def each_step(t: float) -> None:
         if not offered and pb.s >= s_switch - 0.1:
-            offered.append(pb.offer_curve(s_switch, joined, pb.curve))
+            offered.append(pb.offer(switch=Switch(s_switch, joined)))
 
     q, _ = run(pb, each_step)
     assert offered == [True] and pb.curve is joined and pb.missed == 0
@@ -218,12 +217,18 @@ def test_a_switch_offered_after_its_point_is_refused_and_one_planned_on_another_
     for _ in range(200):
         pb.next()
     sw = switch_curve(curve, path, result.solutions[9].h, pb.s - 0.01, LIMITS)
-    assert sw is not None and not pb.offer_curve(pb.s - 0.01, sw.curve, curve)
+    assert sw is not None and not pb.offer(switch=Switch(pb.s - 0.01, sw.curve))
     late = plan_ramp(curve, pb.ramp, pb.t - 0.1, 0.5, LIMITS)
-    assert late is not None and not pb.offer_ramp(late, pb.ramp)
-    other = Curve.of(result.solutions[2].h, path)
-    ahead = switch_curve(other, path, result.solutions[9].h, pb.s + 0.05, LIMITS)
-    assert ahead is not None and not pb.offer_curve(pb.s + 0.05, ahead.curve, other)
+    assert late is not None and not pb.offer(ramp=late)
+    # planned from a state no longer in force (the loop took a ramp meanwhile): refused
+    stale = pb.now
+    slower = plan_ramp(curve, pb.ramp, pb.t + 0.01, 0.5, LIMITS)
+    assert slower is not None and pb.offer(ramp=slower)
+    while pb.now.pending_ramp is not None or pb.ramp is not slower:
+        pb.next()
+    ahead = switch_curve(curve, path, result.solutions[9].h, pb.s + 0.05, LIMITS)
+    assert ahead is not None and not pb.offer(switch=Switch(pb.s + 0.05, ahead.curve), base=stale)
+    assert pb.adopted == 1 and pb.missed == 0
 
 
 def test_a_ramp_from_a_hold_with_a_switch_pending_keeps_both_curves_inside_the_limits(
@@ -238,12 +243,13 @@ def test_a_ramp_from_a_hold_with_a_switch_pending_keeps_both_curves_inside_the_l
     for _ in range(400):
         pb.next()
     stop = plan_ramp(slow, pb.ramp, pb.t + 0.02, 0.0, LIMITS)
-    assert stop is not None and pb.offer_ramp(stop, pb.ramp)
+    assert stop is not None and pb.offer(ramp=stop)
     while pb.t < stop.end + 0.1:
         pb.next()
     assert pb.sigma == 0.0
     sw = switch_curve(slow, path, result.solutions[-1].h, pb.s + 0.005, LIMITS)  # to k = N, on the limits
-    assert sw is not None and pb.offer_curve(sw.s_switch, sw.curve, slow)
+    assert sw is not None and pb.offer(switch=Switch(sw.s_switch, sw.curve))
+    pb.next()  # the loop adopts it (held: the arm does not move)
     mine = plan_ramp(slow, pb.ramp, pb.t + 0.02, 1.0, LIMITS)  # fits the slow curve only
     assert mine is not None and ramp_ratio(sw.curve, mine, LIMITS) > 1.1
     free = plan_ramp(slow, pb.ramp, pb.t + 0.02, 1.0, LIMITS, also=[sw.curve])
@@ -252,7 +258,7 @@ def test_a_ramp_from_a_hold_with_a_switch_pending_keeps_both_curves_inside_the_l
         ramp_ratio(slow, free, LIMITS) <= 1 + LIMIT_RTOL
         and ramp_ratio(sw.curve, free, LIMITS) <= 1 + LIMIT_RTOL
     )
-    assert pb.offer_ramp(free, pb.ramp)
+    assert pb.offer(ramp=free) and pb.now.pending_switch is not None
     q, _ = run(pb, lambda t: None)
     assert pb.curve is sw.curve and pb.missed == 0 and pb.done
     fd = finite_difference_ratios(q)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import sys
+from typing import Any
 
 from common.motion import Event
 from common.runtime.bus import Request
@@ -28,7 +29,7 @@ from common.trajectory.task import load_task
 from schemas.decision import Selection
 from schemas.operator import OperatorSignal, Separation
 from schemas.robot import RobotEvent
-from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION
+from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION, Topic
 from services.executor.backends import backend_for
 from services.executor.cycles import Cycles
 from services.executor.reaction import Reactions
@@ -71,9 +72,17 @@ class Executor(Node):
         self.cycles.signals.admit(sig)
         return []
 
-    @on(OPERATOR_SEPARATION, maxsize=1)
+    @on(OPERATOR_SEPARATION)  # every reading counts: the nearest fresh one of all wins
     async def on_separation(self, sep: Separation) -> Out:
         self.reactions.admit(sep)
+        return []
+
+    def reads(self, topic: Topic[Any]) -> bool:
+        return topic.suffix != OPERATOR_SEPARATION.suffix or self.ctx.settings.separation
+
+    @every("scale_period_s")
+    async def scale(self) -> Out:
+        await self.reactions.look()
         return []
 
     @answers(ROBOT_RESUME)
@@ -91,8 +100,10 @@ class Executor(Node):
         self.loop.start()
         for w in self.loop.warnings:
             log.warning("%s", w)
-        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop()),
-                   asyncio.create_task(self.reactions.keep_scale())]  # fmt: skip
+        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop())]
+        if not self.ctx.settings.separation:
+            self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
+                              "runs at the planned speed whoever is near")  # fmt: skip
         try:
             await self.cycles.start()
             await self.cycles.run()

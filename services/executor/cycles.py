@@ -19,7 +19,7 @@ from common.motion import Event, IllegalTransition, State
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.node import Node, Rejected
 from common.runtime.service import first_of
-from common.separation import Ssm
+from common.separation import Figures
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan, Step, Task
 from common.trajectory.validate import check_trajectory
@@ -28,9 +28,9 @@ from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport
 from schemas.topology import OPERATOR_ERROR, ROBOT_CYCLE, SELECTION
 from services.executor.backends import Backend
+from services.executor.pathrun import PathRun
 from services.executor.persist import ExecutorStore
-from services.executor.playback import Playback
-from services.executor.reaction import Reactions, Running, path_figures
+from services.executor.reaction import Reactions
 from services.executor.servo import MotionResult, ServoLoop
 from services.executor.sets import SetCache
 from services.executor.settings import Settings
@@ -116,26 +116,36 @@ class Cycles:
             self.selection = sel
             self.selection_changed.set()
             self.safety.fire(Event.SELECTION)
-            running = self.reactions.running
-            if running is not None and self.settings.switch_within_path and self.switching is None:
-                self.switching = asyncio.create_task(self.switch_within(running))
+            run = self.reactions.run
+            if run is not None and self.settings.switch_within_path and self.switching is None:
+                self.switching = asyncio.create_task(self.switch_within(run))
 
-    async def switch_within(self, running: Running) -> None:
+    async def switch_within(self, run: PathRun) -> None:
         """A new selection during a path: the rest of it at the new k, when that can join within the
-        limits (services/executor/reaction.py); otherwise, as ever, from the next path start."""
+        limits and at the scale the person's distance allows on it (services/executor/pathrun.py);
+        otherwise, as ever, from the next path start."""
         try:
-            s = self.sets.sets.get(running.path.id)
+            s = self.sets.sets.get(run.path.id)
             n = len(s.solutions) if s is not None else 0
 
             def wanted() -> int:
                 return k_for_path(self.selection.k, n) if self.selection is not None else 0
 
-            while s is not None and self.selection is not None and self.reactions.running is running:
-                k, sel = wanted(), self.selection
-                if k == running.k:
+            while s is not None and self.selection is not None and self.reactions.run is run:
+                k, sel, k_was = wanted(), self.selection, run.k
+                if k == run.k:
                     return
-                if not await self.reactions.switch(k, np.array(s.solutions[k - 1].h), wanted):
+                lead = self.settings.switch_lead_s
+                took, why = await run.switch(k, np.array(s.solutions[k - 1].h), wanted, lead,
+                                             self.reactions.allowed)  # fmt: skip
+                if not took:
+                    if why != "no longer wanted":
+                        self.safety.event("info", f"{why}: k = {k} from the next path", run.path.id)
                     return
+                text = (f"k {k_was} → {k} within '{run.path.id}' at s = {run.switched_at:.3f} s; it now ends "
+                        f"at {run.playback.curve.t_f:.3f} s, at most {run.figures.speed_m_s:.2f} m/s, "
+                        f"stopping within {run.figures.stop_time_s:.2f} s")  # fmt: skip
+                self.safety.event("switch", text, run.path.id)
                 self.k = k
                 await asyncio.to_thread(self.store.applied, sel)
         finally:
@@ -283,7 +293,7 @@ class Cycles:
             k = k_for_path(self.selection.k, len(s.solutions))
             h = np.array(s.solutions[k - 1].h)
             try:
-                curve, ssm, top = await asyncio.to_thread(self.prepare_path, h, own, np.array(s.waypoints))
+                curve, figures = await asyncio.to_thread(self.prepare_path, h, own, np.array(s.waypoints))
             except TrajectoryRejected as exc:
                 self.safety.event("refused", f"k = {k}: {exc}", pid)
                 self.safety.fire(Event.REFUSE, f"k = {k} of '{pid}' refused")
@@ -304,17 +314,19 @@ class Cycles:
             # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
             # converted to the form servo takes (backend.target), touching nothing
             self.backend.prepare(own.waypoints[:1])
-            playback = Playback(curve, self.reactions.start_ramp(own, self.carried, ssm, top),
-                                self.backend.target)  # fmt: skip
-            running = self.reactions.running = Running(own, playback, ssm, top, k)
+            start = self.reactions.start_ramp(own, self.carried, figures)
+            run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
+                                               self.task.limits, self.ctx.common.speed)  # fmt: skip
             settle = round(self.settings.settle_s * RATE_HZ)
             try:
-                result: MotionResult = await asyncio.wrap_future(self.loop.run(playback, settle))
+                result: MotionResult = await run.play(self.loop, settle)
             finally:
-                self.reactions.running = None
-                self.carried = playback.state()
-                self.reactions.idle_scale = playback.sigma  # what the arm ended at, until the next look
-            k = self.k = running.k  # a switch within the path may have changed it
+                self.reactions.run = None
+                self.ctx.counters["ramps"] += run.ramps
+                self.ctx.counters["ramps_refused"] += run.ramps_refused
+                self.carried = run.playback.state()
+                self.reactions.idle_scale = run.playback.sigma  # what the arm ended at, until the next look
+            k = self.k = run.k  # a switch within the path may have changed it
             await asyncio.to_thread(self.backend.motion_ended)
             self.ctx.counters["paths"] += 1
             self.ctx.counters["overruns"] = self.loop.overruns
@@ -338,16 +350,13 @@ class Cycles:
             self.ctx.counters["protective_stops"] += 1
         return None
 
-    def prepare_path(self, h: np.ndarray, own: PathPlan, claimed: np.ndarray) -> tuple[Curve, Ssm, float]:
+    def prepare_path(self, h: np.ndarray, own: PathPlan, claimed: np.ndarray) -> tuple[Curve, Figures]:
         """In a worker thread, before the motion: the trajectory checked against the executor's own
         limits and waypoints (raises TrajectoryRejected), its curve, and with separation monitoring on,
-        the path's stop time and top speed."""
+        its top speed and longest stop (S_p's v_r and T_s)."""
         check_trajectory(h, own, self.task.limits, claimed)
         curve = Curve.of(h, own)
-        if not self.settings.separation:
-            return curve, self.reactions.ssm, 0.0
-        ssm, top = path_figures(curve, self.task.limits, self.reactions.ssm)
-        return curve, ssm, top
+        return curve, self.reactions.figures(own, h, curve)
 
     async def wait_for(self, step: Step, cycle: int) -> Literal["arrived", "stopped", "late"]:
         """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),

@@ -2,18 +2,30 @@
 
 ``Samples``: targets computed before the motion (the tests' and the benchmarks' fixed motions).
 ``Playback``: a path's curve at path time s(t), under a time scale that another thread may change while
-it runs (common/trajectory/scaling.py): a new ``Ramp`` from a controller step still ahead, or a new curve
-(a switch of solution) from a path time still ahead. Both are handed over as one reference each, which
-the loop takes at its next step: a change that arrives too late for its step is dropped, never applied
-late, and the thread that offered it sees that (``missed``) and plans again.
+it runs (common/trajectory/scaling.py).
 
-Inside ``next`` there is no lock, no logging and no container that grows: a few floats and one Horner
-evaluation of the current span (six coefficients of six joints).
+The other thread (the path's owner, services/executor/pathrun.py) talks to the loop through one
+latest-wins mailbox, as the UR driver's scaled trajectory controller takes a new goal from one realtime
+buffer: an ``Offer`` says what is to follow the state in force, a new ``Ramp`` of the scale from a
+controller step still ahead and a new curve (a switch of solution) from a path time still ahead, and it
+names the ``InForce`` state it was planned from. The loop reads the mailbox once a step. An offer planned
+from the state still in force is adopted, whole; one planned from another (the loop took a change
+meanwhile) or too late for its step is dropped and counted (``missed``), never applied late: the owner
+plans again. A newer offer replaces an older one, so an offer carries what is still pending that it keeps.
+
+The loop says what it did with each offer, and when a pending change took effect or was dropped, through
+``notify`` (the owner's wake-up, once per change: not per step). A switch carries the highest scale it may
+be taken at (``max_sigma``: the scale the person's distance allows on the switched curve); at a higher one
+it is dropped, so the arm never runs a faster curve at a scale chosen for a slower one.
+
+Inside ``next`` there is no lock, no logging and no container that grows: a few floats, one Horner
+evaluation of the current span, and a new ``InForce`` only when something changes.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +33,7 @@ from numpy.typing import NDArray
 from common.trajectory.scaling import DT, Curve, Ramp
 
 Array = NDArray[np.float64]
+SIGMA_EPS = 1e-9
 
 
 class Samples:
@@ -39,20 +52,71 @@ class Samples:
         return self.targets[self.sent - 1]
 
 
+@dataclass(frozen=True, slots=True)
+class Switch:
+    """From path time ``s`` on, ``curve`` (the path in force up to there, then the rest at a new k); taken
+    only at a scale of at most ``max_sigma``."""
+
+    s: float
+    curve: Curve
+    max_sigma: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class InForce:
+    """What the loop plays and what it holds pending: replaced whole at every change, so one read of it
+    is a consistent picture, and an offer names the one it was planned from."""
+
+    ramp: Ramp
+    curve: Curve
+    pending_ramp: Ramp | None = None
+    pending_switch: Switch | None = None
+
+    @property
+    def target(self) -> float:
+        """The scale the arm is heading for: the pending ramp's end, else the ramp's."""
+        return (self.pending_ramp or self.ramp).target
+
+
+@dataclass(frozen=True, slots=True)
+class Offer:
+    """The changes to follow ``base``: what is pending in it, with ``ramp`` and ``switch`` replacing
+    their kind (None keeps base's)."""
+
+    base: InForce
+    ramp: Ramp | None = None
+    switch: Switch | None = None
+
+    @property
+    def pending(self) -> tuple[Ramp | None, Switch | None]:
+        return (self.ramp or self.base.pending_ramp, self.switch or self.base.pending_switch)
+
+
+def _nothing() -> None:
+    pass
+
+
 class Playback:
     """One path at a time scale. ``tick`` counts the samples sent; playback time is ``tick · DT``."""
 
-    def __init__(self, curve: Curve, ramp: Ramp, convert: Callable[[Array], object]) -> None:
-        self.curve, self.ramp, self.convert = curve, ramp, convert
+    def __init__(
+        self,
+        curve: Curve,
+        ramp: Ramp,
+        convert: Callable[[Array], object],
+        notify: Callable[[], None] = _nothing,
+    ) -> None:
+        self.now = InForce(ramp, curve)
+        self.convert, self.notify = convert, notify
         self.tick = 0
         self.s = 0.0
         self.sigma = float(ramp.c[0])
         self.last = convert(curve.at(np.array([curve.t_f]), order=0)[0, 0])
         self.finished = False
-        # (the change, what it was planned from): it applies only if that is still what is in force
-        self.pending_ramp: tuple[Ramp, Ramp] | None = None
-        self.pending_curve: tuple[float, Curve, Curve] | None = None
-        self.missed = 0  # offers dropped because they came too late for their step
+        self.mailbox: Offer | None = None  # written by the owner only
+        self._seen: Offer | None = None  # read and written by the loop only
+        self.adopted = 0  # offers taken into the state
+        self.missed = 0  # offers or pending changes dropped: too late, or planned from another state
         self.span = 0
 
     @property
@@ -63,55 +127,86 @@ class Playback:
     def t(self) -> float:
         return self.tick * DT
 
-    def offer_ramp(self, ramp: Ramp, base: Ramp) -> bool:
-        """From another thread: take ``ramp`` (planned from the σ-state of ``base``) at its start, a step
-        not yet sent. False: too late already; a later miss is counted in ``missed``."""
-        if ramp.t0 < self.t + DT / 2 or base is not self.ramp:
+    @property
+    def ramp(self) -> Ramp:
+        return self.now.ramp
+
+    @property
+    def curve(self) -> Curve:
+        return self.now.curve
+
+    # --- the owner's side ---------------------------------------------------------------------------
+
+    def offer(
+        self, ramp: Ramp | None = None, switch: Switch | None = None, base: InForce | None = None
+    ) -> bool:
+        """Post the changes planned from ``base`` (default: the state now). False when it is already too
+        late for them (a ramp starting at a step already sent, a switch at a path time already passed) or
+        the state is no longer ``base``; the loop may still drop it later, and says so (``notify``)."""
+        base = base or self.now
+        if base is not self.now or self.finished or not self._in_time(ramp, switch):
             return False
-        self.pending_ramp = (ramp, base)
+        self.mailbox = Offer(base, ramp, switch)
         return True
 
-    def offer_curve(self, s_switch: float, curve: Curve, base: Curve) -> bool:
-        """From another thread: from path time ``s_switch`` on, the joined ``curve`` (``base`` up to
-        there). False: too late already; a later miss is counted in ``missed``."""
-        if s_switch <= self.s or base is not self.curve:
-            return False
-        self.pending_curve = (s_switch, curve, base)
-        return True
+    def settled(self, offer: Offer | None = None) -> bool:
+        """Whether the loop has seen the last offer posted (adopted or dropped it), or has ended."""
+        return self.finished or self._seen is (offer or self.mailbox)
+
+    # --- the loop's side ----------------------------------------------------------------------------
+
+    def _in_time(self, ramp: Ramp | None, switch: Switch | None) -> bool:
+        return (ramp is None or ramp.t0 >= self.t + DT / 2) and (switch is None or switch.s > self.s)
+
+    def _read_mailbox(self) -> None:
+        offer = self.mailbox
+        if offer is None or offer is self._seen:
+            return
+        self._seen = offer
+        if offer.base is self.now and self._in_time(offer.ramp, offer.switch):
+            ramp, switch = offer.pending
+            self.now = replace(self.now, pending_ramp=ramp, pending_switch=switch)
+            self.adopted += 1
+        else:
+            self.missed += 1
+        self.notify()
 
     def next(self) -> object | None:
+        self._read_mailbox()
         t = self.tick * DT
-        offer = self.pending_ramp
-        if offer is not None and t >= offer[0].t0 - DT / 2:
-            self.pending_ramp = None
-            if abs(offer[0].t0 - t) < DT / 2 and offer[1] is self.ramp:
-                self.ramp = offer[0]
+        now = self.now
+        pending = now.pending_ramp
+        if pending is not None and t >= pending.t0 - DT / 2:
+            now = self.now = replace(now, ramp=pending, pending_ramp=None)
+            self.notify()
+        s, sigma = now.ramp.at(t)
+        switch = now.pending_switch
+        if switch is not None and s >= switch.s:
+            slow = sigma <= switch.max_sigma + SIGMA_EPS and now.target <= switch.max_sigma + SIGMA_EPS
+            if self.s < switch.s and slow:  # nothing past the switch was sent from the old curve
+                now = self.now = replace(now, curve=switch.curve, pending_switch=None)
+                self.span = 0
             else:
+                now = self.now = replace(now, pending_switch=None)
                 self.missed += 1
-        s, sigma = self.ramp.at(t)
-        joined = self.pending_curve
-        if joined is not None and s >= joined[0]:
-            self.pending_curve = None
-            # nothing past the switch was sent from the old curve, and it is the one it was joined to
-            if self.s < joined[0] and joined[2] is self.curve:
-                self.curve, self.span = joined[1], 0
-            else:
-                self.missed += 1
-        if s >= self.curve.t_f:
+            self.notify()
+        if s >= now.curve.t_f:
             self.finished = True
+            self.notify()
             return None
         self.tick += 1
         self.s, self.sigma = s, sigma
         return self.convert(self._point(s))
 
     def _point(self, s: float) -> Array:
-        starts, spans = self.curve.starts, len(self.curve.starts)
+        curve = self.now.curve
+        starts, spans = curve.starts, len(curve.starts)
         i = self.span
         while i + 1 < spans and starts[i + 1] <= s:  # s never goes back: walk forward from the last span
             i += 1
         self.span = i
         tau = s - starts[i]
-        coeffs = self.curve.taylor[i]
+        coeffs = curve.taylor[i]
         q = coeffs[5] * tau
         for k in (4, 3, 2, 1):
             q = (q + coeffs[k]) * tau
@@ -120,4 +215,4 @@ class Playback:
 
     def state(self) -> Ramp:
         """The σ-state now, for the next path's playback (the scale carries over)."""
-        return self.ramp.rebased(self.t)
+        return self.now.ramp.rebased(self.t)

@@ -10,6 +10,8 @@ import msgspec
 from common.runtime.resources import EXAMPLE_TASK
 from schemas.decision import MAX_N
 
+RAMP_LEAD_S = 0.022  # a ramp of the scale starts this far ahead of the loop (planning, a step; wall s)
+
 
 def _range(lo: float, hi: float) -> msgspec.Meta:
     return msgspec.Meta(ge=lo, le=hi)
@@ -56,13 +58,18 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     switch_within_path: bool = True
     switch_lead_s: Annotated[float, _range(0.01, 1.0)] = 0.1
     # Speed and separation monitoring (ISO/TS 15066; common/separation.py): the time scale follows the
-    # nearest person's distance on operator/separation; none, or none younger than separation_max_age_s,
-    # holds the arm on its path. Off: the robot always runs at the planned speed.
+    # nearest fresh distance of every source on operator/separation; none fresh (younger than
+    # separation_max_age_s), or none from a declared source, holds the arm on its path. Off: the robot
+    # always runs at the planned speed.
     separation: bool = False
-    separation_max_age_s: Annotated[float, _range(0.01, 10.0)] = 0.3
+    # sources that must each be heard (e.g. ["scanner:front", "scanner:back"]): one silent holds the arm
+    separation_sources: list[Annotated[str, msgspec.Meta(min_length=1, max_length=64)]] = []
+    separation_max_age_s: Annotated[float, _range(0.01, 10.0)] = 0.3  # the oldest reading used (T_r)
+    # T_r, the reaction time, is the sum of sensor_latency_s, separation_max_age_s, the cell's
+    # clock_skew_s, a ramp's lead and, on ur_rtde, lookahead_s (README "Separation")
+    sensor_latency_s: Annotated[float, _range(0.0, 2.0)] = 0.1  # what the sensor's age_s leaves out
     human_speed_m_s: Annotated[float, _range(0.0, 5.0)] = 1.6  # v_h (ISO 13855)
-    reaction_s: Annotated[float, _range(0.0, 2.0)] = 0.2  # T_r: sensor, adapter, bus, the next ramp
-    stop_time_s: Annotated[float, _range(0.05, 5.0)] = 0.5  # T_s: the scale's ramp from 1 to 0
+    stop_time_s: Annotated[float, _range(0.0, 5.0)] = 0.0  # T_s at least this (each path's own is found)
     intrusion_m: Annotated[float, _range(0.0, 2.0)] = 0.2  # C
     uncertainty_m: Annotated[float, _range(0.0, 2.0)] = 0.1  # Z_d + Z_r
     scale_period_s: Annotated[float, _range(0.005, 1.0)] = 0.02  # how often the scale is reconsidered
@@ -70,3 +77,13 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     @property
     def state_period_s(self) -> float:
         return 1.0 / self.state_rate_hz
+
+    def reaction_parts(self, clock_skew_s: float) -> dict[str, float]:
+        """T_r's parts, in seconds, by name: what lies between a person's move and the arm's answer."""
+        return {
+            "sensor latency": self.sensor_latency_s,
+            "oldest reading used": self.separation_max_age_s,
+            "clock skew": clock_skew_s,
+            "ramp lead": RAMP_LEAD_S,
+            "servoJ lookahead": self.lookahead_s if self.backend == "ur_rtde" else 0.0,
+        }

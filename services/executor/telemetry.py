@@ -39,7 +39,7 @@ class Telemetry:
         t_ns = self.node.ctx.common.clock.now_ns()
         pressed = self.pressed(t_ns)
         b, m = self.backend, safety.motion
-        sep = cycles.reactions.separation if self.node.ctx.settings.separation else None
+        near = cycles.reactions.nearest.distance_m if cycles.reactions.on else None
         state = RobotState(
             t_ns=t_ns,
             seq=self.node.next_seq(ROBOT_STATE),
@@ -53,6 +53,6 @@ class Telemetry:
             state=m.state,
             reason=m.reason[:4000],
             scale=min(1.0, max(0.0, float(cycles.reactions.scale_now()))),
-            separation_m=None if sep is None else min(100.0, float(sep.distance_m)),
+            separation_m=None if near is None else min(100.0, float(near)),
         )
         return [*pressed, state]
