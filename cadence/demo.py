@@ -29,7 +29,7 @@ from cadence.report import event_row, from_demo, scale_row, window_row, write_re
 from common.hrv.calibration import CALIBRATION_FILE
 from common.marks import counted
 from common.motion import routine_change
-from common.runtime.bus import Bus, BusConfig
+from common.runtime.bus import Bus, BusConfig, Request
 from common.runtime.clock import Clock
 from common.runtime.errors import CadenceError
 from common.runtime.lifetime import PARENT_ENV
@@ -38,6 +38,7 @@ from common.runtime.storage import write_readable
 from common.sim.twin import TwinParams
 from common.trajectory.task import load_task
 from schemas import (
+    CellClock,
     CycleReport,
     HrvWindow,
     OperatorError,
@@ -46,6 +47,7 @@ from schemas import (
     ServiceStatus,
 )
 from schemas.topology import (
+    CELL_CLOCK,
     DEFAULT_CELL,
     HEALTH,
     HRV_WINDOW,
@@ -299,9 +301,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         procs[name] = p
         tasks.append(asyncio.create_task(p.supervise(stopping, on_restart)))
 
-    async with await Bus.open(
-        BusConfig(mode="router", listen=[endpoint]), DEFAULT_CELL, role="monitor"
-    ) as bus:
+    async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), DEFAULT_CELL, role="demo") as bus:
         console.print(
             f"the demo cell's router: {endpoint}; join it with --connect {endpoint} "
             f"(`cadence record -o run.mcap --connect {endpoint}`, `cadence session --connect {endpoint} …`)"
@@ -323,6 +323,11 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         # 2. the clock starts; everyone else joins
         epoch_ns = obs.epoch_ns = time.time_ns()
         clock = Clock(opts.speed, epoch_ns)
+
+        async def tell_clock(_: Request) -> CellClock:  # a tool joining the cell stamps on its time
+            return CellClock(t_ns=clock.now_ns(), seq=0, epoch_ns=epoch_ns, speed=opts.speed)
+
+        bus.serve(CELL_CLOCK, tell_clock)
         bus.handle(HRV_WINDOW, _call(obs.on_window))
         bus.handle(SELECTION, _call(obs.on_selection))
         bus.handle(ROBOT_CYCLE, _call(obs.cycles.append))

@@ -36,7 +36,7 @@ from common.runtime import cell
 from common.runtime.errors import InputError
 from common.runtime.pki import Pem, issue, load_ca, make_ca
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
-from schemas.topology import DEFAULT_CELL, SERVICES
+from schemas.topology import DEFAULT_CELL, ROLES, SERVICES
 
 USER = "cadence"
 ETC = Path("/etc/cadence")
@@ -48,6 +48,7 @@ MANIFEST = ETC / "installed.json"
 SYSUSERS = Path("/etc/sysusers.d/cadence.conf")
 PYTHON_MIN = (3, 11)
 HOSTS_ALL = (*SERVICES, "router")
+TOOLS = tuple(r.name for r in ROLES if r.kind == "tool")  # operator, separation_sensor, monitor
 
 
 def cell_services(strap: str) -> tuple[str, ...]:
@@ -55,6 +56,12 @@ def cell_services(strap: str) -> tuple[str, ...]:
     operator twin for ``--strap twin``, else the gateway (the strap, or a replay)."""
     unused = "ecg_gateway" if strap == "twin" else "operator_twin"
     return tuple(s for s in HOSTS_ALL if s != unused)
+
+
+def cell_accounts(strap: str) -> tuple[str, ...]:
+    """The bus accounts the cell's router lets in: its services and the tools. The twin, which says where
+    its simulated person is, has no account on a cell with a real strap (and a real scanner)."""
+    return tuple(a for a in cell.ACCOUNTS if a in cell_services(strap) or a in TOOLS)
 
 
 class InstallError(InputError):
@@ -132,7 +139,8 @@ class Bundle:
                 router_host=str(raw["router_host"]),
                 port=int(raw["port"]),
                 ca=Pem(raw["ca_cert"].encode(), raw["ca_key"].encode()),
-                passwords={a: str(raw["passwords"][a]) for a in cell.ACCOUNTS},
+                # an account added since the bundle was made gets its password now (the bundle is rewritten)
+                passwords={a: str(raw["passwords"].get(a) or new_password()) for a in cell.ACCOUNTS},
             )
             load_ca(bundle.ca)
             return bundle
@@ -142,13 +150,17 @@ class Bundle:
             raise InstallError(f"{path}: not a cell bundle from `cadence install` ({exc!r})") from exc
 
 
+def new_password() -> str:
+    return secrets.token_urlsafe(24)
+
+
 def new_bundle(opts: Options) -> Bundle:
     return Bundle(
         cell=opts.cell_name,
         router_host=opts.router_host or socket.gethostname(),
         port=opts.port,
         ca=make_ca(opts.cell_name),
-        passwords={a: secrets.token_urlsafe(24) for a in cell.ACCOUNTS},
+        passwords={a: new_password() for a in cell.ACCOUNTS},
     )
 
 
@@ -240,6 +252,7 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
             [f"tls/0.0.0.0:{bundle.port}"],
             cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
             str(users),
+            cell_accounts(opts.strap),
         )
         p.files.append(
             File(
@@ -250,9 +263,9 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
                 secret=True,
             )
         )
-    # this host's accounts: its services, and the operator's and the monitor's tools (root reads those)
+    # this host's accounts: its services, and the tools' (root reads those)
     accounts = [s for s in opts.services if s in SERVICES]
-    for account in [*accounts, "operator", "monitor"]:
+    for account in [*accounts, *TOOLS]:
         leaf = issue(bundle.ca, account, bundle.cell, [account])
         cfg = cell.client_config(
             account,
@@ -260,7 +273,7 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
             _connect(opts, bundle),
             cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
         )
-        tool = account in ("operator", "monitor")
+        tool = account in TOOLS
         p.files.append(
             File(
                 CREDS / f"{account}.json5",

@@ -59,21 +59,31 @@ QUANTUM = 0.05  # σ is chosen in steps of this (rounded down: the safe side), s
 class Ssm:
     human_speed_m_s: float = 1.6  # v_h
     reaction_s: float = 0.2  # T_r
-    stop_time_s: float = 0.5  # T_s: per path, the longest stop ramp found on it (scaling.stop_time)
+    stop_time_s: float = 0.5  # T_s: per path, its longest stop (scaling.stop_time)
     intrusion_m: float = 0.2  # C
     uncertainty_m: float = 0.1  # Z_d + Z_r
     max_age_s: float = 0.3
+    # the stopping distance over the speed (B / v_r): T_s / 2 for a stop that starts at once and
+    # decelerates linearly, as ISO/TS 15066 writes B; a path's own is measured (scaling.Stop.travel_s)
+    stop_travel_s: float | None = None
+
+    @property
+    def travel_s(self) -> float:
+        return self.stop_time_s / 2 if self.stop_travel_s is None else self.stop_travel_s
 
     def protective_distance(self, robot_speed_m_s: float) -> float:
         """S_p for a robot moving at ``robot_speed_m_s``."""
         tr, ts = self.reaction_s, self.stop_time_s
-        return (self.human_speed_m_s * (tr + ts) + robot_speed_m_s * (tr + ts / 2)
+        return (self.human_speed_m_s * (tr + ts) + robot_speed_m_s * (tr + self.travel_s)
                 + self.intrusion_m + self.uncertainty_m)  # fmt: skip
 
     def allowed_speed(self, separation_m: float) -> float:
         """The largest robot speed whose S_p fits ``separation_m`` (0: too close even for a robot at rest)."""
         room = separation_m - self.protective_distance(0.0)
-        return max(0.0, room / (self.reaction_s + self.stop_time_s / 2))
+        per = self.reaction_s + self.travel_s
+        if per <= 0.0:  # no reaction time and no stop: any speed, or none
+            return math.inf if room >= 0.0 else 0.0
+        return max(0.0, room / per)
 
     def scale(self, separation_m: float | None, age_s: float, path_speed_m_s: float) -> float:
         """σ in [0, 1] for the path whose top speed at σ = 1 is ``path_speed_m_s``."""
@@ -118,25 +128,30 @@ def path_speed(q: Array, dt: float) -> float:
 
 @dataclass(frozen=True, slots=True)
 class Figures:
-    """What S_p needs of the curve being played: its top link speed at σ = 1 (v_r / σ) and its longest stop
-    (T_s), both from path time ``s_from`` on."""
+    """What S_p needs of the curve being played, from path time ``s_from`` on: its top link speed at σ = 1
+    (v_r / σ), its longest stop (T_s) and the path time that stop covers (B / v_r)."""
 
     speed_m_s: float
     stop_time_s: float
+    stop_travel_s: float = 0.0
 
     @classmethod
     def of(cls, curve: Curve, limits: JointLimits, s_from: float = 0.0, dt: float = 0.002) -> Figures:
         """Before the curve is played (a path's, or a joined one before a switch is accepted): in a worker
         thread, some tenths of a second for a long path."""
         s = np.append(np.arange(s_from, curve.t_f, dt), curve.t_f)
-        return cls(path_speed(curve.at(s, order=0)[0], dt), stop_time(curve, limits, s_from))
+        stop = stop_time(curve, limits, s_from)
+        return cls(path_speed(curve.at(s, order=0)[0], dt), stop.time_s, stop.travel_s)
 
     def worst(self, other: Figures) -> Figures:
         """The conservative reading of two (a switch pending: either curve may be played)."""
-        return Figures(max(self.speed_m_s, other.speed_m_s), max(self.stop_time_s, other.stop_time_s))
+        return Figures(max(self.speed_m_s, other.speed_m_s), max(self.stop_time_s, other.stop_time_s),
+                       max(self.stop_travel_s, other.stop_travel_s))  # fmt: skip
 
     def ssm(self, base: Ssm) -> Ssm:
-        return replace(base, stop_time_s=max(base.stop_time_s, self.stop_time_s))
+        """``base`` with this curve's stop (never below base's own T_s, a floor from the settings)."""
+        time_s, travel_s = max(self.stop_time_s, base.stop_time_s), max(self.stop_travel_s, base.travel_s)
+        return replace(base, stop_time_s=time_s, stop_travel_s=travel_s)
 
     def scale(self, base: Ssm, distance_m: float | None) -> float:
         """σ, stepped, for a person at ``distance_m`` (None: unknown, a hold)."""

@@ -1,6 +1,7 @@
 """The wire contract: msgspec Structs, one module per topic family, and the topology. Nothing else."""
 
 from schemas.base import Message
+from schemas.clock import CellClock
 from schemas.decision import Selection
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
@@ -13,6 +14,7 @@ __all__ = [
     "AccChunk",
     "Beats",
     "Calibration",
+    "CellClock",
     "CycleReport",
     "EcgChunk",
     "HrvWindow",

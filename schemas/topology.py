@@ -21,6 +21,7 @@ from typing import Any, Generic, Literal, TypeVar
 import msgspec
 
 from schemas.base import Message
+from schemas.clock import CellClock
 from schemas.decision import Selection
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.health import ServiceStatus
@@ -103,16 +104,19 @@ ROBOT_EVENT = Topic("robot/event", RobotEvent)
 # clear a latched stop (`cadence robot resume`): the reply is the state change it made
 ROBOT_RESUME = Topic("robot/resume", RobotEvent, pattern="query")
 HEALTH = Topic("health/*", ServiceStatus, qos="drop")  # health/<service>, plus a liveliness token
+# a simulated cell's data clock (the demo answers it): how a tool joining the cell stamps what it says
+CELL_CLOCK = Topic("clock", CellClock, pattern="query")
 
 
 @dataclass(frozen=True, slots=True)
 class Role:
     """A node of the graph, declared once: who it is and every port it opens. A service (its own process
-    and account) or a person's tool (``operator``: calibrate, resume, an HMI; ``monitor``: record, top,
-    zenoh subscribe). Every service also publishes its own ``health/<service>``."""
+    and account) or a tool (``operator``: calibrate, resume, an HMI; ``separation_sensor``: a scanner's
+    adapter; ``monitor``: record, top, zenoh subscribe). Every service also publishes its own
+    ``health/<service>``, and only that one."""
 
     name: str
-    kind: Literal["service", "tool"]
+    kind: Literal["service", "tool", "sim"]  # sim: only in a simulated cell, never a deployed account
     reads_all: bool = False  # tools read the whole cell, as the ACL lets everyone
     inputs: tuple[Topic[Any], ...] = ()  # topics it subscribes to and acts on
     outputs: tuple[Topic[Any], ...] = ()  # topics it publishes
@@ -120,7 +124,7 @@ class Role:
     asks: tuple[Topic[Any], ...] = ()  # queries it sends
 
 
-LOOKERS = (SELECTION, PARETO_SET, PARETO_SOLUTION)  # what people's tools may ask (`cadence get`)
+LOOKERS = (SELECTION, PARETO_SET, PARETO_SOLUTION, CELL_CLOCK)  # what tools may ask (`cadence get`)
 ROLES: tuple[Role, ...] = (
     Role("pareto_store", "service", outputs=(PLAN_PROGRESS,), answers=(PARETO_SET, PARETO_SOLUTION)),
     Role(
@@ -153,10 +157,15 @@ ROLES: tuple[Role, ...] = (
         "operator",
         "tool",
         reads_all=True,
-        outputs=(CALIBRATION, OPERATOR_SIGNAL, OPERATOR_ERROR, OPERATOR_SEPARATION),
+        outputs=(CALIBRATION, OPERATOR_SIGNAL, OPERATOR_ERROR),
         asks=(*LOOKERS, DECISION_CONDITION, ROBOT_RESUME),
     ),
+    # a cell's safety laser scanners or cameras (`cadence separation`): the only account that may say where
+    # people are, beside the twin on a simulated cell; an HMI's operator account cannot free the arm
+    Role("separation_sensor", "tool", reads_all=True, outputs=(OPERATOR_SEPARATION,), asks=(CELL_CLOCK,)),
     Role("monitor", "tool", reads_all=True, asks=LOOKERS),
+    # `cadence demo`: the simulated cell's router and its clock
+    Role("demo", "sim", reads_all=True, answers=(CELL_CLOCK,), asks=LOOKERS),
 )
 ROLE = {r.name: r for r in ROLES}
 SERVICES = tuple(r.name for r in ROLES if r.kind == "service")
@@ -195,6 +204,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     ROBOT_EVENT,
     ROBOT_RESUME,
     HEALTH,
+    CELL_CLOCK,
 )
 # a cell runs one of them: the gateway (a strap, a replay) or the operator twin
 ECG_SOURCES = tuple(p for p in ECG_SAMPLES.publishers if p in SERVICES)
@@ -218,6 +228,7 @@ AnyMessage = (
     | CycleReport
     | RobotEvent
     | ServiceStatus
+    | CellClock
 )
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from cadence.install import Bundle, Options, new_bundle, plan
+from cadence.install import Bundle, Options, cell_accounts, new_bundle, plan
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.cell import (
     ACCOUNTS,
@@ -28,8 +28,8 @@ from common.runtime.cell import (
     users_file,
 )
 from common.runtime.pki import common_name, issue, make_ca
-from schemas import HrvWindow, Selection
-from schemas.topology import OPERATOR_SIGNAL, SELECTION, TOPICS
+from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
+from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS
 from tests.conftest import REPO, free_port, put
 
 
@@ -51,7 +51,8 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
 
     for t in TOPICS:
         key = f"cadence/c1/{t.suffix}".replace("*", "x")
-        assert allowed("publish", key) == publishers(t), t.suffix
+        if t is not HEALTH:  # health/<account>: each its own (below)
+            assert allowed("publish", key) == publishers(t), t.suffix
         # the ACL names families (pareto/**), so who may ask a set may ask its members too
         assert askers(t) <= allowed("ask", key), t.suffix
     assert publishers(SELECTION) == {"decision_maker"}
@@ -63,6 +64,18 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
     assert allowed("ask", "cadence/c1/ecg/samples") == set()
     for p in acl["policies"]:
         assert all(rule in rules for rule in p["rules"])
+    # who says where people are: the sensors' account, and the twin in simulation; never the HMI's
+    assert allowed("publish", "cadence/c1/operator/separation") == {"separation_sensor", "operator_twin"}
+    for service in SERVICES:  # each speaks for its own health, and for no one else's
+        assert allowed("publish", f"cadence/c1/health/{service}") == {service}
+
+
+def test_a_cell_with_a_strap_gives_the_twin_no_account_at_all() -> None:
+    strap = access_control("c1", cell_accounts("Polar H10"))
+    named = {a for p in strap["policies"] for a in p["subjects"]}
+    assert "operator_twin" not in named and {"ecg_gateway", "separation_sensor", "executor"} <= named
+    twin = access_control("c1", cell_accounts("twin"))
+    assert "operator_twin" in {a for p in twin["policies"] for a in p["subjects"]}
 
 
 def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
@@ -122,6 +135,40 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
         _, got = await selections.receive(10)
         assert got == sel and selections.pending == 0  # the decision maker's, and only it
         assert windows.pending == 0
+    # where a person is: the sensor's account may say it, the HMI's operator account may not; and no
+    # service speaks for another's health. (A forbidden put, then an allowed one on the same link: the
+    # second's arrival says the first would have come.)
+    near = Separation(t_ns=3, seq=0, distance_m=0.6, source="scanner:front")
+    far = Separation(t_ns=3, seq=1, distance_m=100.0, source="scanner:front")
+    signal = OperatorSignal(t_ns=3, seq=0, name="part")
+    theirs = ServiceStatus(
+        t_ns=4, seq=0, service="decision_maker", state="serving", uptime_s=1.0, counters={}
+    )
+    own = ServiceStatus(t_ns=4, seq=0, service="executor", state="serving", uptime_s=1.0, counters={})
+    async with (
+        await Bus.open(router, "cell1"),
+        await Bus.open(account("monitor", "monitor"), "cell1") as monitor,
+        await Bus.open(account("separation_sensor", "separation_sensor"), "cell1") as sensor,
+        await Bus.open(account("operator", "operator"), "cell1") as hmi,
+        await Bus.open(account("executor", "executor"), "cell1") as executor,
+    ):
+        seps = monitor.subscribe(monitor.key("operator/separation"), Separation)
+        signals = monitor.subscribe(monitor.key("operator/signal"), OperatorSignal)
+        dm_health = monitor.subscribe(monitor.key("health/decision_maker"), ServiceStatus)
+        ex_health = monitor.subscribe(monitor.key("health/executor"), ServiceStatus)
+        for session, suffix in ((hmi, "operator/separation"), (hmi, "operator/signal"),
+                                (sensor, "operator/separation"), (executor, "health/decision_maker"),
+                                (executor, "health/executor")):  # fmt: skip
+            await session.until_subscribed(session.key(suffix), 10)
+        put(hmi, hmi.key("operator/separation"), far, block=True)  # forbidden
+        put(hmi, hmi.key("operator/signal"), signal, block=True)
+        put(executor, executor.key("health/decision_maker"), theirs, block=True)  # forbidden
+        put(executor, executor.key("health/executor"), own, block=True)
+        put(sensor, sensor.key("operator/separation"), near, block=True)
+        assert (await signals.receive(10))[1] == signal
+        assert (await ex_health.receive(10))[1] == own
+        assert (await seps.receive(10))[1] == near
+        assert seps.pending == 0 and dm_health.pending == 0
     # no certificate of the cell: the router refuses the link
     stranger = {"mode": "client", "connect": {"endpoints": endpoint, "timeout_ms": 2000}}
     stranger["transport"] = {"auth": {"usrpwd": {"user": "monitor", "password": passwords["monitor"]}}}

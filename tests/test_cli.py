@@ -150,3 +150,35 @@ async def test_a_sensor_adapter_pipes_distances_in_and_a_bad_line_is_named_and_s
     assert (got.distance_m, got.age_s, got.source) == (1.25, 0.04, "scanner:front")
     stderr = proc.stderr.read() if proc.stderr else ""
     assert "stdin line 1: 'near'" in stderr and "stdin line 2: '-3'" in stderr and rc == 1
+
+
+@pytest.mark.asyncio
+async def test_the_sensor_adapter_skips_a_bad_byte_a_huge_line_and_an_underscored_number(
+    endpoint: str,
+) -> None:
+    """One invalid UTF-8 byte once killed the adapter, a 10 MB line stalled it for 35 s, and `1_0` was
+    read as 10 m: each is now a line reported by number and skipped, and the lines after it still go."""
+    from common.runtime.bus import Bus, BusConfig
+    from schemas import Separation
+
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as cell:
+        heard = cell.subscribe(cell.key("operator/separation"), Separation)
+        relay = ["separation", "-", "--source", "scanner:front", "--connect", endpoint]
+        proc = subprocess.Popen([sys.executable, "-m", "cadence", *relay], stdin=subprocess.PIPE,
+                                stderr=subprocess.PIPE)  # fmt: skip
+        assert proc.stdin is not None
+        proc.stdin.write(b"2.5\xff\n" + b"7" * 10_000_000 + b"\n1_0\n")
+        got = None
+        async with asyncio.timeout(60):
+            while got is None:  # the relay's first puts may precede its session knowing the reader
+                proc.stdin.write(b"1.5\n")
+                proc.stdin.flush()
+                with contextlib.suppress(TimeoutError):
+                    got = (await heard.receive(0.2))[1]
+        proc.stdin.close()
+        rc = await asyncio.to_thread(proc.wait, 30)
+    stderr = (proc.stderr.read() if proc.stderr else b"").decode()
+    assert got.distance_m == 1.5 and rc == 1
+    assert "stdin line 1: not UTF-8" in stderr
+    assert "stdin line 2:" in stderr and "over 256 bytes" in stderr
+    assert "stdin line 3: '1_0': not a decimal number" in stderr

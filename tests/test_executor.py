@@ -442,3 +442,92 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
             await store.close()
     assert "LinAlgError('Singular matrix')" in said.message and held.separation_m == 0.6
     assert ex.ctx.counters["scale_errors"] == 1 and len(calls) >= 2 and calls[1] == calls[0]  # tried again
+
+
+async def sensors(bus: Bus, table: dict[str, tuple[str, float, float]]) -> None:
+    """Publishers of distances at about 33 Hz: each entry of ``table`` (by a name of the test's) says
+    (source, distance, how far its stamp runs ahead of the clock in s); a removed entry falls silent."""
+    seq = 0
+    while True:
+        for source, d, ahead_s in list(table.values()):
+            sep = Separation(t_ns=time.time_ns() + round(ahead_s * 1e9), seq=seq, distance_m=d, source=source)
+            put(bus, bus.key("operator/separation"), sep)
+            seq += 1
+        await asyncio.sleep(0.03)
+
+
+async def held(states, for_s: float = 0.5) -> list[RobotState]:
+    """The arm reaches σ = 0 and stays there: every robot/state for ``for_s`` after, still and at scale 0."""
+    first = await next_of(states, lambda s: s.scale == 0.0 and max(map(abs, s.qd)) < 1e-4, timeout=10)
+    seen = [first]
+    while seen[-1].t_ns < first.t_ns + for_s * 1e9:
+        seen.append(await next_of(states))
+    assert all(s.scale == 0.0 for s in seen), [s.scale for s in seen]
+    np.testing.assert_allclose(seen[-1].q, first.q, atol=1e-4)  # the sim arm settles on its target
+    return seen
+
+
+async def test_a_second_source_far_a_same_name_publisher_far_or_a_future_stamp_never_free_the_arm(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    """Issue 38: the nearest fresh reading of every source wins. A scanner says 0.6 m: a second sensor at
+    5 m, or a rogue saying 100 m under the scanner's own name, leaves the arm held; with every sensor
+    dead, one reading of 100 m stamped an hour ahead is refused (counted) and the arm stays held."""
+    table: dict[str, tuple[str, float, float]] = {"front": ("scanner:front", 5.0, 0.0)}
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5)
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        await ex.listening(bus, "operator/separation")
+        feeding = asyncio.create_task(sensors(bus, table))
+        try:
+            await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0)
+            table["front"] = ("scanner:front", 0.6, 0.0)
+            table["twin"] = ("twin", 5.0, 0.0)  # a second sensor, far
+            await held(states)
+            table["rogue"] = ("scanner:front", 100.0, 0.0)  # the scanner's own name, far
+            seen = await held(states)
+            assert {s.separation_m for s in seen} == {0.6}
+            del table["twin"], table["rogue"]
+            table["front"] = ("scanner:front", 5.0, 0.0)
+            await next_of(states, lambda s: s.scale == 1.0, timeout=10)
+            table.clear()  # every sensor dead …
+            await held(states)
+            table["ghost"] = ("scanner:front", 100.0, 3600.0)  # … then 100 m, stamped an hour ahead
+            await held(states, 1.0)
+            ex.ctx.stop.set()
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+    assert ex.ctx.bus.rejected[(bus.key("operator/separation"), "ahead")] >= 10
+
+
+async def test_a_declared_sensor_falling_silent_holds_the_arm_while_another_still_speaks(
+    task_file: Path, tmp_path: Path, endpoint: str
+) -> None:
+    table = {"front": ("scanner:front", 5.0, 0.0), "back": ("scanner:back", 5.0, 0.0)}
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5,
+                                separation_sources=["scanner:front", "scanner:back"])  # fmt: skip
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        await ex.listening(bus, "operator/separation")
+        feeding = asyncio.create_task(sensors(bus, table))
+        try:
+            await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0)
+            del table["back"]
+            seen = await held(states)
+            said = await next_of(events, lambda e: e.kind == "scale" and "from scanner:back (" in e.message)
+            table["back"] = ("scanner:back", 5.0, 0.0)
+            await next_of(states, lambda s: s.scale == 1.0, timeout=10)
+            ex.ctx.stop.set()
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+    assert all(s.separation_m is None for s in seen)
+    assert "no fresh distance from scanner:back (declared): holding" in said.message

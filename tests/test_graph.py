@@ -139,7 +139,12 @@ async def test_every_service_opens_exactly_the_ports_of_its_roles(
         ("hrv_analyser", analyser_main, AnalyserSettings(input="rr")),  # ecg/rr is read only then
         ("ecg_gateway", gateway_main, GatewaySettings(record=str(synthetic_ecg(tmp_path)))),
         ("operator_twin", twin_main, TwinSettings()),
-        ("executor", executor_main, ExecutorSettings(task=task, backend="sim", start_selection="wait")),
+        # with separation monitoring: without it the executor leaves operator/separation unread
+        (
+            "executor",
+            executor_main,
+            ExecutorSettings(task=task, backend="sim", start_selection="wait", separation=True),
+        ),
     ]
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1"):
         services = [

@@ -124,7 +124,8 @@ def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sam
     path, result = planned
     curve = Curve.of(result.solutions[-1].h, path)  # k = N: on the limits somewhere
     top = path_speed(curve.at(np.arange(0, curve.t_f, 0.01), order=0)[0], 0.01)
-    ssm = Ssm(stop_time_s=stop_time(curve, LIMITS))
+    stop = stop_time(curve, LIMITS)
+    ssm = Ssm(stop_time_s=stop.time_s, stop_travel_s=stop.travel_s)
     near, middle, far = 0.9, ssm.protective_distance(0.45 * top), 4.0
     # (from t, distance or None for no message): far, half speed, far, the sensor silent, too near, far
     script = [(0.0, far), (0.2, middle), (1.2, far), (1.6, None), (3.6, near), (4.1, far)]

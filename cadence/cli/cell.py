@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, BinaryIO, TypeVar
 
 import msgspec
 
@@ -17,6 +19,7 @@ from cadence.cli._common import (
     add_bus_flags,
     arg,
     bus_config,
+    cell_clock,
     err,
     flags_from,
     joining,
@@ -376,16 +379,23 @@ def _checked(msg: M) -> M:
         raise InputError(str(exc)) from exc
 
 
-def _tell_once(args: argparse.Namespace, topic: Topic[M], msg: M) -> int:
+def _tell_once(
+    args: argparse.Namespace, topic: Topic[M], make: Callable[[int], M], role: str = "operator"
+) -> int:
+    """Publish ``make(t_ns)``, stamped on the cell's clock, once something reads ``topic``. A message the
+    schema refuses is an input error before any bus is joined."""
     import asyncio
 
     from common.runtime.bus import Bus
 
-    async def go() -> str:
-        async with await Bus.open(joining(args), args.cell, role="operator") as bus:
-            return await tell(bus, topic, _checked(msg), args.timeout)
+    _checked(make(time.time_ns()))
 
-    key = asyncio.run(go())
+    async def go() -> tuple[str, M]:
+        async with await Bus.open(joining(args), args.cell, role=role) as bus:
+            msg = _checked(make((await cell_clock(bus, min(1.0, args.timeout))).now_ns()))
+            return await tell(bus, topic, msg, args.timeout), msg
+
+    key, msg = asyncio.run(go())
     out.print(f"{msgspec.json.encode(msg).decode()} → {key}", markup=False, highlight=False)
     return 0
 
@@ -401,21 +411,38 @@ def _tell_once(args: argparse.Namespace, topic: Topic[M], msg: M) -> int:
 @flags_from(add_bus_flags, 10.0)
 def cmd_signal(args: argparse.Namespace) -> int:
     """A part placed (or any step's signal), from a person at a terminal: what a button would send."""
-    signal = OperatorSignal(t_ns=time.time_ns(), seq=0, name=args.name, source=args.source)
-    return _tell_once(args, OPERATOR_SIGNAL, signal)
+    return _tell_once(
+        args, OPERATOR_SIGNAL, lambda t: OperatorSignal(t_ns=t, seq=0, name=args.name, source=args.source)
+    )
 
 
-def separation_line(line: str, source: str, seq: int) -> Separation:
-    """``DISTANCE [AGE_S]`` (metres, seconds) as a message; InputError says what is wrong with it."""
+NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")  # no 1_0, inf or nan
+MAX_LINE = 256  # bytes: a measurement is a few; a longer line is skipped, not read whole into memory
+
+
+def separation_line(line: str, source: str, seq: int, t_ns: int) -> Separation:
+    """``DISTANCE [AGE_S]`` (metres, seconds, plain decimal numbers) as a message; InputError says what is
+    wrong with it."""
     fields = line.split()
     if not 1 <= len(fields) <= 2:
         raise InputError("expected DISTANCE_M [AGE_S]")
-    try:
-        values = [float(f) for f in fields]
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
+    if bad := [f for f in fields if not NUMBER.fullmatch(f)]:
+        raise InputError(f"not a decimal number: {bad[0][:40]!r}")
+    values = [float(f) for f in fields]
     age = values[1] if len(values) == 2 else 0.0
-    return _checked(Separation(t_ns=time.time_ns(), seq=seq, distance_m=values[0], source=source, age_s=age))
+    return _checked(Separation(t_ns=t_ns, seq=seq, distance_m=values[0], source=source, age_s=age))
+
+
+def read_line(stream: BinaryIO) -> bytes | None:
+    """One line of at most ``MAX_LINE`` bytes, newline included; None at the end. A longer line is read
+    to its end in bounded pieces and returned cut, so that it is reported, not held."""
+    line = stream.readline(MAX_LINE + 1)
+    if not line:
+        return None
+    if len(line) > MAX_LINE and not line.endswith(b"\n"):
+        while (rest := stream.readline(1 << 16)) and not rest.endswith(b"\n"):
+            pass
+    return line
 
 
 @cli.command(
@@ -424,11 +451,17 @@ def separation_line(line: str, source: str, seq: int) -> Separation:
     description="The interface of a cell's safety laser scanner or camera to the executor's speed and "
     "separation monitoring: DISTANCE in metres once, or - to read one measurement per line from stdin, "
     "'DISTANCE_M [AGE_S]' (AGE_S: how old it already is, the sensor's latency), each published at once. "
-    "A bad line is reported with its number and skipped. Pipe a driver into it: "
-    "`scanner-driver | cadence separation - --source scanner:front`.",
+    "A bad line (not two decimal numbers, not UTF-8, over 256 bytes) is reported with its number and "
+    "skipped. Pipe a driver into it: `scanner-driver | cadence separation - --source scanner:front`. On a "
+    "deployed cell it joins as the separation_sensor account, the only one the router lets publish "
+    "distances: --zenoh-config /etc/cadence/credentials/separation_sensor.json5.",
 )
 @arg("distance", metavar="DISTANCE|-", help="metres, or - for lines on stdin")
-@arg("--source", default="cli", help="the sensor, for the record (default cli)")
+@arg(
+    "--source",
+    default="cli",
+    help="the sensor, e.g. scanner:front (declare it in [executor] separation_sources)",
+)
 @flags_from(add_bus_flags, 10.0)
 def cmd_separation(args: argparse.Namespace) -> int:
     """A sensor's distances onto the bus. Unheard, the executor holds the arm (stale separation)."""
@@ -438,22 +471,34 @@ def cmd_separation(args: argparse.Namespace) -> int:
     from common.runtime.bus import Bus
 
     if args.distance != "-":
-        return _tell_once(args, OPERATOR_SEPARATION, separation_line(args.distance, args.source, 0))
+        one = lambda t: separation_line(args.distance, args.source, 0, t)  # noqa: E731
+        return _tell_once(args, OPERATOR_SEPARATION, one, role="separation_sensor")
 
     async def relay() -> int:
         bad = 0
-        async with await Bus.open(joining(args), args.cell, role="operator") as bus:
+        async with await Bus.open(joining(args), args.cell, role="separation_sensor") as bus:
             pub = bus.publisher(OPERATOR_SEPARATION)
+            clock = await cell_clock(bus)  # a simulated cell's time runs at its own speed
             n = 0
-            while line := await asyncio.to_thread(sys.stdin.readline):  # the loop stays free meanwhile
+            # the loop stays free meanwhile
+            while (raw := await asyncio.to_thread(read_line, sys.stdin.buffer)) is not None:
                 n += 1
-                if not line.strip():
-                    continue
                 try:
-                    pub.put(separation_line(line, args.source, n))
+                    if len(raw) > MAX_LINE:
+                        raise InputError(f"over {MAX_LINE} bytes")
+                    line = raw.decode("utf-8")
+                    if not line.strip():
+                        continue
+                    pub.put(separation_line(line, args.source, n, clock.now_ns()))
+                except UnicodeDecodeError as exc:
+                    bad += 1
+                    err.print(
+                        f"stdin line {n}: not UTF-8 ({exc.reason} at byte {exc.start}); skipped", markup=False
+                    )
                 except InputError as exc:
                     bad += 1
-                    err.print(f"stdin line {n}: {line.strip()!r}: {exc}; skipped", markup=False)
+                    shown = raw[:60].decode("utf-8", "replace").strip()
+                    err.print(f"stdin line {n}: {shown!r}: {exc}; skipped", markup=False)
         return 1 if bad else 0
 
     return asyncio.run(relay())
@@ -476,15 +521,13 @@ cli.group(
 @flags_from(add_bus_flags, 10.0)
 def cmd_mark_error(args: argparse.Namespace) -> int:
     """The experimenter's mark: an error of the operator's, for the error rate ε."""
-    error = OperatorError(
-        t_ns=time.time_ns(),
-        seq=0,
-        cycle=args.cycle,
-        description=args.note,
-        kind=args.kind,
-        source="experimenter",
+    return _tell_once(
+        args,
+        OPERATOR_ERROR,
+        lambda t: OperatorError(
+            t_ns=t, seq=0, cycle=args.cycle, description=args.note, kind=args.kind, source="experimenter"
+        ),
     )
-    return _tell_once(args, OPERATOR_ERROR, error)
 
 
 @cli.command(
@@ -497,6 +540,14 @@ def cmd_mark_error(args: argparse.Namespace) -> int:
 @arg("--note", default="", help="why (kept in the file)")
 @flags_from(add_bus_flags, 10.0)
 def cmd_mark_undo(args: argparse.Namespace) -> int:
-    undo = OperatorError(t_ns=time.time_ns(), seq=0, description=args.note or "withdraws the last mark",
-                         kind="undo", source="experimenter")  # fmt: skip
-    return _tell_once(args, OPERATOR_ERROR, undo)
+    return _tell_once(
+        args,
+        OPERATOR_ERROR,
+        lambda t: OperatorError(
+            t_ns=t,
+            seq=0,
+            description=args.note or "withdraws the last mark",
+            kind="undo",
+            source="experimenter",
+        ),
+    )

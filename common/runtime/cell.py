@@ -3,12 +3,15 @@ access control, derived from the topology so the two can never disagree; the Zen
 and of each client; the commented deployment config. ``cadence install`` writes what these return.
 
 The rules (DESIGN §11):
-- One account per service, plus ``operator`` (``cadence calibrate``, ``cadence robot resume``, an HMI) and
-  ``monitor`` (``zenoh subscribe``, ``cadence record``). Each has its own random password and its own
-  certificate whose common name is the account: the router requires both (mTLS and user-password), and
-  its ACL names each subject by both, so one stolen secret opens nothing.
+- One account per service, plus ``operator`` (``cadence calibrate``, ``cadence robot resume``, an HMI),
+  ``separation_sensor`` (``cadence separation``: the scanners' adapters) and ``monitor`` (``zenoh
+  subscribe``, ``cadence record``). Each has its own random password and its own certificate whose common
+  name is the account: the router requires both (mTLS and user-password), and its ACL names each subject
+  by both, so one stolen secret opens nothing.
 - Everyone may read the cell. Each account may publish, and answer queries for, only the keys the topology
-  names it the publisher of, and its own ``health/<account>``. Only the operator may ask ``robot/resume``.
+  names it the publisher of, and its own ``health/<account>`` (never another's). Only the operator may ask
+  ``robot/resume``. An account the cell does not run (the operator twin on a cell with a strap, the
+  gateway on a twin's) is not in the router's ACL at all: it may do nothing, not even read.
 - The router is the only listener on the network; every service is its client.
 """
 
@@ -26,10 +29,10 @@ from typing import Any
 
 import msgspec
 
-from schemas.topology import ROLES, ROOT, TOPICS, Topic
+from schemas.topology import HEALTH, ROLES, ROOT, TOPICS, Topic
 
 # One account per process that joins the bus: a service's or a tool's, one per role of the graph.
-ACCOUNTS = tuple(r.name for r in ROLES)
+ACCOUNTS = tuple(r.name for r in ROLES if r.kind != "sim")
 ROUTER_PORT = 7447
 
 
@@ -51,8 +54,9 @@ def _acl_key(cell: str, suffix: str) -> str:
     return f"{ROOT}/{cell}/{suffix}"
 
 
-def access_control(cell: str) -> dict[str, Any]:
-    """The router's ``access_control`` section: default deny, every rule derived from the graph."""
+def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str, Any]:
+    """The router's ``access_control`` section: default deny, every rule derived from the graph, for the
+    ``accounts`` this cell runs."""
     everything = f"{ROOT}/{cell}/**"
     rules: list[dict[str, Any]] = [
         {
@@ -70,10 +74,10 @@ def access_control(cell: str) -> dict[str, Any]:
             "key_exprs": [everything],
         },
     ]
-    policies: list[dict[str, Any]] = [{"rules": ["read", "receive"], "subjects": list(ACCOUNTS)}]
-    for name in ACCOUNTS:
-        health = f"{ROOT}/{cell}/health/{name}"
-        keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in publishers(t)})
+    policies: list[dict[str, Any]] = [{"rules": ["read", "receive"], "subjects": list(accounts)}]
+    for name in accounts:
+        health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
+        keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in publishers(t) and t is not HEALTH})
         asks = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in askers(t)})
         rules.append(
             {
@@ -107,7 +111,7 @@ def access_control(cell: str) -> dict[str, Any]:
             own.append(f"ask {name}")
         policies.append({"rules": own, "subjects": [name]})
     # both properties: a subject matches only a session with this certificate AND this username
-    subjects = [{"id": a, "cert_common_names": [a], "usernames": [a]} for a in ACCOUNTS]
+    subjects = [{"id": a, "cert_common_names": [a], "usernames": [a]} for a in accounts]
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -144,7 +148,9 @@ def _link(tls: Tls, side: str) -> dict[str, Any]:
     }
 
 
-def router_config(cell: str, listen: Iterable[str], tls: Tls, users_file: str) -> dict[str, Any]:
+def router_config(
+    cell: str, listen: Iterable[str], tls: Tls, users_file: str, accounts: tuple[str, ...] = ACCOUNTS
+) -> dict[str, Any]:
     return {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
@@ -153,7 +159,7 @@ def router_config(cell: str, listen: Iterable[str], tls: Tls, users_file: str) -
             "link": _link(tls, "listen"),
             "auth": {"usrpwd": {"dictionary_file": users_file}},
         },
-        "access_control": access_control(cell),
+        "access_control": access_control(cell, accounts),
     }
 
 

@@ -241,10 +241,22 @@ def _derivatives(curve: Curve, s: Array) -> tuple[Array, Array, Array]:
     return d[0], d[1], d[2]
 
 
-def stop_time(curve: Curve, limits: JointLimits, s_from: float = 0.0, look_s: float = 0.02) -> float:
-    """T_s of the separation distance: the longest a stop from σ = 1 takes on this curve when it is asked
-    for at any controller step from path time ``s_from`` on, planned as the executor plans it
-    (``plan_ramp`` from the σ-state (1, 0, 0) to 0: the earliest-finishing candidate inside the limits).
+@dataclass(frozen=True, slots=True)
+class Stop:
+    """The worst stop from σ = 1 on a curve: how long it takes (T_s), and how much path time the arm
+    covers meanwhile (at σ = 1 path time is time: the stopping distance over the top speed). A ramp alone
+    covers half its duration (the smoothstep's integral); a start delayed by a look or a candidate's
+    delay covers all of the delay: more than ISO/TS 15066's v_r T_s / 2 assumes, so it is kept apart."""
+
+    time_s: float
+    travel_s: float
+
+
+def stop_time(curve: Curve, limits: JointLimits, s_from: float = 0.0, look_s: float = 0.02) -> Stop:
+    """T_s of the separation distance, and the travel with it: the longest a stop from σ = 1 takes on this
+    curve when it is asked for at any controller step from path time ``s_from`` on, planned as the
+    executor plans it (``plan_ramp`` from the σ-state (1, 0, 0) to 0: the earliest-finishing candidate
+    inside the limits).
 
     Every start is a multiple of DT (a ramp starts at a controller step), so checking each is the exact
     worst case, not a sample of it. At σ = 1 playback time is path time, and one candidate's ramp is the
@@ -263,6 +275,7 @@ def stop_time(curve: Curve, limits: JointLimits, s_from: float = 0.0, look_s: fl
     )
     lim = limits.kinematic()
     took = np.full(n, np.inf)  # each start's stop: from the request to σ = 0
+    travel = np.full(n, np.inf)  # and the path time covered meanwhile
     left = np.arange(n)
     for finish, delay, duration in candidates:
         if not len(left):
@@ -287,12 +300,14 @@ def stop_time(curve: Curve, limits: JointLimits, s_from: float = 0.0, look_s: fl
             ).max(axis=2)
             fits[a : a + per] = np.where(moving, ratio, 0.0).max(axis=1) <= 1.0 + LIMIT_RTOL
         took[left[fits]] = finish
+        travel[left[fits]] = delay + duration / 2
         left = left[~fits]
     look = max(1, round(look_s / DT))
     for i in left[::-1]:  # no candidate fits: the next look asks again
-        later = took[i + 1 : i + 1 + look]
-        took[i] = look * DT + (float(later.max()) if len(later) else 0.0)
-    return float(took.max())
+        later = slice(i + 1, i + 1 + look)
+        took[i] = look * DT + (float(took[later].max()) if i + 1 < n else 0.0)
+        travel[i] = look * DT + (float(travel[later].max()) if i + 1 < n else 0.0)
+    return Stop(float(took.max()), float(travel.max()))
 
 
 def next_waypoint(curve: Curve, s_switch: float) -> int:
