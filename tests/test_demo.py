@@ -152,7 +152,7 @@ def test_carrying_heavier_parts_steps_k_down_only_without_the_accelerometer(tmp_
     assert {reason.get(w["end_s"]) for w in moving + after} == {"movement"}
     assert s["k_steps_down"] == 0 and all(x["delta"] >= 0 for x in s["selections"])
     # the twin walks into the shared area every 45 s: the arm slows or holds, and runs at full speed again
-    # once the twin is back at its place (3.5 m)
+    # once the twin is back at its place (4.5 m)
     scale = [x for x in s["scale"] if x["separation_m"] is not None]
     assert any(x["scale"] < 0.5 for x in scale if x["separation_m"] < 1.9)
     freed = [b for a, b in itertools.pairwise(scale) if a["scale"] < 1.0 and b["scale"] == 1.0]

@@ -38,12 +38,12 @@ ROUTER_PORT = 7447
 
 def publishers(topic: Topic[Any]) -> set[str]:
     """The accounts that may publish ``topic`` (and answer queries for it)."""
-    return set(topic.publishers)
+    return set(topic.publishers) & set(ACCOUNTS)
 
 
 def askers(topic: Topic[Any]) -> set[str]:
     """The accounts that may query ``topic``."""
-    return set(topic.askers)
+    return set(topic.askers) & set(ACCOUNTS)
 
 
 def _acl_key(cell: str, suffix: str) -> str:

@@ -100,7 +100,8 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     tau_exert_down_s: Positive = 25.0
     accelerometer: bool = True  # the strap sends its accelerometer
     separation: bool = True  # publish the distance to the robot (operator/separation)
-    far_m: Annotated[float, _in(0.0, 100.0)] = 3.5
+    # the operator's own station: beyond S_p of the example task's fastest paths at full speed (4.3 m)
+    far_m: Annotated[float, _in(0.0, 100.0)] = 4.5
     walk_near_m: Annotated[float, _in(0.0, 100.0)] = 1.5
     walk_m_s: Annotated[float, msgspec.Meta(gt=0.0, le=5.0)] = 1.0
     walk_every_s: Annotated[float, _in(0.0, 1e6)] = 45.0  # 0: the operator never comes near

@@ -259,9 +259,10 @@ def stop_time(curve: Curve, limits: JointLimits, s_from: float = 0.0, look_s: fl
     inside the limits).
 
     Every start is a multiple of DT (a ramp starts at a controller step), so checking each is the exact
-    worst case, not a sample of it. At σ = 1 playback time is path time, and one candidate's ramp is the
-    same σ(τ) from every start, so a candidate is checked for all the starts still without a stop at once,
-    a (starts × ramp samples) array, the earliest-finishing candidate first. Where none fits, the next
+    worst case, not a sample of it (plus one step: a request between two steps waits for the next). At
+    σ = 1 playback time is path time, and one candidate's ramp is the same σ(τ) from every start, so a
+    candidate is checked for all the starts still without a stop at once, a (starts × ramp samples)
+    array, the earliest-finishing candidate first. Where none fits, the next
     look (``look_s`` later) asks again: that start's stop is a look longer than the worst stop within it
     (the looks' phase is not known).
     """
@@ -307,7 +308,8 @@ def stop_time(curve: Curve, limits: JointLimits, s_from: float = 0.0, look_s: fl
         later = slice(i + 1, i + 1 + look)
         took[i] = look * DT + (float(took[later].max()) if i + 1 < n else 0.0)
         travel[i] = look * DT + (float(travel[later].max()) if i + 1 < n else 0.0)
-    return Stop(float(took.max()), float(travel.max()))
+    # a request between two steps waits for the next: one step more than the worst from a step
+    return Stop(float(took.max()) + DT, float(travel.max()) + DT)
 
 
 def next_waypoint(curve: Curve, s_switch: float) -> int:
