@@ -90,10 +90,27 @@ NOW = 1_790_000_000 * S
 
 def test_with_a_clock_the_first_message_is_believed_only_near_it() -> None:
     line = TimeLine(600, duplicate_s=600)
-    v = line.admit(NOW + 30 * DAY, NOW + 30 * DAY + 30 * S, clock_ns=NOW)
+    v = line.admit(NOW - 30 * DAY, NOW - 30 * DAY + 30 * S, clock_ns=NOW)
     assert (v.action, v.code) == ("drop", "far_from_clock")
-    assert line.admit(NOW, NOW + 30 * S, clock_ns=NOW).action == "accept"
-    assert line.position_ns == NOW + 30 * S
+    assert line.admit(NOW - 30 * S, NOW, clock_ns=NOW).action == "accept"
+    assert line.position_ns == NOW
+
+
+def test_nothing_from_the_receivers_future_is_taken_however_many_agree() -> None:
+    """A run of 20 contiguous windows up to 600 s ahead of the clock once moved the decision maker's time
+    line, and the honest windows after it were dropped as duplicates for ten minutes."""
+    line = TimeLine(600, duplicate_s=600, confirm=2, skew_s=0.05)
+    assert line.admit(NOW - 30 * S, NOW, clock_ns=NOW).action == "accept"
+    planted = [line.admit(NOW + i * 30 * S, NOW + (i + 1) * 30 * S, clock_ns=NOW + S) for i in range(20)]
+    assert {(v.action, v.code) for v in planted} == {("drop", "ahead")}
+    assert "ahead of the receiver's clock" in planted[0].detail
+    honest = [
+        line.admit(NOW + i * 30 * S, NOW + (i + 1) * 30 * S, clock_ns=NOW + (i + 1) * 30 * S)
+        for i in range(6)
+    ]
+    assert [v.action for v in honest] == ["accept"] * 6
+    # within the skew bound a stamp a little ahead is still taken
+    assert line.admit(NOW + 180 * S, NOW + 210 * S, clock_ns=NOW + 210 * S - 40_000_000).action == "accept"
 
 
 def test_with_a_clock_a_replay_far_from_it_is_taken_after_confirm() -> None:
@@ -109,7 +126,7 @@ def test_with_a_clock_a_replay_far_from_it_is_taken_after_confirm() -> None:
 def test_a_stale_line_gives_way_at_once_to_a_message_near_the_clock() -> None:
     line = TimeLine(600, duplicate_s=600)
     line.anchor(NOW - DAY)  # persisted yesterday
-    v = line.admit(NOW, NOW + 30 * S, clock_ns=NOW)
+    v = line.admit(NOW - 30 * S, NOW, clock_ns=NOW)
     assert v.action == "restart" and "clock" in v.detail
     # but near the clock a single message far from a live stream is still dropped
-    assert line.admit(NOW + 3 * DAY, NOW + 3 * DAY + 30 * S, clock_ns=NOW).action == "drop"
+    assert line.admit(NOW - 3 * DAY, NOW - 3 * DAY + 30 * S, clock_ns=NOW).action == "drop"

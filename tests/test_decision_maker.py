@@ -26,20 +26,24 @@ def start_decider(data: Path, endpoint: str, settings: Settings) -> InProcessSer
     return InProcessService("decision_maker", main, settings, data, endpoint)
 
 
-BASE = [now_ns()]  # data time of window 0: near the decision maker's clock, as live windows are
+# The test's windows are 14 s long (the decision maker does not read a window's length) and start 41 of
+# them before now: near the decision maker's clock, as live ones are, and each ended before it is sent
+# (nothing from the receiver's future is taken).
+SPAN = 14 * S
+BASE = [now_ns() - 41 * SPAN]
 
 
 @pytest.fixture(autouse=True)
 def _base_now() -> None:
-    BASE[0] = now_ns()
+    BASE[0] = now_ns() - 41 * SPAN
 
 
 def window(i: int, rr: float | None, quality: str = "good") -> HrvWindow:
     return HrvWindow(
-        t_ns=BASE[0] + (i + 1) * 30 * S,
+        t_ns=BASE[0] + (i + 1) * SPAN,
         seq=i,
-        start_ns=BASE[0] + i * 30 * S,
-        end_ns=BASE[0] + (i + 1) * 30 * S,
+        start_ns=BASE[0] + i * SPAN,
+        end_ns=BASE[0] + (i + 1) * SPAN,
         mean_rr_s=rr,
         n_beats=37,
         excluded_fraction=0.0,

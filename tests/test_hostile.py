@@ -125,6 +125,58 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
     assert json.loads((tmp_path / STATE_FILE).read_text())["k"] == got[-1]
 
 
+@pytest.mark.asyncio
+async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_the_honest_ones_answered(
+    tmp_path: Path, endpoint: str
+) -> None:
+    """20 contiguous relaxed windows up to 600 s ahead of its clock once moved the decision maker's time
+    line, the honest windows after them were dropped as duplicates, and k stood for ten minutes."""
+    honest = [window(i, rr) for i, rr in enumerate([0.85, 0.81, 0.75, 0.70, 0.80])]
+    ahead = now_ns() + 5 * S  # 20 contiguous 30 s windows, ending 35 s to 605 s ahead of the clock
+    planted = [
+        msgspec.structs.replace(
+            honest[0],
+            start_ns=ahead + i * 30 * S,
+            end_ns=ahead + (i + 1) * 30 * S,
+            t_ns=ahead + (i + 1) * 30 * S,
+            seq=100 + i,
+            mean_rr_s=1.2,
+        )  # fmt: skip
+        for i in range(20)
+    ]
+    settings = DecisionSettings(rr_rest_s=0.85, republish_s=0.2)
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        svc = InProcessService("decision_maker", decision_main, settings, tmp_path, endpoint)
+        await svc.listening(bus, "hrv/window")
+        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        key = bus.key("hrv/window")
+
+        async def answered(w: HrvWindow) -> Selection:
+            put(bus, key, w, block=True)
+            async with asyncio.timeout(10):
+                async for _, sel in sels:
+                    if sel.window_end_ns == w.end_ns:
+                        return sel
+            raise AssertionError("unreachable")
+
+        got = [(await answered(honest[0])).k]
+        for w in planted:
+            put(bus, key, w, block=True)
+        got += [(await answered(w)).k for w in honest[1:]]
+        status = await status_of(
+            bus, "decision_maker", lambda s: s.counters.get("rejected/hrv/window/ahead", 0) >= len(planted)
+        )
+        await svc.close()
+    p, s, expected = Params.of(0.85), None, []
+    s = State.initial(p)
+    for w in honest:
+        s = step(p, s, w.mean_rr_s).state
+        expected.append(s.k)
+    assert got == expected
+    assert status.counters["rejected/hrv/window/ahead"] == len(planted)
+    assert status.counters.get("window_line_restarts", 0) == 0
+
+
 CORRUPT_STATES = {
     "a list": "[1, 2, 3]",
     "k is text": None,  # filled from a valid record below
@@ -229,7 +281,7 @@ async def windows_of(
 async def test_hostile_chunks_leave_the_analysers_windows_as_the_honest_stream_gives_them(
     tmp_path: Path, endpoint: str
 ) -> None:
-    T0 = now_ns()
+    T0 = now_ns() - 100 * S  # 100 s that have happened: nothing from the analyser's future is taken
     honest = chunks(synthetic_ecg(100), T0)
     c = honest[50]
     hostile = [
@@ -259,7 +311,7 @@ async def test_hostile_chunks_leave_the_analysers_windows_as_the_honest_stream_g
 async def test_a_hostile_first_chunk_does_not_lock_the_honest_stream_out(
     tmp_path: Path, endpoint: str
 ) -> None:
-    T0 = now_ns()
+    T0 = now_ns() - 100 * S
     honest = chunks(synthetic_ecg(100), T0)
     first = raw(honest[0], t_ns=T0 + 30 * DAY)
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:

@@ -102,12 +102,15 @@ async def test_a_replay_of_the_real_export_puts_the_wearers_movement_on_their_wi
             acc_starts.append(item.t_ns)
             x, y, z = (list(a) for a in zip(*item.xyz_mg, strict=True))
             chunk = AccChunk(t_ns=item.t_ns, seq=0, fs_hz=item.fs_hz, x_mg=x, y_mg=y, z_mg=z)
-            assert live.acc(chunk, start).acted_on  # type: ignore[union-attr]
+            # the receiver's clock as a live one reads it: the chunk's last sample has happened
+            clock = item.t_ns + round(len(x) * 1e9 / item.fs_hz)
+            assert live.acc(chunk, clock).acted_on  # type: ignore[union-attr]
         elif isinstance(item, Chunk):
             from schemas import EcgChunk
 
             ecg = EcgChunk(t_ns=item.t_ns, seq=0, fs_hz=130.0, samples_uv=item.samples_uv)
-            wins += [w for w in live.samples(ecg, start).out if isinstance(w, HrvWindow)]
+            clock = item.t_ns + round(len(item.samples_uv) * 1e9 / 130.0)
+            wins += [w for w in live.samples(ecg, clock).out if isinstance(w, HrvWindow)]
     assert (acc_starts[0] - start) / 1e9 == pytest.approx(11.03, abs=0.01)
     assert len(wins) >= 4
     first, tail, *still = wins  # the burst, then its last seconds (30-35 s), then sitting still
@@ -119,15 +122,40 @@ async def test_a_replay_of_the_real_export_puts_the_wearers_movement_on_their_wi
 
 
 def test_accelerometer_chunks_out_of_line_are_dropped_and_a_window_without_them_has_no_movement() -> None:
-    live, t0 = LiveHrv(30.0, "samples"), now_ns()
+    now = now_ns()
+    live, t0 = LiveHrv(30.0, "samples"), now - 30 * S  # 30 s that have just happened
     x = noise(30.0, 25).round().astype(int).T.tolist()
     chunk = AccChunk(t_ns=t0, seq=0, fs_hz=25.0, x_mg=x[0], y_mg=x[1], z_mg=x[2])
-    assert live.acc(chunk, t0).acted_on  # type: ignore[union-attr]
-    ahead = live.acc(msgspec.structs.replace(chunk, t_ns=t0 + 3600 * S), t0)
+    assert live.acc(chunk, now).acted_on  # type: ignore[union-attr]
+    ahead = live.acc(msgspec.structs.replace(chunk, t_ns=t0 + 3600 * S), now)
     assert ahead is not None and not ahead.acted_on and ahead.code == "ahead"
-    behind = live.acc(msgspec.structs.replace(chunk, t_ns=t0 - 20 * S), t0)
+    behind = live.acc(msgspec.structs.replace(chunk, t_ns=t0 - 20 * S), now)
     assert behind is not None and not behind.acted_on
-    assert live.acc(msgspec.structs.replace(chunk, x_mg=[], y_mg=[], z_mg=[]), t0) is None
+    assert live.acc(msgspec.structs.replace(chunk, x_mg=[], y_mg=[], z_mg=[]), now) is None
+
+
+def test_a_planted_hour_of_accelerometer_ahead_of_the_clock_is_refused_and_the_honest_stream_goes_on() -> (
+    None
+):
+    """1,000 s of ±16 g planted in under a second once made the next windows read 5,399–7,833 mg and held
+    Alg. 1 for movement for 17 minutes: nothing from the analyser's future is taken now."""
+    now = now_ns()
+    live = LiveHrv(30.0, "samples")
+    still = noise(1.0, 25).round().astype(int).T.tolist()
+    loud = [[16_000, -16_000] * 12 + [16_000]] * 3
+    t = now - 60 * S
+    verdicts = []
+    for i in range(60):  # a minute of honest chunks, each taken as its last sample happens …
+        chunk = AccChunk(t_ns=t + i * S, seq=i, fs_hz=25.0, x_mg=still[0], y_mg=still[1], z_mg=still[2])
+        assert live.acc(chunk, t + (i + 1) * S).acted_on  # type: ignore[union-attr]
+        if i == 30:  # … with 1,000 s of ±16 g ahead of the clock planted in between
+            for j in range(1000):
+                plant = AccChunk(t_ns=t + (i + 1 + j) * S, seq=j, fs_hz=25.0, x_mg=loud[0], y_mg=loud[1],
+                                 z_mg=loud[2])  # fmt: skip
+                verdicts.append(live.acc(plant, t + (i + 1) * S + S // 2))
+    assert {(v.action, v.code) for v in verdicts if v is not None} == {("drop", "ahead")}
+    level, _ = live.movement.over(t + 30 * S, t + 60 * S)
+    assert level is not None and level < 100  # the honest stream's still wearer
 
 
 def window(i: int, rr: float, movement: float | None, t0: int = 1_000 * S) -> HrvWindow:

@@ -17,7 +17,7 @@ import numpy as np
 
 from common.hrv.movement import Movement
 from common.hrv.stream import RR_RESYNC_S, Beat, HrvStream, Window, beats_message, window_message
-from common.runtime.admission import TimeLine, Verdict
+from common.runtime.admission import SKEW_S, TimeLine, Verdict
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.hrv import Beats, HrvWindow
 
@@ -42,17 +42,19 @@ class Taken:
 
 
 class LiveHrv:
-    def __init__(self, window_s: float, source: Literal["samples", "rr"]) -> None:
+    def __init__(self, window_s: float, source: Literal["samples", "rr"], skew_s: float = SKEW_S) -> None:
         self.window_s = window_s
         self.line = (
-            TimeLine(MAX_GAP_S, tolerance_s=RR_RESYNC_S, confirm=CONFIRM_RR)
+            TimeLine(MAX_GAP_S, tolerance_s=RR_RESYNC_S, confirm=CONFIRM_RR, skew_s=skew_s)
             if source == "rr"
-            else TimeLine(MAX_GAP_S, tolerance_s=CHUNK_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
+            else TimeLine(MAX_GAP_S, tolerance_s=CHUNK_TOLERANCE_S, confirm=CONFIRM_CHUNKS, skew_s=skew_s)
         )
         self.stream: HrvStream | None = None
         self.origin_ns = 0
         self.seq = {"beats": 0, "windows": 0}
-        self.acc_line = TimeLine(MAX_GAP_S, tolerance_s=ACC_TOLERANCE_S, confirm=CONFIRM_CHUNKS)
+        self.acc_line = TimeLine(
+            MAX_GAP_S, tolerance_s=ACC_TOLERANCE_S, confirm=CONFIRM_CHUNKS, skew_s=skew_s
+        )
         self.movement = Movement()
 
     def acc(self, chunk: AccChunk, clock_ns: int) -> Verdict | None:

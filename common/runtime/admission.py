@@ -12,6 +12,11 @@
 3. A handler that fails anyway is counted under ``handler_errors/<key>/<error>`` and the next message is
    handled (``Bus.handle``).
 
+Data ahead of the receiver's clock is different (DESIGN §4): nothing honest comes from the future, so a
+message that ends later than the receiver's clock plus the cell's skew bound (``skew_s``) is refused,
+counted as ``ahead``, and never moves a time line, however many agree with it: a run of planted windows
+or accelerometer an hour ahead once locked the honest stream out for its length.
+
 Why mostly the stream's own data time and not the receiver's clock: a replay carries the recorded data
 times (DESIGN §4), so a receiver cannot tell a recording from last week from a broken clock by its clock.
 It can tell a single message that leaps away from its stream. A source that really moved in time (a
@@ -28,6 +33,8 @@ from __future__ import annotations
 from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Literal
+
+SKEW_S = 0.05  # the cell's clock skew bound by default (CommonSettings.clock_skew_s)
 
 Action = Literal["accept", "restart", "drop"]
 
@@ -64,11 +71,17 @@ class TimeLine:
     """
 
     def __init__(
-        self, ahead_s: float, tolerance_s: float = 0.0, duplicate_s: float = 0.0, confirm: int = 2
+        self,
+        ahead_s: float,
+        tolerance_s: float = 0.0,
+        duplicate_s: float = 0.0,
+        confirm: int = 2,
+        skew_s: float = SKEW_S,
     ) -> None:
-        if not (ahead_s > 0 and tolerance_s >= 0 and duplicate_s >= 0 and confirm >= 2):
-            raise ValueError("ahead_s > 0, tolerance_s ≥ 0, duplicate_s ≥ 0 and confirm ≥ 2")
+        if not (ahead_s > 0 and tolerance_s >= 0 and duplicate_s >= 0 and confirm >= 2 and skew_s >= 0):
+            raise ValueError("ahead_s > 0, tolerance_s ≥ 0, duplicate_s ≥ 0, confirm ≥ 2 and skew_s ≥ 0")
         self.ahead_ns = round(ahead_s * 1e9)
+        self.skew_ns = round(skew_s * 1e9)
         self.tolerance_ns = round(tolerance_s * 1e9)
         self.duplicate_ns = round(duplicate_s * 1e9)
         self.confirm = confirm
@@ -93,7 +106,15 @@ class TimeLine:
         """The verdict on a message covering [start, end). ``clock_ns`` is the receiver's data clock:
         a message near it (within ``ahead_s``) is believed where the stream has no line yet or its line
         is itself far from the clock (a stale persisted position, a replay that ended); elsewhere the
-        stream's own line rules, so replays of old recordings work on their recorded times."""
+        stream's own line rules, so replays of old recordings work on their recorded times. A message that
+        ends after the clock (plus the skew bound) is refused before anything else."""
+        if clock_ns is not None and end_ns > clock_ns + self.skew_ns:
+            return Verdict(
+                "drop",
+                "ahead",
+                f"data time {(end_ns - clock_ns) / 1e9:.3f} s ahead of the receiver's clock (the skew "
+                f"bound is {self.skew_ns / 1e9:g} s): from the future, refused",
+            )
         line = self._line
         near = clock_ns is not None and abs(start_ns - clock_ns) <= self.ahead_ns
         if line is None and (clock_ns is None or near):

@@ -65,7 +65,7 @@ class DecisionMaker(Node):
 
     async def setup(self) -> None:
         s, self.data = self.ctx.settings, self.ctx.common.data_path
-        self.decider = Decider(self.data, s.n, s.rule)
+        self.decider = Decider(self.data, s.n, s.rule, self.ctx.common.clock_skew_s)
         self.conditions = Conditions(Condition(mode=s.mode, fixed_k=s.fixed_k), s.n)
         problems = await asyncio.to_thread(resume, self.decider, self.data, s.rr_rest_s)
         problems += await asyncio.to_thread(self.conditions.resume, self.data)

@@ -15,7 +15,7 @@ import msgspec
 from common.decision import Params, State, Step, step
 from common.hrv.calibration import load_calibration as load_stored_calibration
 from common.hrv.movement import Baseline, baseline_of, moved
-from common.runtime.admission import TimeLine
+from common.runtime.admission import SKEW_S, TimeLine
 from common.runtime.node import admitted
 from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
@@ -87,13 +87,19 @@ class Decider:
     """The service's state. A change is proposed as a new record, persisted, and only then adopted and
     announced (``commit``), so what is published is always what a restart would resume."""
 
-    def __init__(self, data_dir: Path, n: int, rule: MovementRule | None = None) -> None:
+    def __init__(
+        self, data_dir: Path, n: int, rule: MovementRule | None = None, skew_s: float = SKEW_S
+    ) -> None:
         self.path = data_dir / STATE_FILE
         self.n = n
         self.rule = rule or MovementRule()
         self.record: DecisionRecord | None = None
         self.params: Params | None = None
-        self.line = TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S)
+        self.skew_s = skew_s
+        self.line = self.new_line()
+
+    def new_line(self) -> TimeLine:
+        return TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S, skew_s=self.skew_s)
 
     @property
     def selection(self) -> Selection | None:
@@ -184,7 +190,7 @@ class Decider:
         fresh = self.record is None or not same_calibration(self.record.calibration, record.calibration)
         self.record, self.params = record, params_of(record.calibration, self.n)
         if fresh:
-            self.line = TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S)
+            self.line = self.new_line()
             if resumed and record.last_end_ns >= 0:
                 self.line.anchor(record.last_end_ns)
 

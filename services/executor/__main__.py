@@ -23,7 +23,7 @@ from common.motion import Event
 from common.runtime.bus import Request
 from common.runtime.config import CommonSettings
 from common.runtime.errors import ConfigError
-from common.runtime.node import Node, Out, answers, every, node_main, on
+from common.runtime.node import Node, Out, Rejected, answers, every, node_main, on
 from common.runtime.service import service_main
 from common.trajectory.task import load_task
 from schemas.decision import Selection
@@ -64,6 +64,9 @@ class Executor(Node):
 
     @on(SELECTION, maxsize=1)
     async def on_selection(self, sel: Selection) -> Out:
+        ahead_s = (sel.t_ns - self.ctx.common.clock.now_ns()) / 1e9
+        if ahead_s > self.ctx.common.clock_skew_s:  # it would stand until a later stamp: never
+            raise Rejected("ahead", f"a selection stamped {ahead_s:.3f} s ahead of the executor's clock")
         self.cycles.select(sel)
         return []
 

@@ -34,7 +34,7 @@ class HrvAnalyser(Node):
     role = NAME
 
     async def setup(self) -> None:
-        self.live = LiveHrv(self.ctx.settings.window_s, self.ctx.settings.input)
+        self.live = LiveHrv(self.ctx.settings.window_s, self.ctx.settings.input, self.ctx.common.clock_skew_s)
 
     def reads(self, topic: Topic[Any]) -> bool:  # ecg/rr only with input = rr, ecg/samples only without
         return topic is ECG_ACC or (topic.suffix == ECG_RR.suffix) == (self.ctx.settings.input == "rr")

@@ -59,7 +59,7 @@ class OperatorTwin(Node):
         self.origin_ns = self.clock.now_ns()
         self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
         self.waiting_for: str | None = None
-        self.line = TimeLine(STATE_AHEAD_S, tolerance_s=0.0, confirm=STATE_CONFIRM)
+        self.line = TimeLine(STATE_AHEAD_S, confirm=STATE_CONFIRM, skew_s=self.ctx.common.clock_skew_s)
 
     def ns(self, t_s: float) -> int:
         return self.origin_ns + round(t_s * 1e9)
