@@ -141,7 +141,7 @@ async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_t
             t_ns=ahead + (i + 1) * 30 * S,
             seq=100 + i,
             mean_rr_s=1.2,
-        )  # fmt: skip
+        )
         for i in range(20)
     ]
     settings = DecisionSettings(rr_rest_s=0.85, republish_s=0.2)
