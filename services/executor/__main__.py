@@ -103,7 +103,8 @@ class Executor(Node):
         self.loop.start()
         for w in self.loop.warnings:
             log.warning("%s", w)
-        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop())]
+        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop()),
+                   asyncio.create_task(self.cycles.prefetch_figures())]  # fmt: skip
         if not self.ctx.settings.separation:
             self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
                               "runs at the planned speed whoever is near")  # fmt: skip

@@ -223,6 +223,21 @@ class Cycles:
             if why:
                 await first_of(asyncio.sleep(2.0), self.ctx.stop.wait())
 
+    async def prefetch_figures(self) -> None:
+        """With separation monitoring: the figures of every path at every k, the k in force first, found
+        in a worker thread while the arm works, so that a path at a new k does not wait for them (some
+        tenths of a second each). Again whenever the sets change."""
+        while self.settings.separation and not self.ctx.stop.is_set():
+            self.sets.arrived.clear()
+            k = self.selection.k if self.selection is not None else 1
+            for pid, s in list(self.sets.sets.items()):
+                path = self.task.paths[pid]
+                for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
+                    h = np.array(s.solutions[i].h)
+                    if not self.reactions.known(path, h):
+                        await asyncio.to_thread(self.reactions.figures, path, h, Curve.of(h, path))
+            await first_of(self.sets.arrived.wait(), self.ctx.stop.wait())
+
     async def until_changed(self, at_most_s: float = 5.0) -> None:
         """Wait for something that could resolve a refusal (a new selection, a new set), a stop, or a
         while (a person may have moved the arm)."""

@@ -9,6 +9,7 @@ zone, with the changes folded in between counted.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import OrderedDict
 
@@ -67,6 +68,7 @@ class Reactions:
         self.last_figures = Figures(1.0, 0.0)  # of the last path run: the scale shown between paths
         self.zones = Zones()
         self._figures: OrderedDict[tuple[str, bytes], Figures] = OrderedDict()
+        self._figures_lock = threading.Lock()  # the paths' and the prefetch's worker threads
 
     # --- the distance -------------------------------------------------------------------------------
 
@@ -98,13 +100,20 @@ class Reactions:
         if not self.on:
             return Figures(0.0, 0.0)
         key = (path.id, np.asarray(h, dtype=float).tobytes())
-        if (known := self._figures.get(key)) is not None:
-            self._figures.move_to_end(key)
-            return known
-        found = self._figures[key] = Figures.of(curve, self.limits)
-        while len(self._figures) > FIGURES_KEPT:
-            self._figures.popitem(last=False)
+        with self._figures_lock:
+            if (known := self._figures.get(key)) is not None:
+                self._figures.move_to_end(key)
+                return known
+        found = Figures.of(curve, self.limits)
+        with self._figures_lock:
+            self._figures[key] = found
+            while len(self._figures) > FIGURES_KEPT:
+                self._figures.popitem(last=False)
         return found
+
+    def known(self, path: PathPlan, h: np.ndarray) -> bool:
+        with self._figures_lock:
+            return (path.id, np.asarray(h, dtype=float).tobytes()) in self._figures
 
     # --- the scale ----------------------------------------------------------------------------------
 

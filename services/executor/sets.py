@@ -29,6 +29,7 @@ class SetCache:
         self.digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
         self.sets: dict[str, ParetoSet] = {}
         self.changed = asyncio.Event()  # set whenever a set arrives; the executor waits on it
+        self.arrived = asyncio.Event()  # the same, for the figures' prefetch (each waiter clears its own)
         self.wanted = asyncio.Event()  # set whenever a set goes missing; the fetcher waits on it
         self.problems: list[str] = []  # cached files moved aside, for the status
         self._decoder = msgspec.msgpack.Decoder(ParetoSet)
@@ -86,6 +87,7 @@ class SetCache:
             await asyncio.to_thread(atomic_write, self.file(pid), encode(s))
             self.sets[pid] = s  # cached only once it passed every check and is on disk
             self.changed.set()
+            self.arrived.set()
         return None
 
     async def fetch_missing(self, timeout: float) -> dict[str, str]:
