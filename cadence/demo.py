@@ -11,12 +11,14 @@ running ``speed`` times faster than the wall clock. This process only watches th
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import os
 import signal
 import socket
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -114,8 +116,10 @@ class Supervised:
     exit_code: int | None = None  # at the end: after SIGTERM
 
     async def supervise(self, stopping: asyncio.Event, on_restart) -> None:
+        """Until ``stopping``: never a start once it is set (a service that died just before the end was
+        once started again after the stop had passed it, and ran alone until killed)."""
         with self.log.open("ab") as log:
-            while True:
+            while not stopping.is_set():
                 # from the loop's thread, and with PARENT_ENV: the service dies with the demo (SIGKILL too)
                 self.proc = await asyncio.create_subprocess_exec(
                     sys.executable,
@@ -125,13 +129,16 @@ class Supervised:
                     stdout=log,
                     stderr=log,
                 )
+                if stopping.is_set():  # the stop came while it started: it passed this process by
+                    await self.stop()
                 rc = await self.proc.wait()
                 if stopping.is_set():
                     self.exit_code = rc
                     return
                 self.restarts += 1
                 on_restart(self.name, rc)
-                await asyncio.sleep(RESTART_DELAY_S)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stopping.wait(), RESTART_DELAY_S)
 
     def kill(self) -> None:
         if self.proc is not None and self.proc.returncode is None:
@@ -283,6 +290,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
     procs: dict[str, Supervised] = {}
     tasks: list[asyncio.Task] = []
     obs = Observed(epoch_ns=time.time_ns())
+    cut_short_s: float | None = None  # data time run, when Ctrl-C ended it early
 
     def on_restart(name: str, rc: int) -> None:
         obs.on_event(
@@ -362,7 +370,8 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
                 ) from None
         kills = sorted(opts.kill, key=lambda k: k[1])
-        end_ns = clock.now_ns() + round(opts.duration_s * 1e9)
+        began_ns = clock.now_ns()
+        end_ns = began_ns + round(opts.duration_s * 1e9)
         live = Live(console=console, refresh_per_second=4, transient=False) if opts.live else None
         try:
             if live is not None:
@@ -376,6 +385,9 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                 if live is not None:
                     live.update(live_view(obs, opts, now_s, procs))
                 await asyncio.sleep(0.1)
+        except asyncio.CancelledError:  # Ctrl-C: what ran is still summarised and reported, as cut short
+            cut_short_s = (clock.now_ns() - began_ns) / 1e9
+            console.print(f"interrupted after {cut_short_s:.0f} s of data time: stopping, then the summary")
         finally:
             if live is not None:
                 live.stop()
@@ -389,10 +401,12 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         await stop_all()
 
     down, up = obs.k_steps()
-    minutes = opts.duration_s / 60.0
+    ran_s = cut_short_s if cut_short_s is not None else opts.duration_s
+    minutes = ran_s / 60.0
     cycles = len(obs.cycles)
     summary = {
-        "duration_s": opts.duration_s,
+        "duration_s": round(ran_s, 3),
+        "cut_short": cut_short_s is not None,
         "speed": opts.speed,
         "cycles": cycles,
         "productivity_per_min": round(cycles / minutes, 3),
@@ -411,11 +425,34 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "events": obs.events,
         "scale": obs.scale,
     }
-    write_readable(opts.out / "summary.json", json.dumps(summary, indent=1).encode())
-    run = from_demo(opts.out)  # the report of the run (cadence/report.py) into the demo's own folder
-    run.sets.update(sets)
-    write_report(run, opts.out, TwinParams().rr_rest_s)
+    keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
+    try:
+        run = from_demo(opts.out)  # the report of the run (cadence/report.py) into the demo's own folder
+        run.sets.update(sets)
+        write_report(run, opts.out, TwinParams().rr_rest_s)
+    except OSError as exc:
+        console.print(f"{opts.out}: the report could not be written ({exc.strerror or exc}); the summary "
+                      "holds the run's figures", style="red")  # fmt: skip
     return summary
+
+
+def keep_summary(out: Path, data: bytes, console: Console) -> Path:
+    """``summary.json`` in ``out``; where that folder cannot take it (a full disk, no permission), in a
+    new folder under the system's temporary one, said in one line: an hour's run keeps its results."""
+    try:
+        write_readable(out / "summary.json", data)
+        return out / "summary.json"
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+    elsewhere = Path(tempfile.mkdtemp(prefix="cadence-demo-")) / "summary.json"
+    try:
+        write_readable(elsewhere, data)
+    except OSError as exc:
+        console.print(f"{out}: cannot write summary.json ({why}), nor {elsewhere.parent} "
+                      f"({exc.strerror or exc}): the summary is lost", style="red")  # fmt: skip
+        return out / "summary.json"
+    console.print(f"{out}: cannot write summary.json ({why}); it is in {elsewhere} instead", style="red")
+    return elsewhere
 
 
 def _call(fn):

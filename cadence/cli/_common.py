@@ -100,6 +100,18 @@ def positive_int(minimum: int):
     return parse
 
 
+MAX_SPEED = 1000.0  # CommonSettings.speed's bound: every service refuses more
+
+
+def speed(text: str) -> float:
+    """A simulated cell's speed: every service refuses one above MAX_SPEED at its start, which a demo
+    took for a crash and restarted for ever: refused here, once, with the range."""
+    value = positive_float(text)
+    if value > MAX_SPEED:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SPEED:g}, got {text}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """A number above 0 (a speed, a duration): a negative one would be accepted and then wait in silence."""
     try:

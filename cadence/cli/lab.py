@@ -25,6 +25,7 @@ from cadence.cli._common import (
     out,
     positive_float,
     positive_int,
+    speed,
 )
 from cadence.cli.hrv import add_posture
 from common.runtime.errors import InputError
@@ -64,7 +65,7 @@ def add_cohort_flags(p: argparse.ArgumentParser, out_default: str) -> None:
     "DIR/index.html (the report that shows them).",
 )
 @arg("--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)")
-@arg("--speed", type=positive_float, default=8.0, help="data time per wall time (default 8)")
+@arg("--speed", type=speed, default=8.0, help="data time per wall time, above 0 and at most 1000 (default 8)")
 @arg("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
 @arg("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
 @arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")

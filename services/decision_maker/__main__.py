@@ -65,6 +65,7 @@ class DecisionMaker(Node):
 
     async def setup(self) -> None:
         s, self.data = self.ctx.settings, self.ctx.common.data_path
+        self.unpersisted: str | None = None  # a write the disk refused, while it refuses
         self.decider = Decider(self.data, s.n, s.rule, self.ctx.common.clock_skew_s)
         self.conditions = Conditions(Condition(mode=s.mode, fixed_k=s.fixed_k), s.n)
         problems = await asyncio.to_thread(resume, self.decider, self.data, s.rr_rest_s)
@@ -77,7 +78,23 @@ class DecisionMaker(Node):
         self.ctx.state = self.conditions.apply(c, t_ns, self.decider.params is not None)
 
     async def adopt(self, record: DecisionRecord) -> None:
-        await asyncio.to_thread(self.decider.persist, record)  # persisted before it is announced
+        """Persisted before it is announced, so what is published is what a restart resumes. A disk that
+        cannot take it (full, read-only) does not stop the deciding: the record is adopted and published
+        anyway, and the status says once that k is not persisted (a restart would resume an older one),
+        until a write goes through again."""
+        try:
+            await asyncio.to_thread(self.decider.persist, record)
+        except OSError as exc:
+            if self.unpersisted is None:
+                self.unpersisted = (f"cannot write {self.decider.path}: {exc.strerror or exc}; deciding "
+                                    "from memory (a restart would resume an older k)")  # fmt: skip
+                log.warning("%s", self.unpersisted)
+                self.ctx.detail = self.unpersisted
+            self.ctx.counters["unpersisted"] += 1
+        else:
+            if self.unpersisted is not None:
+                log.info("%s written again: k is persisted", self.decider.path)
+                self.unpersisted, self.ctx.detail = None, ""
         self.decider.commit(record)
 
     @property

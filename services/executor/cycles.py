@@ -10,6 +10,8 @@ import asyncio
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -101,6 +103,7 @@ class Cycles:
         self.cut_short: int | None = None  # the cycle a restart cut short, said when the cycles start
         self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last path ended with
         self.switching: asyncio.Task[None] | None = None
+        self.unwritten: str | None = None  # what could not be written (a full disk), while it cannot
 
     def load(self) -> None:
         """What the last run left on disk: cached sets, the last selection applied, its cycle."""
@@ -147,7 +150,7 @@ class Cycles:
                         f"stopping within {run.figures.stop_time_s:.2f} s")  # fmt: skip
                 self.safety.event("switch", text, run.path.id)
                 self.k = k
-                await asyncio.to_thread(self.store.applied, sel)
+                await self.keep(partial(self.store.applied, sel), hold=False)  # the arm is moving
         finally:
             self.switching = None
 
@@ -222,6 +225,35 @@ class Cycles:
             self.ctx.detail = "; ".join([*self.notes, *waiting])
             if why:
                 await first_of(asyncio.sleep(2.0), self.ctx.stop.wait())
+
+    async def keep(self, write: Callable[[], None], hold: bool = True) -> bool:
+        """Write the executor's record before what depends on it (a cycle, a path at a selection). A disk
+        that cannot take it (full, read-only) is a state, not a crash (DESIGN §9): said once (an event, the
+        status, one log line naming the file), and with ``hold`` the arm stays still, the write tried again
+        every 2 s until it goes through, then the cycles go on by themselves. False when stopped first."""
+        while True:
+            try:
+                await asyncio.to_thread(write)
+            except OSError as exc:
+                if self.unwritten is None:
+                    self.unwritten = f"cannot write {self.store.path}: {exc.strerror or exc}"
+                    then = "holding the arm still until it can" if hold else "going on without it"
+                    self.safety.event("refused" if hold else "info", f"{self.unwritten}; {then}")
+                    self.ctx.detail = "; ".join([*self.notes, self.unwritten])
+                    self.ctx.counters["write_errors"] += 1
+                if not hold:
+                    return True
+                if self.safety.motion.state is State.READY:
+                    self.safety.fire(Event.REFUSE, self.unwritten)
+                await first_of(asyncio.sleep(2.0), self.ctx.stop.wait())
+                if self.ctx.stop.is_set():
+                    return False
+                continue
+            if self.unwritten is not None:
+                self.safety.event("info", f"{self.store.path} written again: going on")
+                self.unwritten, self.ctx.detail = None, "; ".join(self.notes)
+                self.safety.ready()
+            return True
 
     async def prefetch_figures(self) -> None:
         """With separation monitoring: the figures of every path at every k, the k in force first, found
@@ -319,12 +351,15 @@ class Cycles:
                 if self.safety.motion.state is State.REFUSED:
                     await self.until_changed()
                 continue
+            if not await self.keep(partial(self.store.applied, self.selection)):
+                return None
+            if self.safety.motion.state is not State.READY:  # held for the disk meanwhile: look again
+                continue
             try:
                 self.safety.fire(Event.MOVE, f"'{pid}' at k = {k}")
             except IllegalTransition as exc:  # a stop came in between: no motion
                 log.warning("%s", exc)
                 continue
-            await asyncio.to_thread(self.store.applied, self.selection)
             self.safety.path_id, self.k = pid, k
             # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
             # converted to the form servo takes (backend.target), touching nothing
@@ -402,7 +437,8 @@ class Cycles:
         cycle = 0
         while not self.ctx.stop.is_set() and (self.settings.cycles == 0 or cycle < self.settings.cycles):
             started, ks = self.clock.now_ns(), {}
-            await asyncio.to_thread(self.store.cycle, cycle)
+            if not await self.keep(partial(self.store.cycle, cycle)):
+                return
             for step in self.task.cycle:
                 if self.ctx.stop.is_set():
                     return
@@ -424,7 +460,8 @@ class Cycles:
                         return
                     self.safety.fire(Event.OPERATOR)
             end = self.clock.now_ns()
-            await asyncio.to_thread(self.store.cycle, None)
+            if not await self.keep(partial(self.store.cycle, None)):
+                return
             self.node.publish(
                 CycleReport(
                     t_ns=end,

@@ -84,7 +84,10 @@ class SetCache:
         if (why := self.mismatch(pid, s)) is not None:
             return why
         if self.sets.get(pid) != s:
-            await asyncio.to_thread(atomic_write, self.file(pid), encode(s))
+            try:
+                await asyncio.to_thread(atomic_write, self.file(pid), encode(s))
+            except OSError as exc:  # a full disk: not cached, asked again later (the arm waits for it)
+                return f"cannot cache it in {self.file(pid)}: {exc.strerror or exc}"
             self.sets[pid] = s  # cached only once it passed every check and is on disk
             self.changed.set()
             self.arrived.set()
