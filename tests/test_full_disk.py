@@ -164,3 +164,26 @@ async def test_the_demos_supervisor_never_starts_a_service_once_stopping_has_beg
     await asyncio.wait_for(sup.supervise(stopping, on_restart), 10)
     assert died.is_set() and sup.restarts == 1 and sup.proc is not None and sup.proc.returncode == 1
     assert time.monotonic() - started < 5
+
+
+def test_a_full_disk_is_not_taken_for_a_damaged_store(disk: Disk, example_sets: Path) -> None:
+    """Before: SetStore.open moved the healthy database aside as corrupt ("database or disk is full" is
+    SQLite's DatabaseError too), left a 0-byte pareto.sqlite, and raised."""
+    import shutil
+
+    from common.trajectory.task import load_task
+    from services.pareto_store.store import SetStore
+    from tests.conftest import EXAMPLE_TASK
+
+    db = disk.path / "pareto.sqlite"
+    shutil.copy(example_sets, db)
+    size = db.stat().st_size
+    disk.fill()
+    store, problem = SetStore.open(db)
+    try:
+        _, sets = store.current(load_task(EXAMPLE_TASK))
+    finally:
+        store.close()
+    assert problem is None or "not damaged, left as it is" in problem
+    assert len(sets) == 6 and db.stat().st_size == size
+    assert not list(disk.path.glob("*.corrupt-*"))

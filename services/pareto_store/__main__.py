@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import sqlite3
 import sys
 import time
 from collections.abc import AsyncIterator
@@ -128,7 +129,11 @@ class ParetoStore(Node):
                     self.ctx.counters["plan_failures"] += 1
                     yield [self.progress(pid, "failed", str(exc))]
                     continue
-                await asyncio.to_thread(self.store.save, msg)
+                try:
+                    await asyncio.to_thread(self.store.save, msg)
+                except sqlite3.OperationalError as exc:  # a full disk: served from memory, planned again
+                    self.ctx.detail = f"'{pid}' is not stored ({exc}): served from memory until a restart"
+                    log.warning("%s", self.ctx.detail)
                 self.sets[pid] = msg
                 self.ctx.counters["computed"] += 1
                 yield [self.progress(pid, "done")]

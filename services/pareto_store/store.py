@@ -33,13 +33,20 @@ CREATE TABLE IF NOT EXISTS pareto_sets (
 class SetStore:
     """One connection, used from one thread at a time (the service calls it through to_thread)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, read_only: bool = False) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+        if read_only:
+            # immutable: no lock and no -shm file to make (a full disk cannot take one); what is still
+            # in the WAL alone is not seen, and planned again
+            self._db = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True, check_same_thread=False,
+                                       isolation_level=None)  # fmt: skip
+        else:
+            self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
         try:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.execute(_SCHEMA)
+            if not read_only:
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute("PRAGMA synchronous=FULL")
+                self._db.execute(_SCHEMA)
             (verdict,) = self._db.execute("PRAGMA quick_check").fetchone()
             if verdict != "ok":
                 raise sqlite3.DatabaseError(f"integrity check: {verdict}")
@@ -51,9 +58,16 @@ class SetStore:
     @classmethod
     def open(cls, path: Path) -> tuple[SetStore, str | None]:
         """The store at ``path``; a damaged one is moved aside (with its WAL) and a new one made. The
-        second value says what was wrong, for the log and the status."""
+        second value says what was wrong, for the log and the status. A full or read-only disk is not
+        damage (SQLite's OperationalError): the database is left as it is and opened to read, so the sets
+        it holds are served, and what is planned meanwhile is served from memory."""
         try:
             return cls(path), None
+        except sqlite3.OperationalError as exc:
+            if not path.exists():
+                raise
+            why = f"{path}: {exc}; not damaged, left as it is: serving the sets it holds, storing none"
+            return cls(path, read_only=True), why
         except sqlite3.DatabaseError as exc:
             moved = quarantine(path)
             for side in ("-wal", "-shm"):
