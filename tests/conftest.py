@@ -144,6 +144,7 @@ class InProcessService:
         endpoint: str,
         speed: float = 1.0,
         cell: str = "cell1",
+        epoch_ns: int | None = None,
     ) -> None:
         import asyncio
 
@@ -159,8 +160,9 @@ class InProcessService:
             self.ctx = ctx
             await main(ctx)
 
-        # a faster clock needs an epoch, or its data time would be the wall's while its sleeps are shorter
-        epoch = time.time_ns() if speed != 1.0 else None
+        # a faster clock needs an epoch, or its data time would be the wall's while its sleeps are shorter;
+        # services of one cell share it (``epoch_ns``), as a demo's do
+        epoch = epoch_ns if epoch_ns is not None else time.time_ns() if speed != 1.0 else None
         common = CommonSettings(
             cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed, epoch_ns=epoch
         )

@@ -41,19 +41,21 @@ def record_cut(tmp_path: Path, name: str, seconds: float) -> tuple[Path, np.ndar
 @needs_data
 async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) -> None:
     csv, x = record_cut(tmp_path, "100", 125)
-    START_NS = now_ns()
+    START_NS = now_ns()  # one cell clock at 40×, and the replay on it (DESIGN §4)
     expected = windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0, end_s=len(x) / 130.0)
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        cell = {"speed": 40.0, "epoch_ns": START_NS}
         decider = InProcessService(
             "decision_maker",
             decision_main,
             DecisionSettings(rr_rest_s=0.85, republish_s=60),
             tmp_path / "d",
             endpoint,
+            **cell,
         )
         analyser = InProcessService(
-            "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
+            "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint, **cell
         )
         await analyser.listening(bus, "ecg/samples")  # and the replay waits for it too
         await analyser.reaches("hrv/window")  # its windows reach the decision maker (nobody else yet)
@@ -65,6 +67,7 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
             GatewaySettings(record=str(csv), speed=40.0, start_ns=START_NS),
             tmp_path / "g",
             endpoint,
+            **cell,
         )
         got_windows, got_k = [], []
         async with asyncio.timeout(30):
@@ -102,7 +105,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     from schemas import Calibration
 
     csv, x = record_cut(tmp_path, "103", 100)
-    START_NS = now_ns()
+    START_NS = now_ns() - 100 * 1_000_000_000  # replayed 40× faster than the clock: it ends by now
     offline = [
         w
         for w in windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0, end_s=len(x) / 130.0)[:2]
@@ -141,7 +144,7 @@ async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str
     from tests.test_hrv import device_rr
 
     beats = read_record(str(ECG / "100"), fs=130.0).beats_s
-    START_NS = now_ns()
+    START_NS = now_ns() - 100 * 1_000_000_000  # 100 s of intervals that have happened
     beats = beats[beats < 100.0]
     expected = windows(intervals(beats), 30.0, start_s=float(beats[0]), end_s=float(beats[-1]))
 

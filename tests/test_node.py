@@ -49,7 +49,7 @@ async def test_the_decision_makers_handlers_are_alg_1_called_as_methods(tmp_path
     node = await decision_maker(tmp_path, Settings(rr_rest_s=0.85))
     (first,) = await node.current()
     assert isinstance(first, Selection) and (first.k, first.reason) == (8, "initial")
-    base, p = now_ns(), Params.of(0.85)
+    base, p = now_ns() - 8 * 30 * S, Params.of(0.85)  # windows that have ended
     state = State.initial(p)
     for i, rr in enumerate([0.80, 0.78, 0.70, 0.69, 0.90, 0.95]):
         (sel,) = await node.on_window(window(base, i, rr))
@@ -76,7 +76,7 @@ async def test_without_calibration_the_node_publishes_nothing_and_a_calibration_
 ) -> None:
     node = await decision_maker(tmp_path, Settings())
     assert await node.current() == [] and node.ctx.state == "waiting for calibration"
-    assert await node.on_window(window(now_ns(), 0, 0.8)) == []
+    assert await node.on_window(window(now_ns() - 30 * S, 0, 0.8)) == []
     assert node.ctx.counters["windows_without_calibration"] == 1
     with pytest.raises(QueryError, match="no calibration yet"):
         await node.query(_request(""))
@@ -102,7 +102,7 @@ async def test_the_node_served_on_the_mock_bus_answers_windows_queries_and_drops
         sub = test.subscribe(test.key("decision/selection"), Selection)
         await test.until_subscribed(test.key("hrv/window"), timeout=10)
         assert (await sub.receive(10))[1].reason == "initial"
-        base = now_ns()
+        base = now_ns() - 60 * S  # a window that has ended
         put(test, test.key("hrv/window"), window(base, 0, 0.80))
         assert (await sub.receive(10))[1].window_end_ns == base + 30 * S
         test.put_raw(test.key("hrv/window"), b"\x93not a window")  # bounds and types: the real decoder
@@ -157,7 +157,7 @@ async def test_the_analysers_handlers_window_a_record_and_drop_a_chunk_out_of_li
     node = HrvAnalyser(ctx)
     await node.setup()
     x = read_record(str(ECG / "100"), fs=130.0).uv[: 130 * 95]
-    t0, out = now_ns(), []
+    t0, out = now_ns() - 100 * S, []  # 95 s that have happened
     for i in range(0, len(x), 73):
         chunk = EcgChunk(
             t_ns=t0 + round(i * 1e9 / 130), seq=i, fs_hz=130.0, samples_uv=x[i : i + 73].tolist()

@@ -82,7 +82,7 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,
-            GatewaySettings(record=str(csv), speed=40.0, start_ns=now_ns()),
+            GatewaySettings(record=str(csv), speed=40.0, start_ns=now_ns() - 70 * 1_000_000_000),
             tmp_path / "g",
             endpoint,
         )

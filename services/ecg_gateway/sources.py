@@ -64,7 +64,10 @@ class EcgSource(abc.ABC):
 
 class ReplaySource(EcgSource):
     """A WFDB record or CSV, resampled to 130 Hz, cut into H10-sized chunks with data times from
-    ``start_ns``, paced at ``speed`` × real time (0: as fast as the consumer allows). With ``acc``, a
+    ``start_ns``, paced at ``speed`` × real time (0: as fast as the consumer allows). By default a replay
+    at real time starts now, as a strap would; a faster one ends by now (it starts a recording's length
+    ago): receivers refuse data from their future (DESIGN §4), and a replay faster than the cell's
+    clock would run into it. With ``acc``, a
     Polar accelerometer export, its samples go out beside the ECG: on the strap's clock when the ECG is
     a Polar export of the same session, else from the ECG's start."""
 
@@ -78,7 +81,8 @@ class ReplaySource(EcgSource):
         self.acc: AccRecording | None = read_acc(acc) if acc is not None else None
         self.accelerometer = self.acc is not None
         self.speed = speed
-        self.start_ns = time.time_ns() if start_ns is None else start_ns
+        length_ns = round(len(self.recording.uv) * 1e9 / FS_HZ) if speed != 1.0 else 0
+        self.start_ns = time.time_ns() - length_ns if start_ns is None else start_ns
 
     def _acc_items(self) -> list[AccSamples]:
         """The accelerometer in one-second chunks, each at its own data time (the strap's rate is
