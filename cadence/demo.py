@@ -121,6 +121,8 @@ class Supervised:
         with self.log.open("ab") as log:
             while not stopping.is_set():
                 # from the loop's thread, and with PARENT_ENV: the service dies with the demo (SIGKILL too)
+                # a session of its own: a terminal's Ctrl-C reaches the demo alone, which stops the services
+                # in order with one SIGTERM each (a service's second signal forces its exit)
                 self.proc = await asyncio.create_subprocess_exec(
                     sys.executable,
                     "-m",
@@ -128,6 +130,7 @@ class Supervised:
                     env=self.env | {PARENT_ENV: str(os.getpid())},
                     stdout=log,
                     stderr=log,
+                    start_new_session=True,
                 )
                 if stopping.is_set():  # the stop came while it started: it passed this process by
                     await self.stop()

@@ -167,3 +167,48 @@ def test_carrying_heavier_parts_steps_k_down_only_without_the_accelerometer(tmp_
     assert any(x["delta"] < 0 and x["reason"] == "stress" and rr.get(x["t_s"], 1.0) < resting - 0.02
                for x in blind["selections"])  # fmt: skip
     assert runs[False]["k_steps_down"] >= 1
+
+
+def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ran(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C reaches the whole foreground group: before, the demo wrote no summary and no
+    report, and the services got the SIGINT too (then the demo's SIGTERM: two signals, an unclean exit)."""
+    import asyncio
+    import os
+    import signal
+
+    from common.runtime.bus import Bus, BusConfig
+    from schemas import CycleReport
+    from tests.conftest import free_port
+
+    out, endpoint = tmp_path / "demo", f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", "--duration", "600", "--speed", "16", "--out", str(out),
+         "--no-live", "--listen", endpoint, "--twin", "walk_every_s=0"],
+        start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+    async def first_cycle() -> None:
+        from common.runtime.errors import BusError
+
+        async with asyncio.timeout(120):
+            while True:  # until the demo's router listens (it plans the task's sets first)
+                try:
+                    bus = await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1")
+                    break
+                except BusError:
+                    await asyncio.sleep(0.5)
+        async with bus:
+            cycles = bus.subscribe(bus.key("robot/cycle"), CycleReport)
+            await cycles.receive(240)
+
+    try:
+        asyncio.run(first_cycle())
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal sends it
+        said, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, said
+    s = json.loads((out / "summary.json").read_text())
+    assert s["cut_short"] is True and 0 < s["duration_s"] < 600 and s["cycles"] >= 1
+    assert set(s["exit_codes"].values()) == {0} and set(s["restarts"].values()) == {0}
+    assert (out / "index.html").exists() and "(cut short)" in said

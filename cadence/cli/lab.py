@@ -123,7 +123,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     summary = asyncio.run(run_demo(opts, out))
     wall = time.monotonic() - t0
-    table = Table(title=f"cadence demo: {args.duration:g} s of data time in {wall:.0f} s")
+    cut = " (cut short)" if summary["cut_short"] else ""
+    table = Table(title=f"cadence demo: {summary['duration_s']:g} s of data time in {wall:.0f} s{cut}")
     for col in (
         "cycles",
         "φ [cycles/min]",
@@ -153,7 +154,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if bad:
         err.print(f"services that did not exit cleanly: {bad}")
         return 1
-    return 0
+    return 130 if summary["cut_short"] else 0  # as a shell reports an interrupted command
 
 
 @cli.command(
