@@ -171,7 +171,9 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
     policy: str, task_file: Path, tmp_path: Path, endpoint: str
 ) -> None:
     """The reproduction: k = 1 decided, the executor restarted, the decision maker frozen: it moved at
-    initial_k (8). Now it goes on at the persisted k ("last"), or waits ("wait") until a selection."""
+    initial_k (8). Now it goes on at the persisted k ("last"), or waits ("wait") until a selection. The
+    persisted k is the newest decided, not the last applied: a selection that came while the last path
+    ran (k 2) was once forgotten for the one that path ran at."""
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
@@ -179,8 +181,9 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         decided = Selection(t_ns=1, seq=7, k=1, n=15, delta=-2, reason="stress")
         common = dict(
-            task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, initial_k=8
-        )
+            task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, initial_k=8,
+            switch_within_path=False,
+        )  # fmt: skip
 
         # the first run: the decision maker answers (the test stands in for it) and k = 1 runs a cycle
         async def answer(req):
@@ -190,6 +193,10 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         ex = InProcessService(
             "executor", executor_main, Settings(**common, cycles=1), tmp_path / "ex", endpoint
         )
+        await ex.listening(bus, "decision/selection")
+        await next_of(states, lambda s: s.mode == "moving" and s.path_id == "back", timeout=60)
+        newer = Selection(t_ns=2, seq=8, k=2, n=15, delta=1, reason="rest")  # during the last path
+        put(bus, bus.key("decision/selection"), newer, block=True)
         assert (await next_of(cycles, timeout=60)).k_per_path == {"there": 1, "back": 1}
         await asyncio.wait_for(ex.task, 15)
         stand_in.undeclare()  # the decision maker is gone (frozen: it answers nothing)
@@ -200,15 +207,15 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         if policy == "wait":
             waiting = [await next_of(states, lambda s: s.state == "waiting_for_selection") for _ in range(50)]
             assert all(max(map(abs, s.qd)) == 0.0 and s.mode != "moving" for s in waiting)
-            later = Selection(t_ns=2, seq=8, k=3, n=15, delta=2, reason="rest")
+            later = Selection(t_ns=3, seq=9, k=3, n=15, delta=1, reason="rest")
             await ex.listening(bus, "decision/selection")
             put(bus, bus.key("decision/selection"), later, block=True)
         report = await next_of(cycles, timeout=60)
         await asyncio.wait_for(ex.task, 15)
         await store.close()
     if policy == "last":
-        assert "going on at the last selection applied, k = 1" in chose.message
-        assert report.k_per_path == {"there": 1, "back": 1}
+        assert "going on at the newest selection it decided, k = 2" in chose.message
+        assert report.k_per_path == {"there": 2, "back": 2}
     else:
         assert 'waiting for a selection (start_selection = "wait")' in chose.message
         assert report.k_per_path == {"there": 3, "back": 3}

@@ -104,6 +104,7 @@ class Cycles:
         self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last path ended with
         self.switching: asyncio.Task[None] | None = None
         self.unwritten: str | None = None  # what could not be written (a full disk), while it cannot
+        self.writes: set[asyncio.Task[bool]] = set()  # records written in the background
 
     def load(self) -> None:
         """What the last run left on disk: cached sets, the last selection applied, its cycle."""
@@ -118,10 +119,18 @@ class Cycles:
         if self.selection is None or (sel.t_ns, sel.seq) != (self.selection.t_ns, self.selection.seq):
             self.selection = sel
             self.selection_changed.set()
+            self.remember(sel)
             self.safety.fire(Event.SELECTION)
             run = self.reactions.run
             if run is not None and self.settings.switch_within_path and self.switching is None:
                 self.switching = asyncio.create_task(self.switch_within(run))
+
+    def remember(self, sel: Selection) -> None:
+        """Kept on disk in the background (a restart goes on at the newest k decided); a disk that
+        cannot take it is said once, as any record the executor keeps."""
+        task = asyncio.create_task(self.keep(partial(self.store.received, sel), hold=False))
+        self.writes.add(task)
+        task.add_done_callback(self.writes.discard)
 
     async def switch_within(self, run: PathRun) -> None:
         """A new selection during a path: the rest of it at the new k, when that can join within the
@@ -185,14 +194,14 @@ class Cycles:
             self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
             return
         policy = self.settings.start_selection or ("wait" if self.settings.backend == "ur_rtde" else "last")
-        last = self.store.record.selection
+        last = self.store.record.newest
         max_age = self.settings.last_selection_max_age_s
         unreachable = "the decision maker does not answer"
         if policy == "last" and last is not None and last.age_s() <= max_age:
             self.select(last.selection())
             self.safety.event(
                 "info",
-                f"{unreachable}: going on at the last selection applied, k = {last.k} (n = {last.n}), "
+                f"{unreachable}: going on at the newest selection it decided, k = {last.k} (n = {last.n}), "
                 f'{last.age_s():.0f} s ago (start_selection = "last")',
             )
         elif policy == "initial":

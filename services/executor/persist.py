@@ -1,10 +1,12 @@
-"""What the executor keeps on disk besides its sets (DESIGN §9): the last selection it applied, so a
-restart while the decision maker is unreachable can go on at the last decided k (if that is young
-enough), and the cycle in progress, so a restart says which cycle it cut short. Validated on load like a
-message; a damaged file is moved aside."""
+"""What the executor keeps on disk besides its sets (DESIGN §9): the last selection it applied and the
+newest it received (a decision maker that decided 11 and 14 while a path ran at 8 is not taken back to 8
+by a restart), so a restart while the decision maker is unreachable can go on at the last decided k (if
+that is young enough), and the cycle in progress, so a restart says which cycle it cut short. Validated
+on load like a message; a damaged file is moved aside."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -38,12 +40,20 @@ class AppliedSelection(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 class ExecutorRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     selection: AppliedSelection | None = None
     cycle_in_progress: NonNegInt | None = None
+    received: AppliedSelection | None = None  # the newest selection received (``applied_ns``: when)
+
+    @property
+    def newest(self) -> AppliedSelection | None:
+        """The selection to go on at: the newest the decision maker was heard to decide."""
+        got = [s for s in (self.received, self.selection) if s is not None]
+        return max(got, key=lambda s: (s.t_ns, s.seq, s.applied_ns)) if got else None
 
 
 class ExecutorStore:
     def __init__(self, folder: Path) -> None:
         self.path = folder / FILE
         self.record = ExecutorRecord()
+        self._lock = threading.Lock()  # writers in worker threads: one read-change-write at a time
 
     def load(self) -> Loaded[ExecutorRecord]:
         loaded = load_checked(self.path, lambda b: msgspec.json.decode(b, type=ExecutorRecord))
@@ -51,20 +61,31 @@ class ExecutorStore:
             self.record = loaded.value
         return loaded
 
-    def _save(self, record: ExecutorRecord) -> None:
-        if record != self.record:
-            atomic_write(self.path, msgspec.json.encode(record))
-            self.record = record
+    def _change(self, **fields: object) -> None:
+        with self._lock:
+            record = msgspec.structs.replace(self.record, **fields)
+            if record != self.record:
+                atomic_write(self.path, msgspec.json.encode(record))
+                self.record = record
 
     def applied(self, sel: Selection) -> None:
         """A path starts with ``sel``: kept if it is another selection than the one on file."""
-        old = self.record.selection
-        if old is not None and (old.k, old.n, old.seq, old.t_ns) == (sel.k, sel.n, sel.seq, sel.t_ns):
-            return
-        applied = AppliedSelection(
-            k=sel.k, n=max(sel.n, sel.k), seq=sel.seq, t_ns=sel.t_ns, applied_ns=time.time_ns()
-        )
-        self._save(msgspec.structs.replace(self.record, selection=applied))
+        if (kept := _kept(self.record.selection, sel)) is not None:
+            self._change(selection=kept)
+
+    def received(self, sel: Selection) -> None:
+        """A selection came: kept if it is another than the one on file (a republished one is not)."""
+        if (kept := _kept(self.record.received, sel)) is not None:
+            self._change(received=kept)
 
     def cycle(self, in_progress: int | None) -> None:
-        self._save(msgspec.structs.replace(self.record, cycle_in_progress=in_progress))
+        self._change(cycle_in_progress=in_progress)
+
+
+def _kept(old: AppliedSelection | None, sel: Selection) -> AppliedSelection | None:
+    """``sel`` as it is kept, or None when it is the one on file already."""
+    if old is not None and (old.k, old.n, old.seq, old.t_ns) == (sel.k, sel.n, sel.seq, sel.t_ns):
+        return None
+    return AppliedSelection(
+        k=sel.k, n=max(sel.n, sel.k), seq=sel.seq, t_ns=sel.t_ns, applied_ns=time.time_ns()
+    )
