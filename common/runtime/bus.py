@@ -142,6 +142,9 @@ class Subscription(Generic[M]):
         if self._queue.full():
             self._queue.get_nowait()
             self.dropped += 1
+            if self._queue.maxsize > 1:  # a ring of one keeps the latest by design (state, not events)
+                behind = f"the reader is {self._queue.maxsize} messages behind: the oldest dropped"
+                self._bus.reject(key, "queue_full", behind)
         self._queue.put_nowait((key, msg))
 
     @property
