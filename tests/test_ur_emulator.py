@@ -276,6 +276,8 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
             emu.stop(signal.SIGKILL)  # the controller is gone mid-motion
             stop = await next_of(events, lambda e: e.kind == "protective_stop", timeout=20)
             down = await next_of(events, lambda e: e.kind == "disconnected", timeout=20)
+            # a resume while nothing answers: once an AttributeError in reset_fault; now the answer says so
+            (early,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
             emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])  # it is back
             back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
             # reconnected, but the stop is latched: still until a person resumes
@@ -291,6 +293,8 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
     lost = ("lost", "no connection")  # the receive interface or the control interface saw it first
     assert stop.path_id == "b1_to_b2" and any(w in stop.message for w in lost)
     assert host in down.message and host in back.message and "stays stopped" in back.message
+    assert early.message is not None and early.message.message.startswith("stopped")
+    assert "not connected to the controller" in early.message.message
     assert (
         "lost" in held.reason and resumed.message is not None and resumed.message.message.startswith("ready")
     )

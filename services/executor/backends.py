@@ -218,18 +218,20 @@ class UrRtdeBackend:
         return self._read("tcp", "getActualTCPPose")
 
     def fault(self) -> str:
-        if self._lost or self._c is None or not self._c.isConnected():
+        c, r = self._c, self._r  # one read each: a reconnect in another thread sets them to None
+        if self._lost or c is None or r is None or not c.isConnected():
             return self._lost or f"no connection to the controller at {self.host}"
-        if self._r.isProtectiveStopped():
+        if r.isProtectiveStopped():
             return "protective stop"
-        if self._r.isEmergencyStopped():
+        if r.isEmergencyStopped():
             return "emergency stop"
-        if not self._c.isProgramRunning():
+        if not c.isProgramRunning():
             return "the control script stopped on the controller (its watchdog, or a stop there)"
         return ""
 
     def link_lost(self) -> bool:
-        return bool(self._lost) or self._c is None or not self._c.isConnected()
+        c = self._c
+        return bool(self._lost) or c is None or self._r is None or not c.isConnected()
 
     def reconnect(self) -> None:
         self.close()
@@ -239,8 +241,15 @@ class UrRtdeBackend:
         """What a person does at the pendant after a protective stop, through the dashboard server
         (port 29999): unlock it and close the safety pop-up; then the control script is started again
         (a reconnect uploads it). The controller refuses an unlock within 5 s of the stop: that is a
-        ``RobotUnavailable`` with its words, and the robot stays stopped."""
-        if self._r is not None and self._r.isConnected() and self._r.isProtectiveStopped():
+        ``RobotUnavailable`` with its words, and the robot stays stopped. Without a link to the controller
+        there is nothing to unlock yet: ``RobotUnavailable`` says so (the executor is reconnecting)."""
+        if self.link_lost():
+            raise RobotUnavailable(
+                f"not connected to the controller at {self.host} ({self.fault()}); the executor reconnects "
+                "by itself: resume again once it says it is connected"
+            )
+        r = self._r
+        if r is not None and r.isConnected() and r.isProtectiveStopped():
             import dashboard_client
 
             dash = dashboard_client.DashboardClient(self.host)
@@ -254,9 +263,9 @@ class UrRtdeBackend:
                 with contextlib.suppress(RuntimeError):
                     dash.disconnect()
             deadline = time.monotonic() + 1.0  # the receive interface sees the release a tick or two later
-            while self._r.isProtectiveStopped() and time.monotonic() < deadline:
+            while r.isProtectiveStopped() and time.monotonic() < deadline:
                 time.sleep(0.01)
-            if self._r.isProtectiveStopped():
+            if r.isProtectiveStopped():
                 raise RobotUnavailable(f"the controller at {self.host} did not release its protective stop")
         self.reconnect()
 
