@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -117,3 +118,22 @@ def test_a_refusing_arm_ends_the_motion_as_a_fault(samples: np.ndarray) -> None:
     sim = Scripted(samples[0], 50, lambda b: b.arm.protect("light curtain"), speed=20.0)
     _, r = run(sim, samples, speed=20.0)
     assert r.outcome == "fault" and r.samples_sent == 50 and sim.fault() == "light curtain"
+
+
+def test_a_lock_file_it_cannot_open_is_skipped_and_said_not_a_crash(tmp_path: Path) -> None:
+    """A root run of `cadence bench executor` leaves root's lock files in /run/cadence, which the
+    service's user may not open: its executor died at start with PermissionError. Any lock file it cannot
+    open (here a folder in its place, which root cannot open either) is skipped, and the note says which."""
+    from services.executor.cores import claim_core
+
+    (tmp_path / "servo-core-1.lock").mkdir()
+    claim = claim_core([0, 1], tmp_path)
+    try:
+        assert claim.core == 0
+        assert "servo-core-1.lock: Is a directory" in claim.note
+    finally:
+        claim.release()
+    (tmp_path / "servo-core-0.lock").unlink()
+    (tmp_path / "servo-core-0.lock").mkdir()
+    none = claim_core([0, 1], tmp_path)
+    assert none.core is None and "skipped" in none.note and "unpinned" in none.note

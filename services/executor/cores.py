@@ -41,10 +41,20 @@ def claim_core(candidates: Iterable[int], lock_dir: Path, explicit: int | None =
     """The explicit core if it is free, else the first free one of ``candidates`` counting from the last
     (core 0 takes most interrupts). None, with a note, when every core is taken: the servo thread then
     runs unpinned and not FIFO, rather than share a core with another executor's FIFO thread."""
-    lock_dir.mkdir(parents=True, exist_ok=True)
     order = [explicit] if explicit is not None else sorted(set(candidates), reverse=True)
+    try:
+        lock_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return CoreClaim(None, None, f"cannot make {lock_dir} ({exc.strerror or exc}): the servo thread "
+                                     "runs unpinned and at normal priority")  # fmt: skip
+    unusable: list[str] = []  # lock files this user may not open (another's, a root run's): said, skipped
     for core in order:
-        fd = os.open(lock_dir / f"servo-core-{core}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        path = lock_dir / f"servo-core-{core}.lock"
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            unusable.append(f"{path}: {exc.strerror or exc}")
+            continue
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -52,11 +62,14 @@ def claim_core(candidates: Iterable[int], lock_dir: Path, explicit: int | None =
             continue
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
-        return CoreClaim(core, fd)
+        skipped = f"skipped {'; '.join(unusable)}" if unusable else ""
+        return CoreClaim(core, fd, skipped)
     taken = ", ".join(str(c) for c in order)
+    why = f" (skipped {'; '.join(unusable)})" if unusable else ""
+    cores = f"core{'s' if len(order) > 1 else ''} {taken}"
     return CoreClaim(
         None,
         None,
-        f"core{'s' if len(order) > 1 else ''} {taken} already serve other executors (locks in {lock_dir}): "
-        "the servo thread runs unpinned and at normal priority",
+        f"{cores} already serve other executors (locks in {lock_dir}){why}: the servo thread runs unpinned "
+        "and at normal priority",
     )
