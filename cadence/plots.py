@@ -14,6 +14,7 @@ from matplotlib.ticker import MaxNLocator
 from common.trajectory import bspline as bs
 from common.trajectory.limits import JOINT_NAMES
 from common.trajectory.planner import ParetoResult
+from schemas.pareto import ParetoSet
 
 
 def pareto_figure(result: ParetoResult) -> bytes:
@@ -214,6 +215,13 @@ def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
     return _png(fig)
 
 
+def front_title(pid: str, s: ParetoSet) -> str:
+    """A path's durations as people read them: t_f of its fastest and slowest solution (f_time is D·t_f,
+    six times that, and once stood here as if it were seconds of motion)."""
+    t_f = [x.t_f for x in s.solutions]
+    return f"{pid}: t_f {min(t_f):.2f}–{max(t_f):.2f} s"
+
+
 def front_usage_figure(sets: dict, used: dict[str, dict[int, int]]) -> bytes:
     """Each path's Pareto front (normalised) with its N solutions, and how often each k was used."""
     n = len(sets)
@@ -241,8 +249,8 @@ def front_usage_figure(sets: dict, used: dict[str, dict[int, int]]) -> bytes:
             ax.annotate(f"k={k} ×{c}", (x, y), xytext=(0.35 + 0.2 * (i % 3), 0.55 + 0.12 * (i // 3)),
                         textcoords="axes fraction", fontsize=7,
                         arrowprops={"arrowstyle": "-", "lw": 0.6, "color": "tab:red"})  # fmt: skip
-        ax.set_title(f"{pid}: f_time {ideal[0]:.2f}–{nadir[0]:.2f} s", fontsize=9)
-        ax.set_xlabel("f_time = t_f, normalised: 0 fastest … 1 slowest")
+        ax.set_title(front_title(pid, s), fontsize=9)
+        ax.set_xlabel("f_time = D·t_f, normalised: 0 fastest … 1 slowest")
         ax.set_ylabel("f_jerk, normalised: 0 smoothest … 1")
     for ax in list(axes.flat)[n:]:
         ax.axis("off")

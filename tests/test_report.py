@@ -111,3 +111,15 @@ def test_the_spans_the_robot_did_not_work_are_found_from_its_state_changes() -> 
     ]
     assert idle_spans(events, 300.0) == [(51.0, 84.0, "stopped"), (200.0, 300.0, "waiting_for_selection")]
     assert idle_spans(events[:1], 300.0) == []  # no state change: the robot worked throughout
+
+
+def test_a_fronts_title_gives_its_paths_durations_not_f_time() -> None:
+    """pareto.png said "f_time 7.60–22.50 s" for a path whose t_f is 1.27–3.75 s (f_time = D·Σh)."""
+    from cadence.plots import front_title
+
+    task = parse_task(TASK, "shuttle.toml")
+    p = task.paths["there"]
+    s = plan_job(p, task, task.planner, content_hash(p, task.limits, task.planner))
+    t_f = sorted(x.t_f for x in s.solutions)
+    assert front_title("there", s) == f"there: t_f {t_f[0]:.2f}–{t_f[-1]:.2f} s"
+    assert max(x.f_time for x in s.solutions) > 5 * t_f[-1]  # what the title said before
