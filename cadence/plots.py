@@ -136,6 +136,9 @@ def rr_k_figure(
         k = [s["k"] for s in selections]
         end = max([*t, *(w["end_s"] for w in windows)])
         ax2.step([*t, end], [*k, k[-1]], where="post", c="tab:blue", label="selected k")
+        # from 1 to the largest k seen (or N), whole steps: a k that stayed at 1 once drew 0.945–1.050
+        top = max([*k, *(s.get("n", 0) or 0 for s in selections)])
+        ax2.set_ylim(0.5, top + 0.5)
     ax2.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax2.set_ylabel("k (1 smoothest … N fastest)", color="tab:blue")
     lines = ax.get_legend_handles_labels()

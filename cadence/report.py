@@ -135,10 +135,14 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
             msgs.append(decode_any(rec.data))
         except msgspec.DecodeError:
             continue
-    # the run's data time: what the cell did (not plan times, not health's wall clock)
-    run_types = (HrvWindow, Selection, CycleReport, OperatorError, RobotEvent, EcgChunk, RobotState)
+    # the run's data time: what the cell did while it was recorded (not plan times, not health's wall
+    # clock, and not a selection's stamp: a republished one carries the time it was decided, which on a
+    # recording joined mid-run is long before it began: φ once came over 500 s of a 240 s recording)
+    run_types = (HrvWindow, CycleReport, OperatorError, RobotEvent, EcgChunk, RobotState)
     data_times = [m.t_ns for m in msgs if isinstance(m, run_types) and m.t_ns > 0]
     data_times += [m.start_ns for m in msgs if isinstance(m, HrvWindow)]
+    if not data_times:  # selections alone: their stamps are all there is
+        data_times = [m.t_ns for m in msgs if isinstance(m, Selection) and m.t_ns > 0]
     if not data_times:
         raise InputError(f"{path}: no Cadence messages in this recording")
     t0 = min(data_times)

@@ -123,3 +123,25 @@ def test_a_fronts_title_gives_its_paths_durations_not_f_time() -> None:
     t_f = sorted(x.t_f for x in s.solutions)
     assert front_title("there", s) == f"there: t_f {t_f[0]:.2f}–{t_f[-1]:.2f} s"
     assert max(x.f_time for x in s.solutions) > 5 * t_f[-1]  # what the title said before
+
+
+def test_a_recording_joined_mid_run_spans_its_streams_not_a_republished_selections_stamp(
+    tmp_path: Path,
+) -> None:
+    """φ once came over 500 s where the streams span 240 s: the first message was the decision maker's
+    republished selection, stamped when it was decided, long before the recording began."""
+    from cadence.report import from_mcap
+
+    path = tmp_path / "joined.mcap"
+    rec = Recorder(path)
+    key = "cadence/cell1/"
+    old = Selection(t_ns=T0 - 260 * 10**9, seq=9, k=1, n=15, delta=0, reason="hold", window_end_ns=1)
+    rec.write(key + "decision/selection", encode(old))  # republished: decided 260 s before
+    for c in range(2):
+        report = CycleReport(t_ns=T0 + (c + 1) * 120 * 10**9, seq=c, cycle=c, cycle_time_s=120.0,
+                             k_per_path={"there": 1, "back": 1})  # fmt: skip
+        rec.write(key + "robot/cycle", encode(report))
+    rec.write(key + "robot/event", encode(RobotEvent(t_ns=T0, seq=0, kind="info", message="joined")))
+    rec.close()
+    run = from_mcap(path)
+    assert run.duration_s == 240.0 and run.productivity_per_min == 0.5
