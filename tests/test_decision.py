@@ -4,6 +4,7 @@ independent implementation written here in exact rationals (fractions.Fraction).
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 import sys
 from decimal import Decimal
@@ -165,3 +166,50 @@ def test_cadence_decide_says_a_mean_rr_in_milliseconds_is_one() -> None:
         timeout=60,
     )
     assert proc.returncode == 2 and "milliseconds? 0.85 s" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("flag", "said"), [("850", "--rr-rest: a mean RR of 850 s"), ("x", "--rr-rest: expected")]
+)
+def test_cadence_decide_checks_its_rr_rest_as_it_checks_the_lines(flag: str, said: str) -> None:
+    """`--rr-rest 850` was taken as 850 s, and k went to 1 (issue 43)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "cadence", "decide", "--rr-rest", flag],
+        input="0.8\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and said in proc.stderr and proc.stdout == ""
+
+
+@pytest.mark.parametrize("minutes", ["0", "-1", "nan"])
+def test_cadence_calibrate_refuses_minutes_that_record_nothing(minutes: str) -> None:
+    proc = subprocess.run([sys.executable, "-m", "cadence", "calibrate", "--minutes", minutes],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2 and "--minutes" in proc.stderr
+
+
+def test_cadence_calibrate_says_where_it_listens_when_nothing_answers() -> None:
+    """Without a bus to join it waited in silence (issue 43): after 10 s it says where it listens."""
+    proc = subprocess.Popen([sys.executable, "-m", "cadence", "calibrate", "--minutes", "1", "--cell",
+                             f"lonely{os.getpid()}"], stderr=subprocess.PIPE, text=True)  # fmt: skip
+    said = ""
+    try:
+        assert proc.stderr is not None
+        while "Ctrl-C" not in said and (line := proc.stderr.readline()):  # blocks until it speaks
+            said += line
+    finally:
+        proc.kill()
+        proc.wait(10)
+    said = " ".join(said.split())
+    assert "no hrv/window on cell 'lonely" in said and "listening through peers on this host" in said
+
+
+def test_a_router_that_is_not_there_is_one_line_without_zenohs_source_file() -> None:
+    from tests.conftest import free_port
+
+    cmd = [sys.executable, "-m", "cadence", "calibrate", "--connect", f"tcp/127.0.0.1:{free_port()}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "cannot open a Zenoh session (client)" in proc.stderr
+    assert ".rs:" not in proc.stderr and "cargo" not in proc.stderr and proc.stderr.count("\n") == 1

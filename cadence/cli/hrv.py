@@ -8,12 +8,13 @@ import json
 import os
 import sys
 from collections.abc import Callable
+from decimal import Decimal
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rich.progress import BarColumn, Progress, TextColumn
 
-from cadence.cli._common import Commands, arg, err, flags_from, out, positive_int
+from cadence.cli._common import Commands, arg, bus_config, err, flags_from, out, positive_float, positive_int
 from common.runtime.errors import CadenceError, InputError
 
 if TYPE_CHECKING:
@@ -129,26 +130,28 @@ DECIDE_MIN_S, DECIDE_MAX_S = 0.2, 3  # a window's mean RR that a heart can have 
 def cmd_decide(args: argparse.Namespace) -> int:
     from common.decision import Params, State, dec, step
 
-    try:
-        params = Params.of(args.rr_rest, args.n, args.sigma_r, args.rr_s_offset, args.sigma_s)
-    except (ValueError, ArithmeticError) as exc:
-        raise InputError(f"decide: {exc}") from exc
-    values = []
-    for lineno, line in enumerate(sys.stdin, start=1):
-        text = line.strip()
+    def seconds(text: str, where: str) -> Decimal:
+        """A mean RR as a heart can have it; the flag and the lines of stdin are checked alike (850 was
+        once taken as 850 s for --rr-rest, and k went to 1)."""
         try:
             value = dec(text)
             ok = value.is_finite() and value > 0
         except ArithmeticError:
             ok = False
         if not ok:
-            raise InputError(f"<stdin>:{lineno}: expected a positive number of seconds, got {text!r}")
+            raise InputError(f"{where}: expected a positive number of seconds, got {text!r}")
         if not DECIDE_MIN_S <= value <= DECIDE_MAX_S:
             hint = f" (milliseconds? {value / 1000} s)" if value > DECIDE_MAX_S else ""
-            raise InputError(
-                f"<stdin>:{lineno}: a mean RR of {text} s is outside {DECIDE_MIN_S}-{DECIDE_MAX_S} s{hint}"
-            )
-        values.append(value)
+            span = f"{DECIDE_MIN_S}-{DECIDE_MAX_S} s"
+            raise InputError(f"{where}: a mean RR of {text} s is outside {span}{hint}")
+        return value
+
+    seconds(args.rr_rest, "--rr-rest")
+    try:
+        params = Params.of(args.rr_rest, args.n, args.sigma_r, args.rr_s_offset, args.sigma_s)
+    except (ValueError, ArithmeticError) as exc:
+        raise InputError(f"decide: {exc}") from exc
+    values = [seconds(line.strip(), f"<stdin>:{lineno}") for lineno, line in enumerate(sys.stdin, start=1)]
     state = State.initial(params)
     lines = []
     for value in values:
@@ -156,6 +159,9 @@ def cmd_decide(args: argparse.Namespace) -> int:
         lines.append(str(state.k))
     sys.stdout.write("".join(f"{x}\n" for x in lines))
     return 0
+
+
+SILENT_S = 10.0  # no window for this long: calibrate says where it listens
 
 
 async def calibrate(
@@ -166,12 +172,14 @@ async def calibrate(
     measured_sigma: bool,
     progress: Callable[[float, float], object] | None = None,
     posture: Posture = "rest",
+    silent: Callable[[float], object] | None = None,
 ) -> tuple[Calibration, RestingLevel]:
     """Collect ``minutes`` of data time of windows from the bus; store and publish the calibration. At
     work (``posture`` working), the robot first runs its slowest solution (the decision maker's condition
     fixed at k = 1, where it stays until a session sets its own) and the stored calibration at rest of
     the same subject is kept beside the new baseline. An ECG that cannot be read is an InputError that
-    says why (``calibration.Verdict``)."""
+    says why (``calibration.Verdict``). ``silent(s)`` is called once when no window came for SILENT_S:
+    nothing on the bus may be answering at all."""
 
     from common.hrv.calibration import calibration, load_calibration, store_calibration
     from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW
@@ -183,7 +191,16 @@ async def calibrate(
             why = replies[0].error if replies else "no decision maker answered"
             raise CadenceError(f"calibrate --posture working: cannot set the slowest solution (k = 1): {why}")
     wins: list[HrvWindow] = []
-    async for _, w in bus.subscribe(HRV_WINDOW, maxsize=1000):
+    sub = bus.subscribe(HRV_WINDOW, maxsize=1000)
+    waited = 0.0
+    while True:
+        try:
+            _, w = await sub.receive(SILENT_S)
+        except TimeoutError:
+            waited += SILENT_S
+            if silent is not None and waited == SILENT_S:
+                silent(waited)
+            continue
         wins.append(w)
         covered = (w.end_ns - wins[0].start_ns) / 60e9
         if progress is not None:
@@ -235,7 +252,7 @@ def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bo
     "it on operator/calibration. Ends with a verdict: the share of readable windows, why the others "
     "were held, and 'this ECG cannot be read reliably: …' (exit 2) when too few are good.",
 )
-@arg("--minutes", type=float, default=5.0, help="time to record (default 5)")
+@arg("--minutes", type=positive_float, default=5.0, help="time to record, above 0 (default 5)")
 @flags_from(add_posture)
 @arg("--subject", default="subject", help="who is calibrated")
 @arg(
@@ -247,6 +264,8 @@ def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bo
 @arg("--config", metavar="FILE.toml", help="deployment config ([cadence], [bus])")
 @arg("--data-dir", help="data folder (default from the config or CADENCE_DATA_DIR)")
 @arg("--cell", help="robot cell name")
+@arg("--connect", action="append", metavar="ENDPOINT", help="a router to join, e.g. tcp/127.0.0.1:7447")
+@arg("--zenoh-config", metavar="FILE.json5", help="Zenoh config file (a deployed cell's operator account)")
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -257,8 +276,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     raw = read_config(args.config)
     common = section(raw, "cadence", CommonSettings, args.config or "<defaults>")
     bus_cfg = section(raw, "bus", BusConfig, args.config or "<defaults>")
+    if args.connect or args.zenoh_config:  # as every other cell command takes them
+        bus_cfg = bus_config(args, "client" if args.connect else "peer")
     data_dir = Path(args.data_dir or os.environ.get("CADENCE_DATA_DIR") or common.data_path).expanduser()
     cell = args.cell or common.cell
+    where = (
+        f"the router at {', '.join(bus_cfg.connect)}" if bus_cfg.connect
+        else f"the Zenoh config {bus_cfg.config_file}" if bus_cfg.config_file
+        else "peers on this host (multicast scouting is off: --connect a router elsewhere)"
+    )  # fmt: skip
+
+    def silent(waited: float) -> None:
+        err.print(f"no hrv/window on cell '{cell}' for {waited:.0f} s, listening through {where}: are the "
+                  "ECG gateway and the HRV analyser running? Still listening (Ctrl-C to stop)")  # fmt: skip
 
     async def go() -> tuple[Calibration, RestingLevel]:
         async with await Bus.open(bus_cfg, cell, role="operator") as bus:
@@ -277,6 +307,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                     args.measured_sigma,
                     lambda done, total: prog.update(bar, completed=done),
                     args.posture,
+                    silent,
                 )
 
     cal, level = asyncio.run(go())

@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import re
 import time
 from collections import Counter
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -70,7 +71,7 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         # A killed peer's token vanishes at once; a frozen one only when its lease runs out (DESIGN §11).
         conf.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
     except zenoh.ZError as exc:
-        raise BusError(f"bad Zenoh configuration {cfg.config_file or ''}: {exc}") from exc
+        raise BusError(f"bad Zenoh configuration {cfg.config_file or ''}: {zenoh_words(exc)}") from exc
     return conf
 
 
@@ -98,6 +99,12 @@ class Reply(Generic[M]):
     key: str
     message: M | None
     error: str | None
+
+
+def zenoh_words(exc: Exception) -> str:
+    """Zenoh's message without the Rust source file it was raised in (``… at /root/.cargo/…/x.rs:447.``),
+    which says nothing to a user."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 class QueryError(Exception):
@@ -245,7 +252,7 @@ class Bus:
             session = await asyncio.to_thread(zenoh.open, conf)
         except zenoh.ZError as exc:
             raise BusError(
-                f"cannot open a Zenoh session ({cfg.mode or cfg.config_file or 'peer'}): {exc}"
+                f"cannot open a Zenoh session ({cfg.mode or cfg.config_file or 'peer'}): {zenoh_words(exc)}"
             ) from exc
         return cls(session, asyncio.get_running_loop(), cell, role, cfg)
 
@@ -548,7 +555,7 @@ class Bus:
         try:
             replies = await asyncio.to_thread(run)
         except zenoh.ZError as exc:
-            raise BusError(f"query {selector} failed: {exc}") from exc
+            raise BusError(f"query {selector} failed: {zenoh_words(exc)}") from exc
         return [
             (str(r.ok.key_expr), True, r.ok.payload.to_bytes())
             if r.ok is not None
