@@ -182,3 +182,13 @@ async def test_the_sensor_adapter_skips_a_bad_byte_a_huge_line_and_an_underscore
     assert "stdin line 1: not UTF-8" in stderr
     assert "stdin line 2:" in stderr and "over 256 bytes" in stderr
     assert "stdin line 3: '1_0': not a decimal number" in stderr
+
+
+def test_a_misspelled_bus_variable_stops_a_tool_as_it_stops_every_service() -> None:
+    """`cadence top` ignored CADENCE_BUS_CONECT, which every service refuses (issue 43)."""
+    import os
+
+    env = {**os.environ, "CADENCE_BUS_CONECT": "['tcp/127.0.0.1:7447']"}
+    proc = subprocess.run([sys.executable, "-m", "cadence", "top"], env=env, capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    assert proc.returncode == 2 and "CADENCE_BUS_CONECT" in proc.stderr and "conect" in proc.stderr

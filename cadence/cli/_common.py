@@ -161,13 +161,22 @@ def add_bus_flags(p: argparse.ArgumentParser, timeout_s: float) -> None:
 
 
 def bus_config(args: argparse.Namespace, mode: Literal["peer", "client", "router"]) -> BusConfig:
+    """The command's bus: its flags, over the ``CADENCE_BUS_*`` variables every service reads (a
+    misspelled one is an error here as it is there, not ignored), over the defaults."""
+    from common.runtime.config import section
 
-    return BusConfig(
-        mode=None if args.zenoh_config else mode,  # a config file says its own mode
-        connect=args.connect or [],
-        listen=getattr(args, "listen", None) or [],
-        config_file=args.zenoh_config,
-    )
+    env = section({}, "bus", BusConfig)
+    flags: dict[str, Any] = {}
+    if args.zenoh_config:
+        flags.update(config_file=args.zenoh_config, mode=None)  # a config file says its own mode
+    if args.connect:
+        flags["connect"] = args.connect
+    if listen := getattr(args, "listen", None):
+        flags["listen"] = listen
+    cfg = structs.replace(env, **flags)
+    if cfg.mode is None and not cfg.config_file:
+        cfg = structs.replace(cfg, mode="client" if cfg.connect and mode == "peer" else mode)
+    return cfg
 
 
 async def cell_clock(bus: Bus, timeout_s: float = 1.0) -> Clock:
