@@ -434,6 +434,20 @@ def build_venv(opts: Options, say: list[str]) -> None:
     say.append(f"venv: {venv} on {python}")
 
 
+def no_systemd(root: Path = Path("/")) -> str:
+    """Why ``systemctl`` cannot enable the units here, or "" when it can: systemd must be PID 1
+    (``/run/systemd/system`` exists then, as ``sd_booted(3)`` tests)."""
+    if not (root / "run/systemd/system").is_dir():
+        try:
+            init = (root / "proc/1/comm").read_text().strip()
+        except OSError:
+            init = "unknown"
+        return f"this host does not run systemd (PID 1 is {init})"
+    if shutil.which("systemctl") is None:
+        return "systemctl is not on the PATH"
+    return ""
+
+
 def install(opts: Options, dry_run: bool = False) -> list[str]:
     """Does (or, dry, describes) the install; returns the lines to print."""
     if not set(opts.services) <= set(HOSTS_ALL):
@@ -473,6 +487,11 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
         return say
     if os.geteuid() != 0:
         raise InstallError("cadence install writes /etc, /opt and systemd units: run it as root (sudo)")
+    if opts.systemctl and (why := no_systemd()):  # before anything is written, not after 626 MB of venv
+        raise InstallError(
+            f"{why}: nothing was written. Install on a host that runs systemd, or with --no-systemctl to "
+            "write the files and the venv only (an image being built), and enable cadence.target later"
+        )
     written: list[str] = []
     made: list[str] = []
     SYSUSERS.parent.mkdir(parents=True, exist_ok=True)

@@ -307,3 +307,19 @@ def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str
         check=False,
     )
     assert r.returncode == 2 and said in r.stderr, r.stderr
+
+
+def test_an_install_on_a_host_without_systemd_stops_before_it_writes_anything(tmp_path: Path) -> None:
+    """It failed at `systemctl daemon-reload`, after all of /etc/cadence and a 626 MB venv (issue 43)."""
+    from cadence.install import InstallError, install, no_systemd
+
+    fake = tmp_path / "root"
+    (fake / "proc/1").mkdir(parents=True)
+    (fake / "proc/1/comm").write_text("bash\n")
+    assert no_systemd(fake) == "this host does not run systemd (PID 1 is bash)"
+    if not no_systemd() or os.geteuid() != 0:
+        pytest.skip("this host runs systemd (an install here would write /etc), or this is not root")
+    before = Path("/etc/cadence").exists()
+    with pytest.raises(InstallError, match="does not run systemd .*nothing was written.*--no-systemctl"):
+        install(Options(robot="sim", strap="twin", prefix=tmp_path / "opt"))
+    assert Path("/etc/cadence").exists() == before and not (tmp_path / "opt").exists()
