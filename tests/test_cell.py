@@ -320,6 +320,6 @@ def test_an_install_on_a_host_without_systemd_stops_before_it_writes_anything(tm
     if not no_systemd() or os.geteuid() != 0:
         pytest.skip("this host runs systemd (an install here would write /etc), or this is not root")
     before = Path("/etc/cadence").exists()
-    with pytest.raises(InstallError, match="does not run systemd .*nothing was written.*--no-systemctl"):
+    with pytest.raises(InstallError, match=r"does not run systemd .*nothing was written.*--no-systemctl"):
         install(Options(robot="sim", strap="twin", prefix=tmp_path / "opt"))
     assert Path("/etc/cadence").exists() == before and not (tmp_path / "opt").exists()

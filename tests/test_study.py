@@ -4,6 +4,7 @@ it is simulated."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -184,3 +185,28 @@ def test_the_twin_fit_moves_the_error_model_toward_table_i_and_predicts_c(tmp_pa
     assert doc["paper"]["c"] == {"phi": 1.025, "eps": 0.196}
     assert (tmp_path / "fit.png").read_bytes()[:4] == b"\x89PNG"
     assert len(list((tmp_path / "sessions").glob("*.mcap"))) == 6
+
+
+def test_the_readmes_fit_table_is_what_study_fit_gives(tmp_path: Path) -> None:
+    """The README's command as written, its table read back (issue 43: it said φ_c/φ_a 0.596 and ε_c 0.266
+    where this version gives other figures): a change that moves the fit moves the README with it."""
+    from tests.test_readme import README
+
+    r = subprocess.run([sys.executable, "-m", "cadence", "study", "fit", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    gives, pred = doc["fit_gives"], doc["prediction"]
+    rows = {
+        "φ_b / φ_a": gives["phi_b_over_phi_a"],
+        "ε_a": pred["a"]["eps"],
+        "ε_b": pred["b"]["eps"],
+        "φ_c / φ_a": pred["c"]["phi"] / pred["a"]["phi"],
+        "ε_c": pred["c"]["eps"],
+    }
+    text = README.read_text()
+    for name, value in rows.items():
+        assert re.search(rf"\| {re.escape(name)} \| [0-9.]+ \| {value:.3f} \|", text), (name, f"{value:.3f}")
+    f = doc["fitted"]
+    line = f"Fitted: handling_s = {f['handling_s']:g} s, error_base = {f['error_base']:.3f}, "
+    assert line + f"error_stress = {f['error_stress']:.3f}." in text
