@@ -192,3 +192,11 @@ def test_a_misspelled_bus_variable_stops_a_tool_as_it_stops_every_service() -> N
     proc = subprocess.run([sys.executable, "-m", "cadence", "top"], env=env, capture_output=True, text=True,
                           timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "CADENCE_BUS_CONECT" in proc.stderr and "conect" in proc.stderr
+
+
+def test_a_demo_speed_every_service_would_refuse_is_refused_at_the_command() -> None:
+    """`cadence demo --speed 2000` was accepted, and every service refused it at start: a silent restart
+    loop (issue 43). One check, at the command, with the range."""
+    proc = subprocess.run([sys.executable, "-m", "cadence", "demo", "--speed", "2000"], capture_output=True,
+                          text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2 and "--speed: must be at most 1000" in proc.stderr
