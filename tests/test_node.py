@@ -351,3 +351,47 @@ async def test_a_strap_whose_accelerometer_stops_mid_session_is_said_on_the_gate
     node.acc_until_ns = 111 * S  # it came back
     node.say_accelerometer(112 * S)
     assert ctx.detail == ""
+
+
+@pytest.mark.asyncio
+async def test_a_part_put_down_is_said_again_while_the_robot_waits_and_counted_once(tmp_path: Path) -> None:
+    """A signal sent while the executor was stopped for 2 s was lost, and the cell waited 1,100 s for a
+    part already there (issue 40). Signals are state: the twin says a placed part again every second
+    while the robot waits for it, and the executor counts a copy once."""
+    from common.sim.twin import TwinParams
+    from schemas import RobotState
+    from services.executor.cycles import Signals
+    from services.operator_twin.__main__ import OperatorTwin
+    from services.operator_twin.__main__ import Settings as TwinSettings
+
+    common = CommonSettings(data_dir=str(tmp_path))
+    bus = MockBus(role="operator_twin")
+    ctx = ServiceContext("operator_twin", bus, common, TwinSettings(TwinParams(seed=3)), asyncio.Event())
+    twin = OperatorTwin(ctx)
+    await twin.setup()
+    twin.origin_ns -= 30 * S  # its states have happened: nothing from its future is taken
+    t0 = twin.origin_ns
+    twin.line.anchor(t0 - S)  # the robot's stream, as it was 30 s ago
+
+    def state(t_s: float, waiting: str | None) -> RobotState:
+        return RobotState(t_ns=t0 + round(t_s * S), seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6,
+                          path_id=None, k=8, mode="waiting", waiting_for=waiting,
+                          state="waiting_for_operator")  # fmt: skip
+
+    assert await twin.on_state(state(0.0, "part_a2")) == []  # it goes to fetch the part
+    when = twin.pending[0][0]
+    twin.placed["part_a2"] = (when, when)  # put down (the stream says it then, once)
+    twin.pending.clear()
+    again = [
+        m
+        for t in (when + 0.5, when + 1.2, when + 1.9, when + 2.3)
+        for m in await twin.on_state(state(t, "part_a2"))
+    ]
+    assert [(m.name, m.t_ns) for m in again] == [("part_a2", t0 + round(when * S))] * 2  # once a second
+    assert await twin.on_state(state(when + 5.0, None)) == []  # taken: not said again
+    assert await twin.on_state(state(when + 9.0, None)) == []
+
+    signals = Signals({"part_a2"})
+    for m in again * 3:
+        signals.admit(m)
+    assert signals.received["part_a2"] == 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from functools import partial
 from typing import Literal
@@ -45,17 +45,25 @@ RATE_HZ = 500.0
 class Signals:
     """Operator signals by name. A ``wait_for`` is met by a signal that arrived since the last wait for
     the same name, so a part put down before the robot got there is not missed. Only the names the task
-    waits for are counted: any other is refused, so a flood of names cannot grow the table."""
+    waits for are counted: any other is refused, so a flood of names cannot grow the table. A signal is
+    state its sender says again while it holds (DESIGN §9): a copy of one already counted (same name,
+    same stamp) counts nothing, so a signal lost once (the executor stopped for a while) comes again."""
+
+    KEPT = 32  # stamps remembered per name, to know a copy when it comes again
 
     def __init__(self, names: set[str]) -> None:
         self.names = names
         self.received: Counter[str] = Counter()
         self.consumed: Counter[str] = Counter()
+        self.seen: dict[str, deque[int]] = {name: deque(maxlen=self.KEPT) for name in names}
         self.arrived = asyncio.Event()
 
     def admit(self, sig: OperatorSignal) -> None:
         if sig.name not in self.names:
             raise Rejected("unknown_signal", f"no step of the task waits for '{sig.name}'")
+        if sig.t_ns in self.seen[sig.name]:
+            return  # said again while it holds: counted once
+        self.seen[sig.name].append(sig.t_ns)
         self.received[sig.name] += 1
         self.arrived.set()
 

@@ -44,6 +44,7 @@ NAME = "operator_twin"
 log = logging.getLogger("cadence.operator_twin")
 STATE_AHEAD_S = 10.0
 STATE_CONFIRM = 25  # half a second of robot states
+SIGNAL_AGAIN_S = 1.0  # a part put down is said again this often (data time) while the robot waits for it
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -58,6 +59,7 @@ class OperatorTwin(Node):
         self.operator, self.clock = Operator(self.ctx.settings.twin, FS_HZ), self.ctx.common.clock
         self.origin_ns = self.clock.now_ns()
         self.pending: list[tuple[float, str]] = []  # (data time s, signal): parts being put down
+        self.placed: dict[str, tuple[float, float]] = {}  # signal: (when the part was down, last said)
         self.waiting_for: str | None = None
         self.line = TimeLine(STATE_AHEAD_S, confirm=STATE_CONFIRM, skew_s=self.ctx.common.clock_skew_s)
 
@@ -74,7 +76,21 @@ class OperatorTwin(Node):
             self.operator.handle(t, handling)
             self.pending.append((t + handling, state.waiting_for))
         self.waiting_for = state.waiting_for
-        return []
+        return self.still_there(t, state.waiting_for)
+
+    def still_there(self, t: float, waiting_for: str | None) -> Out:
+        """A signal is state, not an event (DESIGN §9): a part the robot still waits for is said again,
+        with the time it was put down (the same signal: the executor counts it once), so one lost on the
+        way (a receiver stopped for a while) is not lost for good. A part the robot no longer waits for
+        is not said again."""
+        self.placed = {name: v for name, v in self.placed.items() if name == waiting_for}
+        out: list[Message] = []
+        for name, (when, said) in self.placed.items():
+            if t - said >= SIGNAL_AGAIN_S:
+                self.placed[name] = (when, t)
+                seq = self.next_seq(OPERATOR_SIGNAL)
+                out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
+        return out
 
     @on(ROBOT_CYCLE)
     async def on_cycle(self, report: CycleReport) -> Out:
@@ -115,6 +131,7 @@ class OperatorTwin(Node):
             for when, name in [p for p in self.pending if p[0] <= t1]:
                 seq = self.next_seq(OPERATOR_SIGNAL)
                 out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
+                self.placed[name] = (when, when)
             self.pending = [p for p in self.pending if p[0] > t1]
             self.ctx.counters["chunks"] += 1
             if i % (CHUNK * 54) == 0:  # about every 30 s of data time
