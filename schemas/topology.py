@@ -133,9 +133,16 @@ ROLES: tuple[Role, ...] = (
         inputs=(HRV_WINDOW, CALIBRATION),
         outputs=(SELECTION,),
         answers=(SELECTION, DECISION_CONDITION),
+        asks=(HRV_WINDOW,),  # the windows it missed while it was down (the analyser keeps its last ones)
     ),
     # ecg/rr is read only with input = rr
-    Role("hrv_analyser", "service", inputs=(ECG_SAMPLES, ECG_RR, ECG_ACC), outputs=(HRV_BEATS, HRV_WINDOW)),
+    Role(
+        "hrv_analyser",
+        "service",
+        inputs=(ECG_SAMPLES, ECG_RR, ECG_ACC),
+        outputs=(HRV_BEATS, HRV_WINDOW),
+        answers=(HRV_WINDOW,),
+    ),
     Role("ecg_gateway", "service", outputs=(ECG_SAMPLES, ECG_RR, ECG_ACC)),
     Role(
         "executor",

@@ -213,3 +213,58 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
         assert '"rr_rest_s": 0.95' in (tmp_path / "decision_state.json").read_text()  # of the new RR_r
         assert (await answer(bus, sub, window(1, 0.90))).reason != "fixed"
         await svc.close()
+
+
+async def test_windows_missed_while_it_was_down_or_stopped_are_asked_for_and_decided_in_order(
+    tmp_path: Path, endpoint: str
+) -> None:
+    """A window published while the decision maker restarted (or was stopped) was never decided, and the
+    next step was +3 in one go (issue 40). The analyser keeps its last windows and answers for them
+    (stood in for here by a queryable with the same answers); the decision maker asks at start and when
+    a window comes after a gap, and decides each in order."""
+    from common.runtime.bus import QueryError, Request
+
+    windows = [window(i, rr) for i, rr in enumerate([0.85, 0.80, 0.74, 0.69, 0.66, 0.72])]
+    settings = Settings(rr_rest_s=0.85, republish_s=60)
+
+    async def analyser(req: Request) -> HrvWindow:  # what the analyser's window_after answers
+        after = int(req.params["after"])
+        for w in published:
+            if w.end_ns > after:
+                return w
+        raise QueryError("no window after it")
+
+    published: list[HrvWindow] = []
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        bus.serve(bus.key("hrv/window"), analyser)
+        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection, maxsize=1000))
+        svc = start_decider(tmp_path, endpoint, settings)
+        await svc.listening(bus, "hrv/window")
+
+        async def send(w: HrvWindow) -> None:
+            published.append(w)
+            put(bus, bus.key("hrv/window"), w, block=True)
+
+        async def answered(end_ns: int) -> Selection:
+            async with asyncio.timeout(10):
+                async for _, sel in sels:
+                    if sel.window_end_ns == end_ns:
+                        return sel
+            raise AssertionError("unreachable")
+
+        got = []
+        for w in windows[:2]:
+            await send(w)
+            got.append((await answered(w.end_ns)).k)
+        await svc.close()
+        published.append(windows[2])  # published while it was down: nobody heard it
+        svc = start_decider(tmp_path, endpoint, settings)  # it asks at start
+        got.append((await answered(windows[2].end_ns)).k)
+        await svc.listening(bus, "hrv/window")
+        published.append(windows[3])  # lost on the way (a freeze): it asks when the next one comes
+        await send(windows[4])
+        got += [(await answered(windows[3].end_ns)).k, (await answered(windows[4].end_ns)).k]
+        await send(windows[5])
+        got.append((await answered(windows[5].end_ns)).k)
+        await svc.close()
+    assert got == expected(windows, 0.85)

@@ -11,6 +11,7 @@ import msgspec
 import pytest
 
 from common.decision import Params, State, step
+from common.hrv.live import Taken
 from common.runtime.bus import Bus, QueryError
 from common.runtime.config import CommonSettings
 from common.runtime.errors import BusError
@@ -395,3 +396,28 @@ async def test_a_part_put_down_is_said_again_while_the_robot_waits_and_counted_o
     for m in again * 3:
         signals.admit(m)
     assert signals.received["part_a2"] == 1
+
+
+@pytest.mark.asyncio
+async def test_the_analyser_answers_for_its_last_windows_one_at_a_time(tmp_path: Path) -> None:
+    from common.runtime.bus import Request
+    from services.hrv_analyser.__main__ import KEPT_WINDOWS
+
+    ctx = ServiceContext("hrv_analyser", MockBus(role="hrv_analyser"), CommonSettings(data_dir=str(tmp_path)),
+                         AnalyserSettings(), asyncio.Event())  # fmt: skip
+    node = HrvAnalyser(ctx)
+    await node.setup()
+    base = now_ns() - 100 * 30 * S
+    for i in range(KEPT_WINDOWS + 10):  # what it made; it keeps the last KEPT_WINDOWS
+        node.sent(Taken(None, [window(base, i, 0.8)]))
+
+    def ask(after: int | str) -> Request:
+        return Request("cadence/cell1/hrv/window", f"after={after}")
+
+    first_kept = base + 11 * 30 * S
+    assert (await node.window_after(ask(0))).end_ns == first_kept
+    assert (await node.window_after(ask(first_kept))).end_ns == first_kept + 30 * S
+    with pytest.raises(QueryError, match="no window after it"):
+        await node.window_after(ask(base + (KEPT_WINDOWS + 10) * 30 * S))
+    with pytest.raises(QueryError, match="expected after=<end_ns>"):
+        await node.window_after(ask("soon"))

@@ -19,9 +19,9 @@ import msgspec
 
 from common.decision import fixed_k
 from common.runtime.bus import QueryError, Request
-from common.runtime.node import Answer, Node, Out, answers, every, node_main, on
+from common.runtime.node import Answer, Node, Out, Rejected, answers, every, node_main, on
 from common.runtime.service import service_main
-from schemas.base import RrSeconds
+from schemas.base import Message, RrSeconds
 from schemas.decision import MAX_N, Selection
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
@@ -31,6 +31,8 @@ from services.decision_maker.state import Decider, DecisionRecord, MovementRule,
 
 log = logging.getLogger("cadence.decision_maker")
 NAME = "decision_maker"
+MISSED_GAP_NS = 1_000_000_000  # a window starting this long after the last answered one: some were missed
+MAX_MISSED = 64  # what the analyser keeps
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -113,10 +115,44 @@ class DecisionMaker(Node):
         if self.decider.params is None:
             self.ctx.counters["windows_without_calibration"] += 1
             return []
+        out = await self.missed(before_ns=w.start_ns)
+        await self.decide(w)
+        return [*out, *await self.current()]
+
+    async def decide(self, w: HrvWindow) -> None:
         self.ctx.counters["window_line_restarts"] += self.decider.admit(w, self.ctx.common.clock.now_ns())
         await self.adopt(record := self.decider.answer(w))
         self.ctx.counters["windows_held_for_movement"] += record.reason == "movement"
-        return await self.current()
+
+    async def missed(self, before_ns: int | None = None) -> Out:
+        """The windows published while this service was down or stopped (DESIGN §9: the analyser answers
+        for them), decided in order, each selection published: before, a window missed that way was
+        never decided, and the next step was several windows' worth at once."""
+        record = self.decider.record
+        if record is None or record.last_end_ns < 0 or self.decider.params is None:
+            return []
+        after, out = record.last_end_ns, list[Message]()
+        if before_ns is not None and before_ns <= after + MISSED_GAP_NS:
+            return []  # contiguous: nothing was missed
+        for _ in range(MAX_MISSED):
+            replies = await self.ctx.bus.get(HRV_WINDOW, timeout=2.0, parameters=f"after={after}")
+            w = next((r.message for r in replies if r.message is not None), None)
+            if w is None or (before_ns is not None and w.end_ns > before_ns):
+                break
+            try:
+                await self.decide(w)
+            except Rejected as r:  # not in line (a stream that started afresh): not this one's to decide
+                self.ctx.bus.reject(self.ctx.bus.key(HRV_WINDOW.suffix), r.code, r.detail)
+                break
+            self.ctx.counters["missed_windows_decided"] += 1
+            out += await self.current()
+            after = w.end_ns
+        return out
+
+    async def work(self) -> None:
+        """At start: what was published while it was down."""
+        if (out := await self.missed()) and self.conditions.fixed is None:
+            self.publish(*out)
 
     @on(CALIBRATION)
     async def on_calibration(self, cal: Calibration) -> Out:

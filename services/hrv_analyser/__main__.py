@@ -6,23 +6,30 @@ the H10's own RR leaves out premature beats, so samples are the default and the 
 
 A chunk far from the stream's data time, or at another sample rate, is dropped and counted; a run of
 them that agree with each other starts the stream afresh there (common/hrv/live.py). The strap's
-accelerometer (``ecg/acc``), when its source has one, gives each window the wearer's movement."""
+accelerometer (``ecg/acc``), when its source has one, gives each window the wearer's movement.
+
+It keeps its last windows and answers for them (``hrv/window?after=<end_ns>``: the first one ending after
+it), so a decision maker that was restarting or stopped while one was published asks for what it missed
+(DESIGN §9) instead of stepping several windows' worth at once."""
 
 from __future__ import annotations
 
 import sys
+from collections import deque
 from typing import Annotated, Any, Literal
 
 import msgspec
 
 from common.hrv.live import LiveHrv, Taken
-from common.runtime.node import Node, Out, admitted, node_main, on
+from common.runtime.bus import QueryError, Request
+from common.runtime.node import Node, Out, admitted, answers, node_main, on
 from common.runtime.service import service_main
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
-from schemas.hrv import Beats
-from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES, Topic
+from schemas.hrv import Beats, HrvWindow
+from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES, HRV_WINDOW, Topic
 
 NAME = "hrv_analyser"
+KEPT_WINDOWS = 64  # half an hour of 30 s windows: what a decision maker that was down may ask for
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -35,6 +42,7 @@ class HrvAnalyser(Node):
 
     async def setup(self) -> None:
         self.live = LiveHrv(self.ctx.settings.window_s, self.ctx.settings.input, self.ctx.common.clock_skew_s)
+        self.recent: deque[HrvWindow] = deque(maxlen=KEPT_WINDOWS)
 
     def reads(self, topic: Topic[Any]) -> bool:  # ecg/rr only with input = rr, ecg/samples only without
         return topic is ECG_ACC or (topic.suffix == ECG_RR.suffix) == (self.ctx.settings.input == "rr")
@@ -62,7 +70,20 @@ class HrvAnalyser(Node):
             else:
                 self.ctx.counters["windows"] += 1
                 self.ctx.counters["windows_without_movement"] += m.movement_mg is None
+                self.recent.append(m)
         return taken.out
+
+    @answers(HRV_WINDOW)
+    async def window_after(self, req: Request) -> HrvWindow:
+        """The first window kept that ends after ``after`` (ns): one at a time, in order."""
+        try:
+            after = int(req.params.get("after", ""))
+        except ValueError:
+            raise QueryError("expected after=<end_ns>, the end of the last window answered") from None
+        for w in self.recent:
+            if w.end_ns > after:
+                return w
+        raise QueryError("no window after it")
 
 
 main = node_main(HrvAnalyser)
