@@ -1,7 +1,10 @@
 """`cadence record` and `cadence replay`: bus traffic to and from MCAP files (DESIGN §1, §3, §11).
 
 A recording keeps every payload as it travelled (MessagePack), one channel per key, with the message
-type's JSON schema attached (msgspec's), so the file opens in MCAP tools; ``json=True`` writes JSON
+type's JSON schema attached (msgspec's), so the file opens in MCAP tools. What it holds reaches the disk
+every second (a chunk each), so a recorder killed loses at most that; a file left without its footer (a
+kill, a disk that filled) is read up to its last whole chunk, and said so. A disk that cannot take more
+ends the recording at once, with one line naming the file; ``json=True`` writes JSON
 channels instead, which Foxglove's viewer can decode, and which report and replay read as well. Log
 time is the wall clock at arrival, publish time the message's own data time. A replay republishes the
 payloads unchanged (so with their original data time) on their keys, paced by the recorded log times
@@ -11,14 +14,18 @@ divided by ``speed``; services on data time then give exactly what they gave liv
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import zenoh
 from mcap.reader import make_reader
+from mcap.records import Channel, Message
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from common.runtime.bus import Bus
@@ -26,11 +33,13 @@ from common.runtime.errors import InputError
 from schemas.topology import AnyMessage, decode_any, encode, topic_of
 
 PROFILE = "cadence"
+FLUSH_S = 1.0  # what a recorder holds reaches the disk this often (wall s): a kill loses at most this
 
 
 @dataclass
 class Recorder:
-    """Writes samples as they arrive; ``close`` finishes the file (its summary and index)."""
+    """Writes samples as they arrive; ``flush`` puts what it holds on disk (a chunk); ``close`` finishes
+    the file (its summary and index). A write the disk refuses ends it: ``failed`` says why."""
 
     path: Path
     json: bool = False
@@ -38,13 +47,24 @@ class Recorder:
     def __post_init__(self) -> None:
         self._file = self.path.open("wb")
         self._writer = Writer(self._file, chunk_size=256 * 1024, compression=CompressionType.ZSTD)
-        self._writer.start(profile=PROFILE, library="cadence")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
         self.count = 0
         self.undecodable = 0
         self.closed = False
+        self.failed: str | None = None
+        self._guard(lambda: self._writer.start(profile=PROFILE, library="cadence"))
+
+    def _guard(self, write: Callable[[], object]) -> None:
+        """A write to the file; a disk that refuses it (full, gone) ends the recording, said in ``failed``."""
+        if self.failed is not None:
+            return
+        try:
+            write()
+        except OSError as exc:
+            self.failed = f"cannot write {self.path}: {exc.strerror or exc}"
+            self.closed = True
 
     def _channel(self, key: str) -> int:
         if key in self._channels:
@@ -64,7 +84,7 @@ class Recorder:
     def metadata(self, name: str, data: dict[str, str]) -> None:
         """An MCAP metadata record (a session's description): MCAP tools list them beside the channels."""
         if not self.closed:
-            self._writer.add_metadata(name, data)
+            self._guard(lambda: self._writer.add_metadata(name, data))
 
     def write(self, key: str, payload: bytes, log_time_ns: int | None = None) -> None:
         """``log_time_ns``: when it arrived; the wall clock now unless a simulation gives its own."""
@@ -78,19 +98,23 @@ class Recorder:
         data = msgspec.json.encode(msg) if self.json and msg is not None else payload
         seq = self._seq.get(key, 0)
         self._seq[key] = seq + 1
-        self._writer.add_message(
-            self._channel(key),
-            log_time=time.time_ns() if log_time_ns is None else log_time_ns,
-            data=data,
-            publish_time=msg.t_ns if msg is not None else 0,
-            sequence=seq,
-        )
-        self.count += 1
+        log_time = time.time_ns() if log_time_ns is None else log_time_ns
+        publish = msg.t_ns if msg is not None else 0
+        self._guard(lambda: self._writer.add_message(self._channel(key), log_time=log_time, data=data,
+                                                     publish_time=publish, sequence=seq))  # fmt: skip
+        self.count += self.failed is None
+
+    def flush(self) -> None:
+        """What it holds, to disk, as a whole chunk: a recorder killed now loses nothing before it."""
+        if not self.closed:
+            self._guard(self._writer.flush)
 
     def close(self) -> None:
+        if self.failed is None:
+            self._guard(self._writer.finish)
         self.closed = True
-        self._writer.finish()
-        self._file.close()
+        with contextlib.suppress(OSError):  # a full disk: what was flushed stays readable
+            self._file.close()
 
 
 async def record(
@@ -107,12 +131,17 @@ async def record(
 
     def write(key: str, payload: bytes) -> None:
         rec.write(key, payload)
-        if on_first is not None and rec.count == 1:
+        if rec.failed is not None:
+            stop.set()
+        elif on_first is not None and rec.count == 1:
             on_first(key)
 
     subs = [bus.subscribe_raw(k, write) for k in keys]
     try:
-        await stop.wait()
+        while not stop.is_set() and rec.failed is None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), FLUSH_S)
+            rec.flush()
     finally:
         for s in subs:
             s.undeclare()
@@ -145,23 +174,52 @@ def as_msgpack(encoding: str, data: bytes) -> tuple[str, bytes]:
         return encoding, data
 
 
-def read(path: Path, keys: list[str] | None = None) -> Iterator[Recorded]:
+def read(path: Path, keys: list[str] | None = None, notes: list[str] | None = None) -> Iterator[Recorded]:
     """A recording's messages in log-time order, those under ``keys`` (key expressions) only; JSON
-    channels' messages come as MessagePack, as on the bus."""
+    channels' messages come as MessagePack, as on the bus. A file without its footer (a recorder killed,
+    a disk that filled) is read from the start up to its last whole chunk, and ``notes`` says so."""
     exprs = [zenoh.KeyExpr(k) for k in keys or []]
+
+    def wanted(topic: str) -> bool:
+        return not exprs or any(e.includes(zenoh.KeyExpr(topic)) for e in exprs)
+
     try:
         with path.open("rb") as f:
-            for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-                if exprs and not any(e.includes(zenoh.KeyExpr(channel.topic)) for e in exprs):
-                    continue
-                encoding, data = as_msgpack(channel.message_encoding, message.data)
-                yield Recorded(channel.topic, message.log_time, data, encoding)
+            try:
+                found = list(make_reader(f).iter_messages(log_time_order=True))
+            except Exception as exc:  # no footer, no index: read it as a stream, as far as it goes
+                found = _as_far_as_it_goes(path, exc, notes)
     except FileNotFoundError:
         raise InputError(f"{path}: no such recording") from None
-    except Exception as exc:  # the mcap package raises many kinds on a damaged file
-        if isinstance(exc, InputError):
-            raise
-        raise InputError(f"{path}: not a readable MCAP recording ({type(exc).__name__}: {exc})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    for _, channel, message in found:
+        if wanted(channel.topic):
+            encoding, data = as_msgpack(channel.message_encoding, message.data)
+            yield Recorded(channel.topic, message.log_time, data, encoding)
+
+
+def _as_far_as_it_goes(path: Path, why: Exception, notes: list[str] | None) -> list[Any]:
+    """The file's records in order, as far as they go: its channels and the messages of every whole
+    chunk (the stream reader opens the chunks as they come; the cut ends it)."""
+    channels: dict[int, Channel] = {}
+    found: list[Any] = []
+    with path.open("rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    found.append((None, channels[record.channel_id], record))
+        except Exception as exc:  # the cut: a record the file ends within
+            if not found:
+                kind = type(why).__name__
+                raise InputError(f"{path}: not a readable MCAP recording ({kind}: {why})") from exc
+    if notes is not None:
+        notes.append(f"{path}: ends without its footer (a recorder killed, or a disk that filled): "
+                     f"{len(found)} messages read up to the last whole chunk")  # fmt: skip
+    found.sort(key=lambda m: m[2].log_time)
+    return found
 
 
 async def replay(

@@ -44,6 +44,7 @@ class Run:
     events: list[dict] = field(default_factory=list)
     sets: dict[str, ParetoSet] = field(default_factory=dict)
     scale: list[dict] = field(default_factory=list)  # {"t_s", "scale", "separation_m"}: scale_row
+    notes: list[str] = field(default_factory=list)  # what the source lacked (a recording cut short)
 
     @property
     def productivity_per_min(self) -> float:
@@ -127,8 +128,8 @@ def event_row(t_s: float, source: str, kind: str, message: str,
 def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     from cadence.recording import read
 
-    msgs = []
-    for rec in read(path):
+    msgs, notes = [], list[str]()
+    for rec in read(path, notes=notes):
         if rec.encoding != "msgpack":
             continue
         try:
@@ -150,7 +151,7 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
     def t(ns: int) -> float:
         return round((ns - t0) / 1e9, 3)
 
-    run = Run(str(path), (max(data_times) - t0) / 1e9)
+    run = Run(str(path), (max(data_times) - t0) / 1e9, notes=notes)
     marked: list[OperatorError] = []
     for m in msgs:
         if isinstance(m, HrvWindow):
@@ -288,6 +289,7 @@ def _html(run: Run, figures: list[str]) -> str:
         ("movement", movement_row(run)),
         ("selections", " → ".join(str(s["k"]) for s in run.selections) or "—"),
         ("time scale", scale_summary(run.scale)),
+        *(("note", html.escape(n)) for n in run.notes),
     ]
     table = "\n".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
     cycle_rows = "\n".join(

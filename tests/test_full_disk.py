@@ -9,6 +9,7 @@ import asyncio
 import contextlib
 import json
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -187,3 +188,45 @@ def test_a_full_disk_is_not_taken_for_a_damaged_store(disk: Disk, example_sets: 
     assert problem is None or "not damaged, left as it is" in problem
     assert len(sets) == 6 and db.stat().st_size == size
     assert not list(disk.path.glob("*.corrupt-*"))
+
+
+def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(disk: Disk) -> None:
+    """`cadence record` on a filling disk kept "recording" for 20 s writing nothing, then left an
+    unreadable 16 KB file: it ends at the first write the disk refuses, says so, and what reached the
+    disk before is read as far as it goes."""
+    from cadence.recording import Recorder, read
+    from schemas.topology import encode
+
+    path = disk.path / "run.mcap"
+    rec = Recorder(path)
+    for i in range(200):
+        rec.write("cadence/cell1/decision/selection", encode(Selection(t_ns=i + 1, seq=i, k=3, n=15,
+                  delta=0, reason="hold")), log_time_ns=i + 1)  # fmt: skip
+    rec.flush()
+    disk.fill()
+    payload = encode(
+        ServiceStatus(t_ns=1, seq=0, service="x" * 60, state="y" * 4000, uptime_s=1.0, counters={})
+    )
+    for i in range(2000):  # much more than is left: the disk refuses a flush
+        rec.write("cadence/cell1/health/x", payload, log_time_ns=1000 + i)
+        if i % 100 == 99:
+            rec.flush()
+        if rec.failed:
+            break
+    rec.close()  # no exception: what could not be written is said in failed
+    assert rec.failed is not None and f"cannot write {path}: No space left on device" in rec.failed
+    disk.free()
+    notes: list[str] = []
+    kept = [m for m in read(path, notes=notes) if m.key.endswith("selection")]
+    assert len(kept) == 200 and notes and "ends without its footer" in notes[0]
+
+
+def test_a_report_onto_a_full_disk_is_one_line_naming_the_folder(disk: Disk, tmp_path: Path) -> None:
+    from tests.test_report import write_run
+
+    run = write_run(tmp_path)
+    disk.fill()
+    r = subprocess.run([sys.executable, "-m", "cadence", "report", str(run), "--out", str(disk.path / "rep")],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "the report cannot be written there (No space left on device)" in r.stderr

@@ -237,3 +237,25 @@ def test_a_replay_that_nothing_received_says_so_and_exits_1(tmp_path: Path) -> N
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert r.returncode == 1 and "no subscriber matched" in r.stderr, r.stderr
+
+
+def test_a_recording_cut_without_its_footer_is_read_up_to_its_last_chunk(tmp_path: Path) -> None:
+    """A recorder killed with SIGKILL left a file that `cadence report` refused whole (2,039 of 2,830
+    messages could be read), and its last in-memory chunk was gone. It flushes every second now, and a
+    file without a footer is read as far as it goes, and said so."""
+    from cadence.recording import Recorder, read
+    from schemas import Selection
+    from schemas.topology import encode
+
+    path = tmp_path / "killed.mcap"
+    rec = Recorder(path)
+    for i in range(3000):
+        sel = Selection(t_ns=i + 1, seq=i, k=1 + i % 15, n=15, delta=0, reason="hold")
+        rec.write("cadence/cell1/decision/selection", encode(sel), log_time_ns=i + 1)
+        if i == 2499:
+            rec.flush()  # the last flush before the kill
+    rec._file.close()  # killed: no finish, no footer (what was not flushed is lost, as in a kill)
+    notes: list[str] = []
+    got = list(read(path, notes=notes))
+    assert len(got) == 2500 and [m.log_time for m in got] == list(range(1, 2501))
+    assert len(notes) == 1 and "ends without its footer" in notes[0] and "2500 messages" in notes[0]

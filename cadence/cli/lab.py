@@ -181,7 +181,14 @@ def cmd_report(args: argparse.Namespace) -> int:
         run = from_mcap(src, Path(args.sets) if args.sets else None)
     else:
         raise InputError(f"{src}: neither a demo folder nor an MCAP recording")
-    written = write_report(run, Path(args.out), args.rr_rest)
+    for note in run.notes:
+        err.print(note, markup=False)
+    try:
+        written = write_report(run, Path(args.out), args.rr_rest)
+    except OSError as exc:  # a full disk, a folder not ours: one line; each file is whole or as it was
+        where = exc.filename or args.out
+        raise InputError(f"{where}: the report cannot be written there ({exc.strerror or exc}); the files "
+                         "already there are left as they were") from None  # fmt: skip
     table = Table(title=f"cadence report: {src}")
     for col in ("cycles", "φ [cycles/min]", "errors", "ε [errors/cycle]", "windows", "selections"):
         table.add_column(col, justify="right")
