@@ -15,6 +15,7 @@ and where their session files go; `cadence session --study` reads it.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import random
 import tomllib
@@ -51,11 +52,24 @@ class Subject(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 class StudyPlan(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     name: str
-    subjects: list[Subject]
+    subjects: Annotated[list[Subject], msgspec.Meta(min_length=1)]
     minutes: Annotated[float, msgspec.Meta(gt=0, le=240)] = 10.0  # per session, data time
     training_minutes: Annotated[float, msgspec.Meta(ge=0, le=60)] = 5.0  # before a subject's first session
     break_minutes: Annotated[float, msgspec.Meta(ge=0, le=240)] = 5.0  # at least, between two sessions
     sessions: str = "sessions"  # the folder of session files, beside the plan
+
+    def __post_init__(self) -> None:
+        """What the schema cannot say: each subject once, each condition once per subject, the sessions'
+        folder inside the plan's (a plan pointing elsewhere would read and write files outside it)."""
+        ids = [s.id for s in self.subjects]
+        if twice := sorted({i for i in ids if ids.count(i) > 1}):
+            raise ValueError(f"subjects listed more than once: {', '.join(twice)}")
+        for s in self.subjects:
+            if len(set(s.order)) != len(s.order):
+                raise ValueError(f"subject {s.id}: a condition twice in its order {s.order}")
+        folder = Path(self.sessions)
+        if folder.is_absolute() or ".." in folder.parts or not self.sessions.strip():
+            raise ValueError(f'sessions = {self.sessions!r}: a folder inside the plan\'s, e.g. "sessions"')
 
     def subject(self, sid: str) -> Subject:
         for s in self.subjects:
@@ -92,21 +106,24 @@ def write_plan(plan: StudyPlan, path: Path) -> list[Path]:
     write_readable(path, "\n".join(lines).encode())
     sheet = path.with_name("demographics.csv")
     written = [path]
-    if not sheet.exists():
-        with sheet.open("w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(DEMOGRAPHICS)
-            for s in plan.subjects:
-                w.writerow([s.id, *[""] * (len(DEMOGRAPHICS) - 1)])
+    if not sheet.exists():  # whole or not at all: a full disk once left it at 0 bytes, never written again
+        rows = io.StringIO(newline="")
+        w = csv.writer(rows)
+        w.writerow(DEMOGRAPHICS)
+        for s in plan.subjects:
+            w.writerow([s.id, *[""] * (len(DEMOGRAPHICS) - 1)])
+        write_readable(sheet, rows.getvalue().encode())
         written.append(sheet)
     return written
 
 
 def load_plan(path: Path) -> StudyPlan:
     try:
-        return msgspec.convert(tomllib.loads(path.read_text()), StudyPlan)
+        return msgspec.convert(tomllib.loads(path.read_text(encoding="utf-8")), StudyPlan)
     except OSError as exc:
         raise InputError(f"{path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a study plan: not UTF-8 text (byte {exc.start})") from None
     except (tomllib.TOMLDecodeError, msgspec.ValidationError) as exc:
         raise InputError(f"{path}: not a study plan: {exc}") from None
 

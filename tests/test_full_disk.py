@@ -230,3 +230,18 @@ def test_a_report_onto_a_full_disk_is_one_line_naming_the_folder(disk: Disk, tmp
                        capture_output=True, text=True, timeout=120)  # fmt: skip
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
     assert "the report cannot be written there (No space left on device)" in r.stderr
+
+
+def test_a_study_plan_on_a_full_disk_leaves_no_empty_sheet_and_a_rerun_writes_it(disk: Disk) -> None:
+    """`cadence study plan` on a full disk left demographics.csv at 0 bytes, never written later."""
+    plan = disk.path / "plan.toml"
+    disk.fill()
+    cmd = [sys.executable, "-m", "cadence", "study", "plan", "--subjects", "6", "--out", str(plan)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "cannot be written (No space left on device)" in r.stderr
+    assert r.stderr.count("\n") == 1
+    assert not (disk.path / "demographics.csv").exists() and not plan.exists()
+    disk.free()
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert (disk.path / "demographics.csv").read_text().count("\n") == 7  # a header and 6 subjects

@@ -4,6 +4,7 @@ next session from the session files, and the yoked condition's k."""
 from __future__ import annotations
 
 import itertools
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -113,3 +114,33 @@ def test_an_undo_withdraws_the_experimenters_last_mark_and_counts_for_nothing() 
     errors = [twin5, e(6, "experimenter", "undo"), twin1, mark3, e(4, "experimenter", "undo"), mark2]
     assert counted(errors) == [twin1, twin5]  # in data time: the undo at 4 takes 3, the one at 6 takes 2
     assert counted([e(0, "experimenter", "undo"), twin1]) == [twin1]  # nothing of theirs to withdraw
+
+
+@pytest.mark.parametrize(
+    ("text", "said"),
+    [
+        ('name = "s"\nsubjects = []\n', "of length >= 1 - at `$.subjects`"),
+        ('name = "s"\n[[subjects]]\nid = "S01"\norder = ["a", "b"]\n'
+         '[[subjects]]\nid = "S01"\norder = ["b", "a"]\n', "subjects listed more than once: S01"),
+        ('name = "s"\n[[subjects]]\nid = "S01"\norder = ["a", "a", "a"]\n', "a condition twice"),
+        ('name = "s"\nsessions = "../elsewhere"\n[[subjects]]\nid = "S01"\norder = ["a"]\n',
+         "a folder inside the plan's"),
+        ('name = "s"\nsessions = "/tmp/x"\n[[subjects]]\nid = "S01"\norder = ["a"]\n', "a folder inside"),
+    ],
+)  # fmt: skip
+def test_a_plan_that_could_not_be_run_as_written_is_refused_naming_why(
+    tmp_path: Path, text: str, said: str
+) -> None:
+    """Accepted before: no subjects, a subject twice, conditions a,a,a, a sessions folder outside it
+    (issue 40)."""
+    path = tmp_path / "plan.toml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=f"{path}: not a study plan: .*{re.escape(said)}"):
+        load_plan(path)
+
+
+def test_a_plan_that_is_not_utf8_is_one_line_not_a_traceback(tmp_path: Path) -> None:
+    path = tmp_path / "plan.toml"
+    path.write_bytes(b'name = "s\xff"\n')
+    with pytest.raises(InputError, match=r"not UTF-8 text \(byte 9\)"):
+        load_plan(path)
