@@ -203,12 +203,17 @@ def period_effects(sessions: list[Session], metrics: tuple[str, ...]) -> dict[st
     placed = [s for s in sessions if s.info.period is not None]
     out: dict[str, dict[str, object]] = {}
     for m in metrics:
-        means = {
-            str(p): float(np.nanmean([metric(s, m) for s in placed if s.info.period == p])) for p in periods
-        }
+        means = {str(p): _mean_of_some([metric(s, m) for s in placed if s.info.period == p]) for p in periods}
         test = friedman(by_subject(placed, lambda s: s.info.period, periods, m))
         out[m] = {"means": means, "n": test.n, "statistic": test.statistic, "p": test.p}
     return out
+
+
+def _mean_of_some(values: list[float]) -> float:
+    """The mean of the finite values; NaN, said by the caller, where there are none (numpy's own
+    "Mean of empty slice" warning once leaked to the user here)."""
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 def stars(p: float) -> str:

@@ -210,3 +210,24 @@ def test_the_readmes_fit_table_is_what_study_fit_gives(tmp_path: Path) -> None:
     f = doc["fitted"]
     line = f"Fitted: handling_s = {f['handling_s']:g} s, error_base = {f['error_base']:.3f}, "
     assert line + f"error_stress = {f['error_stress']:.3f}." in text
+
+
+def test_one_subject_is_analysed_with_a_hint_not_nan_tables_and_no_numpy_warning(tmp_path: Path) -> None:
+    """`study analyse` with one subject printed NaN tables with no hint, and numpy's "Mean of empty
+    slice" warning leaked (issue 40). Run with warnings as errors: any leak fails it."""
+    r = subprocess.run([sys.executable, "-m", "cadence", "study", "simulate", "--subjects", "2", "--minutes",
+                        "2", "--calibrate", "1", "--out", str(tmp_path / "two")],
+                       capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    one = tmp_path / "one"
+    one.mkdir()
+    for f in (tmp_path / "two" / "sessions").glob("twin-01_*.mcap"):
+        (one / f.name).write_bytes(f.read_bytes())
+    r = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-m", "cadence", "study", "analyse",
+                        str(one), "--out", str(tmp_path / "out")],
+                       capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    said = " ".join(r.stderr.split())
+    assert "1 subject: the tables have no spread (± —) and no tests" in said
+    table = r.stdout.split("Friedman")[0]
+    assert "nan" not in table and "± —" in table

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import os
 import sys
 import time
@@ -217,12 +218,18 @@ def print_study(study: Study) -> None:
 
     what = "SIMULATED study (operator twins, not people)" if study.simulated else "study"
     subjects = len({s.info.subject for s in study.sessions})
+    if subjects < 2:  # said first: the tables below have no spread and no tests to give
+        err.print(f"{subjects} subject: the tables have no spread (± —) and no tests (Friedman and Wilcoxon "
+                  "pair subjects: they need at least 2, and an exact p below 0.05 needs 6)")  # fmt: skip
     table = Table(title=f"{what}: {subjects} subjects, {len(study.sessions)} sessions (like Table I)")
     table.add_column("condition")
     for m in study.metrics:
         table.add_column(LABELS[m], justify="right")
     for c in study.conditions:
-        cells = (f"{mean:.3f} ± {sd:.3f}" for mean, sd, _ in study.table[c].values())
+        cells = (
+            f"{mean:.3f} ± {sd:.3f}" if math.isfinite(sd) else f"{mean:.3f} ± —"
+            for mean, sd, _ in study.table[c].values()
+        )
         table.add_row(f"({c}) {CONDITION_NAMES[c]}", *cells)
     out.print(table)
     tests = Table(
