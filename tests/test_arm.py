@@ -61,3 +61,18 @@ def test_move_j_profile_is_synchronised_and_within_speed_and_acceleration() -> N
     assert np.max(np.abs(np.diff(v[:, 0]))) / DT <= 0.6 + 1e-6
     np.testing.assert_allclose(v[:, 1], -0.5 * v[:, 0], atol=1e-12)  # every joint on the same schedule
     assert np.all(np.abs(v) <= UR16E.velocity)
+
+
+def test_a_sim_arm_at_rest_between_motions_reports_no_speed() -> None:
+    """A `ready` sim arm reported joint speeds up to 0.0032 rad/s: its last step's, never zeroed
+    (issue 40). After a servo motion and after a moveJ it reports 0, as a real arm at rest does."""
+    from services.executor.backends import SimBackend
+
+    b = SimBackend(np.zeros(6), speed=1000.0)
+    for i in range(50):
+        b.servo(np.full(6, 0.0002 * i))
+    assert np.abs(b.actual_qd()).max() > 0.05
+    b.motion_ended()
+    assert np.abs(b.actual_qd()).max() == 0.0
+    assert b.move_j(np.full(6, 0.02), 0.3, 0.6)
+    assert np.abs(b.actual_qd()).max() == 0.0

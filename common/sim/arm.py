@@ -130,6 +130,11 @@ class SimArm:
         self.qd.fill(0.0)
         return False
 
+    def rest(self) -> None:
+        """No command comes (between motions): the arm holds where it is, and says it is still. Its last
+        step's speed once stayed in ``qd`` (up to 0.0032 rad/s reported by a ``ready`` arm)."""
+        self.qd.fill(0.0)
+
     def unlock(self) -> None:
         """Clear a protective stop (the operator's 'unlock' on the teach pendant)."""
         self.fault = ""

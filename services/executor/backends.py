@@ -130,10 +130,11 @@ class SimBackend:
             if not self.arm.jump_to(row):
                 return False
             time.sleep(DT / self.speed)
+        self.arm.rest()
         return True
 
     def motion_ended(self) -> None:
-        pass
+        self.arm.rest()
 
     def stop_move(self) -> None:
         self._abort = True
