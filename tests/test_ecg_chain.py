@@ -102,7 +102,8 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     import msgspec
 
     from cadence.cli import calibrate
-    from schemas import Calibration
+    from cadence.cli.hrv import calibration_screen
+    from schemas import Calibration, RobotState
 
     csv, x = record_cut(tmp_path, "103", 100)
     START_NS = now_ns() - 100 * 1_000_000_000  # replayed 40× faster than the clock: it ends by now
@@ -118,7 +119,10 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
             "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
         )
         await analyser.listening(bus, "ecg/samples")
-        task = asyncio.ensure_future(calibrate(bus, 1.0, "s07", tmp_path, measured_sigma=False))
+        arm: list[bool] = []
+        task = asyncio.ensure_future(calibrate(bus, 1.0, "s07", tmp_path, measured_sigma=False, arm=arm))
+        moving = RobotState(t_ns=START_NS, seq=0, q=[0.0] * 6, qd=[0.1] * 6, tcp=[0.0] * 6, path_id="p", k=8,
+                            mode="moving", state="moving")  # fmt: skip
         gateway = InProcessService(
             "ecg_gateway",
             gateway_main,
@@ -127,6 +131,9 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
             endpoint,
         )
         async with asyncio.timeout(30):
+            while not arm:  # a robot working beside the person meanwhile (its state, as the executor's)
+                put(bus, bus.key("robot/state"), moving)
+                await asyncio.sleep(0.05)
             cal, level = await task
             _, sent = await anext(published)
         for svc in (gateway, analyser):
@@ -135,6 +142,9 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
     assert cal.rr_rest_s == pytest.approx(np.mean([w.mean_rr_s for w in offline]), abs=1e-6)
     assert cal.sigma_rest_s == 0.14 and cal.subject == "s07"
     assert sent == cal
+    screen = " ".join(calibration_screen(cal, level, False, arm))
+    assert "NOT AT REST: the arm moved in" in screen and "--posture working" in screen
+    assert "NOT AT REST" not in " ".join(calibration_screen(cal, level, False, [False, False]))
     assert msgspec.json.decode((tmp_path / CALIBRATION_FILE).read_bytes(), type=Calibration) == cal
 
 

@@ -20,7 +20,7 @@ from common.runtime.errors import CadenceError, InputError
 if TYPE_CHECKING:
     from common.hrv.calibration import RestingLevel
     from common.runtime.bus import Bus
-    from schemas import Calibration, HrvWindow
+    from schemas import Calibration, HrvWindow, RobotState
     from schemas.operator import Posture
 
 
@@ -173,16 +173,18 @@ async def calibrate(
     progress: Callable[[float, float], object] | None = None,
     posture: Posture = "rest",
     silent: Callable[[float], object] | None = None,
+    arm: list[bool] | None = None,
 ) -> tuple[Calibration, RestingLevel]:
     """Collect ``minutes`` of data time of windows from the bus; store and publish the calibration. At
     work (``posture`` working), the robot first runs its slowest solution (the decision maker's condition
     fixed at k = 1, where it stays until a session sets its own) and the stored calibration at rest of
     the same subject is kept beside the new baseline. An ECG that cannot be read is an InputError that
     says why (``calibration.Verdict``). ``silent(s)`` is called once when no window came for SILENT_S:
-    nothing on the bus may be answering at all."""
+    nothing on the bus may be answering at all. ``arm`` gets, for each robot/state meanwhile, whether
+    the arm moved: a person next to a working robot is not at rest."""
 
     from common.hrv.calibration import calibration, load_calibration, store_calibration
-    from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW
+    from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, ROBOT_STATE
 
     calibrations = bus.publisher(CALIBRATION)
     if posture == "working":
@@ -191,6 +193,12 @@ async def calibrate(
             why = replies[0].error if replies else "no decision maker answered"
             raise CadenceError(f"calibrate --posture working: cannot set the slowest solution (k = 1): {why}")
     wins: list[HrvWindow] = []
+    if arm is not None:
+
+        async def watch(_: str, state: RobotState) -> None:
+            arm.append(state.mode == "moving")
+
+        bus.handle(ROBOT_STATE, watch, maxsize=1000)
     sub = bus.subscribe(HRV_WINDOW, maxsize=1000)
     waited = 0.0
     while True:
@@ -217,8 +225,12 @@ async def calibrate(
     return cal, level
 
 
-def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bool) -> list[str]:
-    """What a calibration ends with: the person's verdict and which baseline the decision uses."""
+def calibration_screen(
+    cal: Calibration, level: RestingLevel, measured_sigma: bool, arm: list[bool] | None = None
+) -> list[str]:
+    """What a calibration ends with: the person's verdict and which baseline the decision uses. At rest
+    beside an arm that worked meanwhile it says the baseline is not one at rest (on the demo cell RR_r
+    was 0.756 s after a fast session and 0.844 s after k = 1)."""
     where = "at work, at the slowest solution (k = 1)" if cal.posture == "working" else "at rest"
     lines = [
         f"subject {cal.subject}: RR_r = {cal.rr_rest_s:.3f} s {where}, over {level.good}/{level.total} good "
@@ -231,6 +243,11 @@ def calibration_screen(cal: Calibration, level: RestingLevel, measured_sigma: bo
             if rest is not None
             else "at rest: none stored for this subject"
         )
+    if cal.posture == "rest" and arm and any(arm):
+        share = 100 * sum(arm) / len(arm)
+        lines.append(f"NOT AT REST: the arm moved in {share:.0f} % of this calibration; a person beside a "
+                     "working robot is not at rest, and the level depends on what it did. Stop the executor "
+                     "for it, or calibrate at work (--posture working)")  # fmt: skip
     how = "measured: the spread of the windows' means" if measured_sigma else "the paper default"
     lines.append(f"σ_r = {cal.sigma_rest_s:.3f} s ({how}; measured {level.sigma_s:.3f} s)")
     if cal.movement_mg is None:
@@ -308,10 +325,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                     lambda done, total: prog.update(bar, completed=done),
                     args.posture,
                     silent,
+                    arm,
                 )
 
+    arm: list[bool] = []
     cal, level = asyncio.run(go())
-    for line in calibration_screen(cal, level, args.measured_sigma):
+    for line in calibration_screen(cal, level, args.measured_sigma, arm):
         out.print(line)
     out.print(f"stored in {calibration_path(data_dir)} and published on operator/calibration")
     return 0
