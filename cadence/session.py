@@ -531,7 +531,18 @@ async def run_session(
                 opts,
             )
             cal = await _until(stop, calibrate())
-        # 2b. the person has settled near the baseline: Alg. 1 starts from RR_{-1} = RR_r
+        # 3. training: the condition in force, recorded, before the span the analysis reads
+        fresh = cal.t_ns if cal is not None and opts.calibrate_minutes else None
+        training_ns = None
+        if opts.training_minutes and cal is not None and not stop.is_set():
+            trial = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
+            training_ns, fresh = trial.t_ns, None
+            until = trial.t_ns + round(opts.training_minutes * 60e9)
+            while watch.data_ns < until and not stop.is_set():
+                show("training (recorded, not analysed)", watch, opts)
+                await watch.next_change(0.25)
+        # 3b. right before the condition: the person has settled near the baseline, as Alg. 1 starts from
+        # RR_{-1} = RR_r (after the training, not before it: the training moves the heart too)
         if cal is not None and opts.settle_timeout_s is not None and not stop.is_set():
             watch.recent.clear()  # windows from now on
             deadline = time.monotonic() + opts.settle_timeout_s
@@ -544,16 +555,6 @@ async def run_session(
                         "calibrate again)"
                     )
                 await watch.next_change(0.5)
-        # 3. training: the condition in force, recorded, before the span the analysis reads
-        fresh = cal.t_ns if cal is not None and opts.calibrate_minutes else None
-        training_ns = None
-        if opts.training_minutes and cal is not None and not stop.is_set():
-            trial = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
-            training_ns, fresh = trial.t_ns, None
-            until = trial.t_ns + round(opts.training_minutes * 60e9)
-            while watch.data_ns < until and not stop.is_set():
-                show("training (recorded, not analysed)", watch, opts)
-                await watch.next_change(0.25)
         # 4. the condition, set afresh ((c) starts Alg. 1 again), and from then on the session counts
         if not stop.is_set() and cal is not None:
             first = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
