@@ -13,6 +13,8 @@ from schemas.base import Message, Name, RrSeconds
 # usual rates of other chest straps and recorders.
 ECG_RATES_HZ = (125.0, 128.0, 130.0, 200.0, 250.0, 256.0, 360.0, 500.0, 512.0, 1000.0)
 MAX_CHUNK_S = 10.0  # an H10 frame is 73 samples (0.56 s); a chunk is never longer than this
+# a strap's own clock runs off its nominal rate (the H10's 130 Hz by about 1 %): its measured rate is sent
+RATE_TOLERANCE = 0.02
 H10_FS_HZ = 130.0  # what the sources send: the H10's ECG rate, replays resampled to it, the twin's
 H10_CHUNK = 73  # samples per H10 PMD notification at 130 Hz
 MicroVolts = Annotated[int, msgspec.Meta(ge=-(2**23), le=2**23 - 1)]  # the H10's int24
@@ -28,8 +30,10 @@ class EcgChunk(Message, frozen=True, tag="ecg.chunk.v1"):
     source: Name = ""
 
     def __post_init__(self) -> None:
-        if self.fs_hz not in ECG_RATES_HZ:
-            raise ValueError(f"fs_hz = {self.fs_hz} is not a rate an ECG source has {ECG_RATES_HZ}")
+        if not any(abs(self.fs_hz / r - 1.0) <= RATE_TOLERANCE for r in ECG_RATES_HZ):
+            raise ValueError(
+                f"fs_hz = {self.fs_hz} is not within 2 % of a rate an ECG source has {ECG_RATES_HZ}"
+            )
         if len(self.samples_uv) > MAX_CHUNK_S * self.fs_hz:
             raise ValueError(f"{len(self.samples_uv)} samples is over {MAX_CHUNK_S:g} s at {self.fs_hz:g} Hz")
 

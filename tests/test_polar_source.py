@@ -151,3 +151,34 @@ async def test_accelerometer_frames_of_an_unknown_type_or_stream_are_counted_and
     ecg, acc = await take_all(source, 40)
     assert [frame_of(c) for c in ecg] == list(range(40))
     assert source.bad_frames >= 20 and len(acc) >= 20 and sum(c.gap for c in acc) >= 10
+
+
+async def test_the_straps_own_rate_is_measured_and_its_samples_keep_to_its_clock() -> None:
+    """The H10's 130 Hz is accurate to about 1 %: counted at the nominal rate its samples drift 5 ms a
+    frame from its timestamps, and the analyser took each 11 ms of drift for a gap (issue 40)."""
+    from common.hrv.stream import HrvStream
+
+    source = PolarSource(connector({"rate_hz": 131.3}))
+    chunks, _ = await take(source, 100)
+    assert source.rate_hz == pytest.approx(131.3, abs=0.01)
+    assert {c.fs_hz for c in chunks} == {source.rate_hz} and not any(c.gap for c in chunks)
+    last = START + round((100 * CHUNK - 1) * 1e9 / 131.3)
+    assert chunks[-1].t_ns + round((CHUNK - 1) * 1e9 / chunks[-1].fs_hz) == pytest.approx(last, abs=1e5)
+    stream = HrvStream(chunks[0].fs_hz, 30.0)
+    for c in chunks:
+        stream.feed((c.t_ns - START) / 1e9, c.samples_uv, c.gap)
+    assert stream.segments == 1  # one stream: no drift taken for a gap
+
+
+async def test_a_strap_still_streaming_after_a_reconnect_is_streaming_not_refusing() -> None:
+    """It answers an ECG start with status 6, "already in state": once "refused to start ECG" and a
+    reconnect loop."""
+    source = PolarSource(connector({"already_streaming": True}))
+    chunks, _ = await take(source, 20)
+    assert len(chunks) == 20 and source.reconnects == 0
+
+
+async def test_a_link_whose_mtu_is_too_small_for_ecg_frames_is_said(caplog: pytest.LogCaptureFixture) -> None:
+    source = PolarSource(connector({"mtu_size": 23}))
+    await take(source, 10)
+    assert source.mtu == 23 and "MTU is 23 bytes; the H10's ECG frames need 232" in caplog.text

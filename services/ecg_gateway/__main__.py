@@ -23,7 +23,7 @@ from schemas.base import TimeNs
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
-from services.ecg_gateway.sources import FS_HZ, AccSamples, EcgSource, ReplaySource, RrChunk
+from services.ecg_gateway.sources import AccSamples, EcgSource, ReplaySource, RrChunk
 
 NAME = "ecg_gateway"
 LISTENER_WAIT_S = 30.0
@@ -97,7 +97,7 @@ class EcgGateway(Node):
             # what the strap sent that did not parse: truncated, garbled, an unknown stream or frame type
             self.ctx.counters["bad_frames"] = getattr(self.source, "bad_frames", 0)
             self.ctx.counters["gaps"] += int(chunk.gap)
-            yield [EcgChunk(t_ns=chunk.t_ns, seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ,
+            yield [EcgChunk(t_ns=chunk.t_ns, seq=self.next_seq(ECG_SAMPLES), fs_hz=chunk.fs_hz,
                             samples_uv=chunk.samples_uv, gap=chunk.gap, source=name)]  # fmt: skip
         self.ctx.state = "source ended"
 

@@ -49,9 +49,15 @@ class FakeH10:
         acc: np.ndarray | None = None,
         acc_hz: int = 25,
         acc_stops_after: int | None = None,
+        rate_hz: float = FS_HZ,
+        already_streaming: bool = False,
+        mtu_size: int = 247,
     ) -> None:
         """``acc``: (n, 3) mg at ``acc_hz`` from the ECG's first sample; None: a strap that refuses it.
-        ``acc_stops_after``: ECG frames after which the accelerometer goes quiet and ECG goes on."""
+        ``acc_stops_after``: ECG frames after which the accelerometer goes quiet and ECG goes on.
+        ``rate_hz``: the strap's own clock (a real H10's 130 Hz is off by up to about 1 %), which its
+        timestamps follow. ``already_streaming``: still streaming from before a reconnect, it answers an
+        ECG start with status 6, "already in state". ``mtu_size``: what the BLE link negotiated."""
         self.uv = np.rint(uv).astype(int)
         self.start_unix_ns = start_unix_ns
         self.on_disconnect = on_disconnect
@@ -65,6 +71,7 @@ class FakeH10:
         self.sent = 0
         self.acc, self.acc_hz, self.acc_stops_after = acc, acc_hz, acc_stops_after
         self.acc_on = False
+        self.rate_hz, self.already_streaming, self.mtu_size = rate_hz, already_streaming, mtu_size
         self.acc_sent = int(start * CHUNK / FS_HZ * acc_hz)  # samples sent (a reconnect goes on from there)
 
     async def start_notify(self, uuid: str, callback: Callable) -> None:
@@ -72,7 +79,8 @@ class FakeH10:
 
     async def write_gatt_char(self, uuid: str, data: bytes, response: bool) -> None:
         if uuid == PMD_CONTROL and data[:2] == bytes([0x02, PMD_ECG]):
-            self.callbacks[PMD_CONTROL](None, bytearray([0xF0, 0x02, PMD_ECG, 0x00, 0x00]))
+            status = 0x06 if self.already_streaming else 0x00
+            self.callbacks[PMD_CONTROL](None, bytearray([0xF0, 0x02, PMD_ECG, status, 0x00]))
             self._task = asyncio.ensure_future(self._stream())
         elif uuid == PMD_CONTROL and data[:2] == bytes([0x02, PMD_ACC]):
             status = 0x00 if self.acc is not None else 0x05  # 5: not supported
@@ -96,7 +104,7 @@ class FakeH10:
             if self.silent_after is not None and self.sent >= self.silent_after:
                 return  # the link goes quiet with no disconnect callback
             i = self.frame * CHUNK
-            last_ns = self.start_unix_ns + round((i + CHUNK - 1) * 1e9 / FS_HZ) - POLAR_EPOCH_NS
+            last_ns = self.start_unix_ns + round((i + CHUNK - 1) * 1e9 / self.rate_hz) - POLAR_EPOCH_NS
             if self.garbage_every and self.sent and self.sent % self.garbage_every == 0:
                 self.callbacks[PMD_DATA](None, bytearray(b"\x00\x01\x02"))
             self.callbacks[PMD_DATA](

@@ -8,6 +8,13 @@ data time. The H10's clock counts from 2000-01-01 and stamps each frame's last s
 accelerometer alike. A strap that refuses the accelerometer keeps streaming ECG (``accelerometer``
 turns False, and the gateway says so).
 
+The strap's 130 Hz is its own crystal's, accurate to about 1 %: the rate is measured from the frames'
+timestamps (the first ``RATE_FRAMES`` frames, once per strap) and sent with the samples, so that data time
+counted in samples keeps to the strap's clock (at the nominal rate it drifts 5 ms a frame, and the
+analyser took each drift past 11 ms for a gap). A strap still streaming from before a reconnect answers a
+start with "already in state" (6): that is streaming, not a refusal. PMD's ECG frames need a BLE MTU of
+232 bytes; a link that says it has less is told in one line (frames may not come).
+
 A link can go silent without a disconnect callback, so a data-gap watchdog reconnects after
 ``gap_timeout_s`` without a frame. Connection failures are retried with back-off. The first chunk after
 any interruption carries ``gap=True``: the gap is reported, never papered over. The H10 can take 20–30 s
@@ -44,6 +51,10 @@ log = logging.getLogger("cadence.ecg_gateway.polar")
 
 POLAR_EPOCH_NS = 946_684_800_000_000_000  # 2000-01-01T00:00:00Z in Unix ns: the H10's clock origin
 BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
+ALREADY_IN_STATE = 6  # PMD control status: the measurement runs already (still streaming after a reconnect)
+RATE_FRAMES = 5  # ECG frames whose timestamps measure the strap's own rate (2.2 s of samples)
+RATE_TOLERANCE = 0.02  # a measured rate further from 130 Hz than this is a bad measurement, not a crystal
+MIN_MTU = 232  # an H10 ECG frame (229 bytes: 73 int24 samples and a header) with ATT's 3
 
 
 class StrapError(Exception):
@@ -119,6 +130,35 @@ class PolarSource(EcgSource):
         self.reconnects = 0
         self.acc_expected_ns: int | None = None
         self.acc_gap = False  # accelerometer samples were lost (a reconnect) before the next chunk
+        self.rate_hz: float | None = None  # the strap's own ECG rate, measured once from its timestamps
+        self.mtu: int | None = None
+
+    def measure_rate(self, frames: list[tuple[int, list[int]]]) -> float:
+        """The rate the frames' timestamps (each frame's last sample) give, to 0.01 Hz; the nominal one,
+        said, when they give nothing a strap's crystal could."""
+        samples = sum(len(s) for _, s in frames[1:])
+        dt_ns = frames[-1][0] - frames[0][0]
+        measured = samples * 1e9 / dt_ns if dt_ns > 0 else 0.0
+        if abs(measured / FS_HZ - 1.0) <= RATE_TOLERANCE:
+            return round(measured, 2)
+        log.warning("the strap's timestamps give %.2f Hz, not a 130 Hz crystal's: taking 130 Hz", measured)
+        return FS_HZ
+
+    async def check_mtu(self, client: GattClient) -> None:
+        """PMD's ECG frames need MIN_MTU; a link that says less is told (once per connection). BlueZ says
+        23 until asked (bleak's backend acquires it); a value that cannot be read is not guessed."""
+        backend = getattr(client, "_backend", None)
+        acquire = getattr(backend, "_acquire_mtu", None)
+        if acquire is not None:
+            with contextlib.suppress(Exception):
+                await acquire()
+        mtu = getattr(client, "mtu_size", None)
+        self.mtu = mtu if isinstance(mtu, int) else None
+        if self.mtu is not None and self.mtu < MIN_MTU:
+            why = "they may not come (use a BLE adapter or BlueZ that negotiates more)"
+            log.warning(
+                "the BLE link's MTU is %d bytes; the H10's ECG frames need %d: %s", self.mtu, MIN_MTU, why
+            )
 
     def _acc(self, data: bytes) -> AccSamples:
         assert self.acc_hz is not None
@@ -146,7 +186,9 @@ class PolarSource(EcgSource):
                 await asyncio.sleep(delay)
                 continue
             attempt = 0
+            held: list[tuple[int, list[int]]] = []  # the first frames, while the rate is measured
             try:
+                await self.check_mtu(client)
                 await client.start_notify(PMD_CONTROL, _feeder(queue, "control"))
                 await client.start_notify(PMD_DATA, _feeder(queue, "pmd"))
                 await client.start_notify(HR_MEASUREMENT, _feeder(queue, "hr"))
@@ -160,11 +202,17 @@ class PolarSource(EcgSource):
                     try:
                         if kind == "control":
                             resp = parse_control_response(data)
-                            if resp.measurement == PMD_ACC and not resp.ok:
+                            running = resp.ok or resp.status == ALREADY_IN_STATE
+                            if resp.status == ALREADY_IN_STATE:
+                                log.info(
+                                    "the strap was still streaming (measurement %d): going on",
+                                    resp.measurement,
+                                )
+                            if resp.measurement == PMD_ACC and not running:
                                 log.warning("the strap refused its accelerometer (status %d): ECG only",
                                             resp.status)  # fmt: skip
                                 self.accelerometer = False
-                            elif not resp.ok:
+                            elif not running:
                                 raise StrapError(f"the strap refused to start ECG (status {resp.status})")
                             elif resp.measurement == PMD_ECG and self.accelerometer and self.acc_hz:
                                 request = acc_start_request(self.acc_hz)
@@ -178,13 +226,22 @@ class PolarSource(EcgSource):
                                 yield RrChunk(expected_ns, hr.rr_s)
                         else:
                             frame = parse_ecg_frame(data)
-                            n = len(frame.samples_uv)
-                            first_ns = POLAR_EPOCH_NS + frame.timestamp_ns - round((n - 1) * 1e9 / FS_HZ)
-                            if expected_ns is not None and abs(first_ns - expected_ns) > 1.5e9 / FS_HZ:
-                                gap = True
-                            expected_ns = first_ns + round(n * 1e9 / FS_HZ)
-                            yield Chunk(first_ns, frame.samples_uv, gap)
-                            gap = False
+                            held.append((POLAR_EPOCH_NS + frame.timestamp_ns, frame.samples_uv))
+                            if self.rate_hz is None:
+                                if len(held) < RATE_FRAMES:
+                                    continue
+                                self.rate_hz = self.measure_rate(held)
+                                log.info("the strap's ECG runs at %.2f Hz (its own clock)", self.rate_hz)
+                            fs = self.rate_hz
+                            for last_ns, samples in held:
+                                n = len(samples)
+                                first_ns = last_ns - round((n - 1) * 1e9 / fs)
+                                if expected_ns is not None and abs(first_ns - expected_ns) > 1.5e9 / fs:
+                                    gap = True
+                                expected_ns = first_ns + round(n * 1e9 / fs)
+                                yield Chunk(first_ns, samples, gap, fs)
+                                gap = False
+                            held.clear()
                     except FrameError as exc:
                         self.bad_frames += 1
                         log.debug("skipped a bad %s payload: %s", kind, exc)

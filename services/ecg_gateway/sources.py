@@ -27,6 +27,7 @@ class Chunk:
     t_ns: int
     samples_uv: list[int]
     gap: bool = False
+    fs_hz: float = FS_HZ  # the source's own rate, measured where it can be (a strap's clock)
 
 
 @dataclass(frozen=True, slots=True)
