@@ -8,6 +8,7 @@ import json
 import random
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -47,9 +48,11 @@ def free_loopback() -> str:
 
 
 class EmulatorProcess:
-    def __init__(self, host: str, recipes: Path | None = None, q0_deg: list[float] | None = None) -> None:
+    def __init__(
+        self, host: str, recipes: Path | None = None, q0_deg: list[float] | None = None, *extra: str
+    ) -> None:
         self.host = host
-        cmd = [sys.executable, "-m", "services.ur_emulator", "--host", host]
+        cmd = [sys.executable, "-m", "services.ur_emulator", "--host", host, *extra]
         if recipes is not None:
             cmd += ["--recipes-out", str(recipes)]
         if q0_deg is not None:
@@ -79,6 +82,12 @@ class EmulatorProcess:
                     return line
             time.sleep(0.02)  # polling the reader thread's list; bounded by the timeout
         raise AssertionError(f"no line with {text!r} in {self.lines}")
+
+    def say(self, line: str) -> None:
+        """A line on the emulator's standard input (``estop``, ``di N 1``)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
 
     def press(self, n: int, on: bool = True) -> None:
         """A button on standard digital input ``n`` (the emulator's stdin command)."""
@@ -342,3 +351,73 @@ async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
     assert (sig.name, sig.source) == ("part", "ur DI2")
     assert report.cycle == 0 and ex.ctx.counters["buttons"] == 1
     assert any("digital input 2 on" in line for line in emu.lines)
+
+
+def test_an_rtde_client_that_stops_reading_is_dropped_and_the_others_are_not_held_up(tmp_path: Path) -> None:
+    """The controller drops an RTDE client that stops reading for about 10 s (1 s here); before, the
+    emulator's blocking send stalled its 500 Hz tick for every client instead (issue 40)."""
+    from services.ur_emulator import rtde
+
+    emu = EmulatorProcess(free_loopback(), None, None, "--stall-s", "1")
+    try:
+        lazy = socket.socket()
+        lazy.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # fills within a second at 500 Hz
+        lazy.connect((emu.host, 30004))
+        lazy.sendall(rtde.frame(rtde.O, struct.pack(">d", 500.0) + b"timestamp,actual_q,actual_qd"))
+        lazy.sendall(rtde.frame(rtde.S))
+        line = emu.wait_for_line("stopped reading", timeout=15)  # it reads nothing from here on
+        b = UrRtdeBackend(emu.host, watchdog_hz=WATCHDOG_HZ)
+        b.connect()  # another client is served all the while
+        try:
+            assert b.fault() == "" and np.all(np.isfinite(b.actual_q()))
+        finally:
+            b.close()
+    finally:
+        emu.stop()
+    assert "dropped: it stopped reading" in line
+
+
+@pytest.mark.asyncio
+async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and_says_so(
+    tmp_path: Path, endpoint: str, example_sets: Path
+) -> None:
+    """A reconnect right after an e-stop fails while the controller restarts its RTDE server: the executor
+    tries again with back-off and says when, then holds the arm stopped until a person resumes."""
+    from common.runtime.bus import Bus, BusConfig
+    from schemas import RobotEvent, RobotState
+    from services.executor.__main__ import Settings
+    from services.executor.__main__ import main as executor_main
+    from tests.conftest import InProcessService
+    from tests.test_executor import CALM, next_of, store_serving
+
+    host = free_loopback()
+    emu = EmulatorProcess(host, None, [float(x) for x in FIRST_WAYPOINT_DEG], "--restart-s", "3")
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        settings = Settings(backend="ur_rtde", host=host, fifo_priority=0, overrun_limit=CALM,
+                            wait_for_signals=False, start_selection="initial", initial_k=1,
+                            watchdog_hz=WATCHDOG_HZ)  # fmt: skip
+        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        try:
+            await next_of(states, lambda s: s.mode == "moving", timeout=60)
+            emu.say("estop")
+            await next_of(events, lambda e: e.kind == "protective_stop", timeout=20)
+            # a person resumes at once: the control script is uploaded again on a new connection, which
+            # the controller refuses while it restarts
+            (early,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
+            retry = await next_of(
+                events, lambda e: e.kind == "disconnected" and "trying again in" in e.message, timeout=20
+            )
+            back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
+            held = await next_of(states, lambda s: s.state == "stopped", timeout=10)
+            (resumed,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
+            again = await next_of(states, lambda s: s.mode == "moving", timeout=60)
+        finally:
+            await ex.close()
+            await store.close()
+            emu.stop()
+    assert early.message is not None and "resume failed" in early.message.message
+    assert host in retry.message and "stays stopped" in back.message and held.state == "stopped"
+    assert resumed.message is not None and resumed.message.message.startswith("ready") and again.path_id

@@ -143,9 +143,9 @@ class Supervisor:
                         f"reconnected to {self.settings.host}; "
                         "the robot stays stopped until `cadence robot resume`",
                     )
-                except RobotUnavailable as exc:
-                    self.event("disconnected", str(exc))
+                except RobotUnavailable as exc:  # right after an e-stop the controller refuses a while
                     wait_s, delay = delay, min(delay * 2, 10.0)
+                    self.event("disconnected", f"{exc}; trying again in {wait_s:.0f} s")
             elif self.motion.state is State.STOPPED and self.auto is not None:
                 auto_s = self.auto.delay_s(time.monotonic())
                 if auto_s is None:

@@ -5,7 +5,9 @@ It prints ``ready <host>`` once its three ports listen, and, with ``--verbose``,
 SIGUSR1 is a bump against the arm: a protective stop, as the real arm's force limit gives, which only the
 dashboard's ``unlock protective stop`` clears (and not within 5 s of it). A line ``di N 1`` (``0``) on its
 standard input sets (clears) standard digital input N, as a button wired to the controller would: what the
-executor reads as an operator's signal (a task step's ``input = N``).
+executor reads as an operator's signal (a task step's ``input = N``). A line ``estop`` presses and releases
+the emergency stop: the program ends, the RTDE clients are dropped and none is taken for ``--restart-s``.
+An RTDE client that stops reading for ``--stall-s`` (10 s, as a real controller) is dropped.
 """
 
 from __future__ import annotations
@@ -22,10 +24,14 @@ from services.ur_emulator.controller import Controller
 from services.ur_emulator.server import Emulator
 
 
-def read_inputs(controller: Controller) -> None:
-    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs."""
+def read_inputs(controller: Controller, emulator: Emulator) -> None:
+    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs; ``estop``."""
     for line in sys.stdin:
         parts = line.split()
+        if parts == ["estop"]:
+            emulator.emergency_stop()
+            print("emergency stop: RTDE restarting", flush=True)
+            continue
         if len(parts) == 3 and parts[0] == "di" and parts[1].isdecimal() and parts[2] in ("0", "1"):
             n = int(parts[1])
             if n <= 7:
@@ -53,13 +59,17 @@ def run(argv: list[str] | None = None) -> int:
         help="the arm's start pose",
     )
     parser.add_argument("--verbose", action="store_true", help="log the recipes the client asks for")
+    parser.add_argument("--stall-s", type=float, default=10.0, help="drop an RTDE client not read this long")
+    parser.add_argument(
+        "--restart-s", type=float, default=3.0, help="RTDE takes no client this long after estop"
+    )
     parser.add_argument(
         "--recipes-out", metavar="FILE.json", help="write every recipe the clients set up (the contract test)"
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
     controller = Controller(np.radians(args.q0_deg))
-    emulator = Emulator(controller, args.host, args.recipes_out)
+    emulator = Emulator(controller, args.host, args.recipes_out, args.stall_s, args.restart_s)
     try:
         emulator.start()
     except OSError as exc:
@@ -69,7 +79,7 @@ def run(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     signal.signal(signal.SIGUSR1, lambda *_: controller.bump())
-    threading.Thread(target=read_inputs, args=(controller,), daemon=True).start()
+    threading.Thread(target=read_inputs, args=(controller, emulator), daemon=True).start()
     print(f"ready {args.host}", flush=True)
     seen_log = recipes_logged = 0
     while not stop.wait(0.2):

@@ -119,6 +119,12 @@ class Controller:
                 return "Robotmode: RUNNING"
         return f"could not understand: '{cmd}'"
 
+    def emergency_stop(self) -> None:
+        """The e-stop pressed (and released): the program ends and the arm brakes at once."""
+        with self.lock:
+            self._end_program("emergency stop")
+            self._brake = 8.0
+
     def bump(self) -> None:
         """Something hit the arm (SIGUSR1): a protective stop, as the force limit gives on the real one."""
         with self.lock:

@@ -7,6 +7,7 @@ GIL while they wait for data, so an emulator in the client's process would deadl
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import socket
@@ -47,11 +48,26 @@ class RtdeConnection:
     started: bool = False
     control: bool = False  # the control interface's connection (its outputs hold the script's registers)
     send_lock: threading.Lock = field(default_factory=threading.Lock)
+    backlog: bytes = b""  # what the client has not taken yet (it stopped reading)
+    stalled_since: float | None = None  # monotonic, while the backlog waits
+
+
+STALL_S = 10.0  # the controller drops an RTDE client that has not read its outputs for this long
+RESTART_S = 3.0  # after an emergency stop the RTDE server takes this long to take clients again
 
 
 class Emulator:
-    def __init__(self, controller: Controller, host: str, recipes_out: str | None = None) -> None:
+    def __init__(
+        self,
+        controller: Controller,
+        host: str,
+        recipes_out: str | None = None,
+        stall_s: float = STALL_S,
+        restart_s: float = RESTART_S,
+    ) -> None:
         self.controller, self.host, self.recipes_out = controller, host, recipes_out
+        self.stall_s, self.restart_s = stall_s, restart_s
+        self.refuse_until = 0.0  # monotonic: RTDE refuses clients until then (restarting after an e-stop)
         self.connections: list[RtdeConnection] = []
         self.recipes_seen: list[tuple[str, list[str]]] = []  # ('O' | 'I', names), for the contract test
         self._stop = threading.Event()
@@ -92,7 +108,12 @@ class Emulator:
                 sock, addr = listener.accept()
             except OSError:
                 return
+            if handler == self._rtde and time.monotonic() < self.refuse_until:
+                sock.close()  # restarting after an emergency stop: the client must try again later
+                continue
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            # a controller's buffers, not loopback's megabytes: a client that stops reading shows soon
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 32768)
             self._spawn(self._serve, handler, sock, f"{addr[0]}:{addr[1]}")
 
     def _serve(self, handler: Handler, sock: socket.socket, peer: str) -> None:
@@ -182,11 +203,40 @@ class Emulator:
                 with c.lock:
                     values = [_or_zero(c.value(n), t) for n, t in zip(r.names, r.types, strict=True)]
                 data = rtde.frame(rtde.U, bytes([conn.output_id]) + r.packer.pack(*rtde.flatten(values)))
-                try:
-                    with conn.send_lock:
-                        conn.sock.sendall(data)
-                except OSError:
-                    conn.started = False
+                self._send(conn, data)
+
+    def _send(self, conn: RtdeConnection, data: bytes) -> None:
+        """One output package, without waiting on a client that stopped reading (a blocking send once
+        stalled every other client): what it has not taken waits, newer packages are dropped meanwhile,
+        and after ``stall_s`` the controller drops the client, as a real one does after about 10 s."""
+        with conn.send_lock:
+            try:
+                if not conn.backlog:
+                    conn.backlog = data
+                n = conn.sock.send(conn.backlog, socket.MSG_DONTWAIT)
+                conn.backlog = conn.backlog[n:]
+            except BlockingIOError:
+                pass
+            except OSError:
+                conn.started = False
+                return
+            if not conn.backlog:
+                conn.stalled_since = None
+                return
+            now = time.monotonic()
+            conn.stalled_since = conn.stalled_since or now
+            if now - conn.stalled_since >= self.stall_s:
+                log.warning("%s: not read for %.0f s: dropped", conn.peer, now - conn.stalled_since)
+                self.controller.log.append(f"RTDE client {conn.peer} dropped: it stopped reading")
+                conn.started = False
+                with contextlib.suppress(OSError):
+                    conn.sock.shutdown(socket.SHUT_RDWR)
+
+    def emergency_stop(self) -> None:
+        """The e-stop pressed and released: the program stops, and the RTDE server takes no new client
+        for ``restart_s`` (a reconnect right after fails: try again with back-off)."""
+        self.controller.emergency_stop()
+        self.refuse_until = time.monotonic() + self.restart_s
 
     # --- dashboard and script -----------------------------------------------------------------------
 
