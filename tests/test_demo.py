@@ -212,3 +212,10 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
     assert s["cut_short"] is True and 0 < s["duration_s"] < 600 and s["cycles"] >= 1
     assert set(s["exit_codes"].values()) == {0} and set(s["restarts"].values()) == {0}
     assert (out / "index.html").exists() and "(cut short)" in said
+    # each service's log says what it did (the store's, the analyser's and the decision maker's once held
+    # one line each: "stopping")
+    logs = {name: (out / "logs" / f"{name}.log").read_text() for name in ("pareto_store", "hrv_analyser",
+                                                                          "decision_maker")}  # fmt: skip
+    assert "sets stored" in logs["pareto_store"] and "running: cell cell1" in logs["pareto_store"]
+    assert "window of 30 s: mean RR" in logs["hrv_analyser"]
+    assert "mean RR" in logs["decision_maker"] and " → " in logs["decision_maker"]

@@ -225,6 +225,8 @@ async def serve(
         ctx = ServiceContext(name, bus, common, settings, stop)
         bus.token(bus.key(HEALTH.at(name).suffix))
         ctx.state = "running"  # before main starts, so that main's own word on its state stands
+        speed = f", {common.speed:g}x" if common.speed != 1.0 else ""
+        log.info("%s running: cell %s, data %s%s", name, common.cell, common.data_path, speed)
         periodic = asyncio.create_task(_periodic(ctx))
         work = asyncio.create_task(main(ctx))
         sd_notify("READY=1")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import sys
+import time
 from typing import Annotated, Literal
 
 import msgspec
@@ -121,8 +122,12 @@ class DecisionMaker(Node):
 
     async def decide(self, w: HrvWindow) -> None:
         self.ctx.counters["window_line_restarts"] += self.decider.admit(w, self.ctx.common.clock.now_ns())
+        before = self.decider.record.k if self.decider.record is not None else None
         await self.adopt(record := self.decider.answer(w))
         self.ctx.counters["windows_held_for_movement"] += record.reason == "movement"
+        rr = f"{w.mean_rr_s:.3f} s" if w.mean_rr_s is not None else "none"
+        log.info("window to %s: mean RR %s (%s): k %s → %d (%s)", _clock(w.end_ns), rr, w.quality, before,
+                 record.k, record.reason)  # fmt: skip
 
     async def missed(self, before_ns: int | None = None) -> Out:
         """The windows published while this service was down or stopped (DESIGN §9: the analyser answers
@@ -185,6 +190,11 @@ class DecisionMaker(Node):
         self.apply(c, now)
         log.info("condition %s%s set by %r", c.mode, f" (k {c.fixed_k})" if c.mode == "fixed" else "", c.by)
         return Answer(await self.query(req), await self.current())
+
+
+def _clock(t_ns: int) -> str:
+    """A data time as people read it in a log: UTC, to the second."""
+    return time.strftime("%H:%M:%S", time.gmtime(t_ns / 1e9))
 
 
 main = node_main(DecisionMaker)

@@ -14,6 +14,7 @@ it), so a decision maker that was restarting or stopped while one was published 
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections import deque
 from typing import Annotated, Any, Literal
@@ -29,6 +30,7 @@ from schemas.hrv import Beats, HrvWindow
 from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES, HRV_WINDOW, Topic
 
 NAME = "hrv_analyser"
+log = logging.getLogger("cadence.hrv_analyser")
 KEPT_WINDOWS = 64  # half an hour of 30 s windows: what a decision maker that was down may ask for
 
 
@@ -71,6 +73,10 @@ class HrvAnalyser(Node):
                 self.ctx.counters["windows"] += 1
                 self.ctx.counters["windows_without_movement"] += m.movement_mg is None
                 self.recent.append(m)
+                rr = f"{m.mean_rr_s:.3f} s" if m.mean_rr_s is not None else "none"
+                moved = f", movement {m.movement_mg:.0f} mg" if m.movement_mg is not None else ""
+                log.info("window of %.0f s: mean RR %s over %d beats, %s%s", (m.end_ns - m.start_ns) / 1e9,
+                         rr, m.n_beats, m.quality, moved)  # fmt: skip
         return taken.out
 
     @answers(HRV_WINDOW)

@@ -104,6 +104,8 @@ class ParetoStore(Node):
         path whose waypoints were edited starts from its last set (a warm start)."""
         yield [self.progress(pid, "stored") for pid in self.sets]
         missing = [pid for pid in self.task.paths if pid not in self.sets]
+        log.info("task '%s': %d sets stored%s", self.task.name, len(self.sets),
+                 f", planning {', '.join(missing)}" if missing else "")  # fmt: skip
         if not missing:
             self.ctx.state = "serving"
             return
@@ -136,6 +138,7 @@ class ParetoStore(Node):
                     log.warning("%s", self.ctx.detail)
                 self.sets[pid] = msg
                 self.ctx.counters["computed"] += 1
+                log.info("planned '%s': %d solutions", pid, len(msg.solutions))
                 yield [self.progress(pid, "done")]
         self.ctx.state = "serving"
 
