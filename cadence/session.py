@@ -493,9 +493,14 @@ async def run_session(
     signals = list(dict.fromkeys(s.wait_for for s in load_task(opts.task).cycle if s.wait_for))
     errors_out, signals_out = bus.publisher(OPERATOR_ERROR), bus.publisher(OPERATOR_SIGNAL)
 
+    last_ns = 0
+
     def act(key: str) -> None:
-        # now, on the cell's clock: the latest data time seen, and never before the session began
-        msg = key_message(key, signals, max(watch.data_ns, (watch.start_ns or 0) + 1))
+        # now, on the cell's clock: the latest data time seen, never before the session began, and each
+        # key its own stamp (two parts put down are two signals: a signal's stamp tells a copy apart)
+        nonlocal last_ns
+        last_ns = max(watch.data_ns, (watch.start_ns or 0) + 1, last_ns + 1)
+        msg = key_message(key, signals, last_ns)
         if isinstance(msg, OperatorError):
             errors_out.put(msgspec.structs.replace(msg, seq=errors_out.next_seq()))
         elif isinstance(msg, OperatorSignal):

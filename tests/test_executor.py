@@ -161,7 +161,9 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
                     Selection(t_ns=1, seq=0, k=5, n=5, delta=3, reason="rest", window_end_ns=1),
                     block=True,
                 )
-            put(bus, bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=c, name="part"), block=True)
+            # a part put down each cycle: its own stamp (a copy of one already counted counts nothing)
+            part = OperatorSignal(t_ns=c + 1, seq=c, name="part")
+            put(bus, bus.key("operator/signal"), part, block=True)
             reports.append(await next_of(cycles))
         await asyncio.wait_for(ex.task, 15)  # three cycles, then it ends by itself
         await store.close()

@@ -331,6 +331,12 @@ class Bus:
         self._port("publish", topic)
         return Publisher(self, topic, self.key(topic.suffix))
 
+    def asks(self, topic: Topic[Any]) -> None:
+        """Declare a query the process may send (checked against the graph now, as a publisher is), for a
+        port it asks only now and then (the decision maker asks for windows it missed)."""
+        self._check_open()
+        self._port("ask", topic)
+
     def _check_open(self) -> None:
         if self._closed:
             raise BusError("the bus is closed")

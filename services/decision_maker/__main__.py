@@ -156,6 +156,7 @@ class DecisionMaker(Node):
 
     async def work(self) -> None:
         """At start: what was published while it was down."""
+        self.ctx.bus.asks(HRV_WINDOW)
         if (out := await self.missed()) and self.conditions.fixed is None:
             self.publish(*out)
 

@@ -7,10 +7,14 @@ supervisor (services/executor/supervisor.py), and a motion starts only from ``re
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Literal
 
@@ -42,12 +46,19 @@ log = logging.getLogger("cadence.executor")
 RATE_HZ = 500.0
 
 
+def _lowest_priority() -> None:
+    """This thread only (Linux: a thread's nice value is its own), the least the scheduler gives."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+
+
 class Signals:
     """Operator signals by name. A ``wait_for`` is met by a signal that arrived since the last wait for
     the same name, so a part put down before the robot got there is not missed. Only the names the task
     waits for are counted: any other is refused, so a flood of names cannot grow the table. A signal is
     state its sender says again while it holds (DESIGN §9): a copy of one already counted (same name,
-    same stamp) counts nothing, so a signal lost once (the executor stopped for a while) comes again."""
+    sender and stamp) counts nothing, so a signal lost once (the executor stopped for a while) comes
+    again."""
 
     KEPT = 32  # stamps remembered per name, to know a copy when it comes again
 
@@ -55,15 +66,18 @@ class Signals:
         self.names = names
         self.received: Counter[str] = Counter()
         self.consumed: Counter[str] = Counter()
-        self.seen: dict[str, deque[int]] = {name: deque(maxlen=self.KEPT) for name in names}
+        self.seen: dict[str, deque[tuple[int, str | None]]] = {
+            name: deque(maxlen=self.KEPT) for name in names
+        }
         self.arrived = asyncio.Event()
 
     def admit(self, sig: OperatorSignal) -> None:
         if sig.name not in self.names:
             raise Rejected("unknown_signal", f"no step of the task waits for '{sig.name}'")
-        if sig.t_ns in self.seen[sig.name]:
+        said = (sig.t_ns, sig.source)
+        if said in self.seen[sig.name]:
             return  # said again while it holds: counted once
-        self.seen[sig.name].append(sig.t_ns)
+        self.seen[sig.name].append(said)
         self.received[sig.name] += 1
         self.arrived.set()
 
@@ -274,18 +288,27 @@ class Cycles:
 
     async def prefetch_figures(self) -> None:
         """With separation monitoring: the figures of every path at every k, the k in force first, found
-        in a worker thread while the arm works, so that a path at a new k does not wait for them (some
-        tenths of a second each). Again whenever the sets change."""
-        while self.settings.separation and not self.ctx.stop.is_set():
-            self.sets.arrived.clear()
-            k = self.selection.k if self.selection is not None else 1
-            for pid, s in list(self.sets.sets.items()):
-                path = self.task.paths[pid]
-                for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
-                    h = np.array(s.solutions[i].h)
-                    if not self.reactions.known(path, h):
-                        await asyncio.to_thread(self.reactions.figures, path, h, Curve.of(h, path))
-            await first_of(self.sets.arrived.wait(), self.ctx.stop.wait())
+        in a thread of its own at the lowest priority while the arm works, so that a path at a new k does
+        not wait for them (some tenths of a second each), and nothing that must be on time waits for
+        this. Again whenever the sets change."""
+        if not self.settings.separation:
+            return
+        loop = asyncio.get_running_loop()
+        background = ThreadPoolExecutor(1, "figures", initializer=_lowest_priority)
+        try:
+            while not self.ctx.stop.is_set():
+                self.sets.arrived.clear()
+                k = self.selection.k if self.selection is not None else 1
+                for pid, s in list(self.sets.sets.items()):
+                    path = self.task.paths[pid]
+                    for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
+                        h = np.array(s.solutions[i].h)
+                        if not self.reactions.known(path, h) and not self.ctx.stop.is_set():
+                            find = partial(self.reactions.figures, path, h, Curve.of(h, path))
+                            await loop.run_in_executor(background, find)
+                await first_of(self.sets.arrived.wait(), self.ctx.stop.wait())
+        finally:
+            background.shutdown(wait=False, cancel_futures=True)  # the loop never waits on it
 
     async def until_changed(self, at_most_s: float = 5.0) -> None:
         """Wait for something that could resolve a refusal (a new selection, a new set), a stop, or a
