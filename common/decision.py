@@ -23,7 +23,7 @@ def dec(x: float | str | Decimal) -> Decimal:
     if isinstance(x, float):
         if not math.isfinite(x):
             raise ValueError(f"not a finite number: {x}")
-        return Decimal(repr(x))
+        return Decimal(repr(float(x)))  # a numpy float prints its type too
     return Decimal(x)
 
 
@@ -136,3 +136,54 @@ def fixed_k(preset: int | str, n: int) -> int:
 def k_for_path(k: int, n_path: int) -> int:
     """The selection for a path whose set has n_path solutions (sets may differ in size)."""
     return clamp(k, 1, n_path)
+
+
+# --- the personal mode (DESIGN §7): beyond the paper, beside it -----------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Personal:
+    """The personal mode's settings, each chosen by leave-one-subject-out cross-validation on the people
+    under a Stroop test and an interview (``cadence bench decide --cv``; README, "Decisions on real
+    people"): k follows the distance of this person's recent mean RR from their own reference, in steps of
+    ``step_s``, from the paper's k0 at the reference.
+
+    Why not Alg. 1's thresholds: they are the spread between people (σ ≈ 0.1 s), wide against one person's
+    stress drop (about 50 ms), and after a stressed baseline a relaxed heart sits above RR_r where Alg. 1
+    saturates at N. The reference starts at RR_r and follows a lower RR slowly (``follow_down`` of the
+    gap a window), never a higher one: a person who calms down is read as calm, and a long stress does
+    not become the norm at once. The recent mean RR weighs each window by its beats, the past by ``keep``
+    a window: a wrist or a strap that read few beats counts for few."""
+
+    step_s: float = 0.02
+    keep: float = 0.5
+    follow_down: float = 0.02
+
+
+@dataclass(frozen=True, slots=True)
+class PersonalState:
+    k: int
+    ref: float  # the person's reference mean RR
+    sum_rr: float = 0.0  # Σ beats × mean RR, the past weighed down by ``keep`` a window
+    sum_n: float = 0.0  # Σ beats, likewise
+
+    @classmethod
+    def initial(cls, p: Params) -> PersonalState:
+        return cls(p.k0, float(p.rr_rest))
+
+
+def personal_step(
+    p: Params, q: Personal, s: PersonalState, rr: float | None, n_beats: int, usable: bool
+) -> tuple[PersonalState, int, Reason]:
+    """One window of the personal mode: (state, δ, reason). ``usable``: a good window, or one held only
+    for how few beats it has, each clean (a wrist's); any other (noise, a gap, no clean beat) holds k and
+    the state, as Alg. 1 holds. Bounds as Alg. 1: 1 ≤ k ≤ N."""
+    if rr is None or not usable or n_beats < 1 or not math.isfinite(rr):
+        return s, 0, "low-quality"
+    sum_rr, sum_n = q.keep * s.sum_rr + n_beats * rr, q.keep * s.sum_n + n_beats
+    recent = sum_rr / sum_n
+    target = clamp(p.k0 + round((recent - s.ref) / q.step_s), 1, p.n)
+    ref = s.ref + q.follow_down * (recent - s.ref) if recent < s.ref else s.ref
+    delta = target - s.k
+    reason: Reason = "stress" if delta < 0 else "rest" if delta > 0 else "hold"
+    return PersonalState(target, ref, sum_rr, sum_n), delta, reason

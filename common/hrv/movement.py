@@ -93,22 +93,33 @@ def baseline_of(level_mg: float | None, sd_mg: float | None) -> Baseline:
 
 
 def moved(
-    b: Baseline, movement_mg: float | None, start_ns: int, end_ns: int, margin_mg: float, recovery_s: float,
-    learn_windows: int,
-) -> tuple[bool, Baseline]:  # fmt: skip
-    """Whether a window is held for movement, and the baseline after it. A window without a movement
-    figure (no accelerometer) is never held: Alg. 1 reads it as it always did. Held: a window whose
-    movement is over the level by more than ``margin_mg`` (or three spreads, if more), and every window
-    that starts within ``recovery_s`` of one (the heart takes a minute or two to come back after effort).
-    """
+    b: Baseline, movement_mg: float | None, start_ns: int, end_ns: int, rr_s: float | None,
+    rr_before_s: float, margin_mg: float, back_s: float, max_hold_s: float, learn_windows: int,
+) -> tuple[bool, Baseline, bool]:  # fmt: skip
+    """Whether a window is held for movement, the baseline after it, and whether the hold ended at its
+    maximum (the decision then re-anchors: RR_{i-1} becomes this window's, with no step).
+
+    A window without a movement figure (no accelerometer) is never held: Alg. 1 reads it as it always did.
+    Held: a window whose movement is over the level by more than ``margin_mg`` (or three spreads, if
+    more), and after one every window until the heart is back near where it was before the effort
+    (``rr_s`` within ``back_s`` of ``rr_before_s``, RR_{i-1}, which a held window leaves as it was), or
+    ``max_hold_s`` after the last moving one. A fixed minute once released a heart still recovering, read
+    against the RR before the effort: k fell for the effort alone (3 steps at a recovery of 120 s)."""
     if movement_mg is None:
-        return False, b
+        return False, b, False
     if b.level_mg is None:
         learning = (*b.learning, movement_mg)
         if len(learning) < learn_windows:
-            return False, msgspec.structs.replace(b, learning=learning)
+            return False, msgspec.structs.replace(b, learning=learning), False
         b = Baseline(float(np.median(learning)), float(np.std(learning)), (), b.moved_until_ns)
-        return False, b
+        return False, b, False
     if movement_mg > b.level_mg + max(3.0 * b.sd_mg, margin_mg):
-        return True, msgspec.structs.replace(b, moved_until_ns=end_ns)
-    return start_ns < b.moved_until_ns + recovery_s * 1e9, b
+        return True, msgspec.structs.replace(b, moved_until_ns=end_ns), False
+    if b.moved_until_ns < 0:
+        return False, b, False
+    ended = msgspec.structs.replace(b, moved_until_ns=-1)
+    if start_ns >= b.moved_until_ns + max_hold_s * 1e9:
+        return False, ended, True
+    if rr_s is not None and rr_s >= rr_before_s - back_s:
+        return False, ended, False  # back near where it was: read as ever
+    return True, b, False

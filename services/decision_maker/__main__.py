@@ -18,7 +18,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from common.decision import fixed_k
+from common.decision import Personal, fixed_k
 from common.runtime.bus import QueryError, Request
 from common.runtime.node import Answer, Node, Out, Rejected, answers, every, node_main, on
 from common.runtime.service import service_main
@@ -52,15 +52,31 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # then says nothing of mental load. The level comes from a working calibration, else from the first
     # movement_learn_windows windows at work. Windows without movement (no accelerometer) are never held.
     movement_margin_mg: Annotated[float, msgspec.Meta(ge=5.0, le=2000.0)] = 40.0
-    movement_recovery_s: Annotated[float, msgspec.Meta(ge=0.0, le=1800.0)] = 60.0
+    # the hold ends when the window's mean RR is back within movement_back_s of RR_{i-1} (where it was
+    # before the effort), or movement_max_hold_s after the last moving window (RR_{i-1} then re-anchored)
+    movement_back_s: Annotated[float, msgspec.Meta(ge=0.0, le=0.5)] = 0.02
+    movement_max_hold_s: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 300.0
     movement_learn_windows: Annotated[int, msgspec.Meta(ge=1, le=100)] = 4
+    # "paper": Alg. 1 exactly, study condition (c). "personal": beyond the paper, k follows this person's
+    # recent mean RR against their own reference (common/decision.py, DESIGN §7), its settings below
+    decide: Literal["paper", "personal"] = "paper"
+    personal_step_s: Annotated[float, msgspec.Meta(ge=0.002, le=0.2)] = 0.02
+    personal_keep: Annotated[float, msgspec.Meta(ge=0.0, le=0.95)] = 0.5
+    personal_follow_down: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.02
 
     def __post_init__(self) -> None:
         fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start
 
     @property
     def rule(self) -> MovementRule:
-        return MovementRule(self.movement_margin_mg, self.movement_recovery_s, self.movement_learn_windows)
+        return MovementRule(self.movement_margin_mg, self.movement_back_s, self.movement_max_hold_s,
+                            self.movement_learn_windows)  # fmt: skip
+
+    @property
+    def personal(self) -> Personal | None:
+        if self.decide == "paper":
+            return None
+        return Personal(self.personal_step_s, self.personal_keep, self.personal_follow_down)
 
 
 class DecisionMaker(Node):
@@ -69,7 +85,7 @@ class DecisionMaker(Node):
     async def setup(self) -> None:
         s, self.data = self.ctx.settings, self.ctx.common.data_path
         self.unpersisted: str | None = None  # a write the disk refused, while it refuses
-        self.decider = Decider(self.data, s.n, s.rule, self.ctx.common.clock_skew_s)
+        self.decider = Decider(self.data, s.n, s.rule, self.ctx.common.clock_skew_s, s.personal)
         self.conditions = Conditions(Condition(mode=s.mode, fixed_k=s.fixed_k), s.n)
         problems = await asyncio.to_thread(resume, self.decider, self.data, s.rr_rest_s)
         problems += await asyncio.to_thread(self.conditions.resume, self.data)

@@ -12,13 +12,13 @@ from typing import Annotated, NamedTuple
 
 import msgspec
 
-from common.decision import Params, State, Step, step
+from common.decision import Params, Personal, PersonalState, State, Step, personal_step, step
 from common.hrv.calibration import load_calibration as load_stored_calibration
 from common.hrv.movement import Baseline, baseline_of, moved
 from common.runtime.admission import SKEW_S, TimeLine
 from common.runtime.node import admitted
 from common.runtime.storage import Loaded, atomic_write, load_checked
-from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, TimeNs
+from schemas.base import MAX_TIME_NS, RR_MAX_S, RR_MIN_S, NonNegInt, RrSeconds, TimeNs
 from schemas.decision import MAX_N, Reason, Selection, SolutionIndex
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
@@ -31,6 +31,14 @@ STATE_FILE = "decision_state.json"
 # is a duplicate (a replay, a republish), answered already.
 WINDOW_AHEAD_S = 600.0
 WINDOW_DUPLICATE_S = 600.0
+
+
+class PersonalRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """The personal mode's state beside k (common/decision.py ``PersonalState``), persisted with it."""
+
+    ref: RrSeconds
+    sum_rr: Annotated[float, msgspec.Meta(ge=0.0, le=1e9)] = 0.0
+    sum_n: Annotated[float, msgspec.Meta(ge=0.0, le=1e9)] = 0.0
 
 
 class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -47,6 +55,7 @@ class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     t_ns: TimeNs
     window_end_ns: TimeNs | None
     movement: Baseline = Baseline()
+    personal: PersonalRecord | None = None  # the personal mode's state (``decide = "personal"``)
 
     def __post_init__(self) -> None:
         if self.k > self.n:
@@ -79,7 +88,8 @@ class MovementRule(NamedTuple):
     """When a window is held for movement (common/hrv/movement.py, ``moved``)."""
 
     margin_mg: float = 40.0
-    recovery_s: float = 60.0
+    back_s: float = 0.02  # the hold ends when mean RR is back within this of RR before the effort (Δ_rs)
+    max_hold_s: float = 300.0  # or this long after the last moving window, RR_{i-1} then re-anchored
     learn_windows: int = 4
 
 
@@ -88,11 +98,18 @@ class Decider:
     announced (``commit``), so what is published is always what a restart would resume."""
 
     def __init__(
-        self, data_dir: Path, n: int, rule: MovementRule | None = None, skew_s: float = SKEW_S
+        self,
+        data_dir: Path,
+        n: int,
+        rule: MovementRule | None = None,
+        skew_s: float = SKEW_S,
+        personal: Personal | None = None,
     ) -> None:
+        """``personal``: decide in the personal mode with these settings; None: the paper's Alg. 1."""
         self.path = data_dir / STATE_FILE
         self.n = n
         self.rule = rule or MovementRule()
+        self.personal = personal
         self.record: DecisionRecord | None = None
         self.params: Params | None = None
         self.skew_s = skew_s
@@ -165,26 +182,47 @@ class Decider:
         return verdict.action == "restart"
 
     def answer(self, w: HrvWindow) -> DecisionRecord:
-        """Alg. 1 on a window that the time line admitted."""
+        """Alg. 1 (or the personal mode) on a window that the time line admitted."""
         assert self.record is not None and self.params is not None
-        held, movement = moved(self.record.movement, w.movement_mg, w.start_ns, w.end_ns, *self.rule)
-        good = w.quality == "good" and w.mean_rr_s is not None
+        rec, good = self.record, w.quality == "good" and w.mean_rr_s is not None
+        rr = w.mean_rr_s if good else None
+        held, movement, reanchor = moved(rec.movement, w.movement_mg, w.start_ns, w.end_ns, rr,
+                                         float(rec.rr_prev), *self.rule)  # fmt: skip
+        personal = rec.personal
         if held and good:  # mean RR says nothing of mental load while the body works: k and RR_{i-1} stay
-            r = Step(self.record.state, 0, "movement")
+            r = Step(rec.state, 0, "movement")
+        elif reanchor and good:  # held its longest: read from here on, with no step for the effort
+            r = Step(State(rec.k, Decimal(str(w.mean_rr_s))), 0, "movement")
+        elif self.personal is not None:
+            # a window held only for how few beats it has (a wrist's) still says something, at its weight
+            usable = good or (w.quality == "low" and w.reason == "coverage")
+            before = self.personal_state(rec)
+            after, delta, reason = personal_step(self.params, self.personal, before, w.mean_rr_s, w.n_beats,
+                                                 usable and not held)  # fmt: skip
+            rr_prev = Decimal(str(w.mean_rr_s)) if good else rec.state.rr_prev
+            r = Step(State(after.k, rr_prev), delta, reason)
+            personal = PersonalRecord(after.ref, after.sum_rr, after.sum_n)
         else:
-            r = step(self.params, self.record.state, w.mean_rr_s, good_quality=good)
+            r = step(self.params, rec.state, w.mean_rr_s, good_quality=good)
         return msgspec.structs.replace(
-            self.record,
+            rec,
             movement=movement,
             k=r.state.k,
             rr_prev=str(r.state.rr_prev),
             last_end_ns=w.end_ns,
-            seq=self.record.seq + 1,
+            seq=rec.seq + 1,
             delta=r.delta,
             reason=r.reason,
             t_ns=w.end_ns,
             window_end_ns=w.end_ns,
+            personal=personal,
         )
+
+    def personal_state(self, rec: DecisionRecord) -> PersonalState:
+        assert self.params is not None
+        if rec.personal is None:  # from the calibration: its RR_r, at the k in force
+            return PersonalState(rec.k, float(self.params.rr_rest))
+        return PersonalState(rec.k, rec.personal.ref, rec.personal.sum_rr, rec.personal.sum_n)
 
     def commit(self, record: DecisionRecord, resumed: bool = False) -> None:
         fresh = self.record is None or not same_calibration(self.record.calibration, record.calibration)
