@@ -213,3 +213,35 @@ def test_a_router_that_is_not_there_is_one_line_without_zenohs_source_file() -> 
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and "cannot open a Zenoh session (client)" in proc.stderr
     assert ".rs:" not in proc.stderr and "cargo" not in proc.stderr and proc.stderr.count("\n") == 1
+
+
+# --- the personal mode (issue 41) ------------------------------------------------------------------------
+
+
+def test_the_personal_mode_follows_the_persons_recent_rr_within_bounds_and_holds_on_bad_windows() -> None:
+    from common.decision import Personal, PersonalState, personal_step
+
+    p, q = Params.of(0.85), Personal(step_s=0.02, keep=0.0, follow_down=0.0)
+    s = PersonalState.initial(p)
+    assert (s.k, s.ref) == (8, 0.85)
+    s, d, why = personal_step(p, q, s, 0.81, 30, True)  # 40 ms below its reference: two steps slower
+    assert (s.k, d, why) == (6, -2, "stress")
+    s, d, why = personal_step(p, q, s, 0.89, 30, True)
+    assert (s.k, d, why) == (10, 4, "rest")
+    assert personal_step(p, q, s, 0.50, 30, True)[0].k == 1  # never below 1 …
+    assert personal_step(p, q, s, 1.50, 30, True)[0].k == 15  # … nor above N
+    for rr, n, usable in ((None, 30, True), (0.5, 30, False), (0.5, 0, True)):  # held: k and state stay
+        assert personal_step(p, q, s, rr, n, usable) == (s, 0, "low-quality")
+
+
+def test_the_personal_reference_follows_a_lower_rr_slowly_and_a_higher_one_never() -> None:
+    from common.decision import Personal, PersonalState, personal_step
+
+    p, q = Params.of(0.85), Personal(step_s=0.02, keep=0.0, follow_down=0.1)
+    s = PersonalState.initial(p)
+    for _ in range(20):
+        s = personal_step(p, q, s, 0.95, 30, True)[0]
+    assert s.ref == 0.85 and s.k == 13  # calmer than its reference: read as calm, the reference stays
+    for _ in range(20):
+        s = personal_step(p, q, s, 0.75, 30, True)[0]
+    assert 0.75 < s.ref < 0.80 and s.k > 3  # a long stress is followed, slowly

@@ -268,3 +268,27 @@ async def test_windows_missed_while_it_was_down_or_stopped_are_asked_for_and_dec
         got.append((await answered(windows[5].end_ns)).k)
         await svc.close()
     assert got == expected(windows, 0.85)
+
+
+async def test_the_personal_mode_resumes_its_state_after_a_restart(tmp_path: Path, endpoint: str) -> None:
+    """Every guarantee the service gives Alg. 1 holds for the personal mode: its state (the reference and
+    the recent mean RR beside k) is persisted and resumed, and k stays within 1 … N."""
+    from common.decision import Personal, PersonalState, personal_step
+
+    windows = [window(i, rr) for i, rr in enumerate([0.85, 0.80, 0.76, 0.74, 0.80, 0.88])]
+    settings = Settings(rr_rest_s=0.85, republish_s=60, decide="personal")
+    got = []
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection, maxsize=1000))
+        for part in (windows[:3], windows[3:]):  # a restart between them
+            svc = start_decider(tmp_path, endpoint, settings)
+            await svc.listening(bus, "hrv/window")
+            for w in part:
+                got.append((await answer(bus, sels, w)).k)
+            await svc.close()
+    p, q = Params.of(0.85), Personal()
+    s, want = PersonalState.initial(p), []
+    for w in windows:
+        s = personal_step(p, q, s, w.mean_rr_s, w.n_beats, True)[0]
+        want.append(s.k)
+    assert got == want and got[0] > got[3] < got[5]  # steps down under load and back up after it
