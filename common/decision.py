@@ -155,9 +155,9 @@ class Personal:
     not become the norm at once. The recent mean RR weighs each window by its beats, the past by ``keep``
     a window: a wrist or a strap that read few beats counts for few."""
 
-    step_s: float = 0.02
-    keep: float = 0.5
-    follow_down: float = 0.02
+    step_s: float = 0.015
+    keep: float = 0.7
+    follow_down: float = 0.1
 
 
 @dataclass(frozen=True, slots=True)

@@ -30,6 +30,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
         ["plan"],
         ["bench"],
         ["bench", "plan"],
+        ["bench", "decide"],
         ["session"],
         ["study"],
         ["study", "analyse"],

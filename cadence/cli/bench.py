@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -421,4 +422,131 @@ def cmd_bench_hrv(args: argparse.Namespace) -> int:
             }
         )
     )
+    return 0
+
+
+@cli.command(
+    "bench decide",
+    help="decisions on real people: does k fall under stress, per decision mode",
+    description="For every subject of DATA (SNN/ Empatica E4 exports and DATA/blocks.csv) and of GUDB "
+    "(seated, then a maths test): calibrate on the calm start, run the session's 30 s windows through "
+    "the decision maker's own code in the paper's mode (Alg. 1) and the personal mode, and score each: "
+    "the within-subject AUC of k (calm windows above stress windows), the subjects whose mean k is "
+    "lower in stress, the median k per block type, the held share; hyperventilation apart. A figure per "
+    "subject in --out; the last line is JSON.",
+)
+@arg(
+    "--data",
+    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "stress_predict"),
+    metavar="DIR",
+    help="SNN/ E4 exports and blocks.csv (default ../shared/data/stress_predict)",
+)
+@arg(
+    "--gudb",
+    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "gudb"),
+    metavar="DIR",
+    help="GUDB subjects, seated then maths (default ../shared/data/gudb; skipped when absent; '' for none)",
+)
+@arg("--out", default="bench-decide", metavar="DIR", help="where the figures go (default ./bench-decide)")
+@arg(
+    "--cv",
+    action="store_true",
+    help="also choose the personal mode's settings leaving one subject out, and score each subject with "
+    "the settings chosen on the others (held-out figures)",
+)
+@arg(
+    "--wrist-movement",
+    action="store_true",
+    help="feed the wristband's accelerometer to the movement hold (off: the hold is built for a chest "
+    "strap's trunk acceleration; a wrist's is the hands typing and gesturing)",
+)
+def cmd_bench_decide(args: argparse.Namespace) -> int:
+    from cadence.bench import decide as bd
+    from common.decision import Personal
+
+    data, gudb_dir = Path(args.data), Path(args.gudb) if args.gudb else None
+    if not data.is_dir():
+        raise InputError(f"{data}: no such folder (SNN/ Empatica E4 exports and blocks.csv)")
+    with Progress(console=err, transient=True) as bar:
+        task = bar.add_task("reading", total=None)
+
+        def said(what: str) -> None:
+            bar.update(task, description=what)
+
+        sessions = bd.stress_predict(data, args.wrist_movement, said)
+        if gudb_dir is not None and gudb_dir.is_dir():
+            sessions += bd.gudb(gudb_dir, said)
+        for s in sessions:
+            if s.problem:
+                err.print(f"[yellow]{s.name}: not scored: {s.problem}[/yellow]")
+        scored = [s for s in sessions if s.problem is None]
+        if not scored:
+            raise InputError(f"{data}: no subject could be scored (see above)")
+        modes: dict[str, Personal | None] = {"paper": None, "personal": Personal()}
+        runs = {m: [bd.run(s, q) for s in scored] for m, q in modes.items()}
+        scores = {m: [bd.score(s, d) for s, d in zip(scored, runs[m], strict=True)] for m in modes}
+        cv = bd.cross_validate(scored, progress=said) if args.cv else None
+        folder = Path(args.out)
+        folder.mkdir(parents=True, exist_ok=True)
+        for i, s in enumerate(scored):
+            said(f"figure {i + 1} of {len(scored)}")
+            png = bd.figure(s, {m: runs[m][i] for m in modes})
+            (folder / f"{s.name.replace('/', '_')}.png").write_bytes(png)
+    table = Table(title="Per subject: mean k in stress / calm, AUC of k (calm above stress)")
+    for col in ("subject", "RR_r s", "windows", *(f"{m} k s/c" for m in modes), *(f"{m} AUC" for m in modes)):
+        table.add_column(col, justify="left" if col == "subject" else "right", no_wrap=col == "subject")
+    for i, s in enumerate(scored):
+        assert s.calibration is not None
+        table.add_row(
+            s.name + (" *" if s.note else ""),
+            f"{s.calibration.rr_rest_s:.3f}",
+            str(len(s.windows)),
+            *(f"{scores[m][i].k_stress:.1f} / {scores[m][i].k_calm:.1f}" for m in modes),
+            *(f"{scores[m][i].auc:.2f}" for m in modes),
+        )
+    out.print(table)
+    if any(s.note for s in scored):
+        out.print("* RR_r from the baseline's good windows, where " + "; ".join(
+            f"{s.name}: {s.note}" for s in scored if s.note))  # fmt: skip
+    figures: dict[str, object] = {m: bd.summary(scores[m]) for m in modes}
+    groups = sorted({s.name.split("/")[0] for s in scored})
+    summary = Table(title="Per mode (medians over subjects)")
+    for col in (
+        "mode",
+        "data",
+        "subjects",
+        "AUC",
+        "lower in stress",
+        "k stress",
+        "k calm",
+        "k hypervent.",
+        "held",
+    ):
+        summary.add_column(col, justify="left" if col in ("mode", "data") else "right")
+    sets = [(m, scores[m]) for m in modes] + ([("personal, held out", cv.held_out)] if cv else [])
+    for (m, every), g in itertools.product(sets, [*groups, "all"]):
+        f = bd.summary(every if g == "all" else [x for x in every if x.name.startswith(g + "/")])
+        if not f["subjects"]:
+            continue
+        summary.add_row(
+            m, g, str(f["subjects"]), f"{f['auc_median']:.3f}",
+            f"{f['lower_in_stress_n']} ({f['lower_in_stress']:.0%})",
+            f"{f['k_stress_median']:.1f}", f"{f['k_relax_median']:.1f}",
+            "" if f["k_hyperventilation_median"] is None else f"{f['k_hyperventilation_median']:.1f}",
+            f"{f['held_share']:.0%}",
+        )  # fmt: skip
+    out.print(summary)
+    if cv is not None:
+        shipped = Personal()
+        out.print(
+            f"Personal mode, chosen leaving each subject out (grid {len(bd.grid())} settings): "
+            + ", ".join(f"{dataclasses.astuple(q)} in {cv.chosen.count(q)}" for q in dict.fromkeys(cv.chosen))
+            + f"; on all: {dataclasses.astuple(cv.on_all)}; shipped: {dataclasses.astuple(shipped)}"
+        )
+        if cv.on_all != shipped:
+            out.print("[yellow]the shipped settings are not the ones chosen on all subjects[/yellow]")
+        figures["personal_held_out"] = bd.summary(cv.held_out)
+        figures["chosen"] = dataclasses.asdict(cv.on_all)
+    out.print(f"figures: {folder}/ (one per subject)")
+    print(json.dumps(figures))
     return 0

@@ -60,9 +60,9 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # "paper": Alg. 1 exactly, study condition (c). "personal": beyond the paper, k follows this person's
     # recent mean RR against their own reference (common/decision.py, DESIGN §7), its settings below
     decide: Literal["paper", "personal"] = "paper"
-    personal_step_s: Annotated[float, msgspec.Meta(ge=0.002, le=0.2)] = 0.02
-    personal_keep: Annotated[float, msgspec.Meta(ge=0.0, le=0.95)] = 0.5
-    personal_follow_down: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.02
+    personal_step_s: Annotated[float, msgspec.Meta(ge=0.002, le=0.2)] = 0.015
+    personal_keep: Annotated[float, msgspec.Meta(ge=0.0, le=0.95)] = 0.7
+    personal_follow_down: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.1
 
     def __post_init__(self) -> None:
         fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start

@@ -1,0 +1,365 @@
+"""Decisions on real people (`cadence bench decide`; README, "Decisions on real people"): whole sessions of
+people under stress, run window by window through the decision maker's own code (its ``Decider``:
+movement hold, holds, bounds, the mode in force), and scored per decision mode.
+
+- Stress-Predict (``shared/data/stress_predict``): an Empatica E4 wristband through a baseline, a Stroop
+  test, an interview, hyperventilation and relax blocks (``blocks.csv``). Calibrated on the baseline
+  block as `cadence calibrate` would (refused where it would refuse); the relax blocks are the calm,
+  the Stroop test and the interview the stress; hyperventilation, a change of breathing rather than of
+  mental load, is reported apart.
+- GUDB (``shared/data/gudb``): two minutes seated, then two minutes of a maths test, from a chest
+  strap's beats. Calibrated on the seated minutes, which are the calm; the maths test is the stress.
+
+A good decision slows the robot under stress: k in the stress blocks below k in the calm ones. Each
+session is scored by the within-subject AUC of k (calm windows above stress windows; a tie counts half)
+and whether the mean k is lower in stress. ``cross_validate`` chooses the personal mode's settings
+leaving one subject out, and scores each subject with the settings chosen on the others.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import tempfile
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from common.decision import Personal
+from common.hrv.calibration import calibration
+from common.hrv.e4 import E4, e4_windows, read_e4
+from common.hrv.movement import Movement
+from common.hrv.stream import window_message
+from common.runtime.errors import InputError
+from schemas import Calibration, HrvWindow
+from services.decision_maker.state import Decider, MovementRule
+
+N = 15  # the paper's Pareto set: k = 1 … 15
+WINDOW_S = 30.0
+STRESS = frozenset({"stroop", "interview", "maths"})
+APART = frozenset({"hyperventilation"})
+CALM_PREFIX = ("relax", "sitting")
+_NS = 1_000_000_000
+# the personal mode's settings tried by the cross-validation: the size of a step of k in mean RR, how much
+# the past weighs in the recent mean RR, how fast the reference follows a lower RR
+GRID: dict[str, tuple[float, ...]] = {
+    "step_s": (0.01, 0.015, 0.02, 0.03, 0.04),
+    "keep": (0.0, 0.3, 0.5, 0.7, 0.8, 0.9),
+    "follow_down": (0.0, 0.02, 0.05, 0.1, 0.2),
+}
+
+
+def calm(label: str | None) -> bool:
+    return label is not None and label.startswith(CALM_PREFIX)
+
+
+@dataclass(frozen=True, slots=True)
+class Block:
+    name: str
+    start_ns: int
+    end_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class Session:
+    """One person's session as the decision maker would see it: windows over data time, each with the
+    block it falls in (half of it or more; None between blocks)."""
+
+    name: str
+    windows: tuple[HrvWindow, ...]
+    labels: tuple[str | None, ...]
+    blocks: tuple[Block, ...]
+    calibration: Calibration | None
+    problem: str | None = None  # why it cannot be scored (the calibration refused, no stress block …)
+    note: str | None = None  # what a reader of its figures should know
+
+
+def read_blocks(path: Path) -> dict[str, list[Block]]:
+    """``blocks.csv``: subject, block, start_unix_s, end_unix_s; InputError naming the line."""
+    try:
+        text = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(
+            f"{path}: no such file (subject, block, start_unix_s, end_unix_s per line)"
+        ) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not text (byte {exc.start})") from None
+    rows = csv.reader(text)
+    want = ["subject", "block", "start_unix_s", "end_unix_s"]
+    if next(rows, None) != want:
+        raise InputError(f"{path}:1: expected the header {','.join(want)}")
+    out: dict[str, list[Block]] = {}
+    for n, row in enumerate(rows, start=2):
+        if not row:
+            continue
+        try:
+            subject, name, a, b = row
+            block = Block(name, int(float(a) * _NS), int(float(b) * _NS))
+        except ValueError:
+            raise InputError(
+                f"{path}:{n}: expected subject, block, start and end in Unix s, got {row}"
+            ) from None
+        if block.end_ns <= block.start_ns:
+            raise InputError(f"{path}:{n}: the block {name!r} ends before it starts")
+        out.setdefault(subject, []).append(block)
+    return out
+
+
+def label_of(blocks: Sequence[Block], start_ns: int, end_ns: int) -> str | None:
+    for b in blocks:
+        if min(end_ns, b.end_ns) - max(start_ns, b.start_ns) >= (end_ns - start_ns) / 2:
+            return b.name
+    return None
+
+
+def movement_mg(rec: E4, starts_ns: Sequence[int], length_s: float) -> list[float | None]:
+    """Each window's movement from the wristband's accelerometer, by the analyser's own ``Movement``
+    (fed second by second, as chunks arrive)."""
+    if rec.acc_start_ns is None or rec.acc_hz is None or not len(rec.acc_mg):
+        return [None] * len(starts_ns)
+    mv, per = Movement(), max(1, round(rec.acc_hz))
+    for i in range(0, len(rec.acc_mg), per):
+        mv.feed(rec.acc_start_ns + round(i * _NS / rec.acc_hz), rec.acc_hz, rec.acc_mg[i : i + per])
+    return [mv.over(a, a + round(length_s * _NS))[0] for a in starts_ns]
+
+
+def session_of(name: str, rec: E4, blocks: Sequence[Block], baseline: str, movement: bool) -> Session:
+    wins = e4_windows(rec, WINDOW_S)
+    moves = movement_mg(rec, [a for a, _ in wins], WINDOW_S) if movement else [None] * len(wins)
+    msgs = tuple(
+        msgspec.structs.replace(window_message(w, rec.start_ns, i), movement_mg=m)
+        for i, ((_, w), m) in enumerate(zip(wins, moves, strict=True))
+    )
+    labels = tuple(label_of(blocks, m.start_ns, m.end_ns) for m in msgs)
+    base = [m for m, lab in zip(msgs, labels, strict=True) if lab == baseline]
+    cal, problem, note = None, None, None
+    if not base:
+        problem = f"no window in the {baseline} block"
+    else:
+        good = [w.mean_rr_s for w in base if w.quality == "good" and w.mean_rr_s is not None]
+        try:
+            cal = calibration(base, name.split("/")[-1], base[-1].end_ns, measured_sigma=False)[0]
+        except ValueError as exc:
+            # `cadence calibrate` refuses a baseline with fewer than 60 % of its windows readable (a strap
+            # that cannot be read); a wrist's baseline often is, for a few beats too few a window. Its good
+            # windows still give RR_r, as the issue's measurement took it; the refusal is kept beside.
+            if len(good) >= 2:
+                cal = Calibration(t_ns=base[-1].end_ns, seq=0, subject=name.split("/")[-1],
+                                  rr_rest_s=round(float(np.mean(good)), 6))  # fmt: skip
+                note = f"`cadence calibrate` would refuse it ({len(good)} of {len(base)} windows readable)"
+            else:
+                problem = f"calibration on the {baseline} block refused: {exc}"
+    if cal is not None and not any(lab in STRESS for lab in labels):
+        problem = "no stress block"
+    elif cal is not None and not any(calm(lab) for lab in labels):
+        problem = "no calm block"
+    return Session(name, msgs, labels, tuple(blocks), cal, problem, note)
+
+
+def stress_predict(
+    data: Path, movement: bool = True, progress: Callable[[str], None] | None = None
+) -> list[Session]:
+    """Every ``SNN/`` folder of ``data`` that ``blocks.csv`` names, as a session calibrated on its
+    baseline block."""
+    blocks = read_blocks(data / "blocks.csv")
+    out = []
+    for name in sorted(blocks):
+        folder = data / name
+        if not folder.is_dir():
+            continue
+        if progress:
+            progress(f"reading {folder}")
+        out.append(session_of(f"{data.name}/{name}", read_e4(folder), blocks[name], "baseline", movement))
+    return out
+
+
+GUDB_START_NS = 1_500_000_000 * _NS  # GUDB's files carry no date: any data time will do
+GUDB_GAP_S = 60.0  # between the seated minutes and the maths test
+
+
+def gudb(data: Path, progress: Callable[[str], None] | None = None) -> list[Session]:
+    """Every ``subject_NN/`` of ``data`` with both a seated and a maths recording, the maths test a minute
+    after the seated minutes end, as a session calibrated on the seated minutes."""
+    from cadence.bench.hrv_cv import read_gudb_beats
+
+    out = []
+    for folder in sorted(p for p in data.glob("subject_*") if p.is_dir()):
+        if progress:
+            progress(f"reading {folder}")
+        sit, maths = (read_gudb_beats(folder / act / "annotation_cs.tsv") for act in ("sitting", "maths"))
+        if sit is None or maths is None:
+            continue
+        shift = sit[-1] + GUDB_GAP_S - maths[0]
+        beats = np.concatenate([sit, maths + shift])
+        ibi = np.diff(beats)
+        keep = np.ones(ibi.size, dtype=bool)
+        keep[sit.size - 1] = False  # not an interval: the gap between the recordings
+        beat_ns = (GUDB_START_NS + np.round(beats[1:] * _NS)).astype(np.int64)[keep]
+        start = GUDB_START_NS + round(sit[0] * _NS)
+        rec = E4(folder, start, beat_ns, ibi[keep], None, None, np.empty((0, 3)), np.empty(0, dtype=np.int64))
+        blocks = (
+            Block("sitting", start, GUDB_START_NS + round(sit[-1] * _NS)),
+            Block("maths", GUDB_START_NS + round((maths[0] + shift) * _NS), rec.end_ns + 1),
+        )
+        out.append(session_of(f"{data.name}/{folder.name}", rec, blocks, "sitting", movement=False))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    k: int
+    reason: str
+
+
+def run(session: Session, personal: Personal | None, rule: MovementRule | None = None) -> list[Decision]:
+    """The session's windows through the decision maker's own ``Decider``, one after the other, as the
+    service answers them (nothing is persisted)."""
+    assert session.calibration is not None
+    decider = Decider(Path(tempfile.gettempdir()), N, rule, personal=personal)
+    decider.commit(decider.starting(session.calibration, session.calibration.t_ns))
+    out = []
+    for w in session.windows:
+        rec = decider.answer(w)
+        decider.commit(rec)
+        out.append(Decision(rec.k, rec.reason))
+    return out
+
+
+def auc(above: Sequence[float], below: Sequence[float]) -> float:
+    """P(a calm window's k > a stress window's k), a tie counting half."""
+    a, b = np.asarray(above, dtype=float)[:, None], np.asarray(below, dtype=float)[None, :]
+    return float((a > b).mean() + 0.5 * (a == b).mean())
+
+
+@dataclass(frozen=True, slots=True)
+class Score:
+    name: str
+    auc: float
+    lower_in_stress: bool
+    k_stress: float  # mean k over the stress windows
+    k_calm: float
+    k_apart: float | None  # hyperventilation's
+    held: int  # windows whose k was held (movement, quality)
+    windows: int
+    k_by_block: dict[str, float] = field(default_factory=dict)
+
+
+def score(session: Session, decisions: Sequence[Decision]) -> Score:
+    ks: dict[str, list[int]] = {}
+    for lab, d in zip(session.labels, decisions, strict=True):
+        if lab is not None:
+            ks.setdefault(lab, []).append(d.k)
+    stress = [k for lab, v in ks.items() if lab in STRESS for k in v]
+    relax = [k for lab, v in ks.items() if calm(lab) for k in v]
+    apart = [k for lab, v in ks.items() if lab in APART for k in v]
+    held = sum(1 for d in decisions if d.reason in ("movement", "low-quality"))
+    return Score(
+        session.name,
+        auc(relax, stress),
+        float(np.mean(stress)) < float(np.mean(relax)),
+        float(np.mean(stress)),
+        float(np.mean(relax)),
+        float(np.mean(apart)) if apart else None,
+        held,
+        len(decisions),
+        {lab: float(np.mean(v)) for lab, v in ks.items()},
+    )
+
+
+def summary(scores: Sequence[Score]) -> dict[str, float | int | None]:
+    """The figures of one mode over subjects (medians over subjects of each one's figure)."""
+    if not scores:
+        return {"subjects": 0}
+    apart = [s.k_apart for s in scores if s.k_apart is not None]
+    lower = sum(s.lower_in_stress for s in scores)
+    return {
+        "subjects": len(scores),
+        "auc_median": round(float(np.median([s.auc for s in scores])), 3),
+        "lower_in_stress": round(lower / len(scores), 3),
+        "lower_in_stress_n": lower,
+        "k_stress_median": round(float(np.median([s.k_stress for s in scores])), 2),
+        "k_relax_median": round(float(np.median([s.k_calm for s in scores])), 2),
+        "k_hyperventilation_median": round(float(np.median(apart)), 2) if apart else None,
+        "held_share": round(sum(s.held for s in scores) / max(1, sum(s.windows for s in scores)), 3),
+    }
+
+
+def grid() -> list[Personal]:
+    return [Personal(a, b, c) for a, b, c in itertools.product(*GRID.values())]
+
+
+def objective(scores: Iterable[Score]) -> tuple[float, int]:
+    """What the cross-validation maximises: the mean AUC (the median moves by whole subjects, and with
+    GUDB's eight windows a person many AUCs are 1), then how many are lower in stress."""
+    s = list(scores)
+    return round(float(np.mean([x.auc for x in s])), 4), sum(x.lower_in_stress for x in s)
+
+
+@dataclass(frozen=True, slots=True)
+class CrossValidation:
+    held_out: list[Score]  # each subject scored with the settings chosen on the others
+    chosen: list[Personal]  # … which were these, per subject
+    on_all: Personal  # the settings chosen on every subject
+
+
+def cross_validate(
+    sessions: Sequence[Session],
+    rule: MovementRule | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> CrossValidation:
+    """Leave one subject out: choose the personal mode's settings from ``GRID`` on the others (by
+    ``objective``), score the one left out with them."""
+    settings = grid()
+    table: list[list[Score]] = []  # [setting][session]
+    for i, q in enumerate(settings):
+        if progress:
+            progress(f"setting {i + 1} of {len(settings)}")
+        table.append([score(s, run(s, q, rule)) for s in sessions])
+    held, chosen = [], []
+    for j in range(len(sessions)):
+        best = max(range(len(settings)), key=lambda i: objective(x for m, x in enumerate(table[i]) if m != j))
+        held.append(table[best][j])
+        chosen.append(settings[best])
+    on_all = max(range(len(settings)), key=lambda i: objective(table[i]))
+    return CrossValidation(held, chosen, settings[on_all])
+
+
+def figure(session: Session, decisions: dict[str, list[Decision]]) -> bytes:
+    """The session's mean RR per window and k per mode over data time, its blocks shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cadence.plots import _png
+
+    t0 = session.windows[0].start_ns if session.windows else 0
+    fig, (ax, axk) = plt.subplots(2, 1, figsize=(11, 5.5), sharex=True, constrained_layout=True)
+    colours = {"baseline": "0.8", "sitting": "0.8", "hyperventilation": "tab:orange"}
+    for i, b in enumerate(sorted(session.blocks, key=lambda b: b.start_ns)):
+        c = colours.get(b.name, "tab:red" if b.name in STRESS else "tab:green" if calm(b.name) else "0.9")
+        for a in (ax, axk):
+            a.axvspan((b.start_ns - t0) / _NS, (b.end_ns - t0) / _NS, color=c, alpha=0.15, lw=0)
+        ax.text((b.start_ns - t0) / _NS, 1.0 + 0.06 * (i % 2), b.name, transform=ax.get_xaxis_transform(),
+                fontsize=7, va="bottom")  # fmt: skip
+    t = np.array([(w.end_ns - t0) / _NS for w in session.windows])
+    rr = np.array([np.nan if w.mean_rr_s is None else w.mean_rr_s for w in session.windows])
+    good = np.array([w.quality == "good" for w in session.windows])
+    ax.plot(t[good], rr[good], "o-", ms=3, c="tab:red", label="mean RR (good)")
+    ax.plot(t[~good], rr[~good], "x", c="0.5", label="mean RR (held: few beats, noise)")
+    if session.calibration is not None:
+        ax.axhline(session.calibration.rr_rest_s, ls="--", c="tab:red", lw=0.8, label="RR_r (calibration)")
+    ax.set_ylabel("mean RR [s]")
+    ax.legend(fontsize=7, loc="lower left")
+    for (mode, ds), c in zip(decisions.items(), ("tab:blue", "tab:purple", "tab:brown"), strict=False):
+        k = [d.k for d in ds]
+        axk.step(t, k, where="post", c=c, label=f"k, {mode}")
+    axk.set_ylim(0.5, N + 0.5)
+    axk.set_ylabel("k (1 smoothest … 15 fastest)")
+    axk.set_xlabel("data time [s]")
+    axk.legend(fontsize=7, loc="lower left")
+    ax.set_title(session.name, fontsize=9, pad=24)
+    return _png(fig)

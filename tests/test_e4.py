@@ -1,0 +1,165 @@
+"""The Empatica E4 export (common/hrv/e4.py) and decisions on real people (`cadence bench decide`): a
+wrist's intervals become windows held for too few beats, a broken export is named by file and line, and
+on whole sessions the personal mode slows the robot under stress where Alg. 1 barely moves."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadence.bench import decide as bd
+from common.decision import Personal
+from common.hrv.e4 import MG_PER_UNIT, read_e4
+from common.runtime.errors import InputError
+from tests.conftest import SHARED_DATA
+
+START = 1_644_226_061
+STRESS_PREDICT = SHARED_DATA / "stress_predict"
+GUDB = SHARED_DATA / "gudb"
+
+
+def write_e4(folder: Path, rr_of: list[tuple[float, float]], gaps: tuple[tuple[float, float], ...] = (),
+             acc: bool = True) -> Path:  # fmt: skip
+    """An export whose heart beats at ``rr`` from each (time from the start, rr) on, with no interval read
+    inside ``gaps`` (the wrist lost the pulse)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    end = rr_of[-1][0] + 300.0
+    t, rows, rng = 5.0, [f"{START}.000000, IBI"], np.random.default_rng(3)
+    while t < end:
+        rr = next(r for a, r in reversed(rr_of) if t >= a) + rng.normal(0, 0.01)
+        t += rr
+        if not any(a <= t < b for a, b in gaps):
+            rows.append(f"{t:.6f},{rr:.6f}")
+    (folder / "IBI.csv").write_text("\n".join(rows) + "\n")
+    if acc:
+        n = int(end * 32)
+        xyz = np.column_stack([np.zeros(n), np.zeros(n), np.full(n, 64.0)])  # still, gravity along z
+        lines = [f"{START}.0, {START}.0, {START}.0", "32.0, 32.0, 32.0"] + [
+            f"{x:.0f},{y:.0f},{z:.0f}" for x, y, z in xyz
+        ]
+        (folder / "ACC.csv").write_text("\n".join(lines) + "\n")
+    (folder / "tags_x.csv").write_text(f"{START + 100}\n")
+    return folder
+
+
+def test_an_export_is_read_with_its_gaps_and_units(tmp_path: Path) -> None:
+    rec = read_e4(write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((100.0, 160.0),)))
+    assert (
+        rec.start_ns == START * 10**9
+        and rec.acc_hz == 32.0
+        and rec.tags_ns.tolist() == [(START + 100) * 10**9]
+    )
+    assert abs(rec.acc_mg[0, 2] - 64 * MG_PER_UNIT) < 1e-9  # 1/64 g → mg: 1 g
+    t = (rec.beat_ns - rec.start_ns) / 1e9
+    assert not np.any((t >= 100) & (t < 160)) and abs(float(np.median(rec.ibi_s)) - 0.8) < 0.01
+
+
+def test_a_window_with_too_few_intervals_is_held_for_coverage(tmp_path: Path) -> None:
+    from common.hrv.e4 import e4_windows
+
+    rec = read_e4(write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((95.0, 118.0), (120.0, 150.0))))
+    wins = {round((a - rec.start_ns) / 1e9): w for a, w in e4_windows(rec)}
+    assert wins[60].quality == "good" and abs(wins[60].mean_rr_s - 0.8) < 0.01  # type: ignore[operator]
+    assert wins[90].quality == "low" and wins[90].reason == "coverage" and 0 < wins[90].n_beats < 10
+    assert wins[120].quality == "none" and wins[120].mean_rr_s is None
+
+
+@pytest.mark.parametrize(
+    ("file", "text", "words"),
+    [
+        ("IBI.csv", "yesterday, IBI\n1.0,0.8\n", "IBI.csv:1: expected the session's start"),
+        ("IBI.csv", f"{START}, IBI\n1.0,0.8\n2.0,zero\n", "IBI.csv:3: expected numbers"),
+        ("IBI.csv", f"{START}, IBI\n2.0,0.8\n1.0,0.8\n", "beat times must rise"),
+        ("ACC.csv", f"{START},{START},{START}\n0.0,0.0,0.0\n", "ACC.csv:2: a rate of 0.0 Hz"),
+        ("IBI.csv", b"\xff\xfe", "not text"),
+    ],
+)
+def test_a_broken_export_is_named_by_file_and_line(
+    tmp_path: Path, file: str, text: str | bytes, words: str
+) -> None:
+    folder = write_e4(tmp_path / "S01", [(0.0, 0.8)], acc=False)
+    (folder / file).write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(InputError, match=words.replace("(", r"\(")):
+        read_e4(folder)
+
+
+def write_study(data: Path, blocks: list[tuple[str, float, float, float]]) -> None:
+    """One subject through ``blocks``: (name, from s, to s, mean RR)."""
+    write_e4(data / "S01", [(a, rr) for _, a, _, rr in blocks])
+    rows = ["subject,block,start_unix_s,end_unix_s"] + [
+        f"S01,{n},{START + a:.0f},{START + b:.0f}" for n, a, b, _ in blocks
+    ]
+    (data / "blocks.csv").write_text("\n".join(rows) + "\n")
+
+
+SESSION = [("baseline", 0, 300, 0.80), ("stroop", 300, 600, 0.76), ("relax1", 600, 900, 0.80),
+           ("interview", 900, 1200, 0.75), ("relax2", 1200, 1500, 0.80)]  # fmt: skip
+
+
+def test_a_stress_drop_of_one_person_moves_the_personal_mode_and_barely_alg_1(tmp_path: Path) -> None:
+    """A 40–50 ms drop under stress: within one person clear, against the spread between people (σ_r
+    0.14 s) small."""
+    write_study(tmp_path, SESSION)
+    (s,) = bd.stress_predict(tmp_path, movement=True)
+    assert s.problem is None and s.calibration is not None and abs(s.calibration.rr_rest_s - 0.80) < 0.01
+    paper, personal = (bd.score(s, bd.run(s, q)) for q in (None, Personal()))
+    assert personal.lower_in_stress and personal.auc > 0.9 and personal.k_calm - personal.k_stress >= 2
+    assert paper.k_calm - paper.k_stress < personal.k_calm - personal.k_stress
+    assert personal.held == 0  # a still wrist: nothing held for movement
+
+
+def test_bench_decide_writes_its_figures_and_a_json_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from cadence.cli import main
+
+    write_study(tmp_path / "data", SESSION)
+    assert (
+        main(
+            [
+                "bench",
+                "decide",
+                "--data",
+                str(tmp_path / "data"),
+                "--gudb",
+                "",
+                "--out",
+                str(tmp_path / "figs"),
+            ]
+        )
+        == 0
+    )
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(figures) == {"paper", "personal"} and figures["personal"]["subjects"] == 1
+    assert figures["personal"]["lower_in_stress"] == 1.0
+    assert (tmp_path / "figs" / "data_S01.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_bad_blocks_file_is_named_by_its_line(tmp_path: Path) -> None:
+    write_study(tmp_path, SESSION)
+    (tmp_path / "blocks.csv").write_text("subject,block,start_unix_s,end_unix_s\nS01,stroop,later,1\n")
+    with pytest.raises(InputError, match=r"blocks.csv:2: expected subject, block"):
+        bd.stress_predict(tmp_path)
+
+
+@pytest.mark.skipif(
+    not (STRESS_PREDICT.is_dir() and GUDB.is_dir()), reason="../shared/data/stress_predict or gudb absent"
+)
+def test_on_real_people_held_out_the_personal_mode_slows_under_stress() -> None:
+    """The issue's bar, held out (each subject scored with the settings chosen on the others): ≥ 90 % of
+    people slower under stress, a median AUC of k ≥ 0.80; and the settings shipped are the ones chosen."""
+    sessions = [
+        s for s in bd.stress_predict(STRESS_PREDICT, movement=False) + bd.gudb(GUDB) if s.problem is None
+    ]
+    assert len(sessions) >= 25
+    cv = bd.cross_validate(sessions)
+    held = bd.summary(cv.held_out)
+    assert held["lower_in_stress"] >= 0.9 and held["auc_median"] >= 0.80  # type: ignore[operator]
+    assert cv.on_all == Personal()
+    paper = bd.summary([bd.score(s, bd.run(s, None)) for s in sessions])
+    assert paper["auc_median"] < held["auc_median"]  # type: ignore[operator]
+    assert all(math.isfinite(x.auc) for x in cv.held_out)
