@@ -48,7 +48,7 @@ class RrIntervals(Message, frozen=True, tag="ecg.rr.v1"):
 
 # The H10's accelerometer (PMD measurement type 2): 25, 50, 100 or 200 Hz, ±2, 4 or 8 g, in mg. A value
 # beyond 16 g is no movement of a person's chest: a broken frame.
-ACC_RATES_HZ = (25.0, 50.0, 100.0, 200.0)
+ACC_RATES_HZ = (25.0, 32.0, 50.0, 100.0, 200.0)  # and 32 Hz: an Empatica E4's (a wristband's replay)
 MAX_ACC_MG = 16_000
 Milligravity = Annotated[int, msgspec.Meta(ge=-MAX_ACC_MG, le=MAX_ACC_MG)]
 _MAX_ACC = round(MAX_CHUNK_S * max(ACC_RATES_HZ))

@@ -163,3 +163,50 @@ def test_on_real_people_held_out_the_personal_mode_slows_under_stress() -> None:
     paper = bd.summary([bd.score(s, bd.run(s, None)) for s in sessions])
     assert paper["auc_median"] < held["auc_median"]  # type: ignore[operator]
     assert all(math.isfinite(x.auc) for x in cv.held_out)
+
+
+@pytest.mark.asyncio
+async def test_a_wristbands_export_replays_through_the_gateway_into_windows(
+    tmp_path: Path, endpoint: str
+) -> None:
+    """source = "e4": its intervals on ``ecg/rr``, a lost pulse flagged as a gap, read by the analyser with
+    ``input = "rr"`` into windows over data time; the window over the gap is held, the others read 0.8 s."""
+    import asyncio
+
+    from common.runtime.bus import Bus, BusConfig
+    from schemas import HrvWindow, RrIntervals
+    from services.ecg_gateway.__main__ import Settings as GatewaySettings
+    from services.ecg_gateway.__main__ import main as gateway_main
+    from services.hrv_analyser.__main__ import Settings as AnalyserSettings
+    from services.hrv_analyser.__main__ import main as analyser_main
+    from tests.conftest import InProcessService, now_ns
+
+    folder = write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((95.0, 150.0),), acc=False)
+    start = now_ns() - 300 * 10**9  # replayed 40× faster than the clock: it ends by now
+    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        rr = aiter(bus.subscribe(bus.key("ecg/rr"), RrIntervals, maxsize=1000))
+        wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
+        analyser = InProcessService(
+            "hrv_analyser", analyser_main, AnalyserSettings(input="rr"), tmp_path / "a", endpoint
+        )
+        await analyser.listening(bus, "ecg/rr")
+        replay = GatewaySettings(source="e4", record=str(folder), speed=40.0, start_ns=start)
+        gateway = InProcessService("ecg_gateway", gateway_main, replay, tmp_path / "g", endpoint)
+        got: list[HrvWindow] = []
+        gaps = 0
+        async with asyncio.timeout(30):
+            while len(got) < 7:
+                _, w = await anext(wins)
+                got.append(w)
+            while True:  # the intervals up to well after the gap: one says the pulse was lost before it
+                _, msg = await anext(rr)
+                gaps += msg.gap
+                if msg.t_ns > start + 200 * 10**9:
+                    break
+        for svc in (gateway, analyser):
+            await svc.close()
+    assert gaps == 1
+    good = [w for w in got if w.quality == "good"]
+    assert good and all(abs(w.mean_rr_s - 0.8) < 0.01 for w in good)  # type: ignore[operator]
+    over_gap = [w for w in got if w.start_ns < start + 150 * 10**9 and w.end_ns > start + 95 * 10**9]
+    assert over_gap and all(w.quality != "good" for w in over_gap)

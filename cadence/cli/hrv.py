@@ -38,7 +38,8 @@ def add_record(p: argparse.ArgumentParser) -> None:
         "record",
         metavar="RECORD",
         help="WFDB record path without extension, a CSV (s, µV), a Polar Sensor Logger export "
-        "(…_ECG.txt; for windows also …_RR.txt), or RR intervals one per line (s or ms)",
+        "(…_ECG.txt; for windows also …_RR.txt), RR intervals one per line (s or ms), or for windows an "
+        "Empatica E4 export folder (IBI.csv, ACC.csv, …)",
     )
     p.add_argument("--fs", type=float, default=None, help="resample to this rate first (130: as the H10)")
 
@@ -69,7 +70,7 @@ cli.group("hrv", steps={"dest": "hrv", "metavar": "TOOL"}, help="offline heart-r
 def cmd_hrv_peaks(args: argparse.Namespace) -> int:
     from common.hrv.records import is_rr_file
 
-    if is_rr_file(args.record):
+    if is_rr_file(args.record) or Path(args.record).is_dir():
         raise InputError(f"{args.record}: RR intervals only, no ECG to find peaks in (`cadence hrv windows`)")
     rec, peaks = _record_peaks(args)
     print(json.dumps({"fs": rec.fs, "peaks_s": [round(p.sample / rec.fs, 6) for p in sorted(peaks)]}))
@@ -80,21 +81,26 @@ def cmd_hrv_peaks(args: argparse.Namespace) -> int:
 @flags_from(add_record)
 @arg("--window", type=float, default=30.0, help="window length [s] (default 30)")
 def cmd_hrv_windows(args: argparse.Namespace) -> int:
-    """Windows of an ECG (its detected beats) or of an RR-only file (beats at the intervals' running sum,
-    as the H10's own RR output is read with ``input = "rr"``)."""
+    """Windows of an ECG (its detected beats), of an RR-only file (beats at the intervals' running sum,
+    as the H10's own RR output is read with ``input = "rr"``), or of a wristband's export (its intervals
+    have gaps: a window is judged by how many it holds, common/hrv/e4.py)."""
     import numpy as np
 
     from common.hrv.records import is_rr_file, read_rr
     from common.hrv.stream import intervals, peak_intervals, windows
 
-    if is_rr_file(args.record):
+    if Path(args.record).is_dir():  # an Empatica E4 export: windows over data time from its start
+        from common.hrv.e4 import e4_windows, read_e4
+
+        wins = [w for _, w in e4_windows(read_e4(args.record), args.window)]
+    elif is_rr_file(args.record):
         rr = read_rr(args.record)
         beats_s = np.concatenate([[0.0], np.cumsum(rr)])
-        iv, end_s = intervals(beats_s), float(beats_s[-1])
+        wins = windows(intervals(beats_s), args.window, end_s=float(beats_s[-1]))
     else:
         rec, peaks = _record_peaks(args)
-        iv, end_s = peak_intervals(peaks, rec.fs), len(rec.uv) / rec.fs
-    for w in windows(iv, args.window, end_s=end_s):
+        wins = windows(peak_intervals(peaks, rec.fs), args.window, end_s=len(rec.uv) / rec.fs)
+    for w in wins:
         print(
             json.dumps(
                 {

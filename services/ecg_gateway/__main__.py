@@ -1,7 +1,8 @@
 """ecg_gateway: an ECG source → ``ecg/samples``, ``ecg/rr`` and the strap's accelerometer, ``ecg/acc``
-(DESIGN §1, §6). Sources behind one interface: ``polar`` (the H10 over BLE) and ``replay`` (a recording,
-with a Polar accelerometer export beside it if there is one). A cell without a strap runs the operator
-twin (services/operator_twin) in this service's place.
+(DESIGN §1, §6). Sources behind one interface: ``polar`` (the H10 over BLE), ``replay`` (a recording,
+with a Polar accelerometer export beside it if there is one) and ``e4`` (an Empatica E4 export: RR
+intervals with gaps, no ECG; the analyser reads it with ``input = "rr"``). A cell without a strap runs
+the operator twin (services/operator_twin) in this service's place.
 
 A source without an accelerometer, or whose accelerometer stops while its ECG goes on, works as before
 (the windows carry no movement, and Alg. 1 reads every window as it always did); the status says so."""
@@ -23,7 +24,7 @@ from schemas.base import TimeNs
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
-from services.ecg_gateway.sources import AccSamples, EcgSource, ReplaySource, RrChunk
+from services.ecg_gateway.sources import AccSamples, E4Source, EcgSource, ReplaySource, RrChunk
 
 NAME = "ecg_gateway"
 LISTENER_WAIT_S = 30.0
@@ -32,7 +33,7 @@ log = logging.getLogger("cadence.ecg_gateway")
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    source: Literal["replay", "polar"] = "replay"
+    source: Literal["replay", "polar", "e4"] = "replay"  # e4: an Empatica E4 export folder in ``record``
     strap: str = "Polar H10"  # polar: MAC address or (part of) the advertised name
     gap_timeout_s: Annotated[float, msgspec.Meta(ge=0.5, le=300.0)] = 5.0  # polar: reconnect after this
     record: str | None = None  # replay: WFDB record path without extension, or a CSV
@@ -40,6 +41,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     start_ns: TimeNs | None = None  # replay: data time of the first sample (default: now)
     acc_record: str | None = None  # replay: a Polar Sensor Logger accelerometer export (…_ACC.txt)
     acc_hz: Literal[25, 50, 100, 200, 0] = 25  # polar: the accelerometer's rate; 0: do not ask for it
+    e4_accelerometer: bool = False  # e4: send the wrist's accelerometer too (sources.py E4Source: why not)
 
 
 def make_source(settings: Settings) -> EcgSource:
@@ -47,7 +49,10 @@ def make_source(settings: Settings) -> EcgSource:
         acc_hz = settings.acc_hz or None
         return PolarSource(bleak_connector(settings.strap), settings.gap_timeout_s, acc_hz=acc_hz)
     if settings.record is None:
-        raise ConfigError(f"[{NAME}] record: the replay source needs a record (WFDB path or CSV)")
+        what = "an E4 export folder" if settings.source == "e4" else "WFDB path or CSV"
+        raise ConfigError(f"[{NAME}] record: the {settings.source} source needs a record ({what})")
+    if settings.source == "e4":
+        return E4Source(settings.record, settings.speed, settings.start_ns, settings.e4_accelerometer)
     return ReplaySource(settings.record, settings.speed, settings.start_ns, settings.acc_record)
 
 
@@ -62,7 +67,7 @@ class EcgGateway(Node):
     def say_accelerometer(self, ecg_ns: int) -> None:
         """The status says when the windows are read without movement, and why."""
         if not self.source.accelerometer:
-            self.ctx.detail = "no accelerometer: windows are read without movement (ECG only)"
+            self.ctx.detail = "no accelerometer: windows are read without movement (heart only)"
         elif self.acc_until_ns is not None and ecg_ns - self.acc_until_ns > ACC_SILENT_S * 1e9:
             self.ctx.detail = (f"no accelerometer for {(ecg_ns - self.acc_until_ns) / 1e9:.0f} s: windows "
                                "are read without movement until it comes back")  # fmt: skip
@@ -71,18 +76,23 @@ class EcgGateway(Node):
 
     async def stream(self) -> AsyncIterator[Out]:
         if self.source.waits_for_listener:
-            self.ctx.state = "waiting for a subscriber of ecg/samples"
+            topic = ECG_SAMPLES if self.source.ecg else ECG_RR
+            self.ctx.state = f"waiting for a subscriber of {topic.suffix}"
             try:
-                await self.until_read(ECG_SAMPLES, LISTENER_WAIT_S)
+                await self.until_read(topic, LISTENER_WAIT_S)
             except TimeoutError:
                 log.warning(
-                    "nobody subscribes to ecg/samples after %.0f s: replaying anyway", LISTENER_WAIT_S
+                    "nobody subscribes to %s after %.0f s: replaying anyway", topic.suffix, LISTENER_WAIT_S
                 )
             self.ctx.state = "running"
         name = self.source.name
         async for chunk in self.source.chunks():
             if isinstance(chunk, RrChunk):
-                yield [RrIntervals(t_ns=chunk.t_ns, seq=self.next_seq(ECG_RR), rr_s=chunk.rr_s, source=name)]
+                if not self.source.ecg:
+                    self.say_accelerometer(chunk.t_ns)
+                    self.ctx.counters["gaps"] += int(chunk.gap)
+                yield [RrIntervals(t_ns=chunk.t_ns, seq=self.next_seq(ECG_RR), rr_s=chunk.rr_s, gap=chunk.gap,
+                                   source=name)]  # fmt: skip
                 continue
             if isinstance(chunk, AccSamples):
                 self.ctx.counters["acc_chunks"] += 1

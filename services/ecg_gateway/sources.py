@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.hrv.e4 import read_e4
 from common.hrv.records import AccRecording, read_acc, read_record
-from schemas.ecg import ACC_RATES_HZ, H10_CHUNK, H10_FS_HZ
+from schemas.ecg import ACC_RATES_HZ, H10_CHUNK, H10_FS_HZ, MAX_ACC_MG
 
 FS_HZ, CHUNK = H10_FS_HZ, H10_CHUNK
 
@@ -36,6 +37,7 @@ class RrChunk:
 
     t_ns: int
     rr_s: list[float]
+    gap: bool = False  # intervals missing before these (a wrist that lost the pulse)
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,6 +60,9 @@ class EcgSource(abc.ABC):
     waits_for_listener: bool = False
     # whether it sends the accelerometer: a strap that refuses it, a recording without one, do not
     accelerometer: bool = False
+    # whether it sends ECG samples; one that does not sends RR intervals, read with the analyser's
+    # ``input = "rr"``
+    ecg: bool = True
 
     @abc.abstractmethod
     def chunks(self) -> AsyncIterator[Item]: ...
@@ -114,3 +119,57 @@ class ReplaySource(EcgSource):
             end_ns = t_ns + round(CHUNK * 1e9 / FS_HZ)
             while acc and acc[0].t_ns + round(len(acc[0].xyz_mg) * 1e9 / acc[0].fs_hz) <= end_ns:
                 yield acc.pop(0)  # sent once its last sample exists, as the strap does
+
+
+class E4Source(EcgSource):
+    """An Empatica E4 export (common/hrv/e4.py) as the wristband saw it: each interval as the device's RR
+    at its closing beat, with ``gap`` where intervals are missing before it (the wrist lost the pulse), and
+    with ``accelerometer`` its 32 Hz samples in one-second chunks. No ECG: the analyser reads it with
+    ``input = "rr"``. Placed on the clock and paced as ``ReplaySource``.
+
+    The accelerometer is off by default: the movement hold reads a chest strap's trunk (DESIGN §7), and a
+    wrist's is the hands, which type and gesture through a Stroop test and an interview (`cadence bench
+    decide --wrist-movement` measures what it would hold)."""
+
+    name = "e4"
+    waits_for_listener = True
+    ecg = False
+
+    def __init__(self, folder: str, speed: float = 1.0, start_ns: int | None = None,
+                 accelerometer: bool = False) -> None:  # fmt: skip
+        self.rec = read_e4(folder)  # InputError naming the file and line, at start
+        self.accelerometer = accelerometer and self.rec.acc_hz is not None and len(self.rec.acc_mg) > 0
+        self.speed = speed
+        length_ns = self.rec.end_ns - self.rec.start_ns if speed != 1.0 else 0
+        self.start_ns = time.time_ns() - length_ns if start_ns is None else start_ns
+
+    def items(self) -> list[tuple[int, Item]]:
+        """Everything with the data time it exists at (an interval at its closing beat, an accelerometer
+        second at its last sample), in that order."""
+        rec, shift = self.rec, self.start_ns - self.rec.start_ns
+        out: list[tuple[int, Item]] = []
+        prev = None
+        for beat, rr in zip(rec.beat_ns.tolist(), rec.ibi_s.tolist(), strict=True):
+            gap = prev is not None and abs(beat - round(rr * 1e9) - prev) > 20_000_000  # not the last beat
+            out.append((beat + shift, RrChunk(beat + shift, [round(rr, 6)], gap)))
+            prev = beat
+        if self.accelerometer:
+            assert rec.acc_start_ns is not None and rec.acc_hz is not None
+            n = round(rec.acc_hz)
+            xyz = np.clip(np.rint(rec.acc_mg), -MAX_ACC_MG, MAX_ACC_MG).astype(int)
+            for i in range(0, len(xyz) - n + 1, n):
+                t = rec.acc_start_ns + shift + round(i * 1e9 / rec.acc_hz)
+                rows = [(int(a), int(b), int(c)) for a, b, c in xyz[i : i + n]]
+                out.append((t + round(n * 1e9 / rec.acc_hz), AccSamples(t, rec.acc_hz, rows)))
+        out.sort(key=lambda x: x[0])
+        return out
+
+    async def chunks(self) -> AsyncIterator[Item]:
+        t_wall0 = time.monotonic()
+        for exists_ns, item in self.items():
+            if self.speed > 0:
+                due = t_wall0 + (exists_ns - self.start_ns) / 1e9 / self.speed
+                await asyncio.sleep(max(0.0, due - time.monotonic()))
+            else:
+                await asyncio.sleep(0)
+            yield item
