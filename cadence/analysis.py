@@ -38,11 +38,13 @@ from schemas.session import CONDITION_NAMES, Tlx
 
 METRICS = ("productivity_per_min", "error_rate", "mean_rr_s", "mean_rr_norm")
 TLX = "tlx_raw"
+RESTING = "mean_rr_resting_norm"  # beside mean RR / RR_r when a calibration was at work
 LABELS = {
     "productivity_per_min": "φ [cycles/min]",
     "error_rate": "ε [errors/cycle]",
     "mean_rr_s": "mean RR [s]",
     "mean_rr_norm": "mean RR / RR_r",
+    RESTING: "mean RR / RR at rest",
     TLX: "NASA-TLX (raw, 0-100)",
 }
 # TOST margins for "(b) ≈ (c)" unless given: about one decision step of RR, a tenth of a cycle a minute,
@@ -52,6 +54,7 @@ MARGINS = {
     "error_rate": 0.02,
     "mean_rr_s": 0.02,
     "mean_rr_norm": 0.025,
+    RESTING: 0.025,
     TLX: 10.0,
 }
 COLUMNS = ("subject", "condition", "minutes", "complete", "cycles", "errors")
@@ -159,7 +162,17 @@ def analyse(
             )
         seen[k] = s
     conditions = [c for c in CONDITION_NAMES if any(s.info.condition == c for s in sessions)]
-    metrics = METRICS + ((TLX,) if any(s.end.tlx is not None for s in sessions) else ())
+    working = any(s.working_calibration for s in sessions)
+    metrics = (
+        METRICS
+        + ((RESTING,) if working else ())
+        + ((TLX,) if any(s.end.tlx is not None for s in sessions) else ())
+    )
+    if working:
+        notes.append(
+            "calibrated at work: RR_r is the working level (k = 1), so mean RR / RR_r is about 1 in (b) by "
+            "construction; mean RR / RR at rest (the level kept beside it) is reported too"
+        )
     table: dict[str, dict[str, tuple[float, float, int]]] = {}
     for c in conditions:
         rows = [s for s in sessions if s.info.condition == c]

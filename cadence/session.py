@@ -189,6 +189,21 @@ class Session:
     def mean_rr_norm(self) -> float:
         return self.mean_rr_s / self.rr_rest_s
 
+    @property
+    def working_calibration(self) -> bool:
+        return self.info.calibration is not None and self.info.calibration.posture == "working"
+
+    @property
+    def mean_rr_resting_norm(self) -> float:
+        """Mean RR over the level at rest. Calibrated at work (k = 1, in the task), RR_r is the working
+        level, so mean RR / RR_r is about 1 in condition (b) by construction; the level at rest, which a
+        working calibration keeps beside it, is what the conditions can be compared against. NaN where a
+        working calibration kept none."""
+        cal = self.info.calibration
+        assert cal is not None
+        rest = cal.rr_resting_s if cal.posture == "working" else cal.rr_rest_s
+        return self.mean_rr_s / rest if rest else float("nan")
+
 
 def _metadata(path: Path) -> dict[str, dict[str, str]]:
     from mcap.reader import make_reader

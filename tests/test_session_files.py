@@ -122,6 +122,25 @@ def test_publishers_on_different_clocks_are_a_mixed_clock_error(tmp_path: Path) 
         load_session(tmp_path / "offset.mcap")
 
 
+def test_calibrated_at_work_the_study_shows_mean_rr_over_the_level_at_rest_too(tmp_path: Path) -> None:
+    """At work (k = 1) RR_r is the working level: mean RR / RR_r is about 1 in (b) by construction. The
+    level at rest the calibration kept gives the measure the conditions compare on."""
+    from cadence.analysis import RESTING
+
+    working = Calibration(t_ns=T0, seq=0, subject="s1", rr_rest_s=0.75, posture="working", rr_resting_s=0.9)
+    s = load_session(write(tmp_path / "w.mcap", info(cal=working)))
+    assert s.mean_rr_norm == pytest.approx(0.8 / 0.75) and s.mean_rr_resting_norm == pytest.approx(0.8 / 0.9)
+    files = [
+        write(tmp_path / f"{c}.mcap", info(condition=c, cal=working), rr=rr)
+        for c, rr in (("a", 0.7), ("b", 0.8))
+    ]
+    study = analyse([load_session(f) for f in files])
+    assert RESTING in study.metrics and study.table["b"][RESTING][0] == pytest.approx(0.8 / 0.9)
+    assert any("calibrated at work" in n for n in study.notes)
+    at_rest = analyse([load_session(write(tmp_path / "r.mcap", info()))])
+    assert RESTING not in at_rest.metrics  # at rest it is mean RR / RR_r itself
+
+
 def test_analysis_pairs_by_subject_and_refuses_two_sessions_of_one_condition(tmp_path: Path) -> None:
     files = []
     for i, subject in enumerate(("s1", "s2", "s3")):
