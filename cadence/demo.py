@@ -83,6 +83,7 @@ class DemoOptions:
     live: bool = True
     listen: str | None = None  # the router's endpoint; a free loopback port when None
     twin: tuple[tuple[str, bool | int | float], ...] = ()  # TwinParams fields over the demo's own
+    decide: str = "paper"  # the decision maker's mode: "paper" (Alg. 1) or "personal" (DESIGN §7)
 
 
 def twin_table(opts: DemoOptions) -> dict[str, bool | int | float]:
@@ -241,7 +242,7 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
     task = str(opts.task)
     return {
         "pareto_store": {"task": task},
-        "decision_maker": {"rr_rest_s": repr(TwinParams().rr_rest_s)},
+        "decision_maker": {"rr_rest_s": repr(TwinParams().rr_rest_s), "decide": opts.decide},
         # a co-worker less tolerant than the twin's default: the example task's waits for the operator
         # (B2 clear, the parts) leave the arm idle part of each cycle, and the demo should show Alg. 1 at
         # work, stress first and relief after, within its first minutes

@@ -95,6 +95,23 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert "φ, production rate" in (out / "index.html").read_text()
 
 
+def test_the_personal_mode_steps_both_ways_in_the_twin_demo(tmp_path: Path) -> None:
+    """The decision maker in the personal mode (DESIGN §7), with every guarantee Alg. 1 has: the fast
+    initial pace stresses the twin and k steps down, relief brings it up again, k stays within 1 … N."""
+    out = tmp_path / "demo"
+    r = subprocess.run(
+        [sys.executable, "-m", "cadence", "demo", "--duration", "420", "--speed", "16", "--out", str(out),
+         "--no-live", "--decide", "personal", "--twin", "walk_every_s=0"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    sel = json.loads((out / "summary.json").read_text())["selections"]
+    assert sel[0]["reason"] == "initial" and all(1 <= x["k"] <= 15 for x in sel)  # N = 15
+    first_down = next(i for i, x in enumerate(sel) if x["delta"] < 0)
+    assert sel[first_down]["reason"] == "stress"
+    assert any(x["delta"] > 0 and x["reason"] == "rest" for x in sel[first_down + 1 :])
+
+
 def test_the_live_view_explains_a_protective_stop_of_a_busy_machine() -> None:
     """At 8× on a small machine the servo loop can miss deadlines: the view says what that is, so that a
     person does not take it for the method's doing."""

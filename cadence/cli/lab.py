@@ -87,6 +87,13 @@ def add_cohort_flags(p: argparse.ArgumentParser, out_default: str) -> None:
     help="a parameter of the operator twin (common/sim/twin.py; repeatable), e.g. heavy_from_s=120 "
     "heavy_until_s=300 (a stretch of heavier parts) or accelerometer=false (a strap without one)",
 )
+@arg(
+    "--decide",
+    choices=("paper", "personal"),
+    default="paper",
+    help="the decision maker's mode: paper (Alg. 1, default) or personal (k from this person's own "
+    "scale; README, Decisions on real people)",
+)
 def cmd_demo(args: argparse.Namespace) -> int:
     from cadence.demo import ORDER, DemoOptions, run_demo, twin_table
     from common.sim.twin import TwinParams
@@ -116,6 +123,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         live=not args.no_live,
         listen=args.listen,
         twin=tuple(twin),
+        decide=args.decide,
     )
     try:  # a parameter the twin does not have, or out of its range: said now, not by a service at start
         msgspec.convert(twin_table(opts), TwinParams)
