@@ -48,8 +48,8 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     mode: Literal["adaptive", "fixed"] = "adaptive"
     fixed_k: FixedK = "a"
     # Movement (DESIGN §7): a window whose movement is over the wearer's level at work by more than this
-    # (or three spreads of it), and each window within movement_recovery_s after one, is held: mean RR
-    # then says nothing of mental load. The level comes from a working calibration, else from the first
+    # (or three spreads of it), and after one each window until the heart is back (below), is held: mean
+    # RR then says nothing of mental load. The level comes from a working calibration, else from the first
     # movement_learn_windows windows at work. Windows without movement (no accelerometer) are never held.
     movement_margin_mg: Annotated[float, msgspec.Meta(ge=5.0, le=2000.0)] = 40.0
     # the hold ends when the window's mean RR is back within movement_back_s of RR_{i-1} (where it was
