@@ -92,6 +92,16 @@ def baseline_of(level_mg: float | None, sd_mg: float | None) -> Baseline:
     return Baseline(level_mg, sd_mg or 0.0)
 
 
+def learnt(learning: tuple[float, ...], margin_mg: float, moved_until_ns: int = -1) -> Baseline:
+    """The level at work from the first windows: their median and spread, leaving out those over the
+    lower quartile by more than ``margin_mg``. A stretch of effort among the first windows (a busy host
+    that starts the decision late, a worker who starts with the heavy parts) once made the level the
+    effort's, and no window after it was held."""
+    x = np.asarray(learning, dtype=float)
+    calm = x[x <= np.percentile(x, 25) + margin_mg]
+    return Baseline(float(np.median(calm)), float(np.std(calm)), (), moved_until_ns)
+
+
 def moved(
     b: Baseline, movement_mg: float | None, start_ns: int, end_ns: int, rr_s: float | None,
     rr_before_s: float, margin_mg: float, back_s: float, max_hold_s: float, learn_windows: int,
@@ -111,8 +121,7 @@ def moved(
         learning = (*b.learning, movement_mg)
         if len(learning) < learn_windows:
             return False, msgspec.structs.replace(b, learning=learning), False
-        b = Baseline(float(np.median(learning)), float(np.std(learning)), (), b.moved_until_ns)
-        return False, b, False
+        return False, learnt(learning, margin_mg, b.moved_until_ns), False
     if movement_mg > b.level_mg + max(3.0 * b.sd_mg, margin_mg):
         return True, msgspec.structs.replace(b, moved_until_ns=end_ns), False
     if b.moved_until_ns < 0:
