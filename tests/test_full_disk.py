@@ -19,13 +19,13 @@ from rich.console import Console
 
 from cadence.demo import keep_summary
 from common.runtime.bus import Bus, BusConfig
-from schemas import CycleReport, HrvWindow, RobotEvent, RobotState, Selection, ServiceStatus
+from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatus
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.decision_maker.state import STATE_FILE
 from services.executor.__main__ import main as executor_main
-from tests.conftest import InProcessService, put
-from tests.test_decision_maker import _base_now, window  # noqa: F401 (the fixture sets window times)
+from tests.conftest import InProcessService
+from tests.test_decision_maker import _base_now, answer, window  # noqa: F401 (the fixture sets window times)
 from tests.test_executor import TASK, next_of, sim_settings, store_serving
 from tests.test_hostile import status_of
 
@@ -116,20 +116,12 @@ async def test_the_decision_maker_decides_and_publishes_on_a_full_disk_and_says_
         await svc.listening(bus, "hrv/window")
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
 
-        async def answered(w: HrvWindow) -> Selection:
-            put(bus, bus.key("hrv/window"), w, block=True)
-            async with asyncio.timeout(10):
-                async for _, sel in sels:
-                    if sel.window_end_ns == w.end_ns:
-                        return sel
-            raise AssertionError("unreachable")
-
-        ks = [(await answered(windows[0])).k]
+        ks = [(await answer(bus, sels, windows[0])).k]
         disk.fill()
-        ks += [(await answered(w)).k for w in windows[1:4]]
+        ks += [(await answer(bus, sels, w)).k for w in windows[1:4]]
         full: ServiceStatus = await status_of(bus, "decision_maker", lambda s: "cannot write" in s.detail)
         disk.free()
-        ks += [(await answered(w)).k for w in windows[4:]]
+        ks += [(await answer(bus, sels, w)).k for w in windows[4:]]
         ok: ServiceStatus = await status_of(bus, "decision_maker", lambda s: s.detail == "")
         await svc.close()
     assert len(set(ks[:4])) > 1  # k moved while nothing could be written

@@ -26,7 +26,7 @@ from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.store import SetStore
 from tests.conftest import InProcessService, now_ns, put
-from tests.test_decision_maker import _base_now, window  # noqa: F401 (the fixture sets window times)
+from tests.test_decision_maker import _base_now, answer, window  # noqa: F401 (the fixture sets window times)
 
 S = 1_000_000_000
 DAY = 86_400 * S
@@ -151,18 +151,10 @@ async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_t
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         key = bus.key("hrv/window")
 
-        async def answered(w: HrvWindow) -> Selection:
-            put(bus, key, w, block=True)
-            async with asyncio.timeout(10):
-                async for _, sel in sels:
-                    if sel.window_end_ns == w.end_ns:
-                        return sel
-            raise AssertionError("unreachable")
-
-        got = [(await answered(honest[0])).k]
+        got = [(await answer(bus, sels, honest[0])).k]
         for w in planted:
             put(bus, key, w, block=True)
-        got += [(await answered(w)).k for w in honest[1:]]
+        got += [(await answer(bus, sels, w)).k for w in honest[1:]]
         status = await status_of(
             bus, "decision_maker", lambda s: s.counters.get("rejected/hrv/window/ahead", 0) >= len(planted)
         )

@@ -145,7 +145,7 @@ def session_of(name: str, rec: E4, blocks: Sequence[Block], baseline: str, movem
         except ValueError as exc:
             # `cadence calibrate` refuses a baseline with fewer than 60 % of its windows readable (a strap
             # that cannot be read); a wrist's baseline often is, for a few beats too few a window. Its good
-            # windows still give RR_r, as the measurement took it; the refusal is kept beside.
+            # windows still give RR_r (the block's mean, as a lab would take it); the refusal is kept beside.
             if len(good) >= 2:
                 cal = Calibration(t_ns=base[-1].end_ns, seq=0, subject=name.split("/")[-1],
                                   rr_rest_s=round(float(np.mean(good)), 6))  # fmt: skip

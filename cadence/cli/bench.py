@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 
 
 cli = Commands()
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"  # the recordings beside a checkout
 
 
 cli.group(
@@ -344,7 +345,7 @@ def _bench_hrv_cv(args: argparse.Namespace) -> int:
 )
 @arg(
     "--data",
-    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "ecg"),
+    default=str(SHARED_DATA / "ecg"),
     metavar="DIR",
     help="annotated WFDB records (default ../shared/data/ecg)",
 )
@@ -363,7 +364,7 @@ def _bench_hrv_cv(args: argparse.Namespace) -> int:
 @arg("--records", metavar="R,…", help="with --windows: only these records (default all)")
 @arg(
     "--gudb",
-    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "gudb"),
+    default=str(SHARED_DATA / "gudb"),
     metavar="DIR",
     help="with --windows or --cv: GUDB subjects' annotated chest-strap beats, scored as a strap's RR "
     "(default ../shared/data/gudb; skipped when absent)",
@@ -437,13 +438,13 @@ def cmd_bench_hrv(args: argparse.Namespace) -> int:
 )
 @arg(
     "--data",
-    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "stress_predict"),
+    default=str(SHARED_DATA / "stress_predict"),
     metavar="DIR",
     help="SNN/ E4 exports and blocks.csv (default ../shared/data/stress_predict)",
 )
 @arg(
     "--gudb",
-    default=str(Path(__file__).resolve().parents[3] / "shared" / "data" / "gudb"),
+    default=str(SHARED_DATA / "gudb"),
     metavar="DIR",
     help="GUDB subjects, seated then maths (default ../shared/data/gudb; skipped when absent; '' for none)",
 )
