@@ -14,7 +14,6 @@ import msgspec
 import numpy as np
 import pytest
 
-from common.decision import Params, State, step
 from common.hrv.calibration import CALIBRATION_FILE
 from common.runtime.bus import Bus, BusConfig
 from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection, ServiceStatus
@@ -26,7 +25,7 @@ from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.store import SetStore
 from tests.conftest import InProcessService, now_ns, put
-from tests.test_decision_maker import _base_now, answer, window  # noqa: F401 (the fixture sets window times)
+from tests.test_decision_maker import _base_now, answer, expected, window  # noqa: F401 (the fixture sets window times)
 
 S = 1_000_000_000
 DAY = 86_400 * S
@@ -111,12 +110,7 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
         got += [(await answered(w)).k for w in honest[3:]]
         await svc.close()
 
-    p, s, expected = Params.of(0.85), None, []
-    s = State.initial(p)
-    for w in honest:
-        s = step(p, s, w.mean_rr_s).state
-        expected.append(s.k)
-    assert got == expected
+    assert got == expected(honest, 0.85)
     assert len(set(got)) > 2
     # between the first answer and the second, k stayed where the first answer put it
     assert {sel.k for sel in seen[:mark]} == {got[0]}
@@ -159,12 +153,7 @@ async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_t
             bus, "decision_maker", lambda s: s.counters.get("rejected/hrv/window/ahead", 0) >= len(planted)
         )
         await svc.close()
-    p, s, expected = Params.of(0.85), None, []
-    s = State.initial(p)
-    for w in honest:
-        s = step(p, s, w.mean_rr_s).state
-        expected.append(s.k)
-    assert got == expected
+    assert got == expected(honest, 0.85)
     assert status.counters["rejected/hrv/window/ahead"] == len(planted)
     assert status.counters.get("window_line_restarts", 0) == 0
 

@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -252,6 +253,20 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
     assert not any("protective stop" in line for line in emu.lines), emu.lines
 
 
+async def back_and_resumed(bus: Any, events: Any, states: Any) -> tuple[Any, Any, Any, Any]:
+    """After a stop and the controller's return: the reconnection, the latched stop (still until a person
+    resumes), the resume's answer, and the robot moving on a path again (a whole cycle of the example
+    task is 24 s more; the executor's own tests show cycles after a resume)."""
+    from schemas import RobotEvent
+    from tests.test_executor import next_of
+
+    back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
+    held = await next_of(states, lambda s: s.state == "stopped", timeout=10)
+    (resumed,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
+    again = await next_of(states, lambda s: s.mode == "moving", timeout=60)
+    return back, held, resumed, again
+
+
 @pytest.mark.asyncio
 async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_reconnects_and_a_resume_clears(
     tmp_path: Path, endpoint: str, example_sets: Path
@@ -288,13 +303,7 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
             # a resume while nothing answers: once an AttributeError in reset_fault; now the answer says so
             (early,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
             emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])  # it is back
-            back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
-            # reconnected, but the stop is latched: still until a person resumes
-            held = await next_of(states, lambda s: s.state == "stopped", timeout=10)
-            (resumed,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
-            # and the robot works again: it moves on a path (a whole cycle of the example task is 24 s
-            # more; the executor's own tests show cycles after a resume)
-            again = await next_of(states, lambda s: s.mode == "moving", timeout=60)
+            back, held, resumed, again = await back_and_resumed(bus, events, states)
         finally:
             await ex.close()
             await store.close()
@@ -410,10 +419,7 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
             retry = await next_of(
                 events, lambda e: e.kind == "disconnected" and "trying again in" in e.message, timeout=20
             )
-            back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
-            held = await next_of(states, lambda s: s.state == "stopped", timeout=10)
-            (resumed,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
-            again = await next_of(states, lambda s: s.mode == "moving", timeout=60)
+            back, held, resumed, again = await back_and_resumed(bus, events, states)
         finally:
             await ex.close()
             await store.close()
