@@ -23,7 +23,9 @@ from mcap.reader import make_reader
 from tests.conftest import free_port
 
 SPEED = "16"
-MINUTES = {"a": 1, "b": 2, "c": 1}
+# (a) runs two minutes too: its k is read from the second cycle that ends in it on, and a loaded host
+# (the suite's own workers) once ended only one in a minute; the assertion is the same, over more cycles
+MINUTES = {"a": 2, "b": 2, "c": 1}
 
 
 def lines_of(proc: subprocess.Popen[str]) -> queue.Queue[str]:
