@@ -182,11 +182,14 @@ def test_the_gate_learns_the_level_holds_what_is_well_above_it_and_until_the_hea
 
 def test_a_stretch_of_effort_among_the_first_windows_does_not_become_the_level() -> None:
     """Half of the learning windows heavy (the worker starts with the heavy parts, or a busy host starts
-    the decision late): the level is the calm windows', and the heavy ones after it are held."""
+    the decision late): they are held, the level is the calm windows', and the heavy ones after it are
+    held too."""
     rule = MovementRule(margin_mg=40.0, back_s=0.02, max_hold_s=300.0, learn_windows=4)
-    b = Baseline()
+    b, held = Baseline(), []
     for i, mg in enumerate([25.0, 22.0, 180.0, 250.0]):
-        b = moved(b, mg, i * 30 * S, (i + 1) * 30 * S, 0.8, 0.8, *rule)[1]
+        h, b, _ = moved(b, mg, i * 30 * S, (i + 1) * 30 * S, 0.72 if mg > 100 else 0.8, 0.8, *rule)
+        held.append(h)
+    assert held == [False, False, True, True]  # held while the level is learnt, too
     assert b.level_mg == pytest.approx(23.5) and b.sd_mg == pytest.approx(1.5)
     assert moved(b, 240.0, 4 * 30 * S, 5 * 30 * S, 0.72, 0.8, *rule)[0]
     b = Baseline()

@@ -120,9 +120,13 @@ def moved(
     if b.level_mg is None:
         learning = (*b.learning, movement_mg)
         if len(learning) < learn_windows:
-            return False, msgspec.structs.replace(b, learning=learning), False
-        return False, learnt(learning, margin_mg, b.moved_until_ns), False
-    if movement_mg > b.level_mg + max(3.0 * b.sd_mg, margin_mg):
+            b = msgspec.structs.replace(b, learning=learning)
+        else:
+            b = learnt(learning, margin_mg, b.moved_until_ns)
+    # while the level is learnt, the calmest window so far stands for it: an effort among the first
+    # windows (a busy host that starts the decision late) is held, not read as stress
+    level, sd = (b.level_mg, b.sd_mg) if b.level_mg is not None else (min(b.learning), 0.0)
+    if movement_mg > level + max(3.0 * sd, margin_mg):
         return True, msgspec.structs.replace(b, moved_until_ns=end_ns), False
     if b.moved_until_ns < 0:
         return False, b, False
