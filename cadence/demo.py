@@ -22,21 +22,22 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
-from cadence.report import event_row, from_demo, scale_row, window_row, write_report
+from cadence.lab.marks import counted
+from cadence.lab.report import event_row, from_demo, scale_row, window_row, write_report
 from common.hrv.calibration import CALIBRATION_FILE
-from common.marks import counted
-from common.motion import routine_change
 from common.runtime.bus import Bus, BusConfig, Request
 from common.runtime.clock import Clock
 from common.runtime.errors import CadenceError
 from common.runtime.lifetime import PARENT_ENV
 from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.storage import write_readable
+from common.safety.states import routine_change
 from common.sim.twin import TwinParams
 from common.trajectory.task import load_task
 from schemas import (
@@ -60,14 +61,15 @@ from schemas.topology import (
     ROBOT_EVENT,
     ROBOT_STATE,
     SELECTION,
-    launch_order,
 )
 from services.decision_maker.state import STATE_FILE
+from services.registry import BY_NAME, launch_order
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
 DEMO_TOLERANCE = 0.7  # the twin's (common/sim/twin.py: 0.8 by default)
-# from the graph: readers before writers, answerers before askers; the twin sends the ECG, no gateway runs
-ORDER = tuple(s for s in launch_order() if s != "ecg_gateway")
+# from the registry and its graph: readers before writers, answerers before askers; the twin sends the
+# ECG, no gateway runs
+ORDER = tuple(s.name for s in launch_order() if s.name != "ecg_gateway")
 RESTART_DELAY_S = 0.5
 STOP_TIMEOUT_S = 15.0
 
@@ -127,7 +129,7 @@ class Supervised:
                 self.proc = await asyncio.create_subprocess_exec(
                     sys.executable,
                     "-m",
-                    f"services.{self.name}",
+                    BY_NAME[self.name].module_name.removesuffix(".__main__"),
                     env=self.env | {PARENT_ENV: str(os.getpid())},
                     stdout=log,
                     stderr=log,
@@ -172,7 +174,7 @@ class Observed:
 
     @property
     def error_times_s(self) -> list[float]:
-        """When each error that counts was marked (common/marks.py: a withdrawn mark does not)."""
+        """When each error that counts was marked (cadence/lab/marks.py: a withdrawn mark does not)."""
         return [self.t(e.t_ns) for e in counted(self.marked)]
 
     @property
@@ -431,7 +433,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
     }
     keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
     try:
-        run = from_demo(opts.out)  # the report of the run (cadence/report.py) into the demo's own folder
+        run = from_demo(opts.out)  # the report of the run (cadence/lab/report.py) into the demo's own folder
         run.sets.update(sets)
         write_report(run, opts.out, TwinParams().rr_rest_s)
     except OSError as exc:
@@ -464,3 +466,30 @@ def _call(fn):
         fn(msg)
 
     return handler
+
+
+def summary_table(summary: dict[str, Any], wall_s: float) -> Table:
+    """The demo's figures on the terminal: what ``summary.json`` holds, in one row."""
+    cut = " (cut short)" if summary["cut_short"] else ""
+    table = Table(title=f"cadence demo: {summary['duration_s']:g} s of data time in {wall_s:.0f} s{cut}")
+    columns = (
+        "cycles",
+        "φ [cycles/min]",
+        "errors",
+        "ε [errors/cycle]",
+        "windows",
+        "k steps ↓ / ↑",
+        "restarts",
+    )
+    for col in columns:
+        table.add_column(col, justify="right")
+    table.add_row(
+        str(summary["cycles"]),
+        f"{summary['productivity_per_min']:.2f}",
+        str(summary["errors"]),
+        f"{summary['error_rate']:.3f}",
+        str(len(summary["windows"])),
+        f"{summary['k_steps_down']} / {summary['k_steps_up']}",
+        ", ".join(f"{k} {v}" for k, v in summary["restarts"].items() if v) or "none",
+    )
+    return table

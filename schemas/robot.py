@@ -28,9 +28,11 @@ class RobotState(Message, frozen=True, tag="robot.state.v1"):
     tcp: Pose
     path_id: Name | None = None
     k: SolutionIndex | None = None
-    mode: Name = "idle"  # coarse, derived from ``state`` (common/motion.py mode_of): moving, waiting, …
+    mode: Name = (
+        "idle"  # coarse, derived from ``state`` (common/safety/states.py mode_of): moving, waiting, …
+    )
     waiting_for: Name | None = None  # the operator signal a ``wait_for`` step waits for
-    # the executor's safety state (common/motion.py) and why it is in it: why the robot does not move
+    # the executor's safety state (common/safety/states.py) and why it is in it: why the robot does not move
     state: Name = "starting"
     reason: Text = ""
     # the time scale σ the current path runs at (1: as planned; 0: holding on the path for a person) and
@@ -45,8 +47,8 @@ class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):
     k_per_path: Annotated[dict[Name, SolutionIndex], msgspec.Meta(max_length=1000)]
 
 
-# "state": a change of the executor's safety state (common/motion.py), "from → to: why" for a person, and
-# from_state/to_state for a program
+# "state": a change of the executor's safety state (common/safety/states.py), "from → to: why" for a person,
+# and from_state/to_state for a program
 # "scale": the time scale changed for a person's distance; "switch": a new k took effect within a path
 EventKind = Literal[
     "refused",
@@ -66,5 +68,5 @@ class RobotEvent(Message, frozen=True, tag="robot.event.v1"):
     kind: EventKind
     message: Text
     path_id: Name | None = None
-    from_state: Name | None = None  # kind "state": the safety state left (common/motion.py State)
+    from_state: Name | None = None  # kind "state": the safety state left (common/safety/states.py State)
     to_state: Name | None = None  # kind "state": the safety state entered

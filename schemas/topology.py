@@ -7,8 +7,8 @@ Everything else is derived from this table, so nothing can disagree with it:
   opens a port the graph does not give its role gets a ``BusError`` at start, and a message of another
   type than the key's is a ``TypeError`` at the put;
 - the demo's launch order (``launch_order``);
-- the router's access control (common/runtime/cell.py): each account publishes only its roles' keys;
-- the zenoh-cli decoder (cadence/zenoh_codec.py), which decodes each key with its own type;
+- the router's access control (cadence/deploy/cell.py): each account publishes only its roles' keys;
+- the zenoh-cli decoder (cadence/tools/zenoh_codec.py), which decodes each key with its own type;
 - the graph test (tests/test_graph.py), which runs every service and checks what it opened.
 """
 
@@ -87,7 +87,8 @@ CALIBRATION = Topic("operator/calibration", Calibration)
 OPERATOR_SIGNAL = Topic("operator/signal", OperatorSignal)
 # the executor publishes a part not there by its wait_for step's deadline (kind "late")
 OPERATOR_ERROR = Topic("operator/error", OperatorError)
-# the nearest person's distance, for the executor's speed and separation monitoring (common/separation.py)
+# the nearest person's distance, for the executor's speed and separation monitoring
+# (common/safety/separation.py)
 OPERATOR_SEPARATION = Topic("operator/separation", Separation, qos="drop")
 SELECTION = Topic("decision/selection", Selection)
 # the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the

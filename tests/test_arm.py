@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
-from common.trajectory.limits import UR16E
+from common.robot.ur16e import DT, UR16E, forward_kinematics
+from common.sim.arm import SimArm, move_j_profile
 
 
 def test_forward_kinematics_at_zero_and_with_the_base_turned() -> None:

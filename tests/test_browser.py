@@ -66,9 +66,9 @@ def images_in_chromium(root: Path, page: str) -> dict:
 
 
 def test_every_image_of_a_report_and_of_a_study_loads_in_chromium(tmp_path: Path) -> None:
-    from cadence.analysis import analyse, write_study
-    from cadence.report import from_mcap, write_report
-    from cadence.session import load_session
+    from cadence.lab.analysis import analyse, write_study
+    from cadence.lab.report import from_mcap, write_report
+    from cadence.lab.session import load_session
     from tests.test_session_files import info, write
 
     site = tmp_path / "site"

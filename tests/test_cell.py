@@ -1,4 +1,4 @@
-"""A deployed cell's bus (common/runtime/cell.py, pki.py): the ACL follows the graph, and a real router with
+"""A deployed cell's bus (cadence/deploy/cell.py, pki.py): the ACL follows the graph, and a real router with
 the generated config holds: mTLS and passwords both required, each account publishes only its keys.
 Also the secure default (a peer listens on loopback only), the install's dry run, and children that die
 with their parent."""
@@ -15,9 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from cadence.install import Bundle, Options, cell_accounts, new_bundle, plan
-from common.runtime.bus import Bus, BusConfig
-from common.runtime.cell import (
+from cadence.deploy.cell import (
     ACCOUNTS,
     Tls,
     access_control,
@@ -27,7 +25,9 @@ from common.runtime.cell import (
     router_config,
     users_file,
 )
-from common.runtime.pki import common_name, issue, make_ca
+from cadence.deploy.install import Bundle, Options, cell_accounts, new_bundle, plan
+from cadence.deploy.pki import common_name, issue, make_ca
+from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
 from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS
 from tests.conftest import REPO, free_port, put
@@ -311,7 +311,7 @@ def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str
 
 def test_an_install_on_a_host_without_systemd_stops_before_it_writes_anything(tmp_path: Path) -> None:
     """It failed at `systemctl daemon-reload`, after all of /etc/cadence and a 626 MB venv (issue 43)."""
-    from cadence.install import InstallError, install, no_systemd
+    from cadence.deploy.install import InstallError, install, no_systemd
 
     fake = tmp_path / "root"
     (fake / "proc/1").mkdir(parents=True)

@@ -1,5 +1,6 @@
-"""deploy/: the systemd units verify and score under a security threshold. The router's ACL is generated
-(common/runtime/cell.py) and tested against a real router in tests/test_cell.py."""
+"""deploy/: the systemd units, rendered from the registry (services/registry.py) as `cadence install` writes
+them, verify and score under a security threshold. The router's ACL is generated (cadence/deploy/cell.py)
+and tested against a real router in tests/test_cell.py."""
 
 from __future__ import annotations
 
@@ -11,10 +12,17 @@ from pathlib import Path
 
 import pytest
 
+from services.registry import SERVICES, unit
 from tests.conftest import REPO
 
 DEPLOY = REPO / "deploy"
-UNITS = sorted((DEPLOY / "systemd").glob("*.service"))
+TEMPLATE = (DEPLOY / "systemd" / "cadence-service.in").read_text()
+# every unit as installed: the services' from the template, the router's and the target as written
+UNITS = {f"cadence-{s.name}.service": unit(s, TEMPLATE) for s in SERVICES if s.unit} | {
+    p.name: p.read_text()
+    for p in (DEPLOY / "systemd").glob("cadence[-.]*")
+    if p.suffix in (".service", ".target")
+}
 needs_systemd = pytest.mark.skipif(
     shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed (.ci/run installs it)"
 )
@@ -26,23 +34,27 @@ def installed_units(tmp_path: Path) -> list[Path]:
     """The units as they would be installed, with ExecStart pointing at this checkout's `cadence`."""
     cadence = Path(sys.executable).parent / "cadence"
     out = []
-    for unit in [*UNITS, DEPLOY / "systemd" / "cadence.target"]:
-        p = tmp_path / unit.name
-        p.write_text(unit.read_text().replace("/opt/cadence/.venv/bin/cadence", str(cadence)))
+    for name, text in UNITS.items():
+        p = tmp_path / name
+        p.write_text(text.replace("/opt/cadence/.venv/bin/cadence", str(cadence)))
         out.append(p)
     return out
 
 
 def test_every_service_has_a_unit_and_the_executor_gets_real_time_rights() -> None:
-    from cadence.cli import SERVICES
+    from schemas.topology import SERVICES as GRAPH_SERVICES
 
-    names = {u.stem.removeprefix("cadence-") for u in UNITS}
-    assert names == (set(SERVICES) - {"ur_emulator"}) | {"router"}
-    for unit in UNITS:
-        text = unit.read_text()
-        assert "Type=notify" in text and "WatchdogSec=" in text and "Restart=on-failure" in text
-        assert "EnvironmentFile=" in text and "User=cadence" in text and "ProtectSystem=strict" in text
-    executor = (DEPLOY / "systemd" / "cadence-executor.service").read_text()
+    names = {n.removeprefix("cadence-").removesuffix(".service") for n in UNITS if n.endswith(".service")}
+    assert names == set(GRAPH_SERVICES) | {"router"}
+    for name, text in UNITS.items():
+        if name.endswith(".target"):
+            continue
+        for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "EnvironmentFile=", "User=cadence",
+                     "ProtectSystem=strict"):  # fmt: skip
+            assert line in text, f"{name} has no {line}"
+    for name in names - {"router"}:
+        assert f"ExecStart=/opt/cadence/.venv/bin/cadence run {name} " in UNITS[f"cadence-{name}.service"]
+    executor = UNITS["cadence-executor.service"]
     assert all(k in executor for k in ("CPUAffinity=", "LimitRTPRIO=", "LimitMEMLOCK="))
     # DESIGN §11: FIFO for the servo thread alone, never the whole process
     settings = [line for line in executor.splitlines() if not line.startswith("#")]
@@ -62,9 +74,9 @@ def test_the_units_verify(installed_units: list[Path]) -> None:
 
 
 @needs_systemd
-@pytest.mark.parametrize("unit", [u.name for u in UNITS])
-def test_each_unit_is_hardened(unit: str, installed_units: list[Path]) -> None:
-    path = next(p for p in installed_units if p.name == unit)
+@pytest.mark.parametrize("name", [n for n in UNITS if n.endswith(".service")])
+def test_each_unit_is_hardened(name: str, installed_units: list[Path]) -> None:
+    path = next(p for p in installed_units if p.name == name)
     r = subprocess.run(
         ["systemd-analyze", "security", "--offline=true", f"--threshold={THRESHOLD}", str(path)],
         capture_output=True,
@@ -72,5 +84,5 @@ def test_each_unit_is_hardened(unit: str, installed_units: list[Path]) -> None:
         timeout=120,
     )
     score = re.search(r"Overall exposure level for \S+: ([\d.]+)", r.stdout)
-    print(f"{unit}: {score.group(1) if score else '?'}")
+    print(f"{name}: {score.group(1) if score else '?'}")
     assert r.returncode == 0, r.stdout[-2000:]

@@ -186,7 +186,7 @@ def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(dis
     """`cadence record` on a filling disk kept "recording" for 20 s writing nothing, then left an
     unreadable 16 KB file: it ends at the first write the disk refuses, says so, and what reached the
     disk before is read as far as it goes."""
-    from cadence.recording import Recorder, read
+    from cadence.tools.recording import Recorder, read
     from schemas.topology import encode
 
     path = disk.path / "run.mcap"

@@ -12,7 +12,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from cadence.zenoh_codec import decode
+from cadence.tools.zenoh_codec import decode
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.config import CONFIG_SECTIONS
 from common.runtime.errors import BusError
@@ -80,6 +80,25 @@ def test_the_graph_names_only_roles_it_declares_and_every_key_has_a_publisher() 
     }
     assert len({t.suffix for t in TOPICS}) == len(TOPICS)
     assert set(SERVICES) <= CONFIG_SECTIONS  # a service's settings table is a known section
+
+
+def test_the_registry_has_one_node_for_each_service_of_the_graph_and_every_list_derives_from_it() -> None:
+    from cadence.cli import SERVICES as RUNNABLE
+    from cadence.cli import build_parser
+    from services.registry import IN_GRAPH
+    from services.registry import SERVICES as REGISTRY
+
+    assert sorted(s.name for s in IN_GRAPH) == sorted(SERVICES)  # one node a role, and nothing more
+    for s in IN_GRAPH:
+        node = s.node_class()
+        assert node.role == s.name
+        assert s.settings() is s.module().Settings
+        assert s.name in CONFIG_SECTIONS
+    assert set(RUNNABLE) == {s.name for s in REGISTRY}
+    run = next(
+        a for a in build_parser()._subparsers._group_actions[0].choices["run"]._actions if a.dest == "service"
+    )
+    assert set(run.choices) == {s.name for s in REGISTRY}
 
 
 def test_the_launch_order_starts_answerers_before_askers_and_readers_before_writers() -> None:

@@ -185,7 +185,7 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
 
     # stopped early: the file is complete and says so
     assert cut.complete is False and "interrupted" in cut.reason
-    from cadence.session import load_session
+    from cadence.lab.session import load_session
 
     s = load_session(tmp_path / "cut.mcap")
     assert s.end == cut and 0 < s.minutes < 5
@@ -204,7 +204,7 @@ def read_signals(path: Path) -> list[dict]:
 
 async def cut_short(endpoint: str, tmp_path: Path):
     """A session whose experimenter stops it as soon as it runs (what Ctrl-C does)."""
-    from cadence.session import SessionOptions, run_session
+    from cadence.lab.session import SessionOptions, run_session
     from common.runtime.bus import Bus, BusConfig
     from common.runtime.resources import EXAMPLE_TASK
 
@@ -239,7 +239,7 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
     with two marks of which one is undone, then `study analyse --csv`."""
     import csv
 
-    from cadence.registry import load_plan
+    from cadence.lab.registry import load_plan
 
     lab = tmp_path / "lab"
     r = subprocess.run([sys.executable, "-m", "cadence", "study", "plan", "--subjects", "6", "--out",
@@ -290,7 +290,7 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
     assert [by["S01"][f"tlx_{i}"] for i in ("mental", "frustration")] == ["55", "25"]
     assert float(by["S01"]["tlx_raw"]) == pytest.approx((55 + 20 + 60 + 35 + 50 + 25) / 6)
     assert by[other.id]["condition"] == other.order[0] != first.order[0]
-    from cadence.session import load_session
+    from cadence.lab.session import load_session
 
     marked = load_session(next((lab / "sessions").glob(f"{other.id}_*.mcap")))
     keyed = [e.kind for e in marked.errors if e.source == "experimenter" and marked.inside(e.t_ns)]
@@ -311,8 +311,8 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
 
 async def marked_session(endpoint: str, tmp_path: Path, plan, subject: str) -> None:
     """The other subject's first session, with the experimenter marking two errors and undoing the last."""
-    from cadence.registry import next_session
-    from cadence.session import SessionOptions, run_session
+    from cadence.lab.registry import next_session
+    from cadence.lab.session import SessionOptions, run_session
     from common.runtime.bus import Bus, BusConfig
     from common.runtime.resources import EXAMPLE_TASK
 

@@ -1,4 +1,4 @@
-"""The executor's safety states (common/motion.py): every transition, and the two rules that matter:
+"""The executor's safety states (common/safety/states.py): every transition, and the two rules that matter:
 no motion but from ready, and a stop is a latch only RESUME opens."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from common.motion import Event, IllegalTransition, Motion, State, transition
+from common.safety.states import Event, IllegalTransition, Motion, State, transition
 from services.executor.cores import claim_core
 
 E, St = Event, State
@@ -102,7 +102,7 @@ def test_two_executors_on_one_host_get_different_cores_and_a_third_none(tmp_path
 
 
 def test_routine_changes_are_told_from_the_ones_a_person_should_see() -> None:
-    from common.motion import routine_change
+    from common.safety.states import routine_change
 
     assert routine_change("ready", "moving") and routine_change("moving", "ready")
     assert routine_change("waiting_for_operator", "ready")
@@ -113,7 +113,7 @@ def test_routine_changes_are_told_from_the_ones_a_person_should_see() -> None:
 def test_the_coarse_mode_is_derived_from_the_one_safety_state() -> None:
     """robot/state's ``mode`` was a second state the executor set by hand beside ``state`` (issue 30): it
     is now read off the safety state, so the two cannot disagree."""
-    from common.motion import State, mode_of
+    from common.safety.states import State, mode_of
 
     assert mode_of(State.MOVING) == "moving" and mode_of(State.READY) == "idle"
     assert mode_of(State.WAITING_FOR_OPERATOR) == mode_of(State.WAITING_FOR_SET) == "waiting"

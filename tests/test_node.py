@@ -247,8 +247,8 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
     """The executor's handlers as methods, no bus: every change of its one state is an event with its from
     and to, a resume with nothing stopped is refused with the state, a stop ignores a new selection, and
     robot/state carries the same state once the arm is connected."""
-    from common.motion import Event
     from common.runtime.bus import Request
+    from common.safety.states import Event
     from schemas import OperatorSignal, RobotEvent, RobotState
     from services.executor.__main__ import Executor
     from services.executor.settings import Settings as ExecutorSettings

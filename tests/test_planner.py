@@ -12,9 +12,9 @@ from pymoo.util.nds.non_dominated_sorting import NonDominatedSorting
 from scipy.optimize import minimize
 
 from cadence.bench.naive import evaluate_naive
+from common.robot.ur16e import UR16E
 from common.trajectory import bspline as bs
 from common.trajectory import nsga
-from common.trajectory.limits import UR16E
 from common.trajectory.planner import (
     WARM_GENERATIONS,
     ParetoResult,

@@ -13,7 +13,7 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from cadence.recording import read, record, replay
+from cadence.tools.recording import read, record, replay
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
@@ -117,7 +117,7 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
 
 
 def test_a_recording_opens_in_mcap_tools_with_schemas_and_a_broken_one_is_one_line(tmp_path: Path) -> None:
-    from cadence.recording import Recorder
+    from cadence.tools.recording import Recorder
     from schemas.topology import encode
 
     path = tmp_path / "r.mcap"
@@ -186,8 +186,8 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
 def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_path: Path) -> None:
     """`record --json` (what Foxglove decodes) and the default MessagePack file give the same messages to
     `cadence report` and `cadence replay`."""
-    from cadence.recording import Recorder, read
-    from cadence.report import from_mcap
+    from cadence.lab.report import from_mcap
+    from cadence.tools.recording import Recorder, read
     from schemas import CycleReport, HrvWindow
     from schemas.topology import decode_any, encode
 
@@ -225,7 +225,7 @@ def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_pat
 def test_a_replay_that_nothing_received_says_so_and_exits_1(tmp_path: Path) -> None:
     """Zenoh drops a put with no subscriber silently: "426 messages replayed", exit 0, was a dead end
     (issue 28). A replay on a private port, with nobody there, says nothing received it."""
-    from cadence.recording import Recorder
+    from cadence.tools.recording import Recorder
     from schemas.topology import encode
 
     rec = Recorder(tmp_path / "one.mcap")
@@ -243,7 +243,7 @@ def test_a_recording_cut_without_its_footer_is_read_up_to_its_last_chunk(tmp_pat
     """A recorder killed with SIGKILL left a file that `cadence report` refused whole (2,039 of 2,830
     messages could be read), and its last in-memory chunk was gone. It flushes every second now, and a
     file without a footer is read as far as it goes, and said so."""
-    from cadence.recording import Recorder, read
+    from cadence.tools.recording import Recorder, read
     from schemas import Selection
     from schemas.topology import encode
 

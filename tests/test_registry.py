@@ -1,4 +1,4 @@
-"""A study's plan (cadence/registry.py): the Williams design's balance, the registry on disk, a subject's
+"""A study's plan (cadence/lab/registry.py): the Williams design's balance, the registry on disk, a subject's
 next session from the session files, and the yoked condition's k."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from cadence.registry import load_plan, make_plan, next_session, williams, write_plan
-from cadence.session import Session, SessionOptions, SessionWriter, condition_parameters
+from cadence.lab.registry import load_plan, make_plan, next_session, williams, write_plan
+from cadence.lab.session import Session, SessionOptions, SessionWriter, condition_parameters
 from common.runtime.errors import InputError
 from schemas import Calibration, Selection
 from schemas.session import SessionEnd, SessionInfo
@@ -104,7 +104,7 @@ def test_each_condition_is_asked_of_the_decision_maker_as_it_holds_k(tmp_path: P
 
 
 def test_an_undo_withdraws_the_experimenters_last_mark_and_counts_for_nothing() -> None:
-    from common.marks import counted
+    from cadence.lab.marks import counted
     from schemas import OperatorError
 
     def e(t: int, source: str, kind: str = "wrong_object") -> OperatorError:

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from cadence.recording import Recorder
+from cadence.tools.recording import Recorder
 from common.trajectory.planner import content_hash
 from common.trajectory.task import parse_task
 from schemas import CycleReport, HrvWindow, OperatorError, RobotEvent, Selection
@@ -83,8 +83,8 @@ def test_a_missing_sets_folder_is_one_line_naming_it(tmp_path: Path) -> None:
 
 
 def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> None:
-    from cadence.plots import rr_k_figure
-    from cadence.report import from_mcap
+    from cadence.lab.plots import rr_k_figure
+    from cadence.lab.report import from_mcap
 
     run = from_mcap(write_run(tmp_path))
     assert run.errors == 1 and run.error_times_s == [50.0]  # data time from the run's first message
@@ -96,7 +96,7 @@ def test_the_spans_the_robot_did_not_work_are_found_from_its_state_changes() -> 
     """rr_k.png shades them, so that no figure shows adaptation that did not move the arm (issue 28): a
     protective stop until the resume brought it back to work, and a wait for a selection still open at
     the end of the run."""
-    from common.motion import idle_spans
+    from common.safety.states import idle_spans
 
     def change(t_s: float, a: str, b: str, why: str) -> dict:
         return {"t_s": t_s, "kind": "state", "message": f"{a} → {b}: {why}", "from": a, "to": b}
@@ -115,7 +115,7 @@ def test_the_spans_the_robot_did_not_work_are_found_from_its_state_changes() -> 
 
 def test_a_fronts_title_gives_its_paths_durations_not_f_time() -> None:
     """pareto.png said "f_time 7.60–22.50 s" for a path whose t_f is 1.27–3.75 s (f_time = D·Σh)."""
-    from cadence.plots import front_title
+    from cadence.lab.plots import front_title
 
     task = parse_task(TASK, "shuttle.toml")
     p = task.paths["there"]
@@ -130,7 +130,7 @@ def test_a_recording_joined_mid_run_spans_its_streams_not_a_republished_selectio
 ) -> None:
     """φ once came over 500 s where the streams span 240 s: the first message was the decision maker's
     republished selection, stamped when it was decided, long before the recording began."""
-    from cadence.report import from_mcap
+    from cadence.lab.report import from_mcap
 
     path = tmp_path / "joined.mcap"
     rec = Recorder(path)

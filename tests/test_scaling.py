@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.separation import Ssm, link_points, path_speed, stepped
-from common.sim.arm import forward_kinematics
+from common.robot.ur16e import forward_kinematics, link_points
+from common.safety.separation import Ssm, path_speed, stepped
 from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.scaling import (
     DT,

@@ -12,7 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.separation import OTHERS, Figures, Sources, Ssm, link_points, stepped
+from common.robot.ur16e import link_points
+from common.safety.separation import OTHERS, Figures, Sources, Ssm, stepped
 from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.scaling import DT, Curve, Ramp, plan_ramp, stop_time, switch_curve
 from common.trajectory.task import PathPlan, load_task

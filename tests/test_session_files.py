@@ -1,4 +1,4 @@
-"""Session files (cadence/session.py) and their analysis (cadence/analysis.py): the measures are taken
+"""Session files (cadence/lab/session.py) and their analysis (cadence/lab/analysis.py): the measures are taken
 between the session's start and end, a file that cannot stand for its session is refused with the reason,
 and each pair of conditions gets the Wilcoxon test scipy can give, with its method said."""
 
@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadence.analysis import analyse, paired_test
-from cadence.recording import Recorder
-from cadence.session import SessionWriter, load_session
+from cadence.lab.analysis import analyse, paired_test
+from cadence.lab.session import SessionWriter, load_session
+from cadence.tools.recording import Recorder
 from common.runtime.errors import InputError
 from schemas import Calibration, CycleReport, HrvWindow, OperatorError, RobotState, Selection
 from schemas.session import SessionEnd, SessionInfo
@@ -125,7 +125,7 @@ def test_publishers_on_different_clocks_are_a_mixed_clock_error(tmp_path: Path) 
 def test_calibrated_at_work_the_study_shows_mean_rr_over_the_level_at_rest_too(tmp_path: Path) -> None:
     """At work (k = 1) RR_r is the working level: mean RR / RR_r is about 1 in (b) by construction. The
     level at rest the calibration kept gives the measure the conditions compare on."""
-    from cadence.analysis import RESTING
+    from cadence.lab.analysis import RESTING
 
     working = Calibration(t_ns=T0, seq=0, subject="s1", rr_rest_s=0.75, posture="working", rr_resting_s=0.9)
     s = load_session(write(tmp_path / "w.mcap", info(cal=working)))
@@ -170,7 +170,7 @@ def test_the_wilcoxon_method_is_the_one_scipy_can_give() -> None:
 
 
 def test_the_live_views_keys_mark_errors_and_signal_parts() -> None:
-    from cadence.session import key_message
+    from cadence.lab.session import key_message
     from schemas import OperatorSignal
 
     names = ["b2_clear", "part_a2", "part_c2"]

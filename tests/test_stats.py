@@ -1,4 +1,4 @@
-"""The study's statistics (cadence/stats.py) checked against scipy, statsmodels and published examples."""
+"""The study's statistics (cadence/lab/stats.py) checked against scipy, statsmodels and published examples."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.weightstats import ttost_paired
 
-from cadence.stats import bootstrap_ci, d_z, friedman, holm, rank_biserial, tost_paired
+from cadence.lab.stats import bootstrap_ci, d_z, friedman, holm, rank_biserial, tost_paired
 
 RNG = np.random.default_rng(7)
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadence.analysis import analyse, to_json
-from cadence.session import load_session
-from cadence.study import Subject, motions, simulate
+from cadence.lab.analysis import analyse, to_json
+from cadence.lab.session import load_session
+from cadence.lab.study import Subject, motions, simulate
 from common.trajectory.planner import boundary_stretch, interval_bounds
 from common.trajectory.task import load_task
 from tests.conftest import EXAMPLE_TASK
@@ -68,7 +68,7 @@ def the_policies_hold(sessions: list) -> None:
     import msgspec
     from scipy.stats import friedmanchisquare
 
-    from cadence.registry import williams
+    from cadence.lab.registry import williams
     from common.runtime.errors import InputError
 
     seqs = williams(3)
@@ -107,7 +107,7 @@ def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
     from statsmodels.stats.multitest import multipletests
     from statsmodels.stats.weightstats import ttost_paired
 
-    from cadence.analysis import MARGINS, METRICS
+    from cadence.lab.analysis import MARGINS, METRICS
 
     value = {(r["subject"], r["condition"]): r for r in doc["sessions"]}
     subjects = sorted({r["subject"] for r in doc["sessions"]})
@@ -135,7 +135,7 @@ def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
 
 
 def readme_tables_are(doc: dict) -> None:
-    from cadence.analysis import METRICS
+    from cadence.lab.analysis import METRICS
     from schemas.session import CONDITION_NAMES
     from tests.test_readme import README
 

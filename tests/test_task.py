@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.robot.ur16e import UR16E
 from common.runtime.errors import TaskError
-from common.trajectory.limits import UR16E
 from common.trajectory.task import continuity_gaps, load_task, parse_task
 from tests.conftest import EXAMPLE_TASK
 

@@ -13,7 +13,7 @@ import msgspec
 import pytest
 from rich.console import Console
 
-from cadence.top import Top
+from cadence.tools.top import Top
 from schemas import HrvWindow, Selection, ServiceStatus
 from schemas.topology import encode
 

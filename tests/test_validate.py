@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.robot.ur16e import UR16E
 from common.runtime.errors import TrajectoryRejected
-from common.trajectory.limits import UR16E
 from common.trajectory.planner import boundary_stretch
 from common.trajectory.validate import check_trajectory, trajectory_problems
 from tests.conftest import random_path

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import websockets
 
-from cadence.view import FRAMES, JOINT_STATES, SCENE, TF, arm_scene, dh_transforms, link_points
+from cadence.tools.view import FRAMES, JOINT_STATES, SCENE, TF, arm_scene, dh_transforms, link_points
+from common.robot.ur16e import forward_kinematics
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import FOXGLOVE_LAYOUT
-from common.sim.arm import forward_kinematics
 from schemas import HrvWindow, RobotState
 from schemas.topology import TOPICS
 from tests.conftest import free_port, put

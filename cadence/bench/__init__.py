@@ -19,9 +19,9 @@ from cadence.bench.ecg_noise import Variant
 from cadence.bench.hrv_scoring import WindowScore
 from cadence.bench.naive import evaluate_naive
 from common.hrv.stream import RULES
+from common.robot.ur16e import JointLimits
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
-from common.trajectory.limits import JointLimits
 from common.trajectory.planner import (
     TrajectoryProblem,
     evaluate,

@@ -334,7 +334,7 @@ def figure(session: Session, decisions: dict[str, list[Decision]]) -> bytes:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cadence.plots import _png
+    from cadence.lab.plots import _png
 
     t0 = session.windows[0].start_ns if session.windows else 0
     fig, (ax, axk) = plt.subplots(2, 1, figsize=(11, 5.5), sharex=True, constrained_layout=True)

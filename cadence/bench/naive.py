@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import make_interp_spline
 
+from common.robot.ur16e import JointLimits
 from common.trajectory import bspline as bs
-from common.trajectory.limits import JointLimits
 from common.trajectory.planner import Evaluation
 from common.trajectory.task import Constraints, PathPlan
 

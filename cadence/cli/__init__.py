@@ -9,7 +9,7 @@ import os
 import sys
 
 from cadence import version
-from cadence.cli import bench, cell, deploy, hrv, lab, plan
+from cadence.cli import bench, cell, demo, deploy, hrv, lab, plan, session
 from cadence.cli._common import SERVICES, err
 from cadence.cli.hrv import calibrate
 from common.runtime.errors import BusError, CadenceError, InputError
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"cadence {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for family in (plan, bench, cell, lab, hrv, deploy):
+    for family in (plan, bench, cell, demo, lab, session, hrv, deploy):
         family.cli.add(sub)
     return parser
 

@@ -17,13 +17,13 @@ from common.runtime.clock import Clock
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import Task, load_task
 from schemas.topology import CELL_CLOCK, DEFAULT_CELL
-from schemas.topology import SERVICES as GRAPH_SERVICES
+from services.registry import SERVICES as REGISTRY
 
 out = Console()
 err = Console(stderr=True)
 
-# `cadence run NAME`: the services of the graph, and the UR emulator that stands in for a robot
-SERVICES = {name: f"services.{name}.__main__" for name in (*GRAPH_SERVICES, "ur_emulator")}
+# `cadence run NAME`: the services of the registry (those of the graph, and the UR emulator)
+SERVICES = {s.name: s.module_name for s in REGISTRY}
 
 
 Run = Callable[[argparse.Namespace], int]

@@ -52,10 +52,9 @@ M = TypeVar("M", bound=Message)
 @arg("service", choices=sorted(SERVICES))
 @arg("args", nargs=argparse.REMAINDER, help="the service's options (--config, --data-dir, --cell)")
 def cmd_run(args: argparse.Namespace) -> int:
-    import importlib
+    from services.registry import BY_NAME
 
-    module = importlib.import_module(SERVICES[args.service])
-    return int(module.run(args.args))
+    return BY_NAME[args.service].run(args.args)
 
 
 @cli.command("router", help="run a Zenoh router (no zenohd binary needed)")
@@ -107,7 +106,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     import asyncio
 
-    from cadence.recording import record
+    from cadence.tools.recording import record
     from common.runtime.bus import Bus
 
     async def go() -> int:
@@ -151,7 +150,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     import asyncio
 
-    from cadence.recording import replay
+    from cadence.tools.recording import replay
     from common.runtime.bus import Bus
 
     async def go() -> int:
@@ -243,7 +242,7 @@ def cmd_top(args: argparse.Namespace) -> int:
 
     from rich.live import Live
 
-    from cadence.top import Top
+    from cadence.tools.top import Top
     from common.runtime.bus import Bus
     from common.runtime.service import first_of
 
@@ -280,12 +279,12 @@ def cmd_top(args: argparse.Namespace) -> int:
 @arg("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
 @arg("--port", type=int, default=8765, help="port (default 8765; 0: any free one)")
 def cmd_view(args: argparse.Namespace) -> int:
-    """The cell in Foxglove: a WebSocket server that bridges every key (cadence/view.py)."""
+    """The cell in Foxglove: a WebSocket server that bridges every key (cadence/tools/view.py)."""
     import asyncio
 
     import foxglove
 
-    from cadence.view import Bridge
+    from cadence.tools.view import Bridge
     from common.runtime.bus import Bus
     from common.runtime.resources import FOXGLOVE_LAYOUT
 

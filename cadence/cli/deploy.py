@@ -1,4 +1,4 @@
-"""`cadence install` and `cadence uninstall`: a robot cell under systemd (the work: cadence/install.py)."""
+"""`cadence install` and `cadence uninstall`: a robot cell under systemd (cadence/deploy/install.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 from cadence.cli._common import Commands, arg, positive_int
 from schemas.topology import DEFAULT_CELL
-from schemas.topology import SERVICES as GRAPH_SERVICES
+from services.registry import IN_GRAPH
 
 cli = Commands()
 
@@ -33,7 +33,7 @@ cli = Commands()
 @arg(
     "--services",
     default="",
-    help=f"what runs on this host, comma-separated, of {', '.join((*GRAPH_SERVICES, 'router'))} "
+    help=f"what runs on this host, comma-separated, of {', '.join((*(s.name for s in IN_GRAPH), 'router'))} "
     "(default: the whole cell and its router, its ECG from the operator twin for --strap twin, else from "
     "the gateway)",
 )
@@ -46,7 +46,7 @@ cli = Commands()
 @arg("--no-systemctl", action="store_true", help="no daemon-reload or enable")
 @arg("--dry-run", action="store_true", help="print every file it would write, and stop")
 def cmd_install(args: argparse.Namespace) -> int:
-    from cadence.install import Options, install
+    from cadence.deploy.install import Options, install
 
     opts = Options(
         robot=args.robot,
@@ -70,7 +70,7 @@ def cmd_install(args: argparse.Namespace) -> int:
 @cli.command("uninstall", help="remove what `cadence install` wrote (keeps /var/lib/cadence, the data)")
 @arg("--keep-venv", action="store_true", help="leave the venv and Python under the prefix")
 def cmd_uninstall(args: argparse.Namespace) -> int:
-    from cadence.install import uninstall
+    from cadence.deploy.install import uninstall
 
     for line in uninstall(keep_venv=args.keep_venv):
         print(line)

@@ -30,7 +30,7 @@ cli = Commands()
      help="paths planned at once, one process each (default: the cores this process may use)")  # fmt: skip
 @flags_from(add_planner_flags)
 def cmd_plan(args: argparse.Namespace) -> int:
-    from cadence.plots import pareto_figure
+    from cadence.lab.plots import pareto_figure
     from common.runtime.storage import write_readable
     from common.trajectory.pool import plan_paths
 

@@ -19,42 +19,12 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from common.trajectory.limits import JOINT_NAMES, UR16E, JointLimits
+from common.robot.ur16e import DT, JOINT_NAMES, UR16E, JointLimits
 
 Array = NDArray[np.float64]
 
-DT = 0.002  # one e-Series controller step
 GAIN_REF = 100.0  # gain at which τ equals the lookahead time
 SPEED_TOL = 1e-6  # relative slack on the speed limit (round-off only)
-
-# standard DH of the UR16e (ROS-Industrial ur_description, default_kinematics.yaml)
-DH_D = np.array([0.1807, 0.0, 0.0, 0.17415, 0.11985, 0.11655])
-DH_A = np.array([0.0, -0.4784, -0.36, 0.0, 0.0, 0.0])
-DH_ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])
-
-
-def forward_kinematics(q: Array) -> Array:
-    """TCP pose (x, y, z in m; rx, ry, rz as a rotation vector, UR's convention) at joint angles q."""
-    t = np.eye(4)
-    for theta, d, a, alpha in zip(q, DH_D, DH_A, DH_ALPHA, strict=True):
-        ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
-        t = t @ np.array(
-            [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1]]
-        )
-    return np.concatenate([t[:3, 3], rotation_vector(t[:3, :3])])
-
-
-def rotation_vector(r: Array) -> Array:
-    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0)))
-    if angle < 1e-12:
-        return np.zeros(3)
-    if math.pi - angle < 1e-6:  # 180°: the axis from the diagonal
-        axis = np.sqrt(np.maximum((np.diag(r) + 1.0) / 2.0, 0.0))
-        i = int(np.argmax(axis))
-        axis = r[:, i] / math.sqrt(2.0 * (1.0 + r[i, i])) if axis[i] > 0 else axis
-        return axis / np.linalg.norm(axis) * angle
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2.0 * math.sin(angle))
-    return axis * angle
 
 
 class SimArm:

@@ -24,10 +24,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from common.robot.ur16e import JointLimits
 from common.runtime.errors import PlanningError
 from common.trajectory import bspline as bs
 from common.trajectory import nsga
-from common.trajectory.limits import JointLimits
 from common.trajectory.task import Constraints, PathPlan, PlannerSettings
 
 Array = NDArray[np.float64]

@@ -17,7 +17,7 @@ from multiprocessing.queues import SimpleQueue
 import numpy as np
 from numpy.typing import NDArray
 
-from common.trajectory.limits import JointLimits
+from common.robot.ur16e import JointLimits
 from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.task import PathPlan, PlannerSettings
 

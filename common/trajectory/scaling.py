@@ -28,8 +28,8 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from common.robot.ur16e import JointLimits
 from common.trajectory import bspline as bs
-from common.trajectory.limits import JointLimits
 from common.trajectory.task import PathPlan
 from common.trajectory.validate import trajectory_problems
 

@@ -19,9 +19,9 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
+from common.robot.ur16e import N_JOINTS, UR16E, JointLimits
 from common.runtime.errors import TaskError
 from common.trajectory.bspline import Boundary
-from common.trajectory.limits import N_JOINTS, UR16E, JointLimits
 from schemas.decision import MAX_N
 from schemas.pareto import MAX_PATH_S
 

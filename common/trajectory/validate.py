@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from common.robot.ur16e import JOINT_NAMES, JointLimits
 from common.runtime.errors import TrajectoryRejected
 from common.trajectory import bspline as bs
-from common.trajectory.limits import JOINT_NAMES, JointLimits
 from common.trajectory.task import PathPlan
 from schemas.pareto import MAX_PATH_S
 

@@ -1,7 +1,8 @@
 """executor: the only service that moves the robot (paper §II-D; DESIGN §8, §9).
 
 It runs the task program cycle after cycle (services/executor/cycles.py), through the one safety state of
-common/motion.py, which only the supervisor changes (services/executor/supervisor.py). At the start of every
+common/safety/states.py, which only the supervisor changes (services/executor/supervisor.py).
+At the start of every
 path it takes the current selection k, turns that path's solution into 500 Hz samples, checks them against its
 own limits and its own copy of the waypoints, and hands them to the servo loop (services/executor/servo.py) on
 a core of its own (services/executor/cores.py). A selection arriving during a motion takes effect at the next
@@ -19,12 +20,12 @@ import logging
 import sys
 from typing import Any
 
-from common.motion import Event
 from common.runtime.bus import Request
 from common.runtime.config import CommonSettings
 from common.runtime.errors import ConfigError
 from common.runtime.node import Node, Out, Rejected, answers, every, node_main, on
 from common.runtime.service import service_main
+from common.safety.states import Event
 from common.trajectory.task import load_task
 from schemas.decision import Selection
 from schemas.operator import OperatorSignal, Separation

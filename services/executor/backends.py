@@ -15,9 +15,9 @@ from typing import Any, Protocol, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from common.robot.ur16e import DT, UR16E, JointLimits, forward_kinematics
 from common.runtime.errors import CadenceError, ConfigError
-from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
-from common.trajectory.limits import UR16E, JointLimits
+from common.sim.arm import SimArm, move_j_profile
 from common.trajectory.task import Task
 from services.executor.settings import Settings
 

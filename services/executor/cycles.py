@@ -21,11 +21,11 @@ from typing import Literal
 import numpy as np
 
 from common.decision import k_for_path
-from common.motion import Event, IllegalTransition, State
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.node import Node, Rejected
 from common.runtime.service import first_of
-from common.separation import Figures
+from common.safety.separation import Figures
+from common.safety.states import Event, IllegalTransition, State
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan, Step, Task
 from common.trajectory.validate import check_trajectory

@@ -1,6 +1,7 @@
 """The path in progress, and its one owner (STYLE 15): the playback the servo loop plays
 (services/executor/playback.py), the ramps of the time scale and the switch of solution offered to it, and
-the path's SSM figures (common/separation.py ``Figures``: top link speed and longest stop of the curve being
+the path's SSM figures (common/safety/separation.py ``Figures``: top link speed and longest stop of the curve
+being
 played, and of a switched one while it is pending).
 
 Everything that changes what the loop plays goes through here, one change planned at a time (``lock``),
@@ -19,9 +20,9 @@ from collections.abc import Callable
 
 import numpy as np
 
+from common.robot.ur16e import JointLimits
 from common.runtime.service import first_of
-from common.separation import Figures
-from common.trajectory.limits import JointLimits
+from common.safety.separation import Figures
 from common.trajectory.scaling import LIMIT_RTOL, Curve, Ramp, plan_ramp, ramp_ratio, switch_curve
 from common.trajectory.task import PathPlan
 from services.executor.playback import SIGMA_EPS, InForce, Playback, Switch

@@ -1,4 +1,4 @@
-"""Speed and separation monitoring in the executor (DESIGN §8; common/separation.py): every source's
+"""Speed and separation monitoring in the executor (DESIGN §8; common/safety/separation.py): every source's
 distance on ``operator/separation``, the nearest fresh one winning, and the time scale σ it allows for the
 path in progress, looked at every ``scale_period_s`` (the node's timer) and handed to the path's owner
 (services/executor/pathrun.py) as a ramp. Between paths the scale a path would start at is kept, and the
@@ -15,9 +15,9 @@ from collections import OrderedDict
 
 import numpy as np
 
+from common.robot.ur16e import JointLimits
 from common.runtime.node import Node, Rejected
-from common.separation import Figures, Nearest, Sources, Ssm
-from common.trajectory.limits import JointLimits
+from common.safety.separation import Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation

@@ -57,7 +57,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # jerk, checked), from switch_lead_s ahead; false: it waits for the next path start, as the paper does.
     switch_within_path: bool = True
     switch_lead_s: Annotated[float, _range(0.01, 1.0)] = 0.1
-    # Speed and separation monitoring (ISO/TS 15066; common/separation.py): the time scale follows the
+    # Speed and separation monitoring (ISO/TS 15066; common/safety/separation.py): the time scale follows the
     # nearest fresh distance of every source on operator/separation; none fresh (younger than
     # separation_max_age_s), or none from a declared source, holds the arm on its path. Off: the robot
     # always runs at the planned speed.

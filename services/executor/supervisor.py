@@ -1,4 +1,4 @@
-"""The executor's one safety state (common/motion.py) and its one owner (DESIGN §9).
+"""The executor's one safety state (common/safety/states.py) and its one owner (DESIGN §9).
 
 Every change of the state goes through ``Supervisor.fire``, so every change is published the same way: an
 event (``robot/event`` kind "state", with its from and to) and the service's state, which ``robot/state``
@@ -14,10 +14,10 @@ import logging
 import time
 from collections import deque
 
-from common.motion import Event, Motion, State, transition
 from common.runtime.bus import QueryError
 from common.runtime.node import Node
 from common.runtime.service import first_of
+from common.safety.states import Event, Motion, State, transition
 from schemas.robot import EventKind, RobotEvent
 from schemas.topology import ROBOT_EVENT
 from services.executor.backends import Backend, RobotUnavailable

@@ -5,8 +5,8 @@ as it would one from elsewhere. Read at the state rate: a press lasts far longer
 
 from __future__ import annotations
 
-from common.motion import mode_of
 from common.runtime.node import Node, Out
+from common.safety.states import mode_of
 from common.trajectory.task import Task
 from schemas.operator import OperatorSignal
 from schemas.robot import RobotState

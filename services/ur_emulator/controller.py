@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from common.sim.arm import DT, SimArm, forward_kinematics, move_j_profile
+from common.robot.ur16e import DT, forward_kinematics
+from common.sim.arm import SimArm, move_j_profile
 
 STOPPED, PLAYING = 1, 2
 ROBOT_MODE_RUNNING = 7

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cadence.study import Model, Motion, Outcome, Subject, calibrate_twin, simulate
+from cadence.lab.study import Model, Motion, Outcome, Subject, calibrate_twin, simulate
 from common.trajectory.task import Task
 from schemas import Calibration
 
@@ -114,7 +114,7 @@ Rates = dict[str, tuple[float, float]]  # condition → (φ, ε)
 def write_fit(result: Fit, predicted: Rates, rr_p: dict[str, float], out: Path) -> dict:
     import json
 
-    from cadence.plots import fit_figure
+    from cadence.lab.plots import fit_figure
     from common.runtime.storage import write_readable
 
     doc = {

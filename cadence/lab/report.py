@@ -15,10 +15,10 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from common.marks import counted
-from common.motion import idle_spans, routine_change
+from cadence.lab.marks import counted
 from common.runtime.errors import InputError
 from common.runtime.storage import write_readable
+from common.safety.states import idle_spans, routine_change
 from schemas import (
     CycleReport,
     EcgChunk,
@@ -126,7 +126,7 @@ def event_row(t_s: float, source: str, kind: str, message: str,
 
 
 def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
-    from cadence.recording import read
+    from cadence.tools.recording import read
 
     msgs, notes = [], list[str]()
     for rec in read(path, notes=notes):
@@ -232,7 +232,7 @@ CAPTIONS = {
 
 def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[str]:
     """The figures and index.html; returns the names of the files written."""
-    from cadence.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure, separation_figure
+    from cadence.lab.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure, separation_figure
 
     out.mkdir(parents=True, exist_ok=True)
     written = []

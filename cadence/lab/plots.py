@@ -11,8 +11,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
+from common.robot.ur16e import JOINT_NAMES
 from common.trajectory import bspline as bs
-from common.trajectory.limits import JOINT_NAMES
 from common.trajectory.planner import ParetoResult
 from schemas.pareto import ParetoSet
 
@@ -174,7 +174,7 @@ def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
     measurement), path after path at the k each ran with (motion only; the waits between paths are left
     out), in radians as the plans are, with the UR16e's limits as dashed lines (a task may only lower
     them). ``cycles``: [{"k": {path: k}, …}], one column each."""
-    from common.trajectory.limits import UR16E
+    from common.robot.ur16e import UR16E
 
     labels = ("q [rad]", "q̇ [rad/s]", "q̈ [rad/s²]", "jerk [rad/s³]")
     limits = (None, UR16E.velocity, UR16E.acceleration, UR16E.jerk)
@@ -305,7 +305,7 @@ def subject_figure(sessions: list) -> bytes:
     """One subject, one row per condition (like the paper's Fig. 6): each window's mean RR (good filled,
     held hollow) against minutes into the session, RR_r and the decision thresholds RR_s and RR_s^max,
     the selected k on the right axis (integer ticks), cycle ends as ticks along the bottom and errors as
-    red crosses. ``sessions``: cadence.session.Session objects of one subject."""
+    red crosses. ``sessions``: cadence.lab.session.Session objects of one subject."""
     from common.decision import Params
     from schemas.session import CONDITION_NAMES
 

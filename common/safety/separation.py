@@ -47,8 +47,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from common.sim.arm import DH_A, DH_ALPHA, DH_D
-from common.trajectory.limits import JointLimits
+from common.robot.ur16e import JointLimits, link_points
 from common.trajectory.scaling import Curve, stop_time
 
 Array = NDArray[np.float64]
@@ -97,25 +96,6 @@ class Ssm:
 def stepped(sigma: float) -> float:
     """σ as the executor asks for it: 1, or rounded down to a step of ``QUANTUM``."""
     return 1.0 if sigma >= 1.0 else math.floor(sigma / QUANTUM + 1e-9) * QUANTUM
-
-
-def link_points(q: Array) -> Array:
-    """The origins of the UR16e's DH frames 1–6 (shoulder, elbow, wrists, flange) for joint rows q (m, 6):
-    (m, 6, 3). The points a person can meet; the speed of the fastest is the arm's speed."""
-    m = len(q)
-    t = np.broadcast_to(np.eye(4), (m, 4, 4)).copy()
-    out = np.empty((m, 6, 3))
-    for j in range(6):
-        ct, st = np.cos(q[:, j]), np.sin(q[:, j])
-        ca, sa = math.cos(DH_ALPHA[j]), math.sin(DH_ALPHA[j])
-        a = np.zeros((m, 4, 4))
-        a[:, 0, 0], a[:, 0, 1], a[:, 0, 2], a[:, 0, 3] = ct, -st * ca, st * sa, DH_A[j] * ct
-        a[:, 1, 0], a[:, 1, 1], a[:, 1, 2], a[:, 1, 3] = st, ct * ca, -ct * sa, DH_A[j] * st
-        a[:, 2, 1], a[:, 2, 2], a[:, 2, 3] = sa, ca, DH_D[j]
-        a[:, 3, 3] = 1.0
-        t = t @ a
-        out[:, j] = t[:, :3, 3]
-    return out
 
 
 def path_speed(q: Array, dt: float) -> float:

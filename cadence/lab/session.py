@@ -28,9 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cadence import version
-from cadence.recording import Recorder, read
+from cadence.lab.marks import counted
+from cadence.tools.recording import Recorder, read
 from common.hrv.calibration import SETTLED_WINDOWS, settled
-from common.marks import counted
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
 from common.trajectory.task import load_task
@@ -128,7 +128,7 @@ class Session:
 
     @property
     def counted_errors(self) -> list[OperatorError]:
-        """The errors inside the session that count (common/marks.py: less the marks withdrawn)."""
+        """The errors inside the session that count (cadence/lab/marks.py: less the marks withdrawn)."""
         return counted(e for e in self.errors if self.inside(e.t_ns))
 
     @property

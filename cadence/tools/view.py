@@ -21,8 +21,7 @@ import foxglove
 import msgspec
 import numpy as np
 
-from common.sim.arm import DH_A, DH_ALPHA, DH_D
-from common.trajectory.limits import JOINT_NAMES
+from common.robot.ur16e import DH_A, DH_ALPHA, DH_D, JOINT_NAMES
 from schemas import RobotState
 from schemas.topology import TOPICS, decode_any, key, topic_of
 

@@ -11,7 +11,7 @@ exactly that and keeps the data folder):
 - the units, with the prefix put in, enabled under ``cadence.target``;
 - a Python the ``cadence`` user can run, and the venv on it, under the prefix.
 
-Pure parts (what the files say) are in ``common/runtime/cell.py`` and ``pki.py``; this module decides what
+Pure parts (what the files say) are in ``cadence/deploy/cell.py`` and ``pki.py``; this module decides what
 goes where and does it.
 """
 
@@ -32,11 +32,12 @@ import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from common.runtime import cell
+from cadence.deploy import cell
+from cadence.deploy.pki import Pem, issue, load_ca, make_ca
 from common.runtime.errors import InputError
-from common.runtime.pki import Pem, issue, load_ca, make_ca
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
 from schemas.topology import DEFAULT_CELL, ROLES, SERVICES
+from services.registry import BY_NAME, unit
 
 USER = "cadence"
 ETC = Path("/etc/cadence")
@@ -168,12 +169,7 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
     """``/etc/cadence/cadence.toml``: the hardware's values set, every other key commented at its default."""
     from common.runtime.bus import BusConfig
     from common.runtime.config import CommonSettings
-    from services.decision_maker.__main__ import Settings as DecisionSettings
-    from services.ecg_gateway.__main__ import Settings as GatewaySettings
-    from services.executor.__main__ import Settings as ExecutorSettings
-    from services.hrv_analyser.__main__ import Settings as AnalyserSettings
-    from services.operator_twin.__main__ import Settings as TwinSettings
-    from services.pareto_store.__main__ import Settings as StoreSettings
+    from services.registry import IN_GRAPH
 
     sim = opts.robot == "sim"
     twin = opts.strap == "twin"
@@ -189,6 +185,9 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
         from common.sim.twin import TwinParams
 
         decision["rr_rest_s"] = TwinParams().rr_rest_s  # the twin's resting RR: no `cadence calibrate`
+    values = {"ecg_gateway": gateway, "decision_maker": decision, "pareto_store": task, "executor": executor}
+    calibrate = "# run `cadence calibrate` once per operator: it writes the calibration this reads"
+    notes = {} if twin else {"decision_maker": calibrate}
     head = (
         f"# Cadence, cell {bundle.cell}: written by `cadence install`"
         f" (robot: {opts.robot}; strap: {opts.strap}).\n"
@@ -204,20 +203,11 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
             {"mode": "client"},
             "# each unit sets config_file to its own account (credentials/<service>.json5)",
         ),
-        cell.settings_toml("operator_twin", TwinSettings, {})
-        if twin
-        else cell.settings_toml("ecg_gateway", GatewaySettings, gateway),
-        cell.settings_toml("hrv_analyser", AnalyserSettings, {}),
-        cell.settings_toml(
-            "decision_maker",
-            DecisionSettings,
-            decision,
-            ""
-            if twin
-            else "# run `cadence calibrate` once per operator: it writes the calibration this reads",
+        *(
+            cell.settings_toml(s.name, s.settings(), values.get(s.name, {}), notes.get(s.name, ""))
+            for s in IN_GRAPH
+            if s.name != ("ecg_gateway" if twin else "operator_twin")  # one ECG source a cell
         ),
-        cell.settings_toml("pareto_store", StoreSettings, task),
-        cell.settings_toml("executor", ExecutorSettings, executor),
     ]
     return head + "\n" + "\n".join(sections)
 
@@ -283,9 +273,16 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
                 secret=True,
             )
         )
-    for name in [*(f"cadence-{s}.service" for s in opts.services), "cadence.target"]:
-        text = (DEPLOY / "systemd" / name).read_text().replace("/opt/cadence", str(opts.prefix))
+    template = (DEPLOY / "systemd" / "cadence-service.in").read_text()
+    for s in opts.services:
+        name = f"cadence-{s}.service"
+        if s in BY_NAME:
+            text = unit(BY_NAME[s], template, str(opts.prefix))
+        else:  # the router: a unit of its own
+            text = (DEPLOY / "systemd" / name).read_text().replace("/opt/cadence", str(opts.prefix))
         p.files.append(File(UNITS / name, text, 0o644, None))
+    target = (DEPLOY / "systemd" / "cadence.target").read_text().replace("/opt/cadence", str(opts.prefix))
+    p.files.append(File(UNITS / "cadence.target", target, 0o644, None))
     if not opts.systemctl:
         p.notes.append("systemctl: skipped (--no-systemctl)")
     return p

@@ -1,9 +1,9 @@
 """`cadence study analyse`: the paper's Table I and its tests (§IV) from session files, with what reviewers
 ask for beside them, and nothing else.
 
-Per subject and condition the measures of one session file (cadence/session.py): φ, ε, the mean of the
+Per subject and condition the measures of one session file (cadence/lab/session.py): φ, ε, the mean of the
 good windows' mean RR, that mean over the subject's RR_r, and the raw NASA-TLX when it was asked. Per
-condition their mean ± sd over subjects (Table I). Then (cadence/stats.py):
+condition their mean ± sd over subjects (Table I). Then (cadence/lab/stats.py):
 
 - Friedman's test per measure over the subjects with every condition, before any pair;
 - per pair of conditions and measure a Wilcoxon signed-rank test paired by subject (exact where scipy can
@@ -30,8 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
-from cadence.session import Session
-from cadence.stats import Equivalence, Omnibus, bootstrap_ci, d_z, friedman, holm, rank_biserial, tost_paired
+from cadence.lab.session import Session
+from cadence.lab.stats import (
+    Equivalence,
+    Omnibus,
+    bootstrap_ci,
+    d_z,
+    friedman,
+    holm,
+    rank_biserial,
+    tost_paired,
+)
 from common.runtime.errors import InputError
 from common.runtime.storage import write_readable
 from schemas.session import CONDITION_NAMES, Tlx
@@ -339,7 +348,7 @@ def _csv(path: Path, rows: list[dict]) -> None:
 
 def write_study(study: Study, out: Path) -> list[str]:
     """study.json, the figures (like the paper's Fig. 6 per subject and Fig. 7) and index.html."""
-    from cadence.plots import study_figure, subject_figure
+    from cadence.lab.plots import study_figure, subject_figure
 
     out.mkdir(parents=True, exist_ok=True)
     write_readable(out / "study.json", json.dumps(to_json(study), indent=1).encode())
@@ -476,3 +485,17 @@ subjects.</p>
 {head}<th>RR_r [s]</th><th>file</th></tr>{per}</table>
 </body></html>
 """
+
+
+def session_files(sources: list[str]) -> list[Path]:
+    """Files as given, and a folder's ``*.mcap`` files."""
+    files: list[Path] = []
+    for src in map(Path, sources):
+        if src.is_dir():
+            found = sorted(src.glob("*.mcap"))
+            if not found:
+                raise InputError(f"{src}: a folder with no session files (*.mcap)")
+            files += found
+        else:
+            files.append(src)
+    return files

@@ -1,0 +1,107 @@
+"""`cadence demo`: the whole closed loop on this machine (the work: cadence/demo.py)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+import tomllib
+from pathlib import Path
+
+import msgspec
+
+from cadence.cli._common import Commands, arg, err, out, positive_float, speed
+from common.runtime.errors import InputError
+from common.runtime.resources import EXAMPLE_TASK
+
+cli = Commands()
+
+
+@cli.command(
+    "demo",
+    help="the whole closed loop on this machine: operator twin, every service, simulated UR16e",
+    description="Opens a Zenoh router on loopback, plans the task if its sets are not stored, starts "
+    "every service as its own process (ECG gateway with the operator twin, HRV analyser, Pareto store, "
+    "decision maker, executor with the simulated UR16e), restarts any that dies, shows a live view, "
+    "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time), "
+    "DIR/cycles.png (joint positions of the first and last cycle), DIR/pareto.png (the sets) and "
+    "DIR/index.html (the report that shows them).",
+)
+@arg("--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)")
+@arg("--speed", type=speed, default=8.0, help="data time per wall time, above 0 and at most 1000 (default 8)")
+@arg("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
+@arg("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
+@arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
+@arg(
+    "--kill",
+    action="append",
+    default=[],
+    metavar="SERVICE@S",
+    help="SIGKILL a service at data time S (repeatable): shows the supervisor restarting it",
+)
+@arg("--no-live", action="store_true", help="no live view (for logs and CI)")
+@arg("--listen", metavar="ENDPOINT", help="the router's endpoint (default: a free port on 127.0.0.1)")
+@arg(
+    "--twin",
+    action="append",
+    default=[],
+    metavar="KEY=VALUE",
+    help="a parameter of the operator twin (common/sim/twin.py; repeatable), e.g. heavy_from_s=120 "
+    "heavy_until_s=300 (a stretch of heavier parts) or accelerometer=false (a strap without one)",
+)
+@arg(
+    "--decide",
+    choices=("paper", "personal"),
+    default="paper",
+    help="the decision maker's mode: paper (Alg. 1, default) or personal (k from this person's own "
+    "scale; README, Decisions on real people)",
+)
+def cmd_demo(args: argparse.Namespace) -> int:
+    from cadence.demo import ORDER, DemoOptions, run_demo, summary_table, twin_table
+    from common.sim.twin import TwinParams
+
+    kills = []
+    for spec in args.kill:
+        name, _, at = spec.partition("@")
+        if name not in ORDER or not at:
+            raise InputError(
+                f"--kill {spec}: expected SERVICE@SECONDS with SERVICE one of {', '.join(ORDER)}"
+            )
+        kills.append((name, float(at)))
+    twin = []
+    for spec in args.twin:
+        key, _, text = spec.partition("=")
+        try:
+            twin.append((key.strip(), tomllib.loads(f"v = {text}")["v"]))
+        except tomllib.TOMLDecodeError:
+            raise InputError(f"--twin {spec}: expected KEY=VALUE, the value a number or true/false") from None
+    opts = DemoOptions(
+        duration_s=args.duration,
+        speed=args.speed,
+        out=Path(args.out),
+        seed=args.seed,
+        task=Path(args.task),
+        kill=tuple(kills),
+        live=not args.no_live,
+        listen=args.listen,
+        twin=tuple(twin),
+        decide=args.decide,
+    )
+    try:  # a parameter the twin does not have, or out of its range: said now, not by a service at start
+        msgspec.convert(twin_table(opts), TwinParams)
+    except msgspec.ValidationError as exc:
+        raise InputError(f"--twin: {exc}") from None
+    t0 = time.monotonic()
+    summary = asyncio.run(run_demo(opts, out))
+    wall = time.monotonic() - t0
+    out.print(summary_table(summary, wall))
+    out.print(
+        f"written: {args.out}/summary.json and a report (index.html, rr_k.png, pareto.png, cycles.png, "
+        "separation.png); "
+        f"service logs in {args.out}/logs"
+    )
+    bad = {n: c for n, c in summary["exit_codes"].items() if c != 0}
+    if bad:
+        err.print(f"services that did not exit cleanly: {bad}")
+        return 1
+    return 130 if summary["cut_short"] else 0  # as a shell reports an interrupted command
