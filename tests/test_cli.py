@@ -96,7 +96,7 @@ def test_an_unplannable_path_is_one_line_naming_it(tmp_path: Path) -> None:
 async def test_a_person_signals_a_part_and_marks_an_error_only_when_something_listens(endpoint: str) -> None:
     """`cadence signal` and `cadence mark error`: the message reaches a reader of its key with its source;
     with nobody reading, the command says so instead of losing it (Zenoh drops such a put)."""
-    from cadence.cli.cell import tell
+    from cadence.tools.say import tell
     from common.runtime.bus import Bus, BusConfig
     from common.runtime.errors import BusError
     from schemas import OperatorError, OperatorSignal

@@ -101,8 +101,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
 ) -> None:
     import msgspec
 
-    from cadence.cli import calibrate
-    from cadence.cli.hrv import calibration_screen
+    from cadence.lab.calibrate import calibrate, calibration_screen
     from schemas import Calibration, RobotState
 
     csv, x = record_cut(tmp_path, "103", 100)

@@ -330,7 +330,7 @@ async def marked_session(endpoint: str, tmp_path: Path, plan, subject: str) -> N
                     keys.put_nowait(key)
 
     async def calibrated():
-        from cadence.cli.hrv import calibrate
+        from cadence.lab.calibrate import calibrate
 
         return (await calibrate(bus, 1.0, subject, tmp_path / "cal2", False, posture="working"))[0]
 

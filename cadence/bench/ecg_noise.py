@@ -11,6 +11,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
+from common.runtime.errors import InputError
+
 Variant = Literal["clean", "white12", "white6", "wander", "motion"]
 VARIANTS: tuple[Variant, ...] = ("clean", "white12", "white6", "wander", "motion")
 
@@ -50,3 +52,12 @@ def noisy(uv: NDArray[np.float64], fs: float, variant: Variant, seed: int = 0) -
         out[i : i + m] += burst[: n - i]
         at += rng.uniform(20.0, 60.0)
     return out
+
+
+def variants_named(spec: str | None) -> tuple[Variant, ...]:
+    """``--variants V,…`` (all when not given); an unknown name is an input error."""
+    asked = spec.split(",") if spec else list(VARIANTS)
+    unknown = [v for v in asked if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+    return tuple(v for v in VARIANTS if v in asked)

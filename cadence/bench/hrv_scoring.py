@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from rich.console import Console
+from rich.table import Table
 
 from common.hrv.records import BEAT_SYMBOLS, Annotations
 from common.hrv.stream import Window
@@ -184,3 +186,33 @@ class WindowScore:
             # the records of the windows over 10 ms, worst first
             "worst_records": ", ".join(dict.fromkeys(w.record for w in worst if w.error_s > 0.01)),
         }
+
+
+def window_table(title: str, scores: dict[str, dict[str, WindowScore]], out: Console) -> dict[str, object]:
+    """The window scores as a table on stdout; the worst records of Cadence's under it; the figures."""
+    table = Table(title=title)
+    for col in ("variant", "pipeline", "good", "held", "held %*", "p95", ">10", ">20", "worst"):
+        table.add_column(col, justify="left" if col in ("variant", "pipeline") else "right", no_wrap=True)
+    figures: dict[str, dict[str, dict[str, float | int | str]]] = {}
+    notes = []
+    for v, by_name in scores.items():
+        for name, sc in by_name.items():
+            f = figures.setdefault(v, {})[name] = sc.figures()
+            table.add_row(
+                v,
+                name,
+                str(f["good"]),
+                str(f["held"]),
+                f"{float(f['held_share_sinus']) * 100:.1f}",
+                f"{f['p95_ms']:.2f}",
+                str(f["over_10_ms"]),
+                str(f["over_20_ms"]),
+                f"{f['worst_ms']}",
+            )
+            if f["worst_records"] and name != "neurokit2":
+                notes.append(f"{v} {name}: {f['worst_records']}")
+    out.print(table)
+    out.print("* the share held on the records without arrhythmia runs (GUDB: every window)")
+    if notes:
+        out.print("Cadence's windows over 10 ms, worst first: " + "; ".join(notes))
+    return dict(figures)

@@ -9,12 +9,11 @@ import os
 import sys
 
 from cadence import version
-from cadence.cli import bench, cell, demo, deploy, hrv, lab, plan, session
+from cadence.cli import bench, bench_people, cell, demo, deploy, hrv, lab, operate, plan, session
 from cadence.cli._common import SERVICES, err
-from cadence.cli.hrv import calibrate
 from common.runtime.errors import BusError, CadenceError, InputError
 
-__all__ = ["SERVICES", "build_parser", "calibrate", "main"]
+__all__ = ["SERVICES", "build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,7 +23,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"cadence {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for family in (plan, bench, cell, demo, lab, session, hrv, deploy):
+    assert bench_people.cli is bench.cli  # its commands are of the bench family
+    for family in (plan, bench, cell, operate, demo, lab, session, hrv, deploy):
         family.cli.add(sub)
     return parser
 

@@ -13,10 +13,9 @@ from msgspec import structs
 from rich.console import Console
 
 from common.runtime.bus import Bus, BusConfig
-from common.runtime.clock import Clock
 from common.runtime.resources import EXAMPLE_TASK
 from common.trajectory.task import Task, load_task
-from schemas.topology import CELL_CLOCK, DEFAULT_CELL
+from schemas.topology import DEFAULT_CELL
 from services.registry import SERVICES as REGISTRY
 
 out = Console()
@@ -177,15 +176,6 @@ def bus_config(args: argparse.Namespace, mode: Literal["peer", "client", "router
     if cfg.mode is None and not cfg.config_file:
         cfg = structs.replace(cfg, mode="client" if cfg.connect and mode == "peer" else mode)
     return cfg
-
-
-async def cell_clock(bus: Bus, timeout_s: float = 1.0) -> Clock:
-    """The data clock of the cell ``bus`` joined: a simulated cell's (its demo answers ``clock``), else
-    the wall clock, which a deployed cell runs on (DESIGN §4)."""
-    for r in await bus.get(CELL_CLOCK, timeout=timeout_s):
-        if r.message is not None:
-            return Clock(r.message.speed, r.message.epoch_ns)
-    return Clock()
 
 
 def joining(args: argparse.Namespace) -> BusConfig:

@@ -5,11 +5,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import re
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO, TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import msgspec
 
@@ -19,7 +16,6 @@ from cadence.cli._common import (
     add_bus_flags,
     arg,
     bus_config,
-    cell_clock,
     err,
     flags_from,
     joining,
@@ -27,20 +23,14 @@ from cadence.cli._common import (
     say_when_alone,
     stop_on_signals,
 )
-from common.runtime.errors import BusError, InputError
+from common.runtime.errors import InputError
 from schemas.base import Message
-from schemas.operator import OperatorError, OperatorSignal, Separation
 from schemas.topology import (
     DEFAULT_CELL,
-    OPERATOR_ERROR,
-    OPERATOR_SEPARATION,
-    OPERATOR_SIGNAL,
-    Topic,
-    validated,
 )
 
 if TYPE_CHECKING:
-    from common.runtime.bus import Bus
+    pass
 
 cli = Commands()
 
@@ -186,30 +176,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_get(args: argparse.Namespace) -> int:
     import asyncio
 
-    import msgspec
-
-    from common.runtime.bus import Bus
-    from schemas.topology import AnyMessage
-
-    until = time.monotonic() + args.wait
-
-    async def ask() -> tuple[list, str | None]:
-        async with await Bus.open(joining(args), DEFAULT_CELL, role="monitor") as bus:
-            while True:
-                replies = await bus.get(args.key, AnyMessage, timeout=args.timeout)
-                if any(r.message is not None for r in replies) or time.monotonic() >= until:
-                    return replies, bus.isolation()
-                await asyncio.sleep(0.5)
+    from cadence.tools.say import ask
 
     async def go() -> int:
-        while True:  # with --wait, a router not up yet is asked again, as is a key nobody answers yet
-            try:
-                replies, alone = await ask()
-                break
-            except BusError:
-                if time.monotonic() >= until:
-                    raise
-                await asyncio.sleep(0.5)
+        replies, alone = await ask(joining(args), args.key, args.timeout, args.wait)
         ok = 0
         for r in replies:
             if r.message is not None:
@@ -312,241 +282,3 @@ def cmd_view(args: argparse.Namespace) -> int:
         return 0
 
     return asyncio.run(go())
-
-
-cli.group("robot", steps={"dest": "robot_command"}, help="the robot's executor: clear a latched stop")
-
-
-@cli.command(
-    "robot resume",
-    help="clear a latched stop (protective stop, overruns, lost controller) once its cause is seen to",
-    description="Ask the cell's executor to clear its latched stop. On a real UR16e this also unlocks "
-    "the controller's protective stop (its dashboard refuses within 5 s of the stop). Prints the "
-    "state it reached; exit 1 when the robot is still stopped after it.",
-)
-@arg("--by", help="who resumes, for the record (default: your user name)")
-@flags_from(add_bus_flags, 15.0)
-def cmd_robot_resume(args: argparse.Namespace) -> int:
-    """Clear a latched stop: ask the executor of the cell on ``robot/resume`` and print what it did."""
-    import asyncio
-    import getpass
-
-    from common.runtime.bus import Bus
-    from schemas.topology import ROBOT_RESUME
-
-    by = args.by or getpass.getuser()
-
-    async def go() -> int:
-        async with await Bus.open(joining(args), args.cell, role="operator") as bus:
-            replies = await bus.get(ROBOT_RESUME, timeout=args.timeout, parameters=f"by={by}")
-        for r in replies:
-            if r.message is not None:
-                print(r.message.message)
-                return 1 if r.message.message.startswith("stopped") else 0
-            err.print(f"cadence robot resume: {r.error}", markup=False, highlight=False)
-            return 1
-        err.print(
-            f"cadence robot resume: no executor answered on cadence/{args.cell}/robot/resume within "
-            f"{args.timeout:g} s (is it running, and is this host on its bus? --connect ENDPOINT)",
-            markup=False,
-        )
-        return 1
-
-    return asyncio.run(go())
-
-
-async def tell(bus: Bus, topic: Topic[M], msg: M, timeout: float) -> str:
-    """Put one message of a person's once something reads its key (Zenoh drops a put that nobody
-    subscribes to): the key, or a BusError that says nobody listens."""
-    out = bus.publisher(topic)
-    try:
-        await out.until_subscribed(timeout)
-    except TimeoutError:
-        raise BusError(
-            f"nothing on the bus reads {out.key} within {timeout:g} s (is the cell running, and is this "
-            "host on its bus? --connect ENDPOINT)"
-        ) from None
-    out.put(msg)
-    return out.key
-
-
-def _checked(msg: M) -> M:
-    """What a receiver would accept: a message that fails the schema's bounds is an input error here."""
-    try:
-        return validated(msg)
-    except msgspec.ValidationError as exc:
-        raise InputError(str(exc)) from exc
-
-
-def _tell_once(
-    args: argparse.Namespace, topic: Topic[M], make: Callable[[int], M], role: str = "operator"
-) -> int:
-    """Publish ``make(t_ns)``, stamped on the cell's clock, once something reads ``topic``. A message the
-    schema refuses is an input error before any bus is joined."""
-    import asyncio
-
-    from common.runtime.bus import Bus
-
-    _checked(make(time.time_ns()))
-
-    async def go() -> tuple[str, M]:
-        async with await Bus.open(joining(args), args.cell, role=role) as bus:
-            msg = _checked(make((await cell_clock(bus, min(1.0, args.timeout))).now_ns()))
-            return await tell(bus, topic, msg, args.timeout), msg
-
-    key, msg = asyncio.run(go())
-    out.print(f"{msgspec.json.encode(msg).decode()} → {key}", markup=False, highlight=False)
-    return 0
-
-
-@cli.command(
-    "signal",
-    help="say what a task step waits for (a part placed): publish operator/signal NAME",
-    description="Publishes NAME on operator/signal, as a push-button would: the executor's wait_for "
-    "step of that name goes on. Waits until something reads the key (exit 1 if nothing does).",
-)
-@arg("name", metavar="NAME", help="the wait_for name in the task program, e.g. part_a2")
-@arg("--source", default="cli", help="who says it, for the record (default cli)")
-@flags_from(add_bus_flags, 10.0)
-def cmd_signal(args: argparse.Namespace) -> int:
-    """A part placed (or any step's signal), from a person at a terminal: what a button would send."""
-    return _tell_once(
-        args, OPERATOR_SIGNAL, lambda t: OperatorSignal(t_ns=t, seq=0, name=args.name, source=args.source)
-    )
-
-
-NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")  # no 1_0, inf or nan
-MAX_LINE = 256  # bytes: a measurement is a few; a longer line is skipped, not read whole into memory
-
-
-def separation_line(line: str, source: str, seq: int, t_ns: int) -> Separation:
-    """``DISTANCE [AGE_S]`` (metres, seconds, plain decimal numbers) as a message; InputError says what is
-    wrong with it."""
-    fields = line.split()
-    if not 1 <= len(fields) <= 2:
-        raise InputError("expected DISTANCE_M [AGE_S]")
-    if bad := [f for f in fields if not NUMBER.fullmatch(f)]:
-        raise InputError(f"not a decimal number: {bad[0][:40]!r}")
-    values = [float(f) for f in fields]
-    age = values[1] if len(values) == 2 else 0.0
-    return _checked(Separation(t_ns=t_ns, seq=seq, distance_m=values[0], source=source, age_s=age))
-
-
-def read_line(stream: BinaryIO) -> bytes | None:
-    """One line of at most ``MAX_LINE`` bytes, newline included; None at the end. A longer line is read
-    to its end in bounded pieces and returned cut, so that it is reported, not held."""
-    line = stream.readline(MAX_LINE + 1)
-    if not line:
-        return None
-    if len(line) > MAX_LINE and not line.endswith(b"\n"):
-        while (rest := stream.readline(1 << 16)) and not rest.endswith(b"\n"):
-            pass
-    return line
-
-
-@cli.command(
-    "separation",
-    help="publish the nearest person's distance (operator/separation): a sensor's adapter",
-    description="The interface of a cell's safety laser scanner or camera to the executor's speed and "
-    "separation monitoring: DISTANCE in metres once, or - to read one measurement per line from stdin, "
-    "'DISTANCE_M [AGE_S]' (AGE_S: how old it already is, the sensor's latency), each published at once. "
-    "A bad line (not two decimal numbers, not UTF-8, over 256 bytes) is reported with its number and "
-    "skipped. Pipe a driver into it: `scanner-driver | cadence separation - --source scanner:front`. On a "
-    "deployed cell it joins as the separation_sensor account, the only one the router lets publish "
-    "distances: --zenoh-config /etc/cadence/credentials/separation_sensor.json5.",
-)
-@arg("distance", metavar="DISTANCE|-", help="metres, or - for lines on stdin")
-@arg(
-    "--source",
-    default="cli",
-    help="the sensor, e.g. scanner:front (declare it in [executor] separation_sources)",
-)
-@flags_from(add_bus_flags, 10.0)
-def cmd_separation(args: argparse.Namespace) -> int:
-    """A sensor's distances onto the bus. Unheard, the executor holds the arm (stale separation)."""
-    import asyncio
-    import sys
-
-    from common.runtime.bus import Bus
-
-    if args.distance != "-":
-        one = lambda t: separation_line(args.distance, args.source, 0, t)  # noqa: E731
-        return _tell_once(args, OPERATOR_SEPARATION, one, role="separation_sensor")
-
-    async def relay() -> int:
-        bad = 0
-        async with await Bus.open(joining(args), args.cell, role="separation_sensor") as bus:
-            pub = bus.publisher(OPERATOR_SEPARATION)
-            clock = await cell_clock(bus)  # a simulated cell's time runs at its own speed
-            n = 0
-            # the loop stays free meanwhile
-            while (raw := await asyncio.to_thread(read_line, sys.stdin.buffer)) is not None:
-                n += 1
-                try:
-                    if len(raw) > MAX_LINE:
-                        raise InputError(f"over {MAX_LINE} bytes")
-                    line = raw.decode("utf-8")
-                    if not line.strip():
-                        continue
-                    pub.put(separation_line(line, args.source, n, clock.now_ns()))
-                except UnicodeDecodeError as exc:
-                    bad += 1
-                    err.print(
-                        f"stdin line {n}: not UTF-8 ({exc.reason} at byte {exc.start}); skipped", markup=False
-                    )
-                except InputError as exc:
-                    bad += 1
-                    shown = raw[:60].decode("utf-8", "replace").strip()
-                    err.print(f"stdin line {n}: {shown!r}: {exc}; skipped", markup=False)
-        return 1 if bad else 0
-
-    return asyncio.run(relay())
-
-
-cli.group(
-    "mark", steps={"dest": "mark", "metavar": "MARK"}, help="the experimenter's marks on a running session"
-)
-
-
-@cli.command(
-    "mark error",
-    help="an error of the operator's (for ε): publish operator/error, source experimenter",
-    description="Publishes an OperatorError with the kind and note given. Something must read "
-    "operator/error (a recording or a session), or the mark would be lost: exit 1 if nothing does.",
-)
-@arg("--kind", choices=("wrong_object", "late", "other"), default="other")
-@arg("--cycle", type=int, help="the robot's cycle it happened in, if known")
-@arg("--note", default="", help="what happened")
-@flags_from(add_bus_flags, 10.0)
-def cmd_mark_error(args: argparse.Namespace) -> int:
-    """The experimenter's mark: an error of the operator's, for the error rate ε."""
-    return _tell_once(
-        args,
-        OPERATOR_ERROR,
-        lambda t: OperatorError(
-            t_ns=t, seq=0, cycle=args.cycle, description=args.note, kind=args.kind, source="experimenter"
-        ),
-    )
-
-
-@cli.command(
-    "mark undo",
-    help="withdraw the experimenter's last mark (keyed by mistake): publish operator/error kind undo",
-    description="Publishes an OperatorError of kind undo, source experimenter: the session and the "
-    "analysis count the experimenter's last mark before it as withdrawn (an undo counts for nothing "
-    "itself). Exit 1 if nothing reads operator/error.",
-)
-@arg("--note", default="", help="why (kept in the file)")
-@flags_from(add_bus_flags, 10.0)
-def cmd_mark_undo(args: argparse.Namespace) -> int:
-    return _tell_once(
-        args,
-        OPERATOR_ERROR,
-        lambda t: OperatorError(
-            t_ns=t,
-            seq=0,
-            description=args.note or "withdraws the last mark",
-            kind="undo",
-            source="experimenter",
-        ),
-    )

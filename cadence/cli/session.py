@@ -90,7 +90,7 @@ def cmd_session(args: argparse.Namespace) -> int:
     from rich.live import Live
 
     from cadence.cli._common import joining, stop_on_signals
-    from cadence.cli.hrv import calibrate, calibration_screen
+    from cadence.lab.calibrate import calibrate, calibration_screen
     from cadence.lab.live import (
         ask_tlx,
         fresh_path,
