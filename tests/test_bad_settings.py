@@ -43,10 +43,12 @@ def test_a_bad_setting_stops_the_service_at_start_with_one_line_and_exit_2(
     module = importlib.import_module(f"services.{service}.__main__")
     assert module.run(["--config", str(cfg), "--data-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "cadence.toml" in err, err
+    assert err.count("\n") == 1, err
+    assert "cadence.toml" in err, err
     section = text.split("]")[0].lstrip("[").split(".")[0] if text.startswith("[") else text.split()[0]
     key = text.split("\n")[-1].split("=")[0].strip() if "\n" in text else section
-    assert section in err and (key in err or "unknown section" in err), err
+    assert section in err, err
+    assert key in err or "unknown section" in err, err
 
 
 def test_a_bad_value_from_the_environment_names_the_variable(
@@ -57,7 +59,8 @@ def test_a_bad_value_from_the_environment_names_the_variable(
     monkeypatch.setenv("CADENCE_DECISION_MAKER_REPUBLISH_S", "0")
     assert run(["--data-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert "CADENCE_DECISION_MAKER_REPUBLISH_S" in err and "republish_s" in err
+    assert "CADENCE_DECISION_MAKER_REPUBLISH_S" in err
+    assert "republish_s" in err
 
 
 def test_the_known_sections_are_the_services_and_the_common_tables() -> None:
@@ -84,7 +87,8 @@ BAD_TASKS = [
 def test_an_absurd_task_program_is_one_task_error_naming_the_field(extra: str, field: str) -> None:
     with pytest.raises(TaskError) as err:
         parse_task(GOOD + "\n" + extra + "\n", "t.toml")
-    assert err.value.field == field and "\n" not in str(err.value)
+    assert err.value.field == field
+    assert "\n" not in str(err.value)
 
 
 def test_the_automatic_resume_is_for_the_sim_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

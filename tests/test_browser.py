@@ -61,7 +61,8 @@ def images_in_chromium(root: Path, page: str) -> dict:
     finally:
         server.shutdown()
     found = re.search(r'<pre id="result">(.*?)</pre>', r.stdout, re.S)
-    assert found and found.group(1) != "pending", r.stdout[-2000:] + r.stderr[-2000:]
+    assert found, r.stdout[-2000:] + r.stderr[-2000:]
+    assert found.group(1) != "pending", r.stdout[-2000:] + r.stderr[-2000:]
     return json.loads(found.group(1))
 
 

@@ -40,7 +40,8 @@ async def test_a_published_message_arrives_decoded(endpoint: str) -> None:
                 put(a, a.key("decision/selection"), SEL, block=True)
                 await asyncio.wait({received}, timeout=0.05)
         key, msg = received.result()
-        assert key == "cadence/cell1/decision/selection" and msg == SEL
+        assert key == "cadence/cell1/decision/selection"
+        assert msg == SEL
 
 
 async def test_malformed_payloads_on_every_key_are_counted_and_dropped(endpoint: str) -> None:
@@ -83,7 +84,8 @@ async def test_a_queryable_answers_and_an_error_reply_says_why(endpoint: str) ->
                 pass
         assert replies[0].message == SEL
         bad = await b.get(b.key("decision/bad"), Selection, timeout=2.0)
-        assert bad[0].message is None and bad[0].error == "no such thing"
+        assert bad[0].message is None
+        assert bad[0].error == "no such thing"
 
 
 async def test_a_closed_bus_refuses_use(endpoint: str) -> None:
@@ -157,7 +159,8 @@ async def test_zenoh_cli_prints_cadence_messages_as_json(endpoint: str) -> None:
                     put(a, a.key("decision/selection"), SEL)
                     await asyncio.sleep(0.1)
         line = next(x for x in lines if "decision.selection.v1" in x)
-        assert '"k":8' in line and '"reason":"initial"' in line
+        assert '"k":8' in line
+        assert '"reason":"initial"' in line
     finally:
         proc.terminate()
         proc.wait(timeout=10)
@@ -245,5 +248,6 @@ async def test_a_burst_past_a_handlers_queue_is_counted_not_lost_silently(endpoi
             while 1000 not in handled:
                 await asyncio.sleep(0.01)
     dropped = b.rejected[(key, "queue_full")]
-    assert dropped > 0 and len(handled) + dropped == 1001
+    assert dropped > 0
+    assert len(handled) + dropped == 1001
     assert b.drop_counters()["rejected/decision/selection/queue_full"] == dropped

@@ -35,13 +35,17 @@ def test_an_ecg_that_cannot_be_read_gets_a_verdict_that_says_why_and_never_settl
     with the reason in words, and a session's gate would wait, saying what is wrong, never start."""
     wins = streamed("201", 5.0)
     v = verdict(wins)
-    assert v.total == 10 and v.readable < 0.6
-    assert v.problem is not None and v.problem.startswith("this ECG cannot be read reliably")
-    assert "irregular" in v.problem and "atrial fibrillation" in v.problem
+    assert v.total == 10
+    assert v.readable < 0.6
+    assert v.problem is not None
+    assert v.problem.startswith("this ECG cannot be read reliably")
+    assert "irregular" in v.problem
+    assert "atrial fibrillation" in v.problem
     with pytest.raises(ValueError, match="cannot be read reliably"):
         resting_level(wins)
     why = settled(wins, 0.7)
-    assert why is not None and "held" in why
+    assert why is not None
+    assert "held" in why
 
 
 @needs_data
@@ -51,7 +55,8 @@ def test_a_readable_ecg_calibrates_and_is_settled_at_its_own_level(record: str) 
     one) that issue 19's rules held in every window: both are read, and settled at their baseline."""
     wins = streamed(record, 5.0)
     level = resting_level(wins)
-    assert level.verdict.problem is None and level.verdict.readable >= 0.9, level.verdict.lines()
+    assert level.verdict.problem is None, level.verdict.lines()
+    assert level.verdict.readable >= 0.9, level.verdict.lines()
     assert settled(wins, level.rr_rest_s) is None
     assert settled(wins, level.rr_rest_s + 2 * SETTLED_S) is not None  # far from it: not settled
 
@@ -78,11 +83,13 @@ def test_a_baseline_taken_at_work_matches_the_work_where_one_taken_seated_does_n
     walking (--posture working) they are settled, and the level at rest is kept beside it."""
     sitting, walking = gudb_windows("subject_08", "sitting"), gudb_windows("subject_08", "walking")
     rest, _ = calibration(sitting, "s08", 1, measured_sigma=False)
-    assert rest.posture == "rest" and rest.rr_resting_s is None
+    assert rest.posture == "rest"
+    assert rest.rr_resting_s is None
     assert np.mean([w.mean_rr_s for w in walking]) < rest.rr_rest_s - 2 * SETTLED_S  # walking lowers RR
     assert settled(walking, rest.rr_rest_s) is not None
     work, _ = calibration(walking, "s08", 2, measured_sigma=False, posture="working", resting=rest)
-    assert work.posture == "working" and work.rr_resting_s == rest.rr_rest_s
+    assert work.posture == "working"
+    assert work.rr_resting_s == rest.rr_rest_s
     assert settled(walking, work.rr_rest_s) is None
     other = Calibration(t_ns=1, seq=0, subject="someone-else", rr_rest_s=0.9)
     assert calibration(walking, "s08", 2, False, "working", other)[0].rr_resting_s is None  # not theirs

@@ -73,7 +73,8 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
 def test_a_cell_with_a_strap_gives_the_twin_no_account_at_all() -> None:
     strap = access_control("c1", cell_accounts("Polar H10"))
     named = {a for p in strap["policies"] for a in p["subjects"]}
-    assert "operator_twin" not in named and {"ecg_gateway", "separation_sensor", "executor"} <= named
+    assert "operator_twin" not in named
+    assert {"ecg_gateway", "separation_sensor", "executor"} <= named
     twin = access_control("c1", cell_accounts("twin"))
     assert "operator_twin" in {a for p in twin["policies"] for a in p["subjects"]}
 
@@ -133,7 +134,8 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
         await windows.receive(10)
         put(decider, decider.key("decision/selection"), sel, block=True)
         _, got = await selections.receive(10)
-        assert got == sel and selections.pending == 0  # the decision maker's, and only it
+        assert got == sel
+        assert selections.pending == 0  # the decision maker's, and only it
         assert windows.pending == 0
     # where a person is: the sensor's account may say it, the HMI's operator account may not; and no
     # service speaks for another's health. (A forbidden put, then an allowed one on the same link: the
@@ -168,7 +170,8 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
         assert (await signals.receive(10))[1] == signal
         assert (await ex_health.receive(10))[1] == own
         assert (await seps.receive(10))[1] == near
-        assert seps.pending == 0 and dm_health.pending == 0
+        assert seps.pending == 0
+        assert dm_health.pending == 0
     # no certificate of the cell: the router refuses the link
     stranger = {"mode": "client", "connect": {"endpoints": endpoint, "timeout_ms": 2000}}
     stranger["transport"] = {"auth": {"usrpwd": {"user": "monitor", "password": passwords["monitor"]}}}
@@ -222,20 +225,28 @@ def test_the_dry_run_prints_every_file_and_no_secret() -> None:
         "cadence-executor.service",
     ):
         assert f in out
-    assert 'backend = "ur_rtde"' in out and 'host = "192.168.0.10"' in out and 'source = "polar"' in out
-    assert "PRIVATE KEY" not in out and '"password"' not in out and "_base64" not in out
+    assert 'backend = "ur_rtde"' in out
+    assert 'host = "192.168.0.10"' in out
+    assert 'source = "polar"' in out
+    assert "PRIVATE KEY" not in out
+    assert '"password"' not in out
+    assert "_base64" not in out
     # every key of every section is in the config: set, or commented at its default
-    assert "# fifo_priority = 80" in out and "# window_s = 30.0" in out
+    assert "# fifo_priority = 80" in out
+    assert "# window_s = 30.0" in out
     # one ECG source: the strap's gateway here; the operator twin, in its place, for --strap twin
-    assert "cadence-ecg_gateway.service" in out and "operator_twin" not in out
+    assert "cadence-ecg_gateway.service" in out
+    assert "operator_twin" not in out
     twin = subprocess.run(
         [sys.executable, "-m", "cadence", "install", "--robot", "sim", "--strap", "twin", "--dry-run"],
         capture_output=True,
         text=True,
         check=True,
     ).stdout
-    assert "cadence-operator_twin.service" in twin and "[operator_twin]" in twin
-    assert "cadence-ecg_gateway.service" not in twin and "[ecg_gateway]" not in twin
+    assert "cadence-operator_twin.service" in twin
+    assert "[operator_twin]" in twin
+    assert "cadence-ecg_gateway.service" not in twin
+    assert "[ecg_gateway]" not in twin
 
 
 def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Path) -> None:
@@ -245,7 +256,9 @@ def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Pat
     assert joined == first
     p = plan(Options(robot="sim", services=("pareto_store",), join=tmp_path / "cell.json"), joined)
     names = {f.path.name for f in p.files}
-    assert "pareto_store.json5" in names and "router.json5" not in names and "executor.json5" not in names
+    assert "pareto_store.json5" in names
+    assert "router.json5" not in names
+    assert "executor.json5" not in names
     cfg = json.loads(next(f for f in p.files if f.path.name == "pareto_store.json5").text.split("\n", 1)[1])
     assert cfg["connect"]["endpoints"] == ["tls/cellpc:7447"]
     (tmp_path / "bad.json").write_text("{}")
@@ -306,7 +319,8 @@ def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str
         text=True,
         check=False,
     )
-    assert r.returncode == 2 and said in r.stderr, r.stderr
+    assert r.returncode == 2, r.stderr
+    assert said in r.stderr, r.stderr
 
 
 def test_an_install_on_a_host_without_systemd_stops_before_it_writes_anything(tmp_path: Path) -> None:
@@ -322,4 +336,5 @@ def test_an_install_on_a_host_without_systemd_stops_before_it_writes_anything(tm
     before = Path("/etc/cadence").exists()
     with pytest.raises(InstallError, match=r"does not run systemd .*nothing was written.*--no-systemctl"):
         install(Options(robot="sim", strap="twin", prefix=tmp_path / "opt"))
-    assert Path("/etc/cadence").exists() == before and not (tmp_path / "opt").exists()
+    assert Path("/etc/cadence").exists() == before
+    assert not (tmp_path / "opt").exists()

@@ -63,7 +63,9 @@ def test_plan_writes_the_json_contract_and_a_png_per_path(tmp_path: Path) -> Non
             "solutions",
             "constraints",
         }
-        assert data["path_id"] == pid and data["unit"] == "rad" and data["constraints"] == "exact"
+        assert data["path_id"] == pid
+        assert data["unit"] == "rad"
+        assert data["constraints"] == "exact"
         np.testing.assert_allclose(data["waypoints"], path.waypoints)
         assert set(data["boundary"]["start"]) == {"velocity", "acceleration", "jerk"}
         sols = data["solutions"]
@@ -72,7 +74,8 @@ def test_plan_writes_the_json_contract_and_a_png_per_path(tmp_path: Path) -> Non
         assert all(abs(s["t_f"] - sum(s["h"])) < 1e-12 for s in sols)
         assert all(trajectory_problems(np.array(s["h"]), path, task.limits) == [] for s in sols)
         png = (tmp_path / "o" / f"{pid}.png").read_bytes()
-        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+        assert len(png) > 20_000
 
 
 def test_a_bad_flag_value_exits_2(tmp_path: Path) -> None:
@@ -88,7 +91,8 @@ def test_an_unplannable_path_is_one_line_naming_it(tmp_path: Path) -> None:
     proc = run_cli("plan", str(task), "--out", str(tmp_path / "o"))
     assert proc.returncode == 1
     lines = proc.stderr.strip().splitlines()
-    assert "path 'p1'" in lines[-1] and "kappa" in lines[-1]
+    assert "path 'p1'" in lines[-1]
+    assert "kappa" in lines[-1]
     assert not (tmp_path / "o").exists()
 
 
@@ -150,7 +154,9 @@ async def test_a_sensor_adapter_pipes_distances_in_and_a_bad_line_is_named_and_s
         rc = await asyncio.to_thread(proc.wait, 30)
     assert (got.distance_m, got.age_s, got.source) == (1.25, 0.04, "scanner:front")
     stderr = proc.stderr.read() if proc.stderr else ""
-    assert "stdin line 1: 'near'" in stderr and "stdin line 2: '-3'" in stderr and rc == 1
+    assert "stdin line 1: 'near'" in stderr
+    assert "stdin line 2: '-3'" in stderr
+    assert rc == 1
 
 
 @pytest.mark.asyncio
@@ -179,9 +185,11 @@ async def test_the_sensor_adapter_skips_a_bad_byte_a_huge_line_and_an_underscore
         proc.stdin.close()
         rc = await asyncio.to_thread(proc.wait, 30)
     stderr = (proc.stderr.read() if proc.stderr else b"").decode()
-    assert got.distance_m == 1.5 and rc == 1
+    assert got.distance_m == 1.5
+    assert rc == 1
     assert "stdin line 1: not UTF-8" in stderr
-    assert "stdin line 2:" in stderr and "over 256 bytes" in stderr
+    assert "stdin line 2:" in stderr
+    assert "over 256 bytes" in stderr
     assert "stdin line 3: '1_0': not a decimal number" in stderr
 
 
@@ -192,7 +200,9 @@ def test_a_misspelled_bus_variable_stops_a_tool_as_it_stops_every_service() -> N
     env = {**os.environ, "CADENCE_BUS_CONECT": "['tcp/127.0.0.1:7447']"}
     proc = subprocess.run([sys.executable, "-m", "cadence", "top"], env=env, capture_output=True, text=True,
                           timeout=60)  # fmt: skip
-    assert proc.returncode == 2 and "CADENCE_BUS_CONECT" in proc.stderr and "conect" in proc.stderr
+    assert proc.returncode == 2
+    assert "CADENCE_BUS_CONECT" in proc.stderr
+    assert "conect" in proc.stderr
 
 
 def test_a_demo_speed_every_service_would_refuse_is_refused_at_the_command() -> None:
@@ -200,4 +210,5 @@ def test_a_demo_speed_every_service_would_refuse_is_refused_at_the_command() -> 
     loop (issue 43). One check, at the command, with the range."""
     proc = subprocess.run([sys.executable, "-m", "cadence", "demo", "--speed", "2000"], capture_output=True,
                           text=True, timeout=60)  # fmt: skip
-    assert proc.returncode == 2 and "--speed: must be at most 1000" in proc.stderr
+    assert proc.returncode == 2
+    assert "--speed: must be at most 1000" in proc.stderr

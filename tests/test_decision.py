@@ -29,8 +29,10 @@ def run(values: list[str], p: Params = P) -> list[int]:
 
 
 def test_the_initial_index_is_8_for_15_solutions_as_in_the_paper() -> None:
-    assert P.k0 == 8 and State.initial(P).rr_prev == Decimal("0.85")
-    assert P.rr_stress == Decimal("0.77") and P.rr_stress_max == Decimal("0.69")
+    assert P.k0 == 8
+    assert State.initial(P).rr_prev == Decimal("0.85")
+    assert P.rr_stress == Decimal("0.77")
+    assert P.rr_stress_max == Decimal("0.69")
 
 
 @pytest.mark.parametrize(
@@ -58,7 +60,8 @@ def test_the_initial_index_is_8_for_15_solutions_as_in_the_paper() -> None:
 def test_branches_and_boundaries(prev: str, rr: str, delta: int, reason: str) -> None:
     r = step(P, State(8, Decimal(prev)), rr)
     assert (r.delta, r.reason) == (delta, reason)
-    assert r.state.k == 8 + delta and r.state.rr_prev == Decimal(rr)
+    assert r.state.k == 8 + delta
+    assert r.state.rr_prev == Decimal(rr)
 
 
 def test_rr_equal_to_rr_rest_is_not_stress() -> None:
@@ -75,7 +78,9 @@ def test_k_is_clamped_at_1_and_n() -> None:
 def test_a_low_quality_window_holds_and_keeps_rr_prev() -> None:
     s = State(5, Decimal("0.80"))
     for r in (step(P, s, "0.60", good_quality=False), step(P, s, None)):
-        assert r.state == s and r.delta == 0 and r.reason == "low-quality"
+        assert r.state == s
+        assert r.delta == 0
+        assert r.reason == "low-quality"
 
 
 def test_floats_are_taken_at_their_decimal_value() -> None:
@@ -84,7 +89,9 @@ def test_floats_are_taken_at_their_decimal_value() -> None:
 
 
 def test_per_path_clamping() -> None:
-    assert k_for_path(15, 12) == 12 and k_for_path(0, 12) == 1 and k_for_path(7, 12) == 7
+    assert k_for_path(15, 12) == 12
+    assert k_for_path(0, 12) == 1
+    assert k_for_path(7, 12) == 7
 
 
 # --- an independent implementation, in exact rationals ------------------------------------------
@@ -153,7 +160,8 @@ def test_cadence_decide_rejects_a_bad_line_naming_it(bad: str) -> None:
         timeout=60,
     )
     assert proc.returncode == 2
-    assert "<stdin>:3" in proc.stderr and proc.stdout == ""
+    assert "<stdin>:3" in proc.stderr
+    assert proc.stdout == ""
 
 
 def test_cadence_decide_says_a_mean_rr_in_milliseconds_is_one() -> None:
@@ -165,7 +173,8 @@ def test_cadence_decide_says_a_mean_rr_in_milliseconds_is_one() -> None:
         text=True,
         timeout=60,
     )
-    assert proc.returncode == 2 and "milliseconds? 0.85 s" in proc.stderr
+    assert proc.returncode == 2
+    assert "milliseconds? 0.85 s" in proc.stderr
 
 
 @pytest.mark.parametrize(
@@ -180,14 +189,17 @@ def test_cadence_decide_checks_its_rr_rest_as_it_checks_the_lines(flag: str, sai
         text=True,
         timeout=60,
     )
-    assert proc.returncode == 2 and said in proc.stderr and proc.stdout == ""
+    assert proc.returncode == 2
+    assert said in proc.stderr
+    assert proc.stdout == ""
 
 
 @pytest.mark.parametrize("minutes", ["0", "-1", "nan"])
 def test_cadence_calibrate_refuses_minutes_that_record_nothing(minutes: str) -> None:
     proc = subprocess.run([sys.executable, "-m", "cadence", "calibrate", "--minutes", minutes],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert proc.returncode == 2 and "--minutes" in proc.stderr
+    assert proc.returncode == 2
+    assert "--minutes" in proc.stderr
 
 
 def test_cadence_calibrate_says_where_it_listens_when_nothing_answers() -> None:
@@ -203,7 +215,8 @@ def test_cadence_calibrate_says_where_it_listens_when_nothing_answers() -> None:
         proc.kill()
         proc.wait(10)
     said = " ".join(said.split())
-    assert "no hrv/window on cell 'lonely" in said and "listening through peers on this host" in said
+    assert "no hrv/window on cell 'lonely" in said
+    assert "listening through peers on this host" in said
 
 
 def test_a_router_that_is_not_there_is_one_line_without_zenohs_source_file() -> None:
@@ -211,8 +224,11 @@ def test_a_router_that_is_not_there_is_one_line_without_zenohs_source_file() -> 
 
     cmd = [sys.executable, "-m", "cadence", "calibrate", "--connect", f"tcp/127.0.0.1:{free_port()}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    assert proc.returncode != 0 and "cannot open a Zenoh session (client)" in proc.stderr
-    assert ".rs:" not in proc.stderr and "cargo" not in proc.stderr and proc.stderr.count("\n") == 1
+    assert proc.returncode != 0
+    assert "cannot open a Zenoh session (client)" in proc.stderr
+    assert ".rs:" not in proc.stderr
+    assert "cargo" not in proc.stderr
+    assert proc.stderr.count("\n") == 1
 
 
 # --- the personal mode (issue 41) ------------------------------------------------------------------------
@@ -241,7 +257,9 @@ def test_the_personal_reference_follows_a_lower_rr_slowly_and_a_higher_one_never
     s = PersonalState.initial(p)
     for _ in range(20):
         s = personal_step(p, q, s, 0.95, 30, True)[0]
-    assert s.ref == 0.85 and s.k == 13  # calmer than its reference: read as calm, the reference stays
+    assert s.ref == 0.85
+    assert s.k == 13  # calmer than its reference: read as calm, the reference stays
     for _ in range(20):
         s = personal_step(p, q, s, 0.75, 30, True)[0]
-    assert 0.75 < s.ref < 0.80 and s.k > 3  # a long stress is followed, slowly
+    assert 0.75 < s.ref < 0.80
+    assert s.k > 3  # a long stress is followed, slowly

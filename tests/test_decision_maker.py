@@ -122,7 +122,8 @@ async def test_without_calibration_it_publishes_nothing_until_one_arrives(
         async with asyncio.timeout(10):
             while not (replies := await bus.get(bus.key("decision/selection"), Selection, timeout=1.0)):
                 pass
-        assert replies[0].message is None and "no calibration" in replies[0].error
+        assert replies[0].message is None
+        assert "no calibration" in replies[0].error
         cal = Calibration(t_ns=1, seq=0, subject="s01", rr_rest_s=0.9)
         async with asyncio.timeout(10):
             sel = None
@@ -162,7 +163,8 @@ async def test_a_fixed_condition_holds_its_k_whatever_the_windows_say(
             while svc.ctx.counters["windows"] < 3:
                 await first_selection(sub)  # each republish is a chance to see the count rise
         replies = await bus.get(bus.key("decision/selection"), Selection, timeout=5.0)
-        assert replies and replies[0].message == first  # the same selection: nothing moved it
+        assert replies
+        assert replies[0].message == first  # the same selection: nothing moved it
         await svc.close()
     assert not (tmp_path / "decision_state.json").exists()
 
@@ -195,8 +197,11 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
 
         before = now_ns()
         a = await ask("mode=fixed;k=a;by=session s1/a")
-        assert isinstance(a, Selection) and (a.k, a.reason) == (15, "fixed") and a.t_ns >= before
-        assert "k=16" in str(await ask("mode=fixed;k=16")) and "mode='turbo'" in str(await ask("mode=turbo"))
+        assert isinstance(a, Selection)
+        assert (a.k, a.reason) == (15, "fixed")
+        assert a.t_ns >= before
+        assert "k=16" in str(await ask("mode=fixed;k=16"))
+        assert "mode='turbo'" in str(await ask("mode=turbo"))
         await svc.close()
 
         svc = start_decider(tmp_path, endpoint, settings)  # restarted mid-session: still (a)
@@ -209,7 +214,8 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
         async with asyncio.timeout(10):  # the topic and the query travel apart: ask until it has come
             while isinstance(c := await ask(f"mode=adaptive;calibration={fresh.t_ns};by=session s1/c"), str):
                 assert "not received yet" in c
-        assert isinstance(c, Selection) and (c.k, c.reason) == (8, "initial")  # from the initial k again
+        assert isinstance(c, Selection)
+        assert (c.k, c.reason) == (8, "initial")  # from the initial k again
         assert '"rr_rest_s": 0.95' in (tmp_path / "decision_state.json").read_text()  # of the new RR_r
         assert (await answer(bus, sub, window(1, 0.90))).reason != "fixed"
         await svc.close()
@@ -291,4 +297,5 @@ async def test_the_personal_mode_resumes_its_state_after_a_restart(tmp_path: Pat
     for w in windows:
         s = personal_step(p, q, s, w.mean_rr_s, w.n_beats, True)[0]
         want.append(s.k)
-    assert got == want and got[0] > got[3] < got[5]  # steps down under load and back up after it
+    assert got == want
+    assert got[0] > got[3] < got[5]  # steps down under load and back up after it

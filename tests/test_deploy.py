@@ -70,7 +70,8 @@ def test_the_units_verify(installed_units: list[Path]) -> None:
         timeout=120,
     )
     ours = [line for line in r.stderr.splitlines() if "cadence" in line]
-    assert r.returncode == 0 and not ours, r.stderr
+    assert r.returncode == 0, r.stderr
+    assert not ours, r.stderr
 
 
 @needs_systemd

@@ -48,14 +48,13 @@ def write_e4(folder: Path, rr_of: list[tuple[float, float]], gaps: tuple[tuple[f
 
 def test_an_export_is_read_with_its_gaps_and_units(tmp_path: Path) -> None:
     rec = read_e4(write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((100.0, 160.0),)))
-    assert (
-        rec.start_ns == START * 10**9
-        and rec.acc_hz == 32.0
-        and rec.tags_ns.tolist() == [(START + 100) * 10**9]
-    )
+    assert rec.start_ns == START * 10**9
+    assert rec.acc_hz == 32.0
+    assert rec.tags_ns.tolist() == [(START + 100) * 10**9]
     assert abs(rec.acc_mg[0, 2] - 64 * MG_PER_UNIT) < 1e-9  # 1/64 g → mg: 1 g
     t = (rec.beat_ns - rec.start_ns) / 1e9
-    assert not np.any((t >= 100) & (t < 160)) and abs(float(np.median(rec.ibi_s)) - 0.8) < 0.01
+    assert not np.any((t >= 100) & (t < 160))
+    assert abs(float(np.median(rec.ibi_s)) - 0.8) < 0.01
 
 
 def test_a_window_with_too_few_intervals_is_held_for_coverage(tmp_path: Path) -> None:
@@ -63,9 +62,13 @@ def test_a_window_with_too_few_intervals_is_held_for_coverage(tmp_path: Path) ->
 
     rec = read_e4(write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((95.0, 118.0), (120.0, 150.0))))
     wins = {round((a - rec.start_ns) / 1e9): w for a, w in e4_windows(rec)}
-    assert wins[60].quality == "good" and abs(wins[60].mean_rr_s - 0.8) < 0.01  # type: ignore[operator]
-    assert wins[90].quality == "low" and wins[90].reason == "coverage" and 0 < wins[90].n_beats < 10
-    assert wins[120].quality == "none" and wins[120].mean_rr_s is None
+    assert wins[60].quality == "good"
+    assert abs(wins[60].mean_rr_s - 0.8) < 0.01  # type: ignore[operator]
+    assert wins[90].quality == "low"
+    assert wins[90].reason == "coverage"
+    assert 0 < wins[90].n_beats < 10
+    assert wins[120].quality == "none"
+    assert wins[120].mean_rr_s is None
 
 
 @pytest.mark.parametrize(
@@ -105,9 +108,13 @@ def test_a_stress_drop_of_one_person_moves_the_personal_mode_and_barely_alg_1(tm
     0.14 s) small."""
     write_study(tmp_path, SESSION)
     (s,) = bd.stress_predict(tmp_path, movement=True)
-    assert s.problem is None and s.calibration is not None and abs(s.calibration.rr_rest_s - 0.80) < 0.01
+    assert s.problem is None
+    assert s.calibration is not None
+    assert abs(s.calibration.rr_rest_s - 0.80) < 0.01
     paper, personal = (bd.score(s, bd.run(s, q)) for q in (None, Personal()))
-    assert personal.lower_in_stress and personal.auc > 0.9 and personal.k_calm - personal.k_stress >= 2
+    assert personal.lower_in_stress
+    assert personal.auc > 0.9
+    assert personal.k_calm - personal.k_stress >= 2
     assert paper.k_calm - paper.k_stress < personal.k_calm - personal.k_stress
     assert personal.held == 0  # a still wrist: nothing held for movement
 
@@ -134,7 +141,8 @@ def test_bench_decide_writes_its_figures_and_a_json_line(
         == 0
     )
     figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert set(figures) == {"paper", "personal"} and figures["personal"]["subjects"] == 1
+    assert set(figures) == {"paper", "personal"}
+    assert figures["personal"]["subjects"] == 1
     assert figures["personal"]["lower_in_stress"] == 1.0
     assert (tmp_path / "figs" / "data_S01.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -158,7 +166,8 @@ def test_on_real_people_held_out_the_personal_mode_slows_under_stress() -> None:
     assert len(sessions) >= 25
     cv = bd.cross_validate(sessions)
     held = bd.summary(cv.held_out)
-    assert held["lower_in_stress"] >= 0.9 and held["auc_median"] >= 0.80  # type: ignore[operator]
+    assert held["lower_in_stress"] >= 0.9
+    assert held["auc_median"] >= 0.80  # type: ignore[operator]
     assert cv.on_all == Personal()
     paper = bd.summary([bd.score(s, bd.run(s, None)) for s in sessions])
     assert paper["auc_median"] < held["auc_median"]  # type: ignore[operator]
@@ -207,6 +216,8 @@ async def test_a_wristbands_export_replays_through_the_gateway_into_windows(
             await svc.close()
     assert gaps == 1
     good = [w for w in got if w.quality == "good"]
-    assert good and all(abs(w.mean_rr_s - 0.8) < 0.01 for w in good)  # type: ignore[operator]
+    assert good
+    assert all(abs(w.mean_rr_s - 0.8) < 0.01 for w in good)  # type: ignore[operator]
     over_gap = [w for w in got if w.start_ns < start + 150 * 10**9 and w.end_ns > start + 95 * 10**9]
-    assert over_gap and all(w.quality != "good" for w in over_gap)
+    assert over_gap
+    assert all(w.quality != "good" for w in over_gap)

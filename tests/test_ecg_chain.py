@@ -85,7 +85,8 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
     assert len(got_windows) == len(expected) - 1 == 3
     for w, e in zip(got_windows, expected, strict=False):
         assert (w.start_ns - START_NS, w.end_ns - START_NS) == (round(e.start_s * 1e9), round(e.end_s * 1e9))
-        assert w.mean_rr_s == pytest.approx(e.mean_rr_s, abs=1e-9) and w.quality == e.quality
+        assert w.mean_rr_s == pytest.approx(e.mean_rr_s, abs=1e-9)
+        assert w.quality == e.quality
         assert w.n_beats == e.n_beats
     p, s, ks = Params.of(0.85), None, []
     s = State.initial(p)
@@ -139,10 +140,12 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
             await svc.close()
     assert level.good == len(offline) == 2
     assert cal.rr_rest_s == pytest.approx(np.mean([w.mean_rr_s for w in offline]), abs=1e-6)
-    assert cal.sigma_rest_s == 0.14 and cal.subject == "s07"
+    assert cal.sigma_rest_s == 0.14
+    assert cal.subject == "s07"
     assert sent == cal
     screen = " ".join(calibration_screen(cal, level, False, arm))
-    assert "NOT AT REST: the arm moved in" in screen and "--posture working" in screen
+    assert "NOT AT REST: the arm moved in" in screen
+    assert "--posture working" in screen
     assert "NOT AT REST" not in " ".join(calibration_screen(cal, level, False, [False, False]))
     assert msgspec.json.decode((tmp_path / CALIBRATION_FILE).read_bytes(), type=Calibration) == cal
 
@@ -173,5 +176,6 @@ async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str
         await analyser.close()
     for w, e in zip(got, expected, strict=False):
         assert w.start_ns - START_NS == pytest.approx(e.start_s * 1e9, abs=2)
-        assert w.mean_rr_s == pytest.approx(e.mean_rr_s, abs=1e-9) and w.n_beats == e.n_beats
+        assert w.mean_rr_s == pytest.approx(e.mean_rr_s, abs=1e-9)
+        assert w.n_beats == e.n_beats
         assert w.quality == e.quality == "good"

@@ -217,7 +217,8 @@ async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_say
         report = await next_of(cycles)
         await asyncio.wait_for(ex.task, 15)
         await store.close()
-    assert report.cycle == 0 and ex.ctx.counters["late"] == 1
+    assert report.cycle == 0
+    assert ex.ctx.counters["late"] == 1
 
 
 async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused_without_moving(
@@ -253,7 +254,9 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
         refused = await next_of(events, lambda e: e.kind == "refused")
         state = await next_of(states, lambda s: s.mode == "refused")
         await ex.close()
-    assert refused.path_id == "there" and "k = 3" in refused.message and "over its limit" in refused.message
+    assert refused.path_id == "there"
+    assert "k = 3" in refused.message
+    assert "over its limit" in refused.message
     np.testing.assert_allclose(state.q, task.paths["there"].waypoints[0], atol=1e-12)  # it never moved
     assert state.qd == [0.0] * 6
 
@@ -279,10 +282,12 @@ async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
         ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
         first = await next_of(events, lambda e: e.path_id == "there")
         if policy == "refuse":
-            assert first.kind == "refused" and "0.1745 rad from the start of 'there'" in first.message
+            assert first.kind == "refused"
+            assert "0.1745 rad from the start of 'there'" in first.message
             await ex.close()
         else:
-            assert first.kind == "info" and "moving there slowly" in first.message
+            assert first.kind == "info"
+            assert "moving there slowly" in first.message
             assert (await next_of(cycles)).k_per_path == {"there": 5, "back": 5}  # initial_k 8, clamped to N
             await asyncio.wait_for(ex.task, 15)
         await store.close()
@@ -320,7 +325,8 @@ async def test_sigterm_during_motion_stops_decelerating_and_exits_0(
             proc.kill()
         await store.close()
     assert rc == 0
-    assert got.path_id == "back" and "decelerating stop" in got.message
+    assert got.path_id == "back"
+    assert "decelerating stop" in got.message
 
 
 async def test_a_bad_task_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
@@ -334,7 +340,10 @@ async def test_a_bad_task_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
         text=True,
         timeout=60,
     )
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.toml" in r.stderr and "speed" in r.stderr
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1
+    assert "bad.toml" in r.stderr
+    assert "speed" in r.stderr
 
 
 async def sensor(bus: Bus, distance: list[float | None]) -> None:
@@ -366,7 +375,8 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
         try:
             # no distance yet: the path has begun, and holds at its start
             first = await next_of(states, lambda s: s.state == "moving" and s.path_id == "there")
-            assert first.scale == 0.0 and first.separation_m is None
+            assert first.scale == 0.0
+            assert first.separation_m is None
             said = await next_of(events, lambda e: e.kind == "scale")
             assert "no separation yet: holding" in said.message
             later = await next_of(states, lambda s: s.t_ns > first.t_ns + 300_000_000)
@@ -405,9 +415,11 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
         finally:
             feeding.cancel()
             await store.close()
-    assert "k 2 → 5 within 'there'" in held_switch.message and "k 5 → 3 within 'back'" in switch.message
+    assert "k 2 → 5 within 'there'" in held_switch.message
+    assert "k 5 → 3 within 'back'" in switch.message
     assert report.k_per_path == {"there": 5, "back": 3}
-    assert ex.ctx.counters["protective_stops"] == 0 and ex.ctx.counters["ramps"] >= 4
+    assert ex.ctx.counters["protective_stops"] == 0
+    assert ex.ctx.counters["ramps"] >= 4
 
 
 async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm(
@@ -446,8 +458,11 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
         finally:
             feeding.cancel()
             await store.close()
-    assert "LinAlgError('Singular matrix')" in said.message and held.separation_m == 0.6
-    assert ex.ctx.counters["scale_errors"] == 1 and len(calls) >= 2 and calls[1] == calls[0]  # tried again
+    assert "LinAlgError('Singular matrix')" in said.message
+    assert held.separation_m == 0.6
+    assert ex.ctx.counters["scale_errors"] == 1
+    assert len(calls) >= 2
+    assert calls[1] == calls[0]  # tried again
 
 
 async def sensors(bus: Bus, table: dict[str, tuple[str, float, float]]) -> None:

@@ -62,7 +62,8 @@ async def still_while_stopped(states, n: int = 100) -> RobotState:
     last = None
     for _ in range(n):
         last = await next_of(states, timeout=10)
-        assert last.state == "stopped" and last.mode != "moving", last
+        assert last.state == "stopped", last
+        assert last.mode != "moving", last
         assert max(map(abs, last.qd)) == 0.0, f"the arm moved while stopped: {last.qd}"
     assert last is not None
     return last
@@ -96,7 +97,8 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
         await store.close()
     assert "overruns in a row" in stop.message
     assert "overruns in a row" in held.reason
-    assert said.startswith("ready") and "resumed by the test" in said
+    assert said.startswith("ready")
+    assert "resumed by the test" in said
     assert report.k_per_path == {"there": 2, "back": 2}
 
 
@@ -115,7 +117,8 @@ async def test_a_stalled_host_never_stops_the_sim_arm(
         await ex.close()
         await store.close()
         kinds = [e.kind for e in await _drained(events)]
-    assert on["left"] == 0 and "overrun" in kinds, kinds  # the stalls were counted, as ever …
+    assert on["left"] == 0, kinds
+    assert "overrun" in kinds, kinds  # the stalls were counted, as ever …
     assert "protective_stop" not in kinds  # … and the arm went on through them
     assert report.k_per_path == {"there": 2, "back": 2}
 
@@ -141,7 +144,8 @@ async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(
         await next_of(states, lambda s: s.state == "waiting_for_selection")
         (reply,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
         await ex.close()
-    assert reply.message is None and "nothing to resume: the robot is waiting_for_selection" in reply.error
+    assert reply.message is None
+    assert "nothing to resume: the robot is waiting_for_selection" in reply.error
 
 
 async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_off(
@@ -269,7 +273,8 @@ async def test_two_executors_on_one_host_get_different_servo_cores(
             cores[cell] = st.counters.get("servo_core")
         for ex in execs:
             await ex.close()
-    assert None not in cores.values() and cores["a"] != cores["b"], cores
+    assert None not in cores.values(), cores
+    assert cores["a"] != cores["b"], cores
 
 
 # --- the real ur-rtde client against the emulator -------------------------------------------------
@@ -329,9 +334,12 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
         emu.stop()
     # the stall stops the robot by its overruns, or first by the controller's watchdog (kicks late too)
     assert "overruns in a row" in overrun.message or "control script stopped" in overrun.message
-    assert "protective stop" in bumped.message and "protective stop" in held.reason
-    assert early.startswith("stopped") and "Cannot unlock protective stop until 5s" in early
-    assert "resumed by the test" in said and moving.state == "moving"
+    assert "protective stop" in bumped.message
+    assert "protective stop" in held.reason
+    assert early.startswith("stopped")
+    assert "Cannot unlock protective stop until 5s" in early
+    assert "resumed by the test" in said
+    assert moving.state == "moving"
     assert any("external force" in line for line in emu.lines)
 
 
@@ -348,4 +356,5 @@ async def test_a_cycle_cut_short_by_a_restart_is_said(task_file: Path, tmp_path:
         said = await next_of(events, lambda e: "cut short by a restart" in e.message)
         await ex.close()
         await store.close()
-    assert said.kind == "info" and said.message.startswith("cycle 0 of the last run")
+    assert said.kind == "info"
+    assert said.message.startswith("cycle 0 of the last run")

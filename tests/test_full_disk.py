@@ -88,7 +88,8 @@ async def test_the_executor_holds_the_arm_on_a_full_disk_and_goes_on_by_itself_w
             refused = await next_of(events, lambda e: e.kind == "refused" and "cannot write" in e.message)
             held = await next_of(states, lambda s: s.state == "refused" and "No space left" in s.reason)
             still = [await next_of(states) for _ in range(20)]  # a while: held, not moving, not restarted
-            assert all(s.state != "moving" for s in still) and not ex.task.done()
+            assert all(s.state != "moving" for s in still)
+            assert not ex.task.done()
             disk.free()
             back = await next_of(events, lambda e: e.kind == "info" and "written again" in e.message, 10)
             await next_of(states, lambda s: s.state == "moving", timeout=10)
@@ -96,10 +97,13 @@ async def test_the_executor_holds_the_arm_on_a_full_disk_and_goes_on_by_itself_w
             await asyncio.wait_for(ex.task, 15)
         finally:
             await store.close()
-    assert "No space left on device" in refused.message and "holding the arm still" in refused.message
-    assert "executor_state.json" in refused.message and said.kind == "started"
+    assert "No space left on device" in refused.message
+    assert "holding the arm still" in refused.message
+    assert "executor_state.json" in refused.message
+    assert said.kind == "started"
     assert held.path_id is None or held.state == "refused"
-    assert back is not None and report is not None
+    assert back is not None
+    assert report is not None
     assert ex.ctx.counters["write_errors"] == 1  # said once, however long it lasted
 
 
@@ -125,8 +129,10 @@ async def test_the_decision_maker_decides_and_publishes_on_a_full_disk_and_says_
         ok: ServiceStatus = await status_of(bus, "decision_maker", lambda s: s.detail == "")
         await svc.close()
     assert len(set(ks[:4])) > 1  # k moved while nothing could be written
-    assert "No space left on device" in full.detail and "deciding from memory" in full.detail
-    assert full.counters["unpersisted"] >= 3 and ok.state
+    assert "No space left on device" in full.detail
+    assert "deciding from memory" in full.detail
+    assert full.counters["unpersisted"] >= 3
+    assert ok.state
     assert json.loads((disk.path / STATE_FILE).read_text())["k"] == ks[-1]
 
 
@@ -135,8 +141,11 @@ def test_the_demos_summary_goes_elsewhere_with_one_line_when_its_folder_is_full(
     console = Console(record=True, width=200)
     where = keep_summary(disk.path, b'{"cycles": 3}', console)
     said = console.export_text()
-    assert where.parent != disk.path and json.loads(where.read_text()) == {"cycles": 3}
-    assert said.count("\n") == 1 and f"{disk.path}: cannot write summary.json" in said and str(where) in said
+    assert where.parent != disk.path
+    assert json.loads(where.read_text()) == {"cycles": 3}
+    assert said.count("\n") == 1
+    assert f"{disk.path}: cannot write summary.json" in said
+    assert str(where) in said
 
 
 @pytest.mark.asyncio
@@ -155,7 +164,10 @@ async def test_the_demos_supervisor_never_starts_a_service_once_stopping_has_beg
 
     started = time.monotonic()
     await asyncio.wait_for(sup.supervise(stopping, on_restart), 10)
-    assert died.is_set() and sup.restarts == 1 and sup.proc is not None and sup.proc.returncode == 1
+    assert died.is_set()
+    assert sup.restarts == 1
+    assert sup.proc is not None
+    assert sup.proc.returncode == 1
     assert time.monotonic() - started < 5
 
 
@@ -178,7 +190,8 @@ def test_a_full_disk_is_not_taken_for_a_damaged_store(disk: Disk, example_sets: 
     finally:
         store.close()
     assert problem is None or "not damaged, left as it is" in problem
-    assert len(sets) == 6 and db.stat().st_size == size
+    assert len(sets) == 6
+    assert db.stat().st_size == size
     assert not list(disk.path.glob("*.corrupt-*"))
 
 
@@ -206,11 +219,14 @@ def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(dis
         if rec.failed:
             break
     rec.close()  # no exception: what could not be written is said in failed
-    assert rec.failed is not None and f"cannot write {path}: No space left on device" in rec.failed
+    assert rec.failed is not None
+    assert f"cannot write {path}: No space left on device" in rec.failed
     disk.free()
     notes: list[str] = []
     kept = [m for m in read(path, notes=notes) if m.key.endswith("selection")]
-    assert len(kept) == 200 and notes and "ends without its footer" in notes[0]
+    assert len(kept) == 200
+    assert notes
+    assert "ends without its footer" in notes[0]
 
 
 def test_a_report_onto_a_full_disk_is_one_line_naming_the_folder(disk: Disk, tmp_path: Path) -> None:
@@ -220,7 +236,8 @@ def test_a_report_onto_a_full_disk_is_one_line_naming_the_folder(disk: Disk, tmp
     disk.fill()
     r = subprocess.run([sys.executable, "-m", "cadence", "report", str(run), "--out", str(disk.path / "rep")],
                        capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr
     assert "the report cannot be written there (No space left on device)" in r.stderr
 
 
@@ -230,9 +247,11 @@ def test_a_study_plan_on_a_full_disk_leaves_no_empty_sheet_and_a_rerun_writes_it
     disk.fill()
     cmd = [sys.executable, "-m", "cadence", "study", "plan", "--subjects", "6", "--out", str(plan)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "cannot be written (No space left on device)" in r.stderr
+    assert r.returncode == 2
+    assert "cannot be written (No space left on device)" in r.stderr
     assert r.stderr.count("\n") == 1
-    assert not (disk.path / "demographics.csv").exists() and not plan.exists()
+    assert not (disk.path / "demographics.csv").exists()
+    assert not plan.exists()
     disk.free()
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr

@@ -212,5 +212,6 @@ def test_the_zenoh_cli_decoder_decodes_each_key_as_the_graph_types_it() -> None:
     )
     assert msgspec.json.decode(decode("cadence/cell1/hrv/window", encode(w)))["mean_rr_s"] == 0.8
     wrong = msgspec.json.decode(decode("cadence/cell1/decision/selection", encode(w)))
-    assert "error" in wrong and wrong["key"] == "cadence/cell1/decision/selection"
+    assert "error" in wrong
+    assert wrong["key"] == "cadence/cell1/decision/selection"
     assert msgspec.json.decode(decode("other/key", encode(w)))["quality"] == "good"  # by its tag alone

@@ -198,10 +198,13 @@ def test_a_corrupt_state_file_is_moved_aside_named_and_the_service_starts_at_the
     assert moved.read_text() == text  # kept as it was, for a person to look at
     assert not (tmp_path / STATE_FILE).exists()
     (problem,) = problems
-    assert STATE_FILE in problem and moved.name in problem and "\n" not in problem
+    assert STATE_FILE in problem
+    assert moved.name in problem
+    assert "\n" not in problem
     if case in ("k is text", "rr_prev is NaN", "last_end_ns is 2**70"):
         assert case.split()[0] in problem  # the field is named
-    assert decider.record is not None and (decider.record.k, decider.record.reason) == (8, "initial")
+    assert decider.record is not None
+    assert (decider.record.k, decider.record.reason) == (8, "initial")
 
 
 @pytest.mark.asyncio
@@ -214,16 +217,19 @@ async def test_the_status_says_the_state_file_was_moved_aside(tmp_path: Path, en
         status = await status_of(bus, "decision_maker", lambda s: bool(s.detail))
         await svc.close()
     assert status.state == "running"
-    assert "moved aside" in status.detail and "initial k" in status.detail
+    assert "moved aside" in status.detail
+    assert "initial k" in status.detail
 
 
 def test_a_corrupt_calibration_file_is_moved_aside_and_the_config_rr_rest_used(tmp_path: Path) -> None:
     (tmp_path / CALIBRATION_FILE).write_text('{"type": "operator.calibration.v1", "rr_rest_s": -0.8}')
     decider = Decider(tmp_path, 15)
     (problem,) = resume(decider, tmp_path, 0.9)
-    assert CALIBRATION_FILE in problem and "rr_rest_s" in problem
+    assert CALIBRATION_FILE in problem
+    assert "rr_rest_s" in problem
     assert list(tmp_path.glob(f"{CALIBRATION_FILE}.corrupt-*"))
-    assert decider.record is not None and decider.record.calibration.rr_rest_s == 0.9
+    assert decider.record is not None
+    assert decider.record.calibration.rr_rest_s == 0.9
 
 
 # --- the HRV analyser ------------------------------------------------------------------------------
@@ -283,7 +289,8 @@ async def test_hostile_chunks_leave_the_analysers_windows_as_the_honest_stream_g
     assert all(w.quality == "good" and w.mean_rr_s == pytest.approx(0.8, abs=2e-3) for w in got)
     c = status.counters
     assert c["decode_errors"] == 3
-    assert c["rejected/ecg/samples/ahead"] == 1 and c["rejected/ecg/samples/changed"] == 1
+    assert c["rejected/ecg/samples/ahead"] == 1
+    assert c["rejected/ecg/samples/changed"] == 1
     assert c["rejected/ecg/samples/behind"] == 1
     assert c.get("stream_restarts", 0) == 0
 
@@ -313,7 +320,9 @@ def test_a_corrupt_sqlite_store_is_moved_aside_and_a_new_one_made(tmp_path: Path
     db = tmp_path / "pareto.sqlite"
     db.write_bytes(b"this is not a database" * 100)
     store, problem = SetStore.open(db)
-    assert problem is not None and "pareto.sqlite" in problem and "planned again" in problem
+    assert problem is not None
+    assert "pareto.sqlite" in problem
+    assert "planned again" in problem
     (moved,) = tmp_path.glob("pareto.sqlite.corrupt-*")
     assert moved.read_bytes().startswith(b"this is not")
     assert store.load("p", "h") is None
@@ -363,7 +372,9 @@ async def test_a_failing_handler_is_counted_logged_once_per_10_s_and_the_next_me
     assert handled == list(range(1, 100, 2))
     assert status.counters["handler_errors/decision/selection/ZeroDivisionError"] == 50
     lines = [r.getMessage() for r in caplog.records if "handler failed" in r.getMessage()]
-    assert len(lines) == 1 and "ZeroDivisionError: boom" in lines[0] and "test_hostile.py" in lines[0]
+    assert len(lines) == 1
+    assert "ZeroDivisionError: boom" in lines[0]
+    assert "test_hostile.py" in lines[0]
 
 
 # --- the executor ---------------------------------------------------------------------------------
@@ -415,7 +426,8 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
         fake.undeclare()
         assert not (cache / "there.msgpack").exists()  # the refused set is not kept
         assert list(cache.glob("back.msgpack.corrupt-*"))
-        assert "back.msgpack" in status.detail and "solutions" in status.detail
+        assert "back.msgpack" in status.detail
+        assert "solutions" in status.detail
 
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         report = await next_of(cycles, timeout=60)

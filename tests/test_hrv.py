@@ -22,9 +22,13 @@ def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
     rr[12], rr[13] = 0.3, 0.5  # an extra beat splits one interval
     rr[20], rr[21] = 0.55, 1.05  # a premature beat and its compensatory pause
     kinds = classify(rr)
-    assert kinds[5] == "missed" and kinds[12] == "extra" and kinds[20] == "ectopic" and kinds[21] == "ectopic"
+    assert kinds[5] == "missed"
+    assert kinds[12] == "extra"
+    assert kinds[20] == "ectopic"
+    assert kinds[21] == "ectopic"
     # which end of the fragment is the false beat cannot be told: the interval before it goes too
-    assert kinds[11] == "extra" and kinds[13] != "ok"
+    assert kinds[11] == "extra"
+    assert kinds[13] != "ok"
     assert sum(k != "ok" for k in kinds) == 6
 
 
@@ -34,8 +38,10 @@ def test_the_ecg_excludes_what_rr_cannot_tell_a_late_unlike_beat_and_a_burst_of_
     likeness[10] = 0.4  # interval 10 has a beat unlike the template (a late PVC: RR cannot see it)
     noise[20] = 3.0  # a burst of noise, three times the usual, between the beats of interval 20
     kinds = classify(rr, likeness, noise)
-    assert kinds[10] == "unlike" and kinds[20] == "noise"
-    assert sum(k != "ok" for k in kinds) == 2 and classify(rr) == ["ok"] * 30
+    assert kinds[10] == "unlike"
+    assert kinds[20] == "noise"
+    assert sum(k != "ok" for k in kinds) == 2
+    assert classify(rr) == ["ok"] * 30
 
 
 def test_a_run_of_doubled_intervals_is_missed_beats_until_it_lasts_too_long_to_be_dropped_beats() -> None:
@@ -46,9 +52,12 @@ def test_a_run_of_doubled_intervals_is_missed_beats_until_it_lasts_too_long_to_b
     rr = np.concatenate([np.full(40, 0.8), np.full(20, 1.6), np.full(20, 0.8), np.full(RELEVEL + 20, 1.6)])
     kinds = classify(rr)
     # each step takes the two intervals on either side as a premature pair; between them:
-    assert kinds[:38] == ["ok"] * 38 and kinds[42:58] == ["missed"] * 16 and kinds[62:78] == ["ok"] * 16
+    assert kinds[:38] == ["ok"] * 38
+    assert kinds[42:58] == ["missed"] * 16
+    assert kinds[62:78] == ["ok"] * 16
     run = kinds[82:]
-    assert run[: RELEVEL - 2] == ["missed"] * (RELEVEL - 2) and run[-10:] == ["ok"] * 10  # then relearnt
+    assert run[: RELEVEL - 2] == ["missed"] * (RELEVEL - 2)
+    assert run[-10:] == ["ok"] * 10  # then relearnt
     assert classify(rr, segment_starts={80})[86:96] == ["ok"] * 10  # after a gap: no level to compare with
 
 
@@ -58,7 +67,9 @@ def test_a_mildly_early_beat_and_its_pause_are_excluded_but_not_the_beat_after_a
     rr[20], rr[21] = 0.3, 0.5  # a false beat splits an interval: the beat closing 21 is a real one
     kinds = classify(rr)
     assert kinds[8] == kinds[9] == "ectopic"
-    assert kinds[22] == "ok" and kinds[7] == "ok" and kinds[10] == "ok"
+    assert kinds[22] == "ok"
+    assert kinds[7] == "ok"
+    assert kinds[10] == "ok"
     assert kinds[19] == "extra"  # next to the fragment, which might have been the other piece
     assert sum(k != "ok" for k in kinds) == 5
 
@@ -76,7 +87,8 @@ def test_a_deep_breathing_rhythm_is_the_persons_own_but_a_premature_beat_in_it_i
     pvc = rr.copy()
     pvc[100], pvc[101] = 0.55 * rr[100], rr[100] + 0.45 * rr[100]  # early by 45 %, full compensatory pause
     kinds = classify(pvc)
-    assert kinds[100] != "ok" and kinds[101] != "ok"
+    assert kinds[100] != "ok"
+    assert kinds[101] != "ok"
     assert sum(k != "ok" for k in kinds) <= 4  # the pair, and at most its neighbours
 
 
@@ -85,7 +97,9 @@ def test_a_lone_long_interval_stays_but_the_pause_after_a_premature_beat_goes() 
     rr[20] = 1.05  # a pause of the person's own (a sigh, a sinus pause): 31 % long, after a normal beat
     rr[30], rr[31] = 0.5, 1.1  # a premature beat and its pause
     kinds = classify(rr)
-    assert kinds[20] == "ok" and kinds[30] != "ok" and kinds[31] != "ok"
+    assert kinds[20] == "ok"
+    assert kinds[30] != "ok"
+    assert kinds[31] != "ok"
 
 
 @needs_data
@@ -100,7 +114,8 @@ def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> N
     for variant, by_pipeline in scores.items():
         f = by_pipeline["cadence"].figures()
         print(variant, f)
-        assert f["over_20_ms"] == 0 and f["p95_ms"] <= 5.0, variant
+        assert f["over_20_ms"] == 0, variant
+        assert f["p95_ms"] <= 5.0, variant
         assert f["held_share_sinus"] <= 0.2, variant  # holding everything would be accurate and useless
     # Bundle branch block: 109 (left: wide QRS, T waves as tall as it) and 118 (right: a QRS of two peaks
     # of like height) held 95-100 % of their windows under issue 19's rules. The noise between beats now
@@ -115,7 +130,8 @@ def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> N
     # interval is 1.9 s long; that interval is not in the truth (hrv_scoring.unreadable_spans), and the
     # window, good, is the heart's rhythm
     w101 = [w for w in clean.good if w.record == "101" and w.start_s == 300.0]
-    assert w101 and w101[0].error_s < 0.002
+    assert w101
+    assert w101[0].error_s < 0.002
 
 
 @needs_data
@@ -131,7 +147,8 @@ def test_a_10_s_dropout_forms_no_interval_across_it_and_flags_its_window() -> No
     ws = {w.start_s: w for w in windows(iv, 30.0, end_s=120.0, gaps_s=[gap])}
     assert ws[30.0].quality == "low"  # a third of it is missing
     assert ws[30.0].mean_rr_s is not None  # still computed from what is there, for the record
-    assert ws[0.0].quality == "good" and ws[90.0].quality == "good"
+    assert ws[0.0].quality == "good"
+    assert ws[90.0].quality == "good"
 
 
 @needs_data
@@ -146,9 +163,11 @@ def test_cadence_hrv_prints_json(tool: str) -> None:
     assert proc.returncode == 0, proc.stderr
     lines = [json.loads(line) for line in proc.stdout.splitlines()]
     if tool == "peaks":
-        assert lines[0]["fs"] == 130.0 and len(lines[0]["peaks_s"]) > 2000
+        assert lines[0]["fs"] == 130.0
+        assert len(lines[0]["peaks_s"]) > 2000
     else:
-        assert len(lines) == 60 and {
+        assert len(lines) == 60
+        assert {
             "start_s",
             "end_s",
             "mean_rr_s",
@@ -169,7 +188,8 @@ def test_a_broken_recording_is_one_line_and_exit_2(tmp_path) -> None:
         text=True,
         timeout=60,
     )
-    assert proc.returncode == 2 and "x.csv: row 3: time does not increase" in proc.stderr
+    assert proc.returncode == 2
+    assert "x.csv: row 3: time does not increase" in proc.stderr
 
 
 @needs_data
@@ -198,7 +218,8 @@ def test_the_stream_breaks_at_a_gap_and_flags_its_window() -> None:
     online += stream.flush()[1]
     by_start = {w.start_s: w for w in online}
     assert by_start[30.0].quality == "low"
-    assert by_start[0.0].quality == "good" and by_start[90.0].quality == "good"
+    assert by_start[0.0].quality == "good"
+    assert by_start[90.0].quality == "good"
     assert len(stream.gaps) <= 1
 
 
@@ -240,12 +261,15 @@ def test_lost_rr_notifications_form_no_interval_across_them() -> None:
             continue  # ten seconds of notifications never arrive, and nothing flags it
         online += stream.feed_rr(t, rr)[1]
     online += stream.flush()[1]
-    assert stream.segments == 2 and len(stream.gaps) <= 1
+    assert stream.segments == 2
+    assert len(stream.gaps) <= 1
     first = float(beats[0])
     by_start = {round(w.start_s - first): w for w in online}
     # an interval across the lost stretch would be ~10 s long, implausible, and excluded
-    assert by_start[30].quality == "low" and by_start[30].excluded == 0.0
-    assert by_start[0].quality == "good" and by_start[60].quality == "good"
+    assert by_start[30].quality == "low"
+    assert by_start[30].excluded == 0.0
+    assert by_start[0].quality == "good"
+    assert by_start[60].quality == "good"
 
 
 @needs_data
@@ -260,8 +284,11 @@ def test_the_beats_the_stream_flags_are_the_intervals_its_windows_exclude() -> N
     beats, wins = beats + b, wins + w
     iv = peak_intervals(detect_peaks(x, 130.0), 130.0)
     assert [b.t_s for b in beats[1:]] == pytest.approx(list(iv.t_s))
-    assert beats[0].kind == "start" and beats[0].excluded and [b.kind for b in beats[1:]] == iv.kind
-    assert any(b.excluded for b in beats[1:]) and not all(b.excluded for b in beats[1:])  # 208: many PVCs
+    assert beats[0].kind == "start"
+    assert beats[0].excluded
+    assert [b.kind for b in beats[1:]] == iv.kind
+    assert any(b.excluded for b in beats[1:])
+    assert not all(b.excluded for b in beats[1:])  # 208: many PVCs
     for w in wins:
         inside = [b for b in beats[1:] if w.start_s <= b.t_s < w.end_s]
         assert w.excluded == pytest.approx(np.mean([b.excluded for b in inside]))
@@ -283,7 +310,8 @@ def test_the_polar_sensor_logger_exports_read_and_their_ecg_and_rr_agree(tmp_pat
     of the same session; windows of each, with RMSSD and SDNN, agree where both are good."""
     ecg = _windows_of(str(POLAR / "Polar_H10_55354125_20210516_080846_ECG.txt"))
     rr = _windows_of(str(POLAR / "Polar_H10_55354125_20210516_080845_RR.txt"))
-    assert len(ecg) >= 4 and len(rr) >= 4
+    assert len(ecg) >= 4
+    assert len(rr) >= 4
     assert all({"rmssd_s", "sdnn_s"} <= w.keys() for w in ecg + rr)
     both = [(a, b) for a, b in zip(ecg, rr, strict=False) if a["quality"] == b["quality"] == "good"]
     assert len(both) >= 3
@@ -300,6 +328,8 @@ def test_the_polar_sensor_logger_exports_read_and_their_ecg_and_rr_agree(tmp_pat
     plain = tmp_path / "rr.txt"
     plain.write_text("".join(f"{800 + 10 * (i % 5)}\n" for i in range(120)))
     (w,) = [w for w in _windows_of(str(plain)) if w["end_s"] <= 90][:1]
-    assert w["mean_rr_s"] == pytest.approx(0.82, abs=0.005) and w["quality"] == "good"
+    assert w["mean_rr_s"] == pytest.approx(0.82, abs=0.005)
+    assert w["quality"] == "good"
     r = run_cli("hrv", "peaks", str(plain))
-    assert r.returncode == 2 and "no ECG" in r.stderr
+    assert r.returncode == 2
+    assert "no ECG" in r.stderr

@@ -33,8 +33,10 @@ def test_too_few_nn_intervals_or_flutter_leave_a_window_unscored() -> None:
     ann = beats(t, "N" * 40, [(12.0, "+", "(VFL"), (14.0, "+", "(N")])
     assert flutter_spans(ann, 40.0) == [(12.0, 14.0)]
     touched, clear = truth(ann, [0.0, 15.0], 10.0, 40.0)
-    assert touched.mean_nn_s is None and clear.mean_nn_s == pytest.approx(1.0)
-    assert has_arrhythmia_runs(ann) and not has_arrhythmia_runs(beats(t, "N" * 40, [(0.0, "+", "(N")]))
+    assert touched.mean_nn_s is None
+    assert clear.mean_nn_s == pytest.approx(1.0)
+    assert has_arrhythmia_runs(ann)
+    assert not has_arrhythmia_runs(beats(t, "N" * 40, [(0.0, "+", "(N")]))
 
 
 def test_an_interval_across_a_stretch_unreadable_in_every_lead_is_not_in_the_truth() -> None:
@@ -58,5 +60,7 @@ def test_the_score_counts_good_and_held_windows_and_their_errors() -> None:
     sc.add("r1", tr, [1.004, None, 1.025, 1.0], ["", "excluded", "", ""], sinus=True)
     f = sc.figures()
     assert (f["good"], f["held"], f["over_10_ms"], f["over_20_ms"]) == (3, 1, 1, 1)
-    assert f["worst_ms"] == pytest.approx(25.0) and f["worst_records"] == "r1"
-    assert f["held_share_sinus"] == pytest.approx(0.25) and sc.held_reasons == {"excluded": 1}
+    assert f["worst_ms"] == pytest.approx(25.0)
+    assert f["worst_records"] == "r1"
+    assert f["held_share_sinus"] == pytest.approx(0.25)
+    assert sc.held_reasons == {"excluded": 1}

@@ -157,21 +157,23 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
     )
     assert r.returncode == 0, r.stdout + r.stderr
     study = json.loads((tmp_path / "out" / "study.json").read_text())
-    assert study["simulated"] is False and study["subjects"] == 1 and len(study["sessions"]) == 3
+    assert study["simulated"] is False
+    assert study["subjects"] == 1
+    assert len(study["sessions"]) == 3
     by = {row["condition"]: row for row in study["sessions"]}
     mine = {c: counted(sessions / f"twin-1_{c}.mcap") for c in "abc"}
     for c in "abc":
         row, raw = by[c], mine[c]
-        assert row["complete"] is True and row["minutes"] == pytest.approx(MINUTES[c]), (c, row)
+        assert row["complete"] is True, (c, row)
+        assert row["minutes"] == pytest.approx(MINUTES[c]), (c, row)
         assert (row["cycles"], row["errors"]) == (raw["cycles"], raw["errors"]), (c, row)
         assert raw["cycles"] >= 1, (c, row)
         assert row["productivity_per_min"] == pytest.approx(raw["productivity_per_min"])
         assert row["mean_rr_s"] == pytest.approx(raw["mean_rr_s"])
         cal = raw["meta"]["cadence.session"]["calibration"]
         assert cal["posture"] == "working"
-        assert cal["subject"] == "twin-1" and row["mean_rr_norm"] == pytest.approx(
-            raw["mean_rr_s"] / cal["rr_rest_s"]
-        )
+        assert cal["subject"] == "twin-1"
+        assert row["mean_rr_norm"] == pytest.approx(raw["mean_rr_s"] / cal["rr_rest_s"])
         assert raw["meta"]["cadence.session"]["condition"] == c
     # each condition was in force: its selections, and the k the robot moved with
     assert {(s["k"], s["reason"]) for s in mine["a"]["selections"]} == {(15, "fixed")}
@@ -179,16 +181,19 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
     assert mine["c"]["selections"][0]["reason"] == "initial"
     assert all(s["reason"] != "fixed" for s in mine["c"]["selections"])
     assert mine["b"]["ks"] == {1}, mine["b"]["ks"]
-    assert mine["a"]["ks"] and min(mine["a"]["ks"]) > 1, mine["a"]["ks"]
+    assert mine["a"]["ks"], mine["a"]["ks"]
+    assert min(mine["a"]["ks"]) > 1, mine["a"]["ks"]
     for name in ("index.html", "conditions.png", "subject_twin-1.png"):
         assert (tmp_path / "out" / name).exists()
 
     # stopped early: the file is complete and says so
-    assert cut.complete is False and "interrupted" in cut.reason
+    assert cut.complete is False
+    assert "interrupted" in cut.reason
     from cadence.lab.session import load_session
 
     s = load_session(tmp_path / "cut.mcap")
-    assert s.end == cut and 0 < s.minutes < 5
+    assert s.end == cut
+    assert 0 < s.minutes < 5
     # the keys: e an error marked by the experimenter, x nothing, 1 the task's first signal (b2_clear)
     assert [e.kind for e in s.errors if e.source == "experimenter"] == ["wrong_object"]
     assert s.n_errors >= 1  # counted: inside the session
@@ -265,9 +270,8 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
              "--subject", "S1", "--connect", endpoint],
             capture_output=True, text=True, timeout=60,
         )  # fmt: skip
-        assert (
-            refused.returncode == 2 and "subject 'S1' is not in study 'study' (S01 … S06)" in refused.stderr
-        )
+        assert refused.returncode == 2
+        assert "subject 'S1' is not in study 'study' (S01 … S06)" in refused.stderr
         asyncio.run(marked_session(endpoint, tmp_path, plan, other.id))
     finally:
         demo.terminate()
@@ -296,16 +300,19 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
     keyed = [e.kind for e in marked.errors if e.source == "experimenter" and marked.inside(e.t_ns)]
     assert keyed == ["wrong_object", "wrong_object", "undo"]
     kept = [e for e in marked.counted_errors if e.source == "experimenter"]
-    assert len(kept) == 1 and kept[0].t_ns == min(e.t_ns for e in marked.errors if e.source == "experimenter")
+    assert len(kept) == 1
+    assert kept[0].t_ns == min(e.t_ns for e in marked.errors if e.source == "experimenter")
     twin = sum(1 for e in marked.errors if e.source != "experimenter" and marked.inside(e.t_ns))
     assert by[other.id]["errors"] == str(twin + 1)  # two marks, the last withdrawn, and the twin's own
 
     s01 = load_session(next((lab / "sessions").glob("S01_*.mcap")))
-    assert s01.info.study == "study" and s01.info.training_start_ns is not None
+    assert s01.info.study == "study"
+    assert s01.info.training_start_ns is not None
     assert s01.info.training_start_ns < s01.info.start_ns  # the training came first, outside the analysis
     assert (s01.info.start_ns - s01.info.training_start_ns) / 60e9 >= 0.5
     windows = list(csv.DictReader((tmp_path / "csv" / "windows.csv").open()))
-    assert windows and all(0 < float(w["end_s"]) <= 60.0 for w in windows)
+    assert windows
+    assert all(0 < float(w["end_s"]) <= 60.0 for w in windows)
     assert {w["subject"] for w in windows} == {"S01", other.id}
 
 
@@ -317,7 +324,8 @@ async def marked_session(endpoint: str, tmp_path: Path, plan, subject: str) -> N
     from common.runtime.resources import EXAMPLE_TASK
 
     nxt = next_session(plan, tmp_path / "lab" / "sessions", subject)
-    assert nxt is not None and nxt.period == 1
+    assert nxt is not None
+    assert nxt.period == 1
     keys: asyncio.Queue[str] = asyncio.Queue()
     seen = 0
 

@@ -79,7 +79,8 @@ def test_a_stop_is_a_latch_that_keeps_its_reason_and_remembers_a_selection() -> 
         transition(m, E.MOVE)
     assert m.has_selection  # the SELECTION that came during the stop
     m = transition(transition(m, E.RESUME, "cadence robot resume"), E.RECOVERED)
-    assert m.state is St.READY and m.may_move
+    assert m.state is St.READY
+    assert m.may_move
 
 
 def test_off_is_final() -> None:
@@ -104,10 +105,12 @@ def test_two_executors_on_one_host_get_different_cores_and_a_third_none(tmp_path
 def test_routine_changes_are_told_from_the_ones_a_person_should_see() -> None:
     from common.safety.states import routine_change
 
-    assert routine_change("ready", "moving") and routine_change("moving", "ready")
+    assert routine_change("ready", "moving")
+    assert routine_change("moving", "ready")
     assert routine_change("waiting_for_operator", "ready")
     assert not routine_change("moving", "stopped")
-    assert not routine_change("recovering", "ready") and not routine_change(None, None)  # not a change
+    assert not routine_change("recovering", "ready")
+    assert not routine_change(None, None)  # not a change
 
 
 def test_the_coarse_mode_is_derived_from_the_one_safety_state() -> None:
@@ -115,7 +118,8 @@ def test_the_coarse_mode_is_derived_from_the_one_safety_state() -> None:
     is now read off the safety state, so the two cannot disagree."""
     from common.safety.states import State, mode_of
 
-    assert mode_of(State.MOVING) == "moving" and mode_of(State.READY) == "idle"
+    assert mode_of(State.MOVING) == "moving"
+    assert mode_of(State.READY) == "idle"
     assert mode_of(State.WAITING_FOR_OPERATOR) == mode_of(State.WAITING_FOR_SET) == "waiting"
     assert (mode_of(State.STOPPED), mode_of(State.RECOVERING), mode_of(State.REFUSED)) == (
         "fault",

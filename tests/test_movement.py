@@ -42,7 +42,8 @@ def test_gravity_is_removed_and_a_change_of_posture_fades_within_seconds() -> No
     leaned[25 * 10 :] = [-700.0, 30.0, -714.0]  # bent forward: gravity moves from x toward z
     dyn, _ = dynamic_mg(leaned, 25.0)
     assert dyn[: 25 * 10].max() < 1e-9  # a still strap moves by nothing, at any tilt
-    assert dyn[25 * 10] > 400 and dyn[25 * 15 :].max() < 5  # the lean shows, then gravity follows it
+    assert dyn[25 * 10] > 400
+    assert dyn[25 * 15 :].max() < 5  # the lean shows, then gravity follows it
     moving, _ = dynamic_mg(noise(120.0, 25 * 60), 25.0)
     assert moving.mean() == pytest.approx(120.0, rel=0.06)  # mean magnitude: the level
 
@@ -62,10 +63,10 @@ def test_a_window_has_its_mean_movement_and_share_of_seconds_moving_or_none_with
     for i in range(0, len(x), 25):
         m.feed(t0 + i * S // 25, 25.0, x[i : i + 25])
     mg, share = m.over(t0, t0 + 30 * S)
-    assert mg is not None and share is not None
-    assert mg == pytest.approx((20 * 10 + 10 * 200) / 30, rel=0.1) and share == pytest.approx(
-        10 / 31, abs=0.05
-    )
+    assert mg is not None
+    assert share is not None
+    assert mg == pytest.approx((20 * 10 + 10 * 200) / 30, rel=0.1)
+    assert share == pytest.approx(10 / 31, abs=0.05)
     assert m.over(t0 + 60 * S, t0 + 90 * S) == (None, None)  # nothing there
     assert m.over(t0 + 20 * S, t0 + 50 * S)[0] is None  # a third of it covered: too little
 
@@ -73,7 +74,8 @@ def test_a_window_has_its_mean_movement_and_share_of_seconds_moving_or_none_with
 @needs_data
 def test_the_polar_export_reads_with_its_strap_clock_and_a_broken_one_is_refused(tmp_path: Path) -> None:
     acc = read_acc(str(POLAR_ACC))
-    assert len(acc.sensor_ns) == 3456 and acc.fs == pytest.approx(25.3, abs=0.1)
+    assert len(acc.sensor_ns) == 3456
+    assert acc.fs == pytest.approx(25.3, abs=0.1)
     assert acc.xyz_mg[0].tolist() == [-993, 30, -237]
     rows = POLAR_ACC.read_text().splitlines()
     swapped = [rows[0], rows[2], rows[1], *rows[3:10]]
@@ -114,10 +116,14 @@ async def test_a_replay_of_the_real_export_puts_the_wearers_movement_on_their_wi
     assert (acc_starts[0] - start) / 1e9 == pytest.approx(11.03, abs=0.01)
     assert len(wins) >= 4
     first, tail, *still = wins  # the burst, then its last seconds (30-35 s), then sitting still
-    assert first.movement_mg is not None and first.movement_mg > 2 * MOVING_MG
-    assert first.moving_fraction is not None and first.moving_fraction > 0.2
-    assert tail.moving_fraction is not None and 0 < tail.moving_fraction < first.moving_fraction
-    assert still and all(w.movement_mg is not None and w.movement_mg < 25 for w in still)
+    assert first.movement_mg is not None
+    assert first.movement_mg > 2 * MOVING_MG
+    assert first.moving_fraction is not None
+    assert first.moving_fraction > 0.2
+    assert tail.moving_fraction is not None
+    assert 0 < tail.moving_fraction < first.moving_fraction
+    assert still
+    assert all(w.movement_mg is not None and w.movement_mg < 25 for w in still)
     assert all(w.moving_fraction == 0.0 for w in still)
 
 
@@ -128,9 +134,12 @@ def test_accelerometer_chunks_out_of_line_are_dropped_and_a_window_without_them_
     chunk = AccChunk(t_ns=t0, seq=0, fs_hz=25.0, x_mg=x[0], y_mg=x[1], z_mg=x[2])
     assert live.acc(chunk, now).acted_on  # type: ignore[union-attr]
     ahead = live.acc(msgspec.structs.replace(chunk, t_ns=t0 + 3600 * S), now)
-    assert ahead is not None and not ahead.acted_on and ahead.code == "ahead"
+    assert ahead is not None
+    assert not ahead.acted_on
+    assert ahead.code == "ahead"
     behind = live.acc(msgspec.structs.replace(chunk, t_ns=t0 - 20 * S), now)
-    assert behind is not None and not behind.acted_on
+    assert behind is not None
+    assert not behind.acted_on
     assert live.acc(msgspec.structs.replace(chunk, x_mg=[], y_mg=[], z_mg=[]), now) is None
 
 
@@ -155,7 +164,8 @@ def test_a_planted_hour_of_accelerometer_ahead_of_the_clock_is_refused_and_the_h
                 verdicts.append(live.acc(plant, t + (i + 1) * S + S // 2))
     assert {(v.action, v.code) for v in verdicts if v is not None} == {("drop", "ahead")}
     level, _ = live.movement.over(t + 30 * S, t + 60 * S)
-    assert level is not None and level < 100  # the honest stream's still wearer
+    assert level is not None
+    assert level < 100  # the honest stream's still wearer
 
 
 def window(i: int, rr: float, movement: float | None, t0: int = 1_000 * S) -> HrvWindow:
@@ -174,7 +184,8 @@ def test_the_gate_learns_the_level_holds_what_is_well_above_it_and_until_the_hea
         h, b, reanchor = moved(b, w.movement_mg, w.start_ns, w.end_ns, w.mean_rr_s, 0.8, *rule)
         held.append(h)
         assert not reanchor
-    assert b.level_mg == 23.0 and b.sd_mg == pytest.approx(2.45, abs=0.01)  # the first three
+    assert b.level_mg == 23.0
+    assert b.sd_mg == pytest.approx(2.45, abs=0.01)  # the first three
     # 60 and 62 mg are within the margin (23 + 40); 250 is held, and after it each window until its mean
     # RR is back within 20 ms of RR before the effort (0.79); none without a figure (no accelerometer)
     assert held == [False, False, False, False, False, True, True, True, False, False, False]
@@ -190,7 +201,8 @@ def test_a_stretch_of_effort_among_the_first_windows_does_not_become_the_level()
         h, b, _ = moved(b, mg, i * 30 * S, (i + 1) * 30 * S, 0.72 if mg > 100 else 0.8, 0.8, *rule)
         held.append(h)
     assert held == [False, False, True, True]  # held while the level is learnt, too
-    assert b.level_mg == pytest.approx(23.5) and b.sd_mg == pytest.approx(1.5)
+    assert b.level_mg == pytest.approx(23.5)
+    assert b.sd_mg == pytest.approx(1.5)
     assert moved(b, 240.0, 4 * 30 * S, 5 * 30 * S, 0.72, 0.8, *rule)[0]
     b = Baseline()
     for i, mg in enumerate([25.0, 40.0, 55.0, 30.0]):  # no effort: every window counts
@@ -203,8 +215,11 @@ def test_a_hold_that_lasts_its_longest_ends_re_anchored() -> None:
     b = moved(Baseline(), 20.0, 0, 30 * S, 0.8, 0.8, *rule)[1]
     h, b, _ = moved(b, 250.0, 30 * S, 60 * S, 0.7, 0.8, *rule)
     out = [moved(b, 20.0, (2 + i) * 30 * S, (3 + i) * 30 * S, 0.72, 0.8, *rule) for i in range(4)]
-    assert h and [o[0] for o in out[:3]] == [True, True, True]  # not back: held, up to 90 s after
-    assert out[3][0] is False and out[3][2] is True and out[3][1].moved_until_ns == -1
+    assert h
+    assert [o[0] for o in out[:3]] == [True, True, True]  # not back: held, up to 90 s after
+    assert out[3][0] is False
+    assert out[3][2] is True
+    assert out[3][1].moved_until_ns == -1
 
 
 @pytest.mark.parametrize("tau_s", [30.0, 60.0, 120.0])
@@ -227,7 +242,8 @@ def test_an_effort_and_its_recovery_alone_never_step_k_down(tmp_path: Path, tau_
         d.commit(r)
         ks.append(r.k)
         steps.append(r.delta)
-    assert min(steps) >= 0 and min(ks) == ks[0], (tau_s, ks)
+    assert min(steps) >= 0, (tau_s, ks)
+    assert min(ks) == ks[0], (tau_s, ks)
 
 
 def test_alg_1_is_exact_where_the_wearer_moves_at_their_level_and_holds_rr_where_they_move_more(
@@ -250,10 +266,13 @@ def test_alg_1_is_exact_where_the_wearer_moves_at_their_level_and_holds_rr_where
     for i, (rr, mg) in enumerate(zip(rrs, [30.0, 30.0, 240.0, 250.0, 30.0, 30.0, 30.0], strict=True)):
         heavy.commit(heavy.answer(window(i, rr, mg)))
         if i in (2, 3):  # moving: k and RR_{i-1} stay
-            assert heavy.record is not None and heavy.record.reason == "movement" and heavy.record.delta == 0
+            assert heavy.record is not None
+            assert heavy.record.reason == "movement"
+            assert heavy.record.delta == 0
             assert heavy.record.rr_prev == "0.8"
         if i == 4:  # 0.80 is back at RR before the effort: read as ever
-            assert heavy.record is not None and heavy.record.reason != "movement"
+            assert heavy.record is not None
+            assert heavy.record.reason != "movement"
 
 
 def test_a_calibration_keeps_the_movement_it_saw() -> None:
@@ -272,6 +291,7 @@ def test_the_twins_strap_moves_as_the_twin_does() -> None:
         assert op.movement(t) == want
     rr_before = op.mean_rr()
     op.advance(115.0)
-    assert op.exertion > 0.9 and op.mean_rr() < rr_before - 0.1  # the heart answers the effort
+    assert op.exertion > 0.9
+    assert op.mean_rr() < rr_before - 0.1  # the heart answers the effort
     heavy, _ = dynamic_mg(op.acc(70.0, 25 * 40).astype(float), 25.0)
     assert heavy[50:].mean() == pytest.approx(p.heavy_mg, rel=0.1)

@@ -49,22 +49,24 @@ async def decision_maker(tmp_path: Path, settings: Settings) -> DecisionMaker:
 async def test_the_decision_makers_handlers_are_alg_1_called_as_methods(tmp_path: Path) -> None:
     node = await decision_maker(tmp_path, Settings(rr_rest_s=0.85))
     (first,) = await node.current()
-    assert isinstance(first, Selection) and (first.k, first.reason) == (8, "initial")
+    assert isinstance(first, Selection)
+    assert (first.k, first.reason) == (8, "initial")
     base, p = now_ns() - 8 * 30 * S, Params.of(0.85)  # windows that have ended
     state = State.initial(p)
     for i, rr in enumerate([0.80, 0.78, 0.70, 0.69, 0.90, 0.95]):
         (sel,) = await node.on_window(window(base, i, rr))
         state = step(p, state, rr, True).state
-        assert (
-            isinstance(sel, Selection) and sel.k == state.k and sel.window_end_ns == base + (i + 1) * 30 * S
-        )
+        assert isinstance(sel, Selection)
+        assert sel.k == state.k
+        assert sel.window_end_ns == base + (i + 1) * 30 * S
     with pytest.raises(Rejected) as r:  # answered already: a replay is dropped and counted, not stepped
         await node.on_window(window(base, 2, 0.5))
     assert r.value.code == "duplicate"
     assert node.ctx.counters["windows"] == 7
     # a session fixes k: windows are counted and not answered; the reply is the selection it starts with
     answer = await node.set_condition(_request("mode=fixed;k=b;by=test"))
-    assert isinstance(answer.reply, Selection) and (answer.reply.k, answer.reply.reason) == (1, "fixed")
+    assert isinstance(answer.reply, Selection)
+    assert (answer.reply.k, answer.reply.reason) == (1, "fixed")
     assert list(answer.publish) == [answer.reply]
     assert await node.on_window(window(base, 6, 0.5)) == []
     with pytest.raises(QueryError, match="mode='sometimes'"):
@@ -76,13 +78,16 @@ async def test_without_calibration_the_node_publishes_nothing_and_a_calibration_
     tmp_path: Path,
 ) -> None:
     node = await decision_maker(tmp_path, Settings())
-    assert await node.current() == [] and node.ctx.state == "waiting for calibration"
+    assert await node.current() == []
+    assert node.ctx.state == "waiting for calibration"
     assert await node.on_window(window(now_ns() - 30 * S, 0, 0.8)) == []
     assert node.ctx.counters["windows_without_calibration"] == 1
     with pytest.raises(QueryError, match="no calibration yet"):
         await node.query(_request(""))
     (sel,) = await node.on_calibration(Calibration(t_ns=5, seq=0, subject="s1", rr_rest_s=0.9))
-    assert isinstance(sel, Selection) and sel.reason == "initial" and node.ctx.state == "running"
+    assert isinstance(sel, Selection)
+    assert sel.reason == "initial"
+    assert node.ctx.state == "running"
     assert await node.on_calibration(Calibration(t_ns=6, seq=1, subject="s1", rr_rest_s=0.9)) == []  # in use
 
 
@@ -109,10 +114,12 @@ async def test_the_node_served_on_the_mock_bus_answers_windows_queries_and_drops
         test.put_raw(test.key("hrv/window"), b"\x93not a window")  # bounds and types: the real decoder
         put(test, test.key("hrv/window"), window(base, 0, 0.80))  # a duplicate: the real admission
         (reply,) = await test.get(test.key("decision/selection"), Selection, 5.0)
-        assert reply.error is None and reply.message is not None
+        assert reply.error is None
+        assert reply.message is not None
         assert reply.message.window_end_ns == base + 30 * S
         (reply,) = await test.get(test.key("decision/condition") + "?mode=never", Selection, 5.0)
-        assert reply.error is not None and "mode='never'" in reply.error
+        assert reply.error is not None
+        assert "mode='never'" in reply.error
         async with asyncio.timeout(10):
             while service.rejected[(test.key("hrv/window"), "duplicate")] != 1:
                 await asyncio.sleep(0)  # handled by the node's own task on this loop
@@ -171,14 +178,14 @@ async def test_the_analysers_handlers_window_a_record_and_drop_a_chunk_out_of_li
             assert r.value.code == "ahead"
     got = [m for m in out if isinstance(m, HrvWindow)]
     want = windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0)[: len(got)]
-    assert len(got) == 3 and [m.seq for m in got] == [0, 1, 2]
+    assert len(got) == 3
+    assert [m.seq for m in got] == [0, 1, 2]
     for m, w in zip(got, want, strict=True):
-        assert (
-            m.start_ns == t0 + round(w.start_s * 1e9)
-            and m.mean_rr_s == w.mean_rr_s
-            and m.quality == w.quality
-        )
-    assert ctx.counters["windows"] == 3 and ctx.counters["beats"] > 100
+        assert m.start_ns == t0 + round(w.start_s * 1e9)
+        assert m.mean_rr_s == w.mean_rr_s
+        assert m.quality == w.quality
+    assert ctx.counters["windows"] == 3
+    assert ctx.counters["beats"] > 100
 
 
 @pytest.mark.asyncio
@@ -211,7 +218,8 @@ async def test_a_replay_waits_for_its_reader_sends_every_chunk_and_then_stops_it
         got = [(await sub.receive(10))[1] for _ in range(-(-len(t) // 73))]
         async with asyncio.timeout(10):
             await task  # the replay ended: so did the service
-    assert [c.seq for c in got] == list(range(len(got))) and sum(len(c.samples_uv) for c in got) == len(t)
+    assert [c.seq for c in got] == list(range(len(got)))
+    assert sum(len(c.samples_uv) for c in got) == len(t)
     assert [c.t_ns - got[0].t_ns for c in got] == [round(i * 73 * 1e9 / 130) for i in range(len(got))]
 
 
@@ -270,7 +278,8 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
         await node.on_selection(Selection(t_ns=now_ns(), seq=1, k=4, n=15, delta=1, reason="window"))
         assert (node.safety.motion.state, node.safety.motion.reason) == ("stopped", "a bump")
         (*_, state) = await node.state()
-        assert isinstance(state, RobotState) and (state.state, state.mode, state.reason) == (
+        assert isinstance(state, RobotState)
+        assert (state.state, state.mode, state.reason) == (
             "stopped", "fault", "a bump",
         )  # fmt: skip
         reply = await node.resume(Request("cadence/cell1/robot/resume", "by=test"))
@@ -325,7 +334,8 @@ async def test_the_gateway_replays_the_polar_export_with_its_accelerometer_or_sa
         if with_acc:
             got = [(await acc.receive(10))[1] for _ in range(100)]  # 100 s, one chunk a second
             assert (got[0].t_ns - first.t_ns) / 1e9 == pytest.approx(11.03, abs=0.01)
-            assert [len(c.x_mg) for c in got] == [25] * 100 and got[0].x_mg[:2] == [-993, -993]
+            assert [len(c.x_mg) for c in got] == [25] * 100
+            assert got[0].x_mg[:2] == [-993, -993]
             assert "accelerometer" not in said.detail
         else:
             assert said.detail.startswith("no accelerometer: windows are read without movement")

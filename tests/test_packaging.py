@@ -51,7 +51,8 @@ def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path, example_sets:
     shutil.copy(example_sets, work / "out" / "data" / "pareto.sqlite")
     _run([str(venv / "bin" / "cadence"), "demo", "--duration", "60", "--no-live", "--out", "out"], work, 600)
     s = json.loads((work / "out" / "summary.json").read_text())
-    assert s["selections"] and all(code == 0 for code in s["exit_codes"].values())
+    assert s["selections"]
+    assert all(code == 0 for code in s["exit_codes"].values())
     site = next((venv / "lib").glob("python3*/site-packages"))
     assert (site / "cadence" / "deploy" / "tasks" / "box_filling.toml").exists()
     assert (site / "cadence" / "deploy" / "files" / "systemd" / "cadence-executor.service").exists()

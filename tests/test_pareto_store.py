@@ -71,11 +71,15 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
         assert status.counters.get("computed") == 2
 
         set_a = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
-        assert set_a.path_id == "a" and len(set_a.solutions) == 5 and set_a.constraints == "exact"
+        assert set_a.path_id == "a"
+        assert len(set_a.solutions) == 5
+        assert set_a.constraints == "exact"
         one = (await client.get(client.key("pareto/a/5"), ParetoSolutionReply))[0].message
-        assert one.solution == set_a.solutions[4] and one.n == 5
+        assert one.solution == set_a.solutions[4]
+        assert one.n == 5
         unknown = (await client.get(client.key("pareto/zzz"), AnyMessage))[0]
-        assert unknown.message is None and "unknown path 'zzz'" in unknown.error
+        assert unknown.message is None
+        assert "unknown path 'zzz'" in unknown.error
         bad_k = (await client.get(client.key("pareto/a/6"), AnyMessage))[0]
         assert "k = 1 … 5" in bad_k.error
 
@@ -96,7 +100,8 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed", 0) == 0
         again = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
-        assert again.solutions == set_a.solutions and again.content_hash == set_a.content_hash
+        assert again.solutions == set_a.solutions
+        assert again.content_hash == set_a.content_hash
         await store.close()
 
         # a changed task program: path a is planned again, b is still valid
@@ -122,7 +127,8 @@ async def test_a_malformed_config_stops_the_store_at_start_naming_file_and_field
     proc = run_store("--config", str(cfg))
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0
-    assert str(cfg) in proc.stderr and "workers" in proc.stderr
+    assert str(cfg) in proc.stderr
+    assert "workers" in proc.stderr
 
 
 async def test_a_bad_task_file_stops_the_store_at_start(tmp_path: Path) -> None:
@@ -132,7 +138,9 @@ async def test_a_bad_task_file_stops_the_store_at_start(tmp_path: Path) -> None:
     cfg.write_text(f"[pareto_store]\ntask = '{task}'\n")
     proc = run_store("--config", str(cfg))
     assert proc.returncode == 2
-    assert str(task) in proc.stderr and "path 'a'" in proc.stderr and "unit" in proc.stderr
+    assert str(task) in proc.stderr
+    assert "path 'a'" in proc.stderr
+    assert "unit" in proc.stderr
 
 
 async def test_sigterm_stops_the_store_process_with_exit_0(
@@ -181,5 +189,6 @@ async def test_an_edited_path_is_seeded_by_its_last_set_and_a_new_count_of_waypo
     assert list(warm) == ["a"]  # b has a waypoint more: no interval maps onto another
     assert warm["a"] == [s.h for s in store.load("a", digests["a"]).solutions]
     seeded = plan_job(task2.paths["a"], task2, task2.planner, digests2["a"], warm["a"])
-    assert seeded.content_hash == digests2["a"] and len(seeded.solutions) == 5
+    assert seeded.content_hash == digests2["a"]
+    assert len(seeded.solutions) == 5
     store.close()

@@ -74,7 +74,8 @@ def test_downsampling_is_distinct_and_ordered_from_smoothest_to_fastest() -> Non
     chosen = front[idx]
     assert len(set(idx.tolist())) == 15
     assert np.all(np.diff(chosen[:, 0]) < 0), "t_f must strictly decrease with k"
-    assert idx[0] == np.argmin(front[:, 1]) and idx[-1] == np.argmin(front[:, 0])
+    assert idx[0] == np.argmin(front[:, 1])
+    assert idx[-1] == np.argmin(front[:, 0])
 
 
 def test_a_front_smaller_than_n_is_returned_whole_slowest_first() -> None:
@@ -89,12 +90,12 @@ def check_solutions(result: ParetoResult, path: PathPlan, mode: str) -> None:
     t_f = np.array([s.t_f for s in sols])
     jerk = np.array([s.f_jerk for s in sols])
     assert np.all(np.diff(t_f) < 0), "k = 1 slowest … k = N fastest, all distinct"
-    assert jerk[0] == pytest.approx(result.front[:, 1].min()) and t_f[-1] == pytest.approx(
-        result.front[:, 0].min() / 6
-    )
+    assert jerk[0] == pytest.approx(result.front[:, 1].min())
+    assert t_f[-1] == pytest.approx(result.front[:, 0].min() / 6)
     lb, ub = interval_bounds(path.waypoints, UR16E, result.settings.kappa)
     for s in sols:
-        assert np.all(s.h >= lb * (1 - 1e-12)) and np.all(s.h <= ub * (1 + 1e-12))
+        assert np.all(s.h >= lb * (1 - 1e-12))
+        assert np.all(s.h <= ub * (1 + 1e-12))
         ref = scipy_reference(s.h, path)
         sites = bs.waypoint_sites(s.h[None])[0]
         assert np.max(np.abs(ref(sites) - path.waypoints)) < 1e-9
@@ -212,13 +213,15 @@ def test_fronts_agree_with_pymoo_sorting_front_by_front() -> None:
     distinct = np.unique(f, axis=0, return_index=True)[1]
     g = f[np.sort(distinct)]
     assert [set(x.tolist()) for x in nsga.fronts(g)] == [set(x.tolist()) for x in NonDominatedSorting().do(g)]
-    assert sum(len(x) for x in ours) == len(f) and len(ours) >= len(theirs)
+    assert sum(len(x) for x in ours) == len(f)
+    assert len(ours) >= len(theirs)
 
 
 def test_crowding_gives_the_ends_infinity_and_the_middle_its_neighbours_gap() -> None:
     f = np.array([[0.0, 4.0], [1.0, 2.0], [3.0, 1.0], [4.0, 0.0]])
     d = nsga.crowding(f)
-    assert np.isinf(d[0]) and np.isinf(d[-1])
+    assert np.isinf(d[0])
+    assert np.isinf(d[-1])
     np.testing.assert_allclose(d[1:-1], [3 / 4 + 3 / 4, 3 / 4 + 2 / 4])
 
 
@@ -253,7 +256,8 @@ def test_a_warm_start_after_a_waypoint_edit_is_valid_and_as_good_in_fewer_genera
     edited = dataclasses.replace(path, waypoints=wp)
     seeds = warm_seeds(edited, UR16E, 10.0, [s.h for s in before.solutions])
     lb, ub = interval_bounds(wp, UR16E, 10.0)
-    assert seeds.shape == (15, len(lb)) and np.all((seeds >= lb) & (seeds <= ub))
+    assert seeds.shape == (15, len(lb))
+    assert np.all((seeds >= lb) & (seeds <= ub))
     warm = plan_path(edited, UR16E, PlannerSettings(seed=1), warm=[s.h for s in before.solutions])
     cold = plan_path(edited, UR16E, PlannerSettings(seed=1))
     assert warm.generations == WARM_GENERATIONS < cold.generations

@@ -37,7 +37,9 @@ def test_every_heart_rate_flag_combination(
     u16: bool, contact: bool | None, energy: int | None, rr: list[int]
 ) -> None:
     hr = parse_heart_rate(hr_bytes(u16, contact, energy, rr))
-    assert hr.bpm == 72 and hr.contact == contact and hr.energy_kj == energy
+    assert hr.bpm == 72
+    assert hr.contact == contact
+    assert hr.energy_kj == energy
     assert hr.rr_s == [v / 1024 for v in rr]
 
 
@@ -81,9 +83,11 @@ def test_garbled_ecg_frames_are_frame_errors(data: bytes) -> None:
 
 def test_the_start_request_asks_for_130_hz_ecg_and_a_response_is_parsed() -> None:
     req = ecg_start_request()
-    assert req[:2] == bytes([0x02, 0x00]) and struct.unpack_from("<H", req, 4)[0] == 130
+    assert req[:2] == bytes([0x02, 0x00])
+    assert struct.unpack_from("<H", req, 4)[0] == 130
     ok = parse_control_response(bytes([0xF0, 0x02, 0x00, 0x00, 0x00]))
-    assert ok.ok and ok.op == 0x02
+    assert ok.ok
+    assert ok.op == 0x02
     assert not parse_control_response(bytes([0xF0, 0x02, 0x00, 0x06])).ok
     with pytest.raises(FrameError):
         parse_control_response(bytes([0x02, 0x00]))
@@ -121,7 +125,8 @@ def test_an_accelerometer_frame_gives_its_timestamp_and_signed_x_y_z(
     data = acc_frame(674_467_737_249_392_677, frame_type, xyz)
     assert measurement_type(data) == PMD_ACC
     f = parse_acc_frame(data)
-    assert f.timestamp_ns == 674_467_737_249_392_677 and f.samples_mg == xyz
+    assert f.timestamp_ns == 674_467_737_249_392_677
+    assert f.samples_mg == xyz
     with pytest.raises(FrameError):
         measurement_type(b"")
 

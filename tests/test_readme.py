@@ -133,7 +133,8 @@ def check_command(tokens: list[str], variables: dict[str, str]) -> None:
         elif expanded[0].endswith("/bin/cadence"):
             check_cadence(expanded[1:])
         elif expanded[:3] == ["uv", "run", "zenoh"]:
-            assert "--decoder" in expanded and expanded[expanded.index("--decoder") + 1] == "cadence"
+            assert "--decoder" in expanded
+            assert expanded[expanded.index("--decoder") + 1] == "cadence"
         elif expanded[:3] in (["uv", "run", "pytest"], ["uv", "run", "ruff"]):
             pass  # what CI runs
         else:
@@ -231,7 +232,8 @@ def test_the_router_store_get_and_zenoh_example_runs_as_written(
     text = run_until(script, shell_env, done, 90.0, tmp_path / "out.txt")
     assert done(text), text[-3000:]
     solution = json.loads(next(line for line in text.splitlines() if '"pareto.solution.v1"' in line))
-    assert solution["path_id"] == "b1_to_b2" and solution["solution"]["k"] == 15  # what the example asks
+    assert solution["path_id"] == "b1_to_b2"
+    assert solution["solution"]["k"] == 15  # what the example asks
 
 
 def test_the_decide_example_prints_what_the_readme_says(shell_env: dict[str, str]) -> None:

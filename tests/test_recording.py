@@ -106,13 +106,15 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
             replayed[speed] = await outputs(wins, sels)
             for svc in services:
                 await svc.close()
-    assert rec.count > sent > 0 and rec.undecodable == 0
+    assert rec.count > sent > 0
+    assert rec.undecodable == 0
     # what the file itself holds is what the services said live
     in_file = [
         msgspec.msgpack.decode(m.data, type=HrvWindow) for m in read(mcap, ["cadence/cell1/hrv/window"])
     ]
     assert [content(w) for w in in_file[:WINDOWS]] == live[0]
-    assert replayed[1.0] == live and replayed[10.0] == live
+    assert replayed[1.0] == live
+    assert replayed[10.0] == live
     assert all(w["quality"] == "good" for w in live[0])
 
 
@@ -130,10 +132,12 @@ def test_a_recording_opens_in_mcap_tools_with_schemas_and_a_broken_one_is_one_li
         reader = make_reader(f)
         summary = reader.get_summary()
         (schema,) = summary.schemas.values()
-        assert schema.name == "decision.selection.v1" and schema.encoding == "jsonschema"
+        assert schema.name == "decision.selection.v1"
+        assert schema.encoding == "jsonschema"
         assert b'"k"' in schema.data
         messages = list(reader.iter_messages())
-    assert [m.publish_time for _, _, m in messages] == [5, 0] and rec.undecodable == 1
+    assert [m.publish_time for _, _, m in messages] == [5, 0]
+    assert rec.undecodable == 1
 
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(path.read_bytes()[:40])
@@ -143,7 +147,9 @@ def test_a_recording_opens_in_mcap_tools_with_schemas_and_a_broken_one_is_one_li
         text=True,
         timeout=60,
     )
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "broken.mcap" in r.stderr, r.stderr
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr
+    assert "broken.mcap" in r.stderr, r.stderr
 
 
 @pytest.mark.asyncio
@@ -180,7 +186,8 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
         assert proc.returncode == 0, said
     count = int(re.search(r"(\d+) messages written", said).group(1))
     seqs = [msgspec.msgpack.decode(m.data, type=Selection).seq for m in read(path)]
-    assert count == len(seqs) > 0 and seqs == list(range(1, count + 1))
+    assert count == len(seqs) > 0
+    assert seqs == list(range(1, count + 1))
 
 
 def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_path: Path) -> None:
@@ -217,9 +224,9 @@ def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_pat
     }
     assert got["j.mcap"] == got["m.mcap"] == [(k, "msgpack", m) for k, m in msgs]
     runs = [from_mcap(tmp_path / n) for n in ("m.mcap", "j.mcap")]
-    assert (
-        runs[0].cycles == runs[1].cycles and runs[0].windows == runs[1].windows and len(runs[1].cycles) == 1
-    )
+    assert runs[0].cycles == runs[1].cycles
+    assert runs[0].windows == runs[1].windows
+    assert len(runs[1].cycles) == 1
 
 
 def test_a_replay_that_nothing_received_says_so_and_exits_1(tmp_path: Path) -> None:
@@ -236,7 +243,8 @@ def test_a_replay_that_nothing_received_says_so_and_exits_1(tmp_path: Path) -> N
         [sys.executable, "-m", "cadence", "replay", str(tmp_path / "one.mcap"), "--speed", "0"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
-    assert r.returncode == 1 and "no subscriber matched" in r.stderr, r.stderr
+    assert r.returncode == 1, r.stderr
+    assert "no subscriber matched" in r.stderr, r.stderr
 
 
 def test_a_recording_cut_without_its_footer_is_read_up_to_its_last_chunk(tmp_path: Path) -> None:
@@ -257,5 +265,8 @@ def test_a_recording_cut_without_its_footer_is_read_up_to_its_last_chunk(tmp_pat
     rec._file.close()  # killed: no finish, no footer (what was not flushed is lost, as in a kill)
     notes: list[str] = []
     got = list(read(path, notes=notes))
-    assert len(got) == 2500 and [m.log_time for m in got] == list(range(1, 2501))
-    assert len(notes) == 1 and "ends without its footer" in notes[0] and "2500 messages" in notes[0]
+    assert len(got) == 2500
+    assert [m.log_time for m in got] == list(range(1, 2501))
+    assert len(notes) == 1
+    assert "ends without its footer" in notes[0]
+    assert "2500 messages" in notes[0]

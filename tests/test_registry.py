@@ -23,7 +23,8 @@ MIN = 60_000_000_000
 @pytest.mark.parametrize("k", [2, 3, 4, 5])
 def test_a_williams_design_balances_places_and_what_follows_what(k: int) -> None:
     seqs = williams(k)
-    assert len(seqs) == (k if k % 2 == 0 else 2 * k) and all(sorted(s) == list(range(k)) for s in seqs)
+    assert len(seqs) == (k if k % 2 == 0 else 2 * k)
+    assert all(sorted(s) == list(range(k)) for s in seqs)
     for place in range(k):  # each condition equally often in each place
         assert set(Counter(s[place] for s in seqs).values()) == {len(seqs) // k}
     follows = Counter(pair for s in seqs for pair in itertools.pairwise(s))  # and right after each other
@@ -67,14 +68,17 @@ def test_the_next_session_is_the_first_in_order_without_a_complete_file(tmp_path
     plan = make_plan("pilot", 6, ["a", "b", "c"])
     order = plan.subjects[0].order
     first = next_session(plan, tmp_path, "S01")
-    assert first is not None and (first.condition, first.period, first.training) == (order[0], 1, True)
+    assert first is not None
+    assert (first.condition, first.period, first.training) == (order[0], 1, True)
     session_file(tmp_path, "S01", order[0], 0)
     session_file(tmp_path, "S01", order[1], 20, complete=False)  # cut short: run again
     session_file(tmp_path, "S02", order[1], 30)  # another subject's
     session_file(tmp_path, "S01", order[2], 40, study="other")  # another study's
     nxt = next_session(plan, tmp_path, "S01")
-    assert nxt is not None and (nxt.condition, nxt.period, nxt.training) == (order[1], 2, False)
-    assert nxt.previous is not None and nxt.previous.end.end_ns == T0 + 30 * MIN  # the cut-short one's end
+    assert nxt is not None
+    assert (nxt.condition, nxt.period, nxt.training) == (order[1], 2, False)
+    assert nxt.previous is not None
+    assert nxt.previous.end.end_ns == T0 + 30 * MIN  # the cut-short one's end
     session_file(tmp_path, "S01", order[1], 50)
     session_file(tmp_path, "S01", order[2], 70)
     assert next_session(plan, tmp_path, "S01") is None

@@ -66,7 +66,9 @@ def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path)
     for fig in ("rr_k.png", "pareto.png", "cycles.png"):
         assert (out / fig).read_bytes()[:4] == b"\x89PNG"
         assert f'src="{fig}"' in page
-    assert page.count("<figcaption>") == 3 and "commanded" in page and "radians" in page
+    assert page.count("<figcaption>") == 3
+    assert "commanded" in page
+    assert "radians" in page
     assert "errors as orange ticks" in page
     for f in out.iterdir():  # what people open is readable by everyone (state files stay private)
         assert f.stat().st_mode & 0o777 == 0o644, f
@@ -79,7 +81,9 @@ def test_a_missing_sets_folder_is_one_line_naming_it(tmp_path: Path) -> None:
          "--sets", str(tmp_path / "nope"), "--out", str(tmp_path / "report")],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
-    assert r.returncode == 2 and "--sets" in r.stderr and "nope: no such folder" in r.stderr, r.stderr
+    assert r.returncode == 2, r.stderr
+    assert "--sets" in r.stderr, r.stderr
+    assert "nope: no such folder" in r.stderr, r.stderr
 
 
 def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> None:
@@ -87,7 +91,8 @@ def test_the_operators_errors_are_marked_on_the_rr_figure(tmp_path: Path) -> Non
     from cadence.lab.report import from_mcap
 
     run = from_mcap(write_run(tmp_path))
-    assert run.errors == 1 and run.error_times_s == [50.0]  # data time from the run's first message
+    assert run.errors == 1
+    assert run.error_times_s == [50.0]  # data time from the run's first message
     args = (run.windows, run.selections, 0.9, "RR_r", [c["end_s"] for c in run.cycles])
     assert rr_k_figure(*args, run.error_times_s) != rr_k_figure(*args, [])
 
@@ -144,4 +149,5 @@ def test_a_recording_joined_mid_run_spans_its_streams_not_a_republished_selectio
     rec.write(key + "robot/event", encode(RobotEvent(t_ns=T0, seq=0, kind="info", message="joined")))
     rec.close()
     run = from_mcap(path)
-    assert run.duration_s == 240.0 and run.productivity_per_min == 0.5
+    assert run.duration_s == 240.0
+    assert run.productivity_per_min == 0.5

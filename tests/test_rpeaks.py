@@ -56,8 +56,10 @@ def test_ventricular_beats_are_unlike_the_template_and_normal_beats_like_it() ->
         return np.array([like[i] for i, s in zip(nearest, at, strict=True) if abs(t[i] - s) < 0.15])
 
     normal, ventricular = likeness_of("N"), likeness_of("V")
-    assert normal.size > 200 and ventricular.size > 100
-    assert np.mean(normal >= LIKE) >= 0.99 and np.mean(ventricular < LIKE) >= 0.95
+    assert normal.size > 200
+    assert ventricular.size > 100
+    assert np.mean(normal >= LIKE) >= 0.99
+    assert np.mean(ventricular < LIKE) >= 0.95
 
 
 @needs_data
@@ -78,4 +80,5 @@ def test_a_burst_of_noise_is_noise_between_the_beats_around_it() -> None:
     hit = [p.noise for p in peaks if 60.0 < p.sample / 130.0 < 62.0]
     rest = [p.noise for p in peaks[1:] if not 59.5 < p.sample / 130.0 < 63.0]
     # relative to the person's own level between beats (about 1 on a clean ECG)
-    assert max(hit) > 3.0 and max(rest) < 1.5
+    assert max(hit) > 3.0
+    assert max(rest) < 1.5

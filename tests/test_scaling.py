@@ -144,7 +144,8 @@ def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sam
         monitor.step(last_heard[1], t - last_heard[0])
 
     q, trace = run(pb, each_step)
-    assert pb.finished and pb.missed == 0
+    assert pb.finished
+    assert pb.missed == 0
     np.testing.assert_allclose(q[-1], path.waypoints[-1], atol=1e-9)
     # every commanded sample inside the limits: exactly (chain rule, the ramp in force at each step) …
     ticks = np.arange(len(q))
@@ -158,7 +159,9 @@ def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sam
     # … and as the arm sees them: finite differences of the samples, no jump anywhere
     fd = finite_difference_ratios(q)
     print(f"limit ratios, exact {np.round(exact, 4)}, finite differences {np.round(fd, 4)}")
-    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1
+    assert fd[0] <= 1.001
+    assert fd[1] <= 1.01
+    assert fd[2] <= 1.1
     # the scale follows the standard's distance: by the end of each phase, heading for (and where the
     # phase is long enough, at) the σ of its distance
     half = monitor.wanted(middle, 0.0)
@@ -170,7 +173,8 @@ def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sam
             assert trace[i - 1][1] == pytest.approx(want, abs=1e-9), (at, trace[i - 1][1], want)
     # silent sensor: within max_age + the stop, σ = 0 and the arm holds its place on the path
     held = [i for i, (ti, _) in enumerate(trace) if 1.6 + ssm.max_age_s + ssm.stop_time_s + 0.1 <= ti < 4.1]
-    assert len(held) > 300 and np.ptp(q[held], axis=0).max() < 1e-12
+    assert len(held) > 300
+    assert np.ptp(q[held], axis=0).max() < 1e-12
 
 
 @pytest.mark.parametrize(("k_from", "k_to"), [(3, 15), (15, 1), (8, 12)])
@@ -203,10 +207,14 @@ def test_a_switch_of_k_mid_path_is_continuous_to_the_jerk_and_inside_the_limits(
             offered.append(pb.offer(switch=Switch(s_switch, joined)))
 
     q, _ = run(pb, each_step)
-    assert offered == [True] and pb.curve is joined and pb.missed == 0
+    assert offered == [True]
+    assert pb.curve is joined
+    assert pb.missed == 0
     assert len(q) * DT == pytest.approx(joined.t_f, abs=2 * DT)
     fd = finite_difference_ratios(q)
-    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1, fd
+    assert fd[0] <= 1.001, fd
+    assert fd[1] <= 1.01, fd
+    assert fd[2] <= 1.1, fd
 
 
 def test_a_switch_offered_after_its_point_is_refused_and_one_planned_on_another_curve_is_missed(
@@ -218,18 +226,23 @@ def test_a_switch_offered_after_its_point_is_refused_and_one_planned_on_another_
     for _ in range(200):
         pb.next()
     sw = switch_curve(curve, path, result.solutions[9].h, pb.s - 0.01, LIMITS)
-    assert sw is not None and not pb.offer(switch=Switch(pb.s - 0.01, sw.curve))
+    assert sw is not None
+    assert not pb.offer(switch=Switch(pb.s - 0.01, sw.curve))
     late = plan_ramp(curve, pb.ramp, pb.t - 0.1, 0.5, LIMITS)
-    assert late is not None and not pb.offer(ramp=late)
+    assert late is not None
+    assert not pb.offer(ramp=late)
     # planned from a state no longer in force (the loop took a ramp meanwhile): refused
     stale = pb.now
     slower = plan_ramp(curve, pb.ramp, pb.t + 0.01, 0.5, LIMITS)
-    assert slower is not None and pb.offer(ramp=slower)
+    assert slower is not None
+    assert pb.offer(ramp=slower)
     while pb.now.pending_ramp is not None or pb.ramp is not slower:
         pb.next()
     ahead = switch_curve(curve, path, result.solutions[9].h, pb.s + 0.05, LIMITS)
-    assert ahead is not None and not pb.offer(switch=Switch(pb.s + 0.05, ahead.curve), base=stale)
-    assert pb.adopted == 1 and pb.missed == 0
+    assert ahead is not None
+    assert not pb.offer(switch=Switch(pb.s + 0.05, ahead.curve), base=stale)
+    assert pb.adopted == 1
+    assert pb.missed == 0
 
 
 def test_a_ramp_from_a_hold_with_a_switch_pending_keeps_both_curves_inside_the_limits(
@@ -244,23 +257,29 @@ def test_a_ramp_from_a_hold_with_a_switch_pending_keeps_both_curves_inside_the_l
     for _ in range(400):
         pb.next()
     stop = plan_ramp(slow, pb.ramp, pb.t + 0.02, 0.0, LIMITS)
-    assert stop is not None and pb.offer(ramp=stop)
+    assert stop is not None
+    assert pb.offer(ramp=stop)
     while pb.t < stop.end + 0.1:
         pb.next()
     assert pb.sigma == 0.0
     sw = switch_curve(slow, path, result.solutions[-1].h, pb.s + 0.005, LIMITS)  # to k = N, on the limits
-    assert sw is not None and pb.offer(switch=Switch(sw.s_switch, sw.curve))
+    assert sw is not None
+    assert pb.offer(switch=Switch(sw.s_switch, sw.curve))
     pb.next()  # the loop adopts it (held: the arm does not move)
     mine = plan_ramp(slow, pb.ramp, pb.t + 0.02, 1.0, LIMITS)  # fits the slow curve only
-    assert mine is not None and ramp_ratio(sw.curve, mine, LIMITS) > 1.1
+    assert mine is not None
+    assert ramp_ratio(sw.curve, mine, LIMITS) > 1.1
     free = plan_ramp(slow, pb.ramp, pb.t + 0.02, 1.0, LIMITS, also=[sw.curve])
     assert free is not None
-    assert (
-        ramp_ratio(slow, free, LIMITS) <= 1 + LIMIT_RTOL
-        and ramp_ratio(sw.curve, free, LIMITS) <= 1 + LIMIT_RTOL
-    )
-    assert pb.offer(ramp=free) and pb.now.pending_switch is not None
+    assert ramp_ratio(slow, free, LIMITS) <= 1 + LIMIT_RTOL
+    assert ramp_ratio(sw.curve, free, LIMITS) <= 1 + LIMIT_RTOL
+    assert pb.offer(ramp=free)
+    assert pb.now.pending_switch is not None
     q, _ = run(pb, lambda t: None)
-    assert pb.curve is sw.curve and pb.missed == 0 and pb.done
+    assert pb.curve is sw.curve
+    assert pb.missed == 0
+    assert pb.done
     fd = finite_difference_ratios(q)
-    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1, fd
+    assert fd[0] <= 1.001, fd
+    assert fd[1] <= 1.01, fd
+    assert fd[2] <= 1.1, fd

@@ -85,7 +85,8 @@ def test_every_message_type_has_a_topic_and_a_distinct_versioned_tag() -> None:
     types = {type(m) for m in SAMPLES}
     assert types == {t.message for t in TOPICS}
     tags = [t.__struct_config__.tag for t in types]
-    assert len(set(tags)) == len(tags) and all(tag.rsplit(".", 1)[1].startswith("v") for tag in tags)
+    assert len(set(tags)) == len(tags)
+    assert all(tag.rsplit(".", 1)[1].startswith("v") for tag in tags)
 
 
 def test_keys_map_to_their_topics() -> None:

@@ -117,7 +117,8 @@ def test_the_nearest_fresh_reading_of_all_wins_and_ahead_or_stale_ones_never_cou
             assert nearest.distance_m is None, (silent, fresh)
             continue
         best = min(dd for _, dd in fresh)
-        assert nearest.distance_m is not None and nearest.distance_m <= best
+        assert nearest.distance_m is not None
+        assert nearest.distance_m <= best
         if keep >= len(seq):
             assert nearest.distance_m == best
 
@@ -128,7 +129,8 @@ def test_a_far_reading_under_a_sensors_name_never_hides_its_near_one_and_a_flood
     for i in range(1000):  # a rogue under the scanner's own name, and under a thousand others
         table.admit("scanner:front", 100.0, 0.0, 0.0, now=0.0001 * i)
         table.admit(f"rogue{i}", 100.0, 0.0, 0.0, now=0.0001 * i)
-    assert len(table.readings) == 3 + 1 and OTHERS in table.readings  # three names, the rest merged
+    assert len(table.readings) == 3 + 1
+    assert OTHERS in table.readings  # three names, the rest merged
     assert all(len(r.kept) <= 4 for r in table.readings.values())
     assert table.nearest(0.2).distance_m == 0.6
     # everyone falls silent: the declared scanner holds the arm. (A rogue under its name while it is dead
@@ -196,7 +198,8 @@ def walk_in(path: PathPlan, result: ParetoResult, follow_switch: bool) -> tuple[
             top = new.scale(base, known) if follow_switch else 1.0
             if pb.now.target > top:  # slower first
                 ramp = plan_ramp(pb.curve, pb.ramp, pb.t + 0.022, top, LIMITS, [sw.curve])
-                assert ramp is not None and pb.offer(ramp=ramp)
+                assert ramp is not None
+                assert pb.offer(ramp=ramp)
                 pb.next()
             ends = float(pb.now.target)
             assert pb.offer(switch=Switch(max(s_switch, pb.s + 0.1 + 2 * (ends != pb.sigma)), sw.curve, top))
@@ -236,7 +239,8 @@ def test_after_a_switch_to_a_faster_k_a_person_walking_in_never_reaches_a_moving
     result = plan_path(path, LIMITS, TASK.planner)
     least, zone, inside = walk_in(path, result, follow_switch=True)
     print(f"with the switched curve's figures: least separation while moving {least:.3f} m (zone {zone} m)")
-    assert inside == 0 and least >= zone
+    assert inside == 0
+    assert least >= zone
     least_before, _, inside_before = walk_in(path, result, follow_switch=False)
     print(f"with the first curve's figures: {least_before:.3f} m, {inside_before} samples inside the zone")
     assert inside_before > 0  # the rule this replaces lets the arm move inside the protective zone

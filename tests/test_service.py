@@ -20,8 +20,10 @@ def test_environment_variables_override_the_file(tmp_path: Path) -> None:
     env = {"CADENCE_BUS_CONNECT": '["tcp/127.0.0.1:7447"]', "CADENCE_CADENCE_STATUS_PERIOD_S": "0.5"}
     bus = section(raw, "bus", BusConfig, str(cfg), env)
     common = section(raw, "cadence", CommonSettings, str(cfg), env)
-    assert bus.mode == "client" and bus.connect == ["tcp/127.0.0.1:7447"]
-    assert common.cell == "cellA" and common.status_period_s == 0.5
+    assert bus.mode == "client"
+    assert bus.connect == ["tcp/127.0.0.1:7447"]
+    assert common.cell == "cellA"
+    assert common.status_period_s == 0.5
 
 
 def test_an_unknown_key_names_the_file_and_the_key(tmp_path: Path) -> None:
@@ -93,4 +95,5 @@ def test_cadence_get_alone_on_the_bus_says_why_no_reply_came() -> None:
         text=True,
         timeout=60,
     )
-    assert r.returncode == 1 and "connected to no router and no peer" in r.stderr, r.stderr
+    assert r.returncode == 1, r.stderr
+    assert "connected to no router and no peer" in r.stderr, r.stderr

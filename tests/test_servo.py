@@ -65,17 +65,22 @@ def run(
 def test_a_motion_is_sent_sample_by_sample_and_the_arm_settles_on_its_end(samples: np.ndarray) -> None:
     sim = SimBackend(samples[0])
     loop, r = run(sim, samples)
-    assert r.outcome == "done" and r.samples_sent == len(samples)
+    assert r.outcome == "done"
+    assert r.samples_sent == len(samples)
     assert len(samples) <= r.ticks <= len(samples) + 250
-    assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4 and not sim.fault()
+    assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4
+    assert not sim.fault()
     s = loop.summary()
-    assert s.ticks == r.ticks and s.period_us == PERIOD_NS // 1000 and s.p50_err_us <= s.max_err_us
+    assert s.ticks == r.ticks
+    assert s.period_us == PERIOD_NS // 1000
+    assert s.p50_err_us <= s.max_err_us
 
 
 def test_faster_than_real_time_sends_several_samples_per_tick(samples: np.ndarray) -> None:
     sim = SimBackend(samples[0], speed=10.0)
     _, r = run(sim, samples, speed=10.0)
-    assert r.outcome == "done" and r.samples_sent == len(samples)
+    assert r.outcome == "done"
+    assert r.samples_sent == len(samples)
     assert r.ticks <= len(samples) / 10 + 26
     assert sim.arm.steps >= len(samples)  # the arm still took one 2 ms step per sample
 
@@ -88,8 +93,10 @@ def test_a_stop_request_brakes_to_rest_before_the_end(samples: np.ndarray) -> No
     loop.start()
     r = loop.run(sim.prepare(samples), 250).result(timeout=60)
     loop.close()
-    assert r.outcome == "stopped" and r.samples_sent < len(samples)
-    assert np.all(sim.arm.qd == 0.0) and np.max(np.abs(sim.arm.q - samples[-1])) > 0.01
+    assert r.outcome == "stopped"
+    assert r.samples_sent < len(samples)
+    assert np.all(sim.arm.qd == 0.0)
+    assert np.max(np.abs(sim.arm.q - samples[-1])) > 0.01
 
 
 def test_a_run_of_overruns_stops_the_robot(samples: np.ndarray) -> None:
@@ -98,7 +105,9 @@ def test_a_run_of_overruns_stops_the_robot(samples: np.ndarray) -> None:
 
     sim = Scripted(samples[0], 100, stall)
     _, r = run(sim, samples, overrun_limit=4)
-    assert r.outcome == "overruns" and r.overruns >= 4 and r.samples_sent < len(samples)
+    assert r.outcome == "overruns"
+    assert r.overruns >= 4
+    assert r.samples_sent < len(samples)
     assert np.all(sim.arm.qd == 0.0)
 
 
@@ -110,14 +119,19 @@ def test_a_stalled_host_never_stops_a_simulated_arm(samples: np.ndarray) -> None
 
     sim = Scripted(samples[0], 100, stall)
     _, r = run(sim, samples, overrun_limit=4, realtime=False)
-    assert r.outcome == "done" and r.samples_sent == len(samples) and r.overruns >= 41
-    assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4 and not sim.fault()
+    assert r.outcome == "done"
+    assert r.samples_sent == len(samples)
+    assert r.overruns >= 41
+    assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4
+    assert not sim.fault()
 
 
 def test_a_refusing_arm_ends_the_motion_as_a_fault(samples: np.ndarray) -> None:
     sim = Scripted(samples[0], 50, lambda b: b.arm.protect("light curtain"), speed=20.0)
     _, r = run(sim, samples, speed=20.0)
-    assert r.outcome == "fault" and r.samples_sent == 50 and sim.fault() == "light curtain"
+    assert r.outcome == "fault"
+    assert r.samples_sent == 50
+    assert sim.fault() == "light curtain"
 
 
 def test_a_lock_file_it_cannot_open_is_skipped_and_said_not_a_crash(tmp_path: Path) -> None:
@@ -136,4 +150,6 @@ def test_a_lock_file_it_cannot_open_is_skipped_and_said_not_a_crash(tmp_path: Pa
     (tmp_path / "servo-core-0.lock").unlink()
     (tmp_path / "servo-core-0.lock").mkdir()
     none = claim_core([0, 1], tmp_path)
-    assert none.core is None and "skipped" in none.note and "unpinned" in none.note
+    assert none.core is None
+    assert "skipped" in none.note
+    assert "unpinned" in none.note

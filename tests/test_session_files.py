@@ -71,8 +71,10 @@ def write(path: Path, i: SessionInfo, *, end_s: float = 120.0, rr: float = 0.8, 
 def test_a_session_counts_what_happened_between_its_start_and_end(tmp_path: Path) -> None:
     s = load_session(write(tmp_path / "s.mcap", info()))
     assert s.minutes == pytest.approx(2.0)
-    assert s.n_cycles == 10 and s.n_errors == 3
-    assert s.productivity_per_min == pytest.approx(5.0) and s.error_rate == pytest.approx(0.3)
+    assert s.n_cycles == 10
+    assert s.n_errors == 3
+    assert s.productivity_per_min == pytest.approx(5.0)
+    assert s.error_rate == pytest.approx(0.3)
     assert s.mean_rr_s == pytest.approx(0.8)  # the held window (0.5 s) does not count
     assert s.mean_rr_norm == pytest.approx(0.8 / 0.9)
 
@@ -129,13 +131,15 @@ def test_calibrated_at_work_the_study_shows_mean_rr_over_the_level_at_rest_too(t
 
     working = Calibration(t_ns=T0, seq=0, subject="s1", rr_rest_s=0.75, posture="working", rr_resting_s=0.9)
     s = load_session(write(tmp_path / "w.mcap", info(cal=working)))
-    assert s.mean_rr_norm == pytest.approx(0.8 / 0.75) and s.mean_rr_resting_norm == pytest.approx(0.8 / 0.9)
+    assert s.mean_rr_norm == pytest.approx(0.8 / 0.75)
+    assert s.mean_rr_resting_norm == pytest.approx(0.8 / 0.9)
     files = [
         write(tmp_path / f"{c}.mcap", info(condition=c, cal=working), rr=rr)
         for c, rr in (("a", 0.7), ("b", 0.8))
     ]
     study = analyse([load_session(f) for f in files])
-    assert RESTING in study.metrics and study.table["b"][RESTING][0] == pytest.approx(0.8 / 0.9)
+    assert RESTING in study.metrics
+    assert study.table["b"][RESTING][0] == pytest.approx(0.8 / 0.9)
     assert any("calibrated at work" in n for n in study.notes)
     at_rest = analyse([load_session(write(tmp_path / "r.mcap", info()))])
     assert RESTING not in at_rest.metrics  # at rest it is mean RR / RR_r itself
@@ -148,11 +152,15 @@ def test_analysis_pairs_by_subject_and_refuses_two_sessions_of_one_condition(tmp
         files.append(write(tmp_path / f"{subject}_a.mcap", a, rr=0.7 + 0.01 * i, cycles=10 + i))
         files.append(write(tmp_path / f"{subject}_b.mcap", b, rr=0.85 + 0.02 * i, cycles=3))
     study = analyse([load_session(f) for f in files])
-    assert study.conditions == ["a", "b"] and not study.simulated
+    assert study.conditions == ["a", "b"]
+    assert not study.simulated
     mean, sd, n = study.table["a"]["productivity_per_min"]
-    assert (mean, n) == (pytest.approx(5.5), 3) and sd == pytest.approx(0.5)
+    assert (mean, n) == (pytest.approx(5.5), 3)
+    assert sd == pytest.approx(0.5)
     t = study.tests["a-b"]["mean_rr_s"]
-    assert t.n == 3 and t.method == "exact" and t.p == pytest.approx(0.25)  # 2 / 2³, all three go up
+    assert t.n == 3
+    assert t.method == "exact"
+    assert t.p == pytest.approx(0.25)  # 2 / 2³, all three go up
     assert t.median_difference == pytest.approx(0.16)
     with pytest.raises(InputError, match="two sessions of subject s1 in condition a"):
         analyse([load_session(f) for f in files] + [load_session(files[0])])
@@ -161,11 +169,14 @@ def test_analysis_pairs_by_subject_and_refuses_two_sessions_of_one_condition(tmp
 def test_the_wilcoxon_method_is_the_one_scipy_can_give() -> None:
     x = np.arange(12.0)
     exact = paired_test(x, x + np.linspace(0.1, 1.2, 12))
-    assert exact.method == "exact" and exact.p == pytest.approx(2 / 2**12)
+    assert exact.method == "exact"
+    assert exact.p == pytest.approx(2 / 2**12)
     tied = paired_test(x, x + 0.5)  # every difference the same: ties, so no exact distribution
-    assert tied.method == "normal approximation" and tied.p < 0.01
+    assert tied.method == "normal approximation"
+    assert tied.p < 0.01
     zero = paired_test(x, x.copy())
-    assert zero.p == 1.0 and zero.method.startswith("none")
+    assert zero.p == 1.0
+    assert zero.method.startswith("none")
     assert paired_test(np.array([]), np.array([])).n == 0
 
 
@@ -178,5 +189,7 @@ def test_the_live_views_keys_mark_errors_and_signal_parts() -> None:
     assert isinstance(late, OperatorError)
     assert (late.kind, late.source, late.t_ns) == ("late", "experimenter", T0)
     part = key_message("2", names, T0)
-    assert isinstance(part, OperatorSignal) and (part.name, part.source) == ("part_a2", "keyboard")
-    assert key_message("4", names, T0) is None and key_message("q", names, T0) is None
+    assert isinstance(part, OperatorSignal)
+    assert (part.name, part.source) == ("part_a2", "keyboard")
+    assert key_message("4", names, T0) is None
+    assert key_message("q", names, T0) is None

@@ -19,7 +19,8 @@ def test_holm_matches_statsmodels_and_leaves_missing_tests_out() -> None:
     # Holm (1979)'s rule by hand: sorted p 0.01, 0.04, 0.03 → 3·0.01, max(0.03, 2·0.03), max(0.06, 0.04)
     assert np.allclose(holm([0.01, 0.04, 0.03]), [0.03, 0.06, 0.06])
     out = holm([0.01, np.nan, 0.04])  # a test that could not be run is not one of the family
-    assert np.isnan(out[1]) and np.allclose(out[[0, 2]], multipletests([0.01, 0.04], method="holm")[1])
+    assert np.isnan(out[1])
+    assert np.allclose(out[[0, 2]], multipletests([0.01, 0.04], method="holm")[1])
 
 
 def test_the_rank_biserial_correlation_is_scipys_signed_rank_sum_rescaled() -> None:
@@ -48,7 +49,8 @@ def test_the_bootstrap_ci_brackets_the_estimate_and_narrows_with_more_subjects()
     lo, hi = bootstrap_ci(few, "d_z")
     assert lo < d_z(few) < hi
     lo2, hi2 = bootstrap_ci(many, "d_z")
-    assert hi2 - lo2 < (hi - lo) / 2 and lo2 < 0.5 < hi2  # the true d_z is 0.5
+    assert hi2 - lo2 < (hi - lo) / 2
+    assert lo2 < 0.5 < hi2  # the true d_z is 0.5
     assert bootstrap_ci(few, "d_z") == (lo, hi)  # seeded: the same table every time
     assert all(np.isnan(bootstrap_ci([1.0, 2.0], "rank_biserial")))
 

@@ -30,11 +30,13 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
         timeout=600,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
-    assert "SIMULATED" in r.stdout and "Wilcoxon" in r.stdout
+    assert "SIMULATED" in r.stdout
+    assert "Wilcoxon" in r.stdout
     files = sorted((tmp_path / "sessions").glob("*.mcap"))
     assert len(files) == 12 * 3
     doc = json.loads((tmp_path / "study.json").read_text())
-    assert doc["simulated"] is True and len(doc["sessions"]) == 12 * 3
+    assert doc["simulated"] is True
+    assert len(doc["sessions"]) == 12 * 3
     assert {row["minutes"] for row in doc["sessions"]} == {10.0}  # each ends at its planned minutes, as live
     readme_tables_are(doc)
     m = {c: {k: v["mean"] for k, v in doc["table"][c].items()} for c in "abc"}
@@ -44,18 +46,24 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
     assert m["a"]["error_rate"] >= m["c"]["error_rate"] >= m["b"]["error_rate"]
     for pair in ("a-b", "a-c", "b-c"):
         t = doc["wilcoxon"][pair]["productivity_per_min"]
-        assert 0 < t["p"] <= 1 and t["n"] == 12 and t["method"] in ("exact", "normal approximation")
+        assert 0 < t["p"] <= 1
+        assert t["n"] == 12
+        assert t["method"] in ("exact", "normal approximation")
     for name in ("conditions.png", "subject_twin-01.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     page = (tmp_path / "index.html").read_text()
-    assert "SIMULATED" in page and "subject_twin-12.png" in page and "Table I" in page
+    assert "SIMULATED" in page
+    assert "subject_twin-12.png" in page
+    assert "Table I" in page
 
     # the files alone give the same study (`cadence study analyse` on them is in tests/test_lab.py)
     redo = json.loads(json.dumps(to_json(analyse([load_session(f) for f in files]))))
     for f in files:  # each file's calibration is its own subject's
         info = load_session(f).info
-        assert info.calibration is not None and info.calibration.subject == info.subject
-    assert redo["table"] == doc["table"] and redo["wilcoxon"] == doc["wilcoxon"]
+        assert info.calibration is not None
+        assert info.calibration.subject == info.subject
+    assert redo["table"] == doc["table"]
+    assert redo["wilcoxon"] == doc["wilcoxon"]
     the_statistics_are_scipys_and_statsmodels(doc)
     the_policies_hold([load_session(f) for f in files])
 
@@ -85,7 +93,8 @@ def the_policies_hold(sessions: list) -> None:
     assert period["means"] == {
         str(p): pytest.approx(float(np.mean(c))) for p, c in zip((1, 2, 3), cols, strict=True)
     }
-    assert period["p"] == pytest.approx(friedmanchisquare(*cols).pvalue) and period["n"] == 12
+    assert period["p"] == pytest.approx(friedmanchisquare(*cols).pvalue)
+    assert period["n"] == 12
 
     cut = dataclasses.replace(placed[0], end=msgspec.structs.replace(placed[0].end, complete=False,
                                                                      reason="interrupted"))  # fmt: skip
@@ -175,13 +184,16 @@ def test_the_twin_fit_moves_the_error_model_toward_table_i_and_predicts_c(tmp_pa
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
-    assert "SIMULATED" in r.stdout and "predicted" in r.stdout
+    assert "SIMULATED" in r.stdout
+    assert "predicted" in r.stdout
     doc = json.loads((tmp_path / "fit.json").read_text())
-    assert doc["simulated"] is True and set(doc["fitted"]) == {"handling_s", "error_base", "error_stress"}
+    assert doc["simulated"] is True
+    assert set(doc["fitted"]) == {"handling_s", "error_base", "error_stress"}
     first = next(s for s in doc["steps"] if "error_base" in s["model"])  # the twin's default error model
     miss = lambda s: abs(s["eps_a"] - 0.537) + abs(s["eps_b"] - 0.028)  # noqa: E731
     assert miss(doc["steps"][-1]) < miss(first)
-    assert set(doc["prediction"]) == {"a", "b", "c"} and set(doc["rr_p"]["twin"]) == {"a-b", "a-c", "b-c"}
+    assert set(doc["prediction"]) == {"a", "b", "c"}
+    assert set(doc["rr_p"]["twin"]) == {"a-b", "a-c", "b-c"}
     assert doc["paper"]["c"] == {"phi": 1.025, "eps": 0.196}
     assert (tmp_path / "fit.png").read_bytes()[:4] == b"\x89PNG"
     assert len(list((tmp_path / "sessions").glob("*.mcap"))) == 6
@@ -230,4 +242,5 @@ def test_one_subject_is_analysed_with_a_hint_not_nan_tables_and_no_numpy_warning
     said = " ".join(r.stderr.split())
     assert "1 subject: the tables have no spread (± —) and no tests" in said
     table = r.stdout.split("Friedman")[0]
-    assert "nan" not in table and "± —" in table
+    assert "nan" not in table
+    assert "± —" in table

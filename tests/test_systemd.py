@@ -292,7 +292,8 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
     listening = m.sh("ss -ltnpH").stdout
     cadence_pids = {str(m.main_pid(f"cadence-{u}")) for u in UNITS}
     listeners = [line for line in listening.splitlines() if any(f"pid={p}," in line for p in cadence_pids)]
-    assert listeners and all(f":{port} " in line for line in listeners), listeners
+    assert listeners, listeners
+    assert all(f":{port} " in line for line in listeners), listeners
     stranger = BusConfig(mode="client", connect=[f"tls/127.0.0.1:{port}"], config_file=None)
     with pytest.raises(Exception):  # noqa: B017 (Zenoh raises its own error type when it cannot connect)
         await Bus.open(stranger, "cell1")
@@ -308,11 +309,13 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
     for u in UNITS:
         st = m.show(f"cadence-{u}", "ActiveState", "Result", "ExecMainStatus")
         log = m.sh(f"journalctl -u cadence-{u} -n 8 --no-pager -o cat", check=False).stdout
-        assert st["ActiveState"] == "inactive" and st["Result"] == "success", (u, st, log)
+        assert st["ActiveState"] == "inactive", (u, st, log)
+        assert st["Result"] == "success", (u, st, log)
         assert st["ExecMainStatus"] == "0", (u, st, log)
     journal = m.sh("journalctl -u cadence-decision_maker -o cat --no-pager").stdout.splitlines()
     records = [json.loads(line) for line in journal if line.startswith("{")]
-    assert records and all("msg" in r or "message" in r for r in records), journal[:5]
+    assert records, journal[:5]
+    assert all("msg" in r or "message" in r for r in records), journal[:5]
 
     # uninstall: what the install wrote is gone, the data is kept
     m.sh(f"{sys.executable} -m cadence uninstall")

@@ -35,7 +35,8 @@ def test_the_example_task_loads_with_six_chained_paths() -> None:
     task = load_task(EXAMPLE_TASK)
     assert len(task.paths) == 6
     assert continuity_gaps(task) == []
-    assert any(s.wait_for for s in task.cycle) and any(s.gripper for s in task.cycle)
+    assert any(s.wait_for for s in task.cycle)
+    assert any(s.gripper for s in task.cycle)
     b1 = task.paths["b1_to_b2"]
     assert b1.waypoints.shape == (6, 6)
     assert b1.waypoints[0, 0] == pytest.approx(math.radians(-62.0))
@@ -145,5 +146,6 @@ def test_cadence_plan_exits_2_with_one_line_and_writes_nothing(
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
-    assert str(task) in lines[0] and field in lines[0]
+    assert str(task) in lines[0]
+    assert field in lines[0]
     assert not outdir.exists()

@@ -38,9 +38,13 @@ def test_rates_ages_bad_payloads_and_gone_services_are_counted() -> None:
     assert (k.count, k.undecodable, k.type_name) == (22, 1, "decision.selection.v1")
     assert k.rate_hz(110.0) == pytest.approx(2.1, abs=0.15)
     text = render(top, now=110.0)
-    assert "decision/selection" in text and "decision_maker → executor" in text
+    assert "decision/selection" in text
+    assert "decision_maker → executor" in text
     row = next(line for line in text.splitlines() if line.startswith("│ executor "))
-    assert "gone 9 s" in row and "moving" in row and " 3 " in row and " 4 " in row  # dropped 3, failed 4
+    assert "gone 9 s" in row
+    assert "moving" in row
+    assert " 3 " in row
+    assert " 4 " in row  # dropped 3, failed 4
     assert "no status" in next(line for line in text.splitlines() if line.startswith("│ pareto_store "))
     assert "executor → (tools)" in text  # health/executor: its own publisher
 
@@ -81,8 +85,8 @@ async def test_cadence_top_shows_a_running_services_keys(tmp_path: Path, endpoin
         await svc.task
     text = out.decode()
     assert proc.returncode == 0, err.decode()
-    assert (
-        "decision/selection" in text and "decision.selection.v1" in text and "health/decision_maker" in text
-    )
+    assert "decision/selection" in text
+    assert "decision.selection.v1" in text
+    assert "health/decision_maker" in text
     row = next(line for line in text.splitlines() if "decision_maker" in line and "yes" in line)
     assert "running" in row

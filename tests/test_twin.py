@@ -38,7 +38,9 @@ def test_the_real_detector_finds_the_twins_beats() -> None:
     truth = np.array(sorted(b for b in beats if 1 < b < 299))
     found = detect(np.concatenate(xs), FS, chunk=CHUNK) / FS
     tp, fp, fn = match_beats(truth, found[(found > 1 - 0.1) & (found < 299 + 0.1)])
-    assert fn == 0 and fp == 0 and tp == len(truth) > 300
+    assert fn == 0
+    assert fp == 0
+    assert tp == len(truth) > 300
 
 
 def test_a_fast_robot_lowers_mean_rr_and_relief_raises_it_again() -> None:
@@ -69,13 +71,15 @@ def test_the_twin_walks_into_the_shared_area_and_out_at_walking_speed() -> None:
     op = Operator(TwinParams(far_m=3.5, walk_near_m=1.5, walk_m_s=1.0, walk_every_s=45.0, walk_stay_s=4.0))
     t = np.arange(0.0, 100.0, 0.01)
     d = np.array([op.separation(x) for x in t])
-    assert np.all(d[t < 45.0] == 3.5) and d.min() == pytest.approx(1.5) and d.max() == 3.5
+    assert np.all(d[t < 45.0] == 3.5)
+    assert d.min() == pytest.approx(1.5)
+    assert d.max() == 3.5
     near = t[d <= 1.5 + 1e-9]
     # walks in for 2 s from 45 s, stays 4 s, walks out for 2 s; again from 90 s
-    assert near.min() == pytest.approx(47.0, abs=0.011) and near[near < 60].max() == pytest.approx(
-        51.0, abs=0.011
-    )
-    assert op.separation(52.0) == pytest.approx(2.5) and op.separation(54.0) == 3.5
+    assert near.min() == pytest.approx(47.0, abs=0.011)
+    assert near[near < 60].max() == pytest.approx(51.0, abs=0.011)
+    assert op.separation(52.0) == pytest.approx(2.5)
+    assert op.separation(54.0) == 3.5
     assert np.abs(np.diff(d)).max() <= 1.0 * 0.01 + 1e-9  # never faster than walking
     assert {op.separation(x) for x in (10.0, 60.0)} == {3.5}
     assert Operator(TwinParams(walk_every_s=0.0)).separation(500.0) == TwinParams().far_m

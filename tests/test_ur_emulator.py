@@ -160,9 +160,12 @@ def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtd
     print(
         f"\ntracking error: median {np.median(lags):.4f} rad, max {max(lags):.4f} rad over {len(lags)} reads"
     )
-    assert r.outcome == "done" and r.samples_sent == len(q)
-    assert max(lags) < 0.1 and np.median(lags) < 0.05  # servoJ-like lag at lookahead 0.1 s, gain 300
-    assert float(np.max(np.abs(backend.actual_q() - q[-1]))) < 1e-3 and backend.fault() == ""
+    assert r.outcome == "done"
+    assert r.samples_sent == len(q)
+    assert max(lags) < 0.1
+    assert np.median(lags) < 0.05  # servoJ-like lag at lookahead 0.1 s, gain 300
+    assert float(np.max(np.abs(backend.actual_q() - q[-1]))) < 1e-3
+    assert backend.fault() == ""
     s = loop.summary()
     print(f"servo ticks {s.ticks}, p99.9 error {s.p999_err_us} µs, overruns {s.overruns}")
 
@@ -309,13 +312,17 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
             await store.close()
             emu.stop()
     lost = ("lost", "no connection")  # the receive interface or the control interface saw it first
-    assert stop.path_id == "b1_to_b2" and any(w in stop.message for w in lost)
-    assert host in down.message and host in back.message and "stays stopped" in back.message
-    assert early.message is not None and early.message.message.startswith("stopped")
+    assert stop.path_id == "b1_to_b2"
+    assert any(w in stop.message for w in lost)
+    assert host in down.message
+    assert host in back.message
+    assert "stays stopped" in back.message
+    assert early.message is not None
+    assert early.message.message.startswith("stopped")
     assert "not connected to the controller" in early.message.message
-    assert (
-        "lost" in held.reason and resumed.message is not None and resumed.message.message.startswith("ready")
-    )
+    assert "lost" in held.reason
+    assert resumed.message is not None
+    assert resumed.message.message.startswith("ready")
     assert again.path_id in load_task(EXAMPLE_TASK).paths
 
 
@@ -358,7 +365,8 @@ async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
     finally:
         emu.stop()
     assert (sig.name, sig.source) == ("part", "ur DI2")
-    assert report.cycle == 0 and ex.ctx.counters["buttons"] == 1
+    assert report.cycle == 0
+    assert ex.ctx.counters["buttons"] == 1
     assert any("digital input 2 on" in line for line in emu.lines)
 
 
@@ -378,7 +386,8 @@ def test_an_rtde_client_that_stops_reading_is_dropped_and_the_others_are_not_hel
         b = UrRtdeBackend(emu.host, watchdog_hz=WATCHDOG_HZ)
         b.connect()  # another client is served all the while
         try:
-            assert b.fault() == "" and np.all(np.isfinite(b.actual_q()))
+            assert b.fault() == ""
+            assert np.all(np.isfinite(b.actual_q()))
         finally:
             b.close()
     finally:
@@ -424,6 +433,11 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
             await ex.close()
             await store.close()
             emu.stop()
-    assert early.message is not None and "resume failed" in early.message.message
-    assert host in retry.message and "stays stopped" in back.message and held.state == "stopped"
-    assert resumed.message is not None and resumed.message.message.startswith("ready") and again.path_id
+    assert early.message is not None
+    assert "resume failed" in early.message.message
+    assert host in retry.message
+    assert "stays stopped" in back.message
+    assert held.state == "stopped"
+    assert resumed.message is not None
+    assert resumed.message.message.startswith("ready")
+    assert again.path_id

@@ -64,7 +64,8 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
             await bus.until_subscribed(bus.key("robot/state"), timeout=60)  # the bridge reads the cell
             async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[PROTOCOL]) as ws:
                 info = json.loads(await ws.recv())
-                assert info["op"] == "serverInfo" and info["name"] == "cadence cell1"
+                assert info["op"] == "serverInfo"
+                assert info["name"] == "cadence cell1"
                 graph = {
                     f"/cadence/cell1/{t.suffix}"
                     for t in TOPICS
@@ -105,7 +106,8 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
     assert proc.returncode == 0
     assert got["/cadence/cell1/hrv/window"]["mean_rr_s"] == 0.81
     joints = got["/robot/joint_states"]["joints"]
-    assert [j["position"] for j in joints] == pytest.approx(q) and joints[0]["name"] == "base"
+    assert [j["position"] for j in joints] == pytest.approx(q)
+    assert joints[0]["name"] == "base"
     assert [e["frame_id"] for e in got[SCENE]["entities"]] == list(FRAMES[1:])  # the arm's links
     tf = got["/tf"]["transforms"]
     assert [t["child_frame_id"] for t in tf] == list(FRAMES[1:])
