@@ -63,7 +63,7 @@ from schemas.topology import (
     SELECTION,
 )
 from services.decision_maker.state import STATE_FILE
-from services.registry import BY_NAME, launch_order
+from services.registry import launch_order
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
 DEMO_TOLERANCE = 0.7  # the twin's (common/sim/twin.py: 0.8 by default)
@@ -129,7 +129,7 @@ class Supervised:
                 self.proc = await asyncio.create_subprocess_exec(
                     sys.executable,
                     "-m",
-                    BY_NAME[self.name].module_name.removesuffix(".__main__"),
+                    f"services.{self.name}",
                     env=self.env | {PARENT_ENV: str(os.getpid())},
                     stdout=log,
                     stderr=log,

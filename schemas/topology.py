@@ -51,6 +51,10 @@ class Topic(Generic[M]):
     pattern: Pattern = "topic"
     qos: QoS = "block"
     family: str = ""  # the suffix as declared, wildcards unfilled (a member's, ``at``, is its family's)
+    # who numbers its messages: "port", the publishing node's output port (per key, DESIGN §3), or
+    # "message", the message itself, when its seq is its identity (a selection's survives a restart and
+    # is republished as it was; a window answered again on ``hrv/window?after=`` is the one published)
+    numbered: Literal["port", "message"] = "port"
 
     def __post_init__(self) -> None:
         if not self.family:
@@ -80,8 +84,8 @@ ECG_SAMPLES = Topic("ecg/samples", EcgChunk)
 ECG_RR = Topic("ecg/rr", RrIntervals)
 # the strap's accelerometer: movement, told apart from mental load (a source without one sends none)
 ECG_ACC = Topic("ecg/acc", AccChunk)
-HRV_BEATS = Topic("hrv/beats", Beats)
-HRV_WINDOW = Topic("hrv/window", HrvWindow)
+HRV_BEATS = Topic("hrv/beats", Beats, numbered="message")
+HRV_WINDOW = Topic("hrv/window", HrvWindow, numbered="message")
 CALIBRATION = Topic("operator/calibration", Calibration)
 # the executor publishes a button on one of the controller's digital inputs (a task step's ``input``)
 OPERATOR_SIGNAL = Topic("operator/signal", OperatorSignal)
@@ -90,7 +94,7 @@ OPERATOR_ERROR = Topic("operator/error", OperatorError)
 # the nearest person's distance, for the executor's speed and separation monitoring
 # (common/safety/separation.py)
 OPERATOR_SEPARATION = Topic("operator/separation", Separation, qos="drop")
-SELECTION = Topic("decision/selection", Selection)
+SELECTION = Topic("decision/selection", Selection, numbered="message")
 # the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the
 # initial k); the reply is the selection it starts with, stamped with the data time it took effect
 DECISION_CONDITION = Topic("decision/condition", Selection, pattern="query")
@@ -123,6 +127,17 @@ class Role:
     outputs: tuple[Topic[Any], ...] = ()  # topics it publishes
     answers: tuple[Topic[Any], ...] = ()  # queries it answers (a published topic's latest, on demand)
     asks: tuple[Topic[Any], ...] = ()  # queries it sends
+    # what it does on its own every so often (a node's ``@every``), each by the settings field (or the
+    # seconds) that sets its period: the clock a simulated cell drives must know every one of them
+    timers: tuple[Timer, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Timer:
+    """A node's periodic work, declared in the graph beside its ports."""
+
+    name: str  # the node's method
+    period: str | float  # the settings field that holds the period in seconds, or the seconds
 
 
 LOOKERS = (SELECTION, PARETO_SET, PARETO_SOLUTION, CELL_CLOCK)  # what tools may ask (`cadence get`)
@@ -135,6 +150,7 @@ ROLES: tuple[Role, ...] = (
         outputs=(SELECTION,),
         answers=(SELECTION, DECISION_CONDITION),
         asks=(HRV_WINDOW,),  # the windows it missed while it was down (the analyser keeps its last ones)
+        timers=(Timer("current", "republish_s"),),  # the selection in force, again (state, not an event)
     ),
     # ecg/rr is read only with input = rr
     Role(
@@ -152,6 +168,7 @@ ROLES: tuple[Role, ...] = (
         outputs=(ROBOT_STATE, ROBOT_CYCLE, ROBOT_EVENT, OPERATOR_SIGNAL, OPERATOR_ERROR),
         answers=(ROBOT_RESUME,),
         asks=(SELECTION, PARETO_SET),
+        timers=(Timer("scale", "scale_period_s"), Timer("state", "state_period_s")),
     ),
     # the simulated operator (common/sim/twin.py): it watches the robot and is the ECG source of a cell
     # without a strap, in the gateway's place
@@ -160,6 +177,7 @@ ROLES: tuple[Role, ...] = (
         "service",
         inputs=(ROBOT_STATE, ROBOT_CYCLE),
         outputs=(ECG_SAMPLES, ECG_ACC, OPERATOR_SIGNAL, OPERATOR_ERROR, OPERATOR_SEPARATION),
+        timers=(Timer("separation", "separation_period_s"),),
     ),
     Role(
         "operator",

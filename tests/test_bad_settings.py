@@ -10,7 +10,7 @@ import pytest
 
 from common.runtime.errors import TaskError
 from common.trajectory.task import parse_task
-from tests.test_task import GOOD
+from tests.support.tasks import GOOD
 
 BAD = [
     ("decision_maker", "[decision_maker]\nn = 0"),
@@ -93,7 +93,7 @@ def test_an_absurd_task_program_is_one_task_error_naming_the_field(extra: str, f
 
 def test_the_automatic_resume_is_for_the_sim_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from services.executor.__main__ import run
-    from tests.test_executor import TASK
+    from tests.support.executor import TASK
 
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK)

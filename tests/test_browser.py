@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_report import write_run
+from tests.support.sessions import write_run
 
 CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
 pytestmark = pytest.mark.skipif(
@@ -70,7 +70,7 @@ def test_every_image_of_a_report_and_of_a_study_loads_in_chromium(tmp_path: Path
     from cadence.lab.analysis import analyse, write_study
     from cadence.lab.report import from_mcap, write_report
     from cadence.lab.session import load_session
-    from tests.test_session_files import info, write
+    from tests.support.sessions import info, write
 
     site = tmp_path / "site"
     write_report(from_mcap(write_run(tmp_path)), site / "report", 0.85)

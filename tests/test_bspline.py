@@ -6,22 +6,10 @@ import itertools
 
 import numpy as np
 import pytest
-from scipy.interpolate import BSpline, make_interp_spline
 
 from common.trajectory import bspline as bs
-from common.trajectory.task import PathPlan
-from tests.conftest import random_path
-
-
-def scipy_reference(h: np.ndarray, path: PathPlan) -> BSpline:
-    b = path.boundary
-    return make_interp_spline(
-        bs.waypoint_sites(h[None])[0],
-        path.waypoints,
-        k=5,
-        t=bs.knots(h[None])[0],
-        bc_type=([(1, b.v0), (2, b.a0), (3, b.j0)], [(1, b.v1), (2, b.a1), (3, b.j1)]),
-    )
+from tests.support.paths import random_path
+from tests.support.trajectory import scipy_reference
 
 
 def random_h(rng: np.random.Generator, w: int, n: int) -> np.ndarray:

@@ -15,7 +15,7 @@ from common.runtime.bus import Bus, BusConfig, QueryError, Request
 from common.runtime.errors import BusError
 from schemas import Selection, ServiceStatus
 from schemas.topology import TOPICS
-from tests.conftest import free_port, put
+from tests.support.cell import free_port, put
 
 pytestmark = pytest.mark.asyncio
 

@@ -12,7 +12,7 @@ from common.hrv.calibration import SETTLED_S, calibration, resting_level, settle
 from common.hrv.records import read_record
 from common.hrv.stream import HrvStream, Window, intervals, windows
 from schemas.operator import Calibration
-from tests.test_rpeaks import ECG, needs_data
+from tests.support.data import ECG, needs_data
 
 GUDB = Path(__file__).resolve().parents[2] / "shared" / "data" / "gudb"
 needs_gudb = pytest.mark.skipif(not GUDB.is_dir(), reason=f"{GUDB} is absent (the shared GUDB beats)")

@@ -30,7 +30,8 @@ from cadence.deploy.pki import common_name, issue, make_ca
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
 from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS
-from tests.conftest import REPO, free_port, put
+from tests.support.cell import free_port, put
+from tests.support.paths import REPO
 
 
 def _includes(rule_key: str, key: str) -> bool:

@@ -14,13 +14,8 @@ import pytest
 
 from common.trajectory.task import load_task
 from common.trajectory.validate import trajectory_problems
-from tests.test_task import GOOD
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cadence", *args], capture_output=True, text=True, timeout=300
-    )
+from tests.support.cli import run_cli
+from tests.support.tasks import GOOD
 
 
 @pytest.mark.parametrize(

@@ -220,7 +220,7 @@ def test_cadence_calibrate_says_where_it_listens_when_nothing_answers() -> None:
 
 
 def test_a_router_that_is_not_there_is_one_line_without_zenohs_source_file() -> None:
-    from tests.conftest import free_port
+    from tests.support.cell import free_port
 
     cmd = [sys.executable, "-m", "cadence", "calibrate", "--connect", f"tcp/127.0.0.1:{free_port()}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)

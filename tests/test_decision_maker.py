@@ -11,12 +11,13 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from common.decision import Params, State, step
+from common.decision import Params
 from common.runtime.bus import Bus, BusConfig
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main
-from tests.conftest import InProcessService, now_ns, put
+from tests.support.cell import InProcessService, now_ns, put
+from tests.support.decisions import answer, expected, window
 
 pytestmark = pytest.mark.asyncio
 S = 1_000_000_000
@@ -24,41 +25,6 @@ S = 1_000_000_000
 
 def start_decider(data: Path, endpoint: str, settings: Settings) -> InProcessService:
     return InProcessService("decision_maker", main, settings, data, endpoint)
-
-
-# The test's windows are 14 s long (the decision maker does not read a window's length) and start 41 of
-# them before now: near the decision maker's clock, as live ones are, and each ended before it is sent
-# (nothing from the receiver's future is taken).
-SPAN = 14 * S
-BASE = [now_ns() - 41 * SPAN]
-
-
-@pytest.fixture(autouse=True)
-def _base_now() -> None:
-    BASE[0] = now_ns() - 41 * SPAN
-
-
-def window(i: int, rr: float | None, quality: str = "good") -> HrvWindow:
-    return HrvWindow(
-        t_ns=BASE[0] + (i + 1) * SPAN,
-        seq=i,
-        start_ns=BASE[0] + i * SPAN,
-        end_ns=BASE[0] + (i + 1) * SPAN,
-        mean_rr_s=rr,
-        n_beats=37,
-        excluded_fraction=0.0,
-        quality=quality,
-    )
-
-
-async def answer(bus: Bus, sub, w: HrvWindow) -> Selection:
-    """Publish a window and wait for the selection that answers it (republishes are skipped)."""
-    put(bus, bus.key("hrv/window"), w, block=True)
-    async with asyncio.timeout(10):
-        async for _, sel in sub:
-            if sel.window_end_ns == w.end_ns:
-                return sel
-    raise AssertionError("unreachable")
 
 
 async def first_selection(sub) -> Selection:
@@ -74,15 +40,6 @@ def sequence(seed: int, n: int) -> list[HrvWindow]:
         rr = min(1.2, max(0.5, rr + rng.choice([-0.06, -0.04, -0.03, -0.01, 0.0, 0.01, 0.02, 0.05])))
         quality = "low" if rng.random() < 0.1 else "good"
         out.append(window(i, round(rr, 3), quality))
-    return out
-
-
-def expected(windows: list[HrvWindow], rr_r: float) -> list[int]:
-    p, s, out = Params.of(rr_r), None, []
-    s = State.initial(p)
-    for w in windows:
-        s = step(p, s, w.mean_rr_s, w.quality == "good").state
-        out.append(s.k)
     return out
 
 

@@ -210,7 +210,7 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
 
     from common.runtime.bus import Bus, BusConfig
     from schemas import CycleReport
-    from tests.conftest import free_port
+    from tests.support.cell import free_port
 
     out, endpoint = tmp_path / "demo", f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen(

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from services.registry import SERVICES, unit
-from tests.conftest import REPO
+from tests.support.paths import REPO
 
 DEPLOY = REPO / "deploy"
 TEMPLATE = (DEPLOY / "systemd" / "cadence-service.in").read_text()

@@ -15,7 +15,7 @@ from cadence.bench import decide as bd
 from common.decision import Personal
 from common.hrv.e4 import MG_PER_UNIT, read_e4
 from common.runtime.errors import InputError
-from tests.conftest import SHARED_DATA
+from tests.support.paths import SHARED_DATA
 
 START = 1_644_226_061
 STRESS_PREDICT = SHARED_DATA / "stress_predict"
@@ -188,7 +188,7 @@ async def test_a_wristbands_export_replays_through_the_gateway_into_windows(
     from services.ecg_gateway.__main__ import main as gateway_main
     from services.hrv_analyser.__main__ import Settings as AnalyserSettings
     from services.hrv_analyser.__main__ import main as analyser_main
-    from tests.conftest import InProcessService, now_ns
+    from tests.support.cell import InProcessService, now_ns
 
     folder = write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((95.0, 150.0),), acc=False)
     start = now_ns() - 300 * 10**9  # replayed 40× faster than the clock: it ends by now

@@ -22,20 +22,10 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService, now_ns, put
-from tests.test_rpeaks import ECG, needs_data
+from tests.support.cell import InProcessService, now_ns, put
+from tests.support.data import ECG, needs_data, record_cut
 
 pytestmark = pytest.mark.asyncio
-
-
-def record_cut(tmp_path: Path, name: str, seconds: float) -> tuple[Path, np.ndarray]:
-    """The first seconds of a shared record as a CSV (what the gateway replays), and those seconds
-    resampled to 130 Hz (what the offline reference analyses)."""
-    rec = read_record(str(ECG / name))
-    n = int(seconds * rec.fs)
-    csv = tmp_path / f"{name}.csv"
-    np.savetxt(csv, np.c_[np.arange(n) / rec.fs, rec.uv[:n]], delimiter=",", fmt="%.6f")
-    return csv, read_record(str(csv), fs=130.0).uv
 
 
 @needs_data
@@ -153,7 +143,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
 @needs_data
 async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str) -> None:
     from schemas import RrIntervals
-    from tests.test_hrv import device_rr
+    from tests.support.data import device_rr
 
     beats = read_record(str(ECG / "100"), fs=130.0).beats_s
     START_NS = now_ns() - 100 * 1_000_000_000  # 100 s of intervals that have happened

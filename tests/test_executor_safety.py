@@ -16,8 +16,8 @@ from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatu
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.executor.backends import SimBackend, UrRtdeBackend
-from tests.conftest import InProcessService, put
-from tests.test_executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
+from tests.support.cell import InProcessService, put
+from tests.support.executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
 STALL_S = 0.02  # a servo call this slow is an overrun at any speed
@@ -283,7 +283,7 @@ async def test_two_executors_on_one_host_get_different_servo_cores(
 async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resumed(
     task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from tests.test_ur_emulator import WATCHDOG_HZ, EmulatorProcess, free_loopback
+    from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, free_loopback
 
     on = stall(monkeypatch, UrRtdeBackend)
     emu = EmulatorProcess(free_loopback(), q0_deg=[0.0, -90.0, 90.0, -90.0, -90.0, 0.0])  # the task's start

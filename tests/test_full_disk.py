@@ -24,10 +24,9 @@ from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.decision_maker.state import STATE_FILE
 from services.executor.__main__ import main as executor_main
-from tests.conftest import InProcessService
-from tests.test_decision_maker import _base_now, answer, window  # noqa: F401 (the fixture sets window times)
-from tests.test_executor import TASK, next_of, sim_settings, store_serving
-from tests.test_hostile import status_of
+from tests.support.cell import InProcessService, status_of
+from tests.support.decisions import answer, window
+from tests.support.executor import TASK, next_of, sim_settings, store_serving
 
 
 class Disk:
@@ -178,7 +177,7 @@ def test_a_full_disk_is_not_taken_for_a_damaged_store(disk: Disk, example_sets: 
 
     from common.trajectory.task import load_task
     from services.pareto_store.store import SetStore
-    from tests.conftest import EXAMPLE_TASK
+    from tests.support.paths import EXAMPLE_TASK
 
     db = disk.path / "pareto.sqlite"
     shutil.copy(example_sets, db)
@@ -230,7 +229,7 @@ def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(dis
 
 
 def test_a_report_onto_a_full_disk_is_one_line_naming_the_folder(disk: Disk, tmp_path: Path) -> None:
-    from tests.test_report import write_run
+    from tests.support.sessions import write_run
 
     run = write_run(tmp_path)
     disk.fill()

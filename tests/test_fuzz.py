@@ -37,10 +37,10 @@ from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.operator_twin.__main__ import Settings as TwinSettings
 from services.operator_twin.__main__ import main as twin_main
-from tests.conftest import InProcessService, now_ns, put
-from tests.test_executor import CALM, SPEED, TASK, store_serving
-from tests.test_hostile import DAY, S, chunks, synthetic_ecg
-from tests.test_schemas import SAMPLES
+from tests.support.cell import InProcessService, now_ns, put
+from tests.support.data import DAY, S, chunks, synthetic_ecg
+from tests.support.executor import CALM, SPEED, TASK, store_serving
+from tests.support.messages import SAMPLES
 
 pytestmark = pytest.mark.asyncio
 

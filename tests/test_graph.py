@@ -42,7 +42,8 @@ from services.operator_twin.__main__ import Settings as TwinSettings
 from services.operator_twin.__main__ import main as twin_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.conftest import EXAMPLE_TASK, InProcessService, put
+from tests.support.cell import InProcessService, put
+from tests.support.paths import EXAMPLE_TASK
 
 Port = tuple[str, str, str]
 

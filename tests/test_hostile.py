@@ -11,12 +11,11 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
-import numpy as np
 import pytest
 
 from common.hrv.calibration import CALIBRATION_FILE
 from common.runtime.bus import Bus, BusConfig
-from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection, ServiceStatus
+from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection
 from schemas.topology import encode
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
@@ -24,13 +23,9 @@ from services.decision_maker.state import STATE_FILE, Decider, resume
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.store import SetStore
-from tests.conftest import InProcessService, now_ns, put
-from tests.test_decision_maker import _base_now, answer, expected, window  # noqa: F401 (the fixture sets window times)
-
-S = 1_000_000_000
-DAY = 86_400 * S
-FS = 130.0
-CHUNK = 73
+from tests.support.cell import InProcessService, now_ns, put, status_of
+from tests.support.data import DAY, S, chunks, synthetic_ecg
+from tests.support.decisions import answer, expected, window
 
 
 def raw(msg: msgspec.Struct, **changes: Any) -> bytes:
@@ -39,15 +34,6 @@ def raw(msg: msgspec.Struct, **changes: Any) -> bytes:
     d = msgspec.to_builtins(msg)
     d.update(changes)
     return msgspec.msgpack.encode(d)
-
-
-async def status_of(bus: Bus, name: str, pred, timeout: float = 20.0) -> ServiceStatus:
-    sub = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
-    async with asyncio.timeout(timeout):
-        async for _, st in sub:
-            if pred(st):
-                return st
-    raise AssertionError("unreachable")
 
 
 # --- the decision maker ----------------------------------------------------------------------------
@@ -235,19 +221,6 @@ def test_a_corrupt_calibration_file_is_moved_aside_and_the_config_rr_rest_used(t
 # --- the HRV analyser ------------------------------------------------------------------------------
 
 
-def synthetic_ecg(seconds: float) -> np.ndarray:
-    """R waves every 0.8 s (75 bpm), µV."""
-    t = np.arange(0, seconds, 1 / FS)
-    return np.rint(1000 * np.exp(-(((t % 0.8) - 0.4) ** 2) / 2e-4)).astype(int)
-
-
-def chunks(x: np.ndarray, t0_ns: int) -> list[EcgChunk]:
-    return [
-        EcgChunk(t_ns=t0_ns + round(i * 1e9 / FS), seq=n, fs_hz=FS, samples_uv=x[i : i + CHUNK].tolist())
-        for n, i in enumerate(range(0, len(x), CHUNK))
-    ]
-
-
 async def windows_of(
     bus: Bus, honest: list[EcgChunk], hostile_at: dict[int, list[bytes]], n: int
 ) -> list[HrvWindow]:
@@ -386,7 +359,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
 ) -> None:
     from schemas import CycleReport
     from services.executor.__main__ import main as executor_main
-    from tests.test_executor import SPEED, TASK, next_of, sim_settings, store_serving
+    from tests.support.executor import SPEED, TASK, next_of, sim_settings, store_serving
 
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK)

@@ -12,8 +12,8 @@ import pytest
 from common.hrv.records import read_record
 from common.hrv.rpeaks import detect, detect_peaks
 from common.hrv.stream import HrvStream, classify, intervals, peak_intervals, windows
-from tests.test_cli import run_cli
-from tests.test_rpeaks import ECG, needs_data
+from tests.support.cli import run_cli
+from tests.support.data import ECG, device_rr, needs_data
 
 
 def test_a_missed_beat_an_extra_beat_and_an_ectopic_pair_are_excluded() -> None:
@@ -221,18 +221,6 @@ def test_the_stream_breaks_at_a_gap_and_flags_its_window() -> None:
     assert by_start[0.0].quality == "good"
     assert by_start[90.0].quality == "good"
     assert len(stream.gaps) <= 1
-
-
-def device_rr(beats: np.ndarray, every_s: float = 1.0) -> list[tuple[float, list[float]]]:
-    """The strap's notifications for these beats: about once a second, the intervals ended since the last
-    one, sent at the time of the last beat (the H10's RR stream)."""
-    out: list[tuple[float, list[float]]] = []
-    j = 1
-    for k in range(2, len(beats) + 1):
-        if k == len(beats) or beats[k] - beats[j - 1] > every_s:
-            out.append((float(beats[k - 1]), np.diff(beats[j - 1 : k]).tolist()))
-            j = k
-    return out
 
 
 @needs_data

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from tests.conftest import free_port
+from tests.support.cell import free_port
 
 SPEED = "16"
 # (a) runs two minutes too: its k is read from the second cycle that ends in it on, and a loaded host

@@ -21,8 +21,8 @@ from common.sim.twin import Operator, TwinParams
 from schemas import AccChunk, Calibration, HrvWindow
 from services.decision_maker.state import Decider, MovementRule
 from services.ecg_gateway.sources import AccSamples, Chunk, ReplaySource
-from tests.conftest import now_ns
-from tests.test_rpeaks import ECG, needs_data
+from tests.support.cell import now_ns
+from tests.support.data import ECG, needs_data
 
 S = 1_000_000_000
 POLAR = ECG / "polar_h10"

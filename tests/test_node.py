@@ -23,8 +23,8 @@ from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
 from services.decision_maker.__main__ import DecisionMaker, Settings
 from services.hrv_analyser.__main__ import HrvAnalyser
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
-from tests.conftest import now_ns, put
-from tests.test_rpeaks import ECG, needs_data
+from tests.support.cell import now_ns, put
+from tests.support.data import ECG, needs_data
 
 S = 1_000_000_000
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO
+from tests.support.paths import REPO
 
 needs_uv = pytest.mark.skipif(shutil.which("uv") is None, reason="uv is not on PATH (.ci/run installs it)")
 

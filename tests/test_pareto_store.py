@@ -18,7 +18,7 @@ from schemas.topology import TOPICS, AnyMessage
 from services.pareto_store.__main__ import ParetoStore, Settings, main
 from services.pareto_store.jobs import plan_job
 from services.pareto_store.store import SetStore
-from tests.conftest import InProcessService
+from tests.support.cell import InProcessService
 
 pytestmark = pytest.mark.asyncio
 

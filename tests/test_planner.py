@@ -29,8 +29,8 @@ from common.trajectory.planner import (
 from common.trajectory.pool import plan_paths
 from common.trajectory.task import PathPlan, PlannerSettings
 from common.trajectory.validate import trajectory_problems
-from tests.conftest import random_path
-from tests.test_bspline import scipy_reference
+from tests.support.paths import random_path
+from tests.support.trajectory import scipy_reference
 
 
 def test_interval_bounds_split_the_end_segments_between_the_virtual_knots() -> None:

@@ -30,10 +30,10 @@ import pytest
 
 from cadence.cli import SERVICES, build_parser
 from common.runtime.config import CONFIG_SECTIONS, CommonSettings, ConfigError, section
-from tests.conftest import SHARED_DATA, free_port
+from tests.support.cell import free_port
+from tests.support.paths import README, SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
-README = ROOT / "README.md"
 PORT = "7447"  # the examples' router port; a free one is used in its place when they run
 
 

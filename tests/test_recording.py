@@ -22,9 +22,8 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.conftest import InProcessService, now_ns, put
-from tests.test_ecg_chain import record_cut
-from tests.test_rpeaks import needs_data
+from tests.support.cell import InProcessService, now_ns, put
+from tests.support.data import needs_data, record_cut
 
 WINDOWS = 2
 

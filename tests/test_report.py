@@ -10,44 +10,13 @@ from pathlib import Path
 from cadence.tools.recording import Recorder
 from common.trajectory.planner import content_hash
 from common.trajectory.task import parse_task
-from schemas import CycleReport, HrvWindow, OperatorError, RobotEvent, Selection
+from schemas import CycleReport, RobotEvent, Selection
 from schemas.topology import encode
 from services.pareto_store.jobs import plan_job
-from tests.test_executor import TASK
+from tests.support.executor import TASK
+from tests.support.sessions import write_run
 
 T0 = 1_800_000_000_000_000_000
-
-
-def write_run(tmp_path: Path) -> Path:
-    """A recording of a short run: sets, four windows and selections, three cycles, an error, an event."""
-    task = parse_task(TASK, "shuttle.toml")
-    sets = {
-        pid: plan_job(p, task, task.planner, content_hash(p, task.limits, task.planner))
-        for pid, p in task.paths.items()
-    }
-    path = tmp_path / "run.mcap"
-    rec = Recorder(path)
-    key = "cadence/cell1/"
-    for s in sets.values():
-        rec.write(key + f"pareto/{s.path_id}", encode(s))
-    for i, (rr, k) in enumerate([(0.85, 5), (0.80, 3), (0.82, 4), (0.84, 5)]):
-        end = T0 + (i + 1) * 30 * 10**9
-        rec.write(key + "hrv/window", encode(HrvWindow(
-            t_ns=end, seq=i, start_ns=end - 30 * 10**9, end_ns=end, mean_rr_s=rr, n_beats=35,
-            excluded_fraction=0.0, quality="good")))  # fmt: skip
-        rec.write(key + "decision/selection", encode(Selection(
-            t_ns=end, seq=i, k=k, n=5, delta=0, reason="hold", window_end_ns=end)))  # fmt: skip
-    for c in range(3):
-        ks = {"there": 5 - c, "back": 5 - c}
-        report = CycleReport(t_ns=T0 + (c + 1) * 40 * 10**9, seq=c, cycle=c, cycle_time_s=40.0, k_per_path=ks)
-        rec.write(key + "robot/cycle", encode(report))
-    rec.write(key + "operator/error", encode(OperatorError(t_ns=T0 + 50 * 10**9, seq=0, cycle=1)))
-    rec.write(
-        key + "robot/event",
-        encode(RobotEvent(t_ns=T0 + 60 * 10**9, seq=0, kind="overrun", message="1 <overrun>")),
-    )
-    rec.close()
-    return path
 
 
 def test_report_of_a_recording_gives_phi_epsilon_and_the_figures(tmp_path: Path) -> None:

@@ -8,11 +8,9 @@ import pytest
 from common.hrv.records import read_record
 from common.hrv.rpeaks import detect
 from common.hrv.stream import match_beats
-from tests.conftest import SHARED_DATA
+from tests.support.data import ECG, needs_data
 
-ECG = SHARED_DATA / "ecg"
 RECORDS = ["100", "101", "103", "105", "106", "119", "201", "208"]
-needs_data = pytest.mark.skipif(not ECG.exists(), reason=f"the shared recordings are not at {ECG}")
 
 
 @needs_data

@@ -22,7 +22,7 @@ from common.trajectory.scaling import (
 )
 from common.trajectory.task import PathPlan, load_task
 from services.executor.playback import Playback, Switch
-from tests.conftest import EXAMPLE_TASK
+from tests.support.paths import EXAMPLE_TASK
 
 TASK = load_task(EXAMPLE_TASK)
 LIMITS = TASK.limits

@@ -18,7 +18,7 @@ from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.scaling import DT, Curve, Ramp, plan_ramp, stop_time, switch_curve
 from common.trajectory.task import PathPlan, load_task
 from services.executor.playback import Playback, Switch
-from tests.conftest import EXAMPLE_TASK
+from tests.support.paths import EXAMPLE_TASK
 
 TASK = load_task(EXAMPLE_TASK)
 LIMITS = TASK.limits

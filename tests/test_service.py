@@ -72,7 +72,7 @@ async def test_a_service_that_reaches_no_router_and_no_peer_says_so_in_its_statu
     import asyncio
 
     from services.decision_maker.__main__ import Settings, main
-    from tests.conftest import InProcessService, free_port
+    from tests.support.cell import InProcessService, free_port
 
     nowhere = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
     svc = InProcessService("decision_maker", main, Settings(), tmp_path, nowhere)

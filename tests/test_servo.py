@@ -12,7 +12,7 @@ from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
 from services.executor.backends import SimBackend
 from services.executor.servo import PERIOD_NS, ServoLoop
-from tests.conftest import EXAMPLE_TASK
+from tests.support.paths import EXAMPLE_TASK
 
 
 @pytest.fixture(scope="module")

@@ -10,62 +10,13 @@ import numpy as np
 import pytest
 
 from cadence.lab.analysis import analyse, paired_test
-from cadence.lab.session import SessionWriter, load_session
+from cadence.lab.session import load_session
 from cadence.tools.recording import Recorder
 from common.runtime.errors import InputError
-from schemas import Calibration, CycleReport, HrvWindow, OperatorError, RobotState, Selection
-from schemas.session import SessionEnd, SessionInfo
+from schemas import Calibration, OperatorError
+from schemas.session import SessionEnd
 from schemas.topology import encode
-
-T0 = 1_800_000_000 * 10**9
-S = 10**9
-CAL = Calibration(t_ns=T0, seq=0, subject="s1", rr_rest_s=0.9)
-
-
-def info(subject: str = "s1", condition: str = "a", cal: Calibration | None = CAL, cell: str = "cell1"):
-    return SessionInfo(
-        subject=subject, condition=condition, cell=cell, calibration=cal, start_ns=T0, minutes=2.0,
-        task="box_filling.toml", task_sha256="0" * 64, software="cadence test",
-    )  # fmt: skip
-
-
-def window(end_s: float, rr: float | None, quality: str = "good") -> HrvWindow:
-    return HrvWindow(
-        t_ns=T0 + round(end_s * S), seq=0, start_ns=T0 + round((end_s - 30) * S),
-        end_ns=T0 + round(end_s * S), mean_rr_s=rr, n_beats=30, excluded_fraction=0.0, quality=quality,  # type: ignore[arg-type]
-        reason=None if quality == "good" else "excluded",
-    )  # fmt: skip
-
-
-def writer(path: Path, i: SessionInfo) -> SessionWriter:
-    w = SessionWriter(path, i.cell)
-    w.begin(i)
-    return w
-
-
-def state(t_s: float) -> RobotState:
-    return RobotState(t_ns=T0 + round(t_s * S), seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
-
-
-def write(path: Path, i: SessionInfo, *, end_s: float = 120.0, rr: float = 0.8, cycles: int = 10,
-          errors: int = 3) -> Path:  # fmt: skip
-    """A two-minute session: cycles spread over it, one before its start and one after its end (neither
-    counts), windows every 30 s (one held), the robot's state every second."""
-    w = writer(path, i)
-    for t in range(0, int(end_s) + 1):
-        w.put("robot/state", state(t), T0 + t * S)
-    for n, t in enumerate([-5.0, *np.linspace(10, end_s - 1, cycles), end_s + 5]):
-        w.put("robot/cycle", CycleReport(t_ns=T0 + round(t * S), seq=n, cycle=n, cycle_time_s=5.0,
-                                         k_per_path={"p": 3}), T0 + round(t * S))  # fmt: skip
-    for n in range(errors):
-        t_ns = T0 + (20 + n) * S
-        w.put("operator/error", OperatorError(t_ns=t_ns, seq=n, source="twin"), t_ns)
-    for end in (30.0, 60.0, 90.0, 120.0):
-        w.put("hrv/window", window(end, rr if end != 60.0 else 0.5, "good" if end != 60.0 else "low"),
-              T0 + round(end * S))  # fmt: skip
-    w.put("decision/selection", Selection(t_ns=T0, seq=0, k=15, n=15, delta=0, reason="fixed"), T0)
-    w.close(SessionEnd(end_ns=T0 + round(end_s * S), complete=True, reason="on time"))
-    return path
+from tests.support.sessions import T0, S, info, state, window, write, writer
 
 
 def test_a_session_counts_what_happened_between_its_start_and_end(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from cadence.lab.session import load_session
 from cadence.lab.study import Subject, motions, simulate
 from common.trajectory.planner import boundary_stretch, interval_bounds
 from common.trajectory.task import load_task
-from tests.conftest import EXAMPLE_TASK
+from tests.support.paths import EXAMPLE_TASK
 
 
 def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_would(tmp_path: Path) -> None:
@@ -146,7 +146,7 @@ def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
 def readme_tables_are(doc: dict) -> None:
     from cadence.lab.analysis import METRICS
     from schemas.session import CONDITION_NAMES
-    from tests.test_readme import README
+    from tests.support.paths import README
 
     shown = [m for m in METRICS if m != "mean_rr_s"]  # the README's columns: φ, ε, mean RR / RR_r
     text = README.read_text()
@@ -202,7 +202,7 @@ def test_the_twin_fit_moves_the_error_model_toward_table_i_and_predicts_c(tmp_pa
 def test_the_readmes_fit_table_is_what_study_fit_gives(tmp_path: Path) -> None:
     """The README's command as written, its table read back (issue 43: it said φ_c/φ_a 0.596 and ε_c 0.266
     where this version gives other figures): a change that moves the fit moves the README with it."""
-    from tests.test_readme import README
+    from tests.support.paths import README
 
     r = subprocess.run([sys.executable, "-m", "cadence", "study", "fit", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=600)  # fmt: skip

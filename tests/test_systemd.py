@@ -24,7 +24,8 @@ import pytest
 from common.runtime.bus import Bus, BusConfig
 from common.trajectory.task import load_task
 from schemas import CycleReport, HrvWindow, Selection
-from tests.conftest import EXAMPLE_TASK, REPO, free_port, put
+from tests.support.cell import free_port, put
+from tests.support.paths import EXAMPLE_TASK, REPO
 
 TOOLS = ("unshare", "nsenter", "systemctl", "uv")
 SYSTEMD = Path("/lib/systemd/systemd")

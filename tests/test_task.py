@@ -13,22 +13,8 @@ import pytest
 from common.robot.ur16e import UR16E
 from common.runtime.errors import TaskError
 from common.trajectory.task import continuity_gaps, load_task, parse_task
-from tests.conftest import EXAMPLE_TASK
-
-GOOD = """
-[task]
-name = "t"
-
-[[paths]]
-id = "p1"
-unit = "deg"
-waypoints = [[0, -90, 90, -90, -90, 0], [30, -80, 100, -100, -90, 20], [45, -70, 95, -110, -90, 40]]
-
-[[paths]]
-id = "p2"
-unit = "rad"
-waypoints = [[0.785, -1.22, 1.66, -1.92, -1.571, 0.698], [0, -1.571, 1.571, -1.571, -1.571, 0]]
-"""
+from tests.support.paths import EXAMPLE_TASK
+from tests.support.tasks import GOOD
 
 
 def test_the_example_task_loads_with_six_chained_paths() -> None:

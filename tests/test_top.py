@@ -67,7 +67,7 @@ def test_the_operator_is_shown_with_their_movement_beside_rr_and_k() -> None:
 async def test_cadence_top_shows_a_running_services_keys(tmp_path: Path, endpoint: str) -> None:
     from common.runtime.bus import Bus, BusConfig
     from services.decision_maker.__main__ import Settings, main
-    from tests.conftest import InProcessService
+    from tests.support.cell import InProcessService
 
     async with await Bus.open(BusConfig(listen=[endpoint]), "cell1"):
         svc = InProcessService(

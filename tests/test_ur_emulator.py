@@ -5,13 +5,11 @@ from __future__ import annotations
 
 import asyncio
 import json
-import random
 import signal
 import socket
 import struct
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,81 +22,10 @@ from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
 from services.executor.backends import UrRtdeBackend
 from services.executor.servo import ServoLoop
-from tests.bench.test_bench_executor import check_bench_executor_output
-from tests.conftest import EXAMPLE_TASK
+from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, check_bench_executor_output, free_loopback
+from tests.support.paths import EXAMPLE_TASK
 
-# The controller stops the program when kicks stop for 1/WATCHDOG_HZ s. On a loaded 2-core CI machine the
-# emulator's own threads can fall 100 ms behind (the 10 Hz default), and with a third load (a venv being
-# built beside two busy loops) over 0.5 s: the tests give it 1 s, the least the executor's settings allow.
-WATCHDOG_HZ = 1.0
 CONTRACT = Path(__file__).parent / "data" / "ur_rtde_1.6.5_recipes.json"
-
-
-def free_loopback() -> str:
-    """A 127.x address on which the emulator's three ports are free (parallel runs, leftovers)."""
-    for _ in range(50):
-        host = f"127.0.{random.randint(1, 254)}.{random.randint(2, 254)}"
-        try:
-            for port in (30004, 29999, 30003):
-                with socket.socket() as s:
-                    s.bind((host, port))
-            return host
-        except OSError:
-            continue
-    raise RuntimeError("no free loopback address for the emulator")
-
-
-class EmulatorProcess:
-    def __init__(
-        self, host: str, recipes: Path | None = None, q0_deg: list[float] | None = None, *extra: str
-    ) -> None:
-        self.host = host
-        cmd = [sys.executable, "-m", "services.ur_emulator", "--host", host, *extra]
-        if recipes is not None:
-            cmd += ["--recipes-out", str(recipes)]
-        if q0_deg is not None:
-            cmd += ["--q0-deg", *map(str, q0_deg)]
-        self.proc = subprocess.Popen(
-            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-        )
-        self.lines: list[str] = []
-        ready = threading.Event()
-
-        def read() -> None:
-            for line in self.proc.stdout:
-                self.lines.append(line.rstrip())
-                if line.startswith("ready"):
-                    ready.set()
-
-        threading.Thread(target=read, daemon=True).start()
-        if not ready.wait(20):
-            self.proc.kill()
-            raise RuntimeError(f"the emulator did not start: {self.lines}")
-
-    def wait_for_line(self, text: str, timeout: float = 10.0) -> str:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            for line in self.lines:
-                if text in line:
-                    return line
-            time.sleep(0.02)  # polling the reader thread's list; bounded by the timeout
-        raise AssertionError(f"no line with {text!r} in {self.lines}")
-
-    def say(self, line: str) -> None:
-        """A line on the emulator's standard input (``estop``, ``di N 1``)."""
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(line + "\n")
-        self.proc.stdin.flush()
-
-    def press(self, n: int, on: bool = True) -> None:
-        """A button on standard digital input ``n`` (the emulator's stdin command)."""
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(f"di {n} {int(on)}\n")
-        self.proc.stdin.flush()
-
-    def stop(self, sig: int = signal.SIGTERM) -> int:
-        self.proc.send_signal(sig)
-        return self.proc.wait(10)
 
 
 @pytest.fixture
@@ -219,8 +146,8 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
     from schemas import CycleReport, RobotEvent
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.conftest import InProcessService
-    from tests.test_executor import CALM, next_of, operator_resumes, store_serving
+    from tests.support.cell import InProcessService
+    from tests.support.executor import CALM, next_of, operator_resumes, store_serving
 
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
@@ -261,7 +188,7 @@ async def back_and_resumed(bus: Any, events: Any, states: Any) -> tuple[Any, Any
     resumes), the resume's answer, and the robot moving on a path again (a whole cycle of the example
     task is 24 s more; the executor's own tests show cycles after a resume)."""
     from schemas import RobotEvent
-    from tests.test_executor import next_of
+    from tests.support.executor import next_of
 
     back = await next_of(events, lambda e: e.kind == "connected", timeout=30)
     held = await next_of(states, lambda s: s.state == "stopped", timeout=10)
@@ -278,8 +205,8 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
     from schemas import RobotEvent, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.conftest import InProcessService
-    from tests.test_executor import CALM, next_of, store_serving
+    from tests.support.cell import InProcessService
+    from tests.support.executor import CALM, next_of, store_serving
 
     host = free_loopback()
     emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
@@ -336,8 +263,8 @@ async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
     from schemas import CycleReport, OperatorSignal, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.conftest import InProcessService
-    from tests.test_executor import CALM, TASK, next_of, operator_resumes, store_serving
+    from tests.support.cell import InProcessService
+    from tests.support.executor import CALM, TASK, next_of, operator_resumes, store_serving
 
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK.replace('wait_for = "part"', 'wait_for = "part"\ninput = 2'))
@@ -405,8 +332,8 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
     from schemas import RobotEvent, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.conftest import InProcessService
-    from tests.test_executor import CALM, next_of, store_serving
+    from tests.support.cell import InProcessService
+    from tests.support.executor import CALM, next_of, store_serving
 
     host = free_loopback()
     emu = EmulatorProcess(host, None, [float(x) for x in FIRST_WAYPOINT_DEG], "--restart-s", "3")

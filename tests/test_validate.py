@@ -9,7 +9,7 @@ from common.robot.ur16e import UR16E
 from common.runtime.errors import TrajectoryRejected
 from common.trajectory.planner import boundary_stretch
 from common.trajectory.validate import check_trajectory, trajectory_problems
-from tests.conftest import random_path
+from tests.support.paths import random_path
 
 
 @pytest.fixture

@@ -24,7 +24,7 @@ from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import FOXGLOVE_LAYOUT
 from schemas import HrvWindow, RobotState
 from schemas.topology import TOPICS
-from tests.conftest import free_port, put
+from tests.support.cell import free_port, put
 
 PROTOCOL = "foxglove.sdk.v1"
 

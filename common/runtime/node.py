@@ -22,6 +22,8 @@ import inspect
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Sequence
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
+import msgspec
+
 from common.runtime.admission import Verdict
 from common.runtime.bus import Request
 from common.runtime.errors import BusError
@@ -66,15 +68,11 @@ def answers(topic: Topic[Any]) -> Callable[[F], F]:
     return mark
 
 
-def every(period: str | float) -> Callable[[F], F]:
-    """Mark ``async def handler(self) -> Out`` to run at start and then every ``period`` seconds (a
-    number, or the name of a field of the service's settings)."""
-
-    def mark(fn: F) -> F:
-        setattr(fn, _TIMER, period)
-        return fn
-
-    return mark
+def every(fn: F) -> F:
+    """Mark ``async def timer(self) -> Out`` as one of the role's timers (``Role.timers`` in the graph,
+    which holds its period): run at start and then every period."""
+    setattr(fn, _TIMER, fn.__name__)
+    return fn
 
 
 class Rejected(Exception):
@@ -107,7 +105,6 @@ class Node:
     def __init__(self, ctx: ServiceContext) -> None:
         self.ctx = ctx
         self._readers: dict[str, Callable[[float], Awaitable[None]]] = {}
-        self._seqs: dict[str, int] = {}
         self.published: list[Message] = []  # what ``publish`` sent while no bus serves the node
         self._sink: Callable[[Out], None] = self.published.extend
 
@@ -144,11 +141,6 @@ class Node:
     async def close(self) -> None:
         """Release what ``setup`` took (a process pool, a database), however the service stops."""
 
-    def next_seq(self, topic: Topic[Any]) -> int:
-        """The node's sequence number for its next message on ``topic`` (DESIGN §3: per key)."""
-        self._seqs[topic.suffix] = self._seqs.get(topic.suffix, -1) + 1
-        return self._seqs[topic.suffix]
-
 
 def handlers(cls: type[Node], mark: str) -> dict[str, tuple[Any, str]]:
     """The class's methods marked ``mark``: by their value's key (a topic's suffix, or the method name for
@@ -171,9 +163,13 @@ def check(cls: type[Node]) -> None:
     role = ROLE.get(getattr(cls, "role", ""))
     if role is None:
         raise BusError(f"{cls.__name__}: role {getattr(cls, 'role', None)!r} is not in the graph")
-    for mark, declared, verb in ((_INPUT, role.inputs, "read"), (_ANSWER, role.answers, "answer")):
+    for mark, declared, verb in (
+        (_INPUT, role.inputs, "read"),
+        (_ANSWER, role.answers, "answer"),
+        (_TIMER, role.timers, "time"),
+    ):
         have = set(handlers(cls, mark))
-        want = {t.suffix for t in declared}
+        want = {t.suffix if isinstance(t, Topic) else t.name for t in declared}
         if have - want:
             raise BusError(f"the graph does not let {role.name} {verb} {', '.join(sorted(have - want))}")
         if want - have:
@@ -210,6 +206,8 @@ async def serve_node(node: Node) -> None:
             port = outputs.get(type(msg))
             if port is None:
                 raise TypeError(f"{node.role} has no output for {type(msg).__name__} (schemas/topology.py)")
+            if port.topic.numbered == "port":  # the port numbers what it sends, per key (DESIGN §3)
+                msg = msgspec.structs.replace(msg, seq=port.next_seq())
             port.put(msg)
 
     node._sink = publish
@@ -251,24 +249,34 @@ async def serve_node(node: Node) -> None:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(ctx.stop.wait(), seconds)
 
-    timers = [tick(getattr(node, name), period) for period, name in handlers(type(node), _TIMER).values()]
-    working, stopped = asyncio.ensure_future(node.work()), asyncio.ensure_future(ctx.stop.wait())
-    tasks = [*(asyncio.ensure_future(t) for t in timers), working, stopped]
-    try:  # until the service stops; work that fails stops it (its supervisor restarts it)
-        pending = set(tasks)
-        while pending:
-            done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
-            for t in done:
-                t.result()
-            if working in done and node.ends_with_work:
-                break
-            if stopped in done:
-                if not working.done() and node.stop_grace_s > 0:
-                    await asyncio.wait([working], timeout=node.stop_grace_s)
-                    if working.done():
-                        working.result()
-                break
-    finally:
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+    ended = asyncio.Event()  # the service ends: stopped, or its work ended and that ends it
+
+    async def working() -> None:
+        await node.work()
+        if node.ends_with_work:
+            ended.set()
+
+    async def stopping(work: asyncio.Task[None]) -> None:
+        await ctx.stop.wait()
+        if node.stop_grace_s > 0:  # the executor brings a moving arm to rest before its work is cancelled
+            await asyncio.wait([work], timeout=node.stop_grace_s)
+        ended.set()
+
+    # one group for the node's tasks: work that fails stops the service (its supervisor restarts it), and
+    # however it ends, nothing of the node outlives it
+    try:
+        async with asyncio.TaskGroup() as group:
+            for timer in role.timers:
+                group.create_task(tick(getattr(node, timer.name), timer.period), name=f"timer {timer.name}")
+            work = group.create_task(working(), name="work")
+            group.create_task(stopping(work), name="stop")
+            await ended.wait()
+            raise _Ended
+    except BaseExceptionGroup as group_error:
+        failures = [e for e in group_error.exceptions if not isinstance(e, _Ended)]
+        if failures:
+            raise failures[0] from None
+
+
+class _Ended(Exception):
+    """Raised in the node's task group when the service ends: the group cancels what still runs."""

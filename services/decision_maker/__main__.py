@@ -120,7 +120,7 @@ class DecisionMaker(Node):
     def selection(self) -> Selection | None:
         return self.conditions.fixed or self.decider.selection
 
-    @every("republish_s")
+    @every
     async def current(self) -> Out:
         return [self.selection] if self.selection is not None else []
 

@@ -22,7 +22,7 @@ from common.runtime.node import Node, Out, node_main
 from common.runtime.service import service_main
 from schemas.base import TimeNs
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
-from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES
+from schemas.topology import ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import AccSamples, E4Source, EcgSource, ReplaySource, RrChunk
 
@@ -91,15 +91,14 @@ class EcgGateway(Node):
                 if not self.source.ecg:
                     self.say_accelerometer(chunk.t_ns)
                     self.ctx.counters["gaps"] += int(chunk.gap)
-                yield [RrIntervals(t_ns=chunk.t_ns, seq=self.next_seq(ECG_RR), rr_s=chunk.rr_s, gap=chunk.gap,
+                yield [RrIntervals(t_ns=chunk.t_ns, seq=0, rr_s=chunk.rr_s, gap=chunk.gap,
                                    source=name)]  # fmt: skip
                 continue
             if isinstance(chunk, AccSamples):
                 self.ctx.counters["acc_chunks"] += 1
                 self.acc_until_ns = chunk.t_ns + round(len(chunk.xyz_mg) * 1e9 / chunk.fs_hz)
                 x, y, z = (list(axis) for axis in zip(*chunk.xyz_mg, strict=True))
-                seq = self.next_seq(ECG_ACC)
-                yield [AccChunk(t_ns=chunk.t_ns, seq=seq, fs_hz=chunk.fs_hz, x_mg=x, y_mg=y, z_mg=z,
+                yield [AccChunk(t_ns=chunk.t_ns, seq=0, fs_hz=chunk.fs_hz, x_mg=x, y_mg=y, z_mg=z,
                                 gap=chunk.gap, source=name)]  # fmt: skip
                 continue
             self.say_accelerometer(chunk.t_ns)
@@ -107,7 +106,7 @@ class EcgGateway(Node):
             # what the strap sent that did not parse: truncated, garbled, an unknown stream or frame type
             self.ctx.counters["bad_frames"] = getattr(self.source, "bad_frames", 0)
             self.ctx.counters["gaps"] += int(chunk.gap)
-            yield [EcgChunk(t_ns=chunk.t_ns, seq=self.next_seq(ECG_SAMPLES), fs_hz=chunk.fs_hz,
+            yield [EcgChunk(t_ns=chunk.t_ns, seq=0, fs_hz=chunk.fs_hz,
                             samples_uv=chunk.samples_uv, gap=chunk.gap, source=name)]  # fmt: skip
         self.ctx.state = "source ended"
 

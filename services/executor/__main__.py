@@ -84,7 +84,7 @@ class Executor(Node):
     def reads(self, topic: Topic[Any]) -> bool:
         return topic.suffix != OPERATOR_SEPARATION.suffix or self.ctx.settings.separation
 
-    @every("scale_period_s")
+    @every
     async def scale(self) -> Out:
         await self.reactions.look()
         return []
@@ -93,7 +93,7 @@ class Executor(Node):
     async def resume(self, req: Request) -> RobotEvent:
         return await self.safety.resume_by(req.params.get("by", ""))
 
-    @every("state_period_s")
+    @every
     async def state(self) -> Out:
         return self.telemetry.sample(self.safety, self.cycles) if self.connected else []
 

@@ -32,7 +32,7 @@ from common.trajectory.validate import check_trajectory
 from schemas.decision import Selection
 from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport
-from schemas.topology import OPERATOR_ERROR, ROBOT_CYCLE, SELECTION
+from schemas.topology import SELECTION
 from services.executor.backends import Backend
 from services.executor.pathrun import PathRun
 from services.executor.persist import ExecutorStore
@@ -462,7 +462,7 @@ class Cycles:
         self.node.publish(
             OperatorError(
                 t_ns=self.clock.now_ns(),
-                seq=self.node.next_seq(OPERATOR_ERROR),
+                seq=0,
                 cycle=cycle,
                 kind="late",
                 description=f"'{step.wait_for}' not there {step.deadline:g} s after the robot came: {then}",
@@ -505,7 +505,7 @@ class Cycles:
             self.node.publish(
                 CycleReport(
                     t_ns=end,
-                    seq=self.node.next_seq(ROBOT_CYCLE),
+                    seq=0,
                     cycle=cycle,
                     cycle_time_s=(end - started) / 1e9,
                     k_per_path=ks,

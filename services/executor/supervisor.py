@@ -19,7 +19,6 @@ from common.runtime.node import Node
 from common.runtime.service import first_of
 from common.safety.states import Event, Motion, State, transition
 from schemas.robot import EventKind, RobotEvent
-from schemas.topology import ROBOT_EVENT
 from services.executor.backends import Backend, RobotUnavailable
 from services.executor.settings import Settings
 
@@ -95,7 +94,7 @@ class Supervisor:
         ``change``: a state change's (from, to)."""
         msg = RobotEvent(
             t_ns=self.ctx.common.clock.now_ns(),
-            seq=self.node.next_seq(ROBOT_EVENT),
+            seq=0,
             kind=kind,
             message=message,
             path_id=path_id,

@@ -10,7 +10,6 @@ from common.safety.states import mode_of
 from common.trajectory.task import Task
 from schemas.operator import OperatorSignal
 from schemas.robot import RobotState
-from schemas.topology import OPERATOR_SIGNAL, ROBOT_STATE
 from services.executor.backends import Backend
 from services.executor.cycles import Cycles
 from services.executor.supervisor import Supervisor
@@ -31,8 +30,7 @@ class Telemetry:
         for n, name in self.buttons.items():
             if rising >> n & 1:
                 self.node.ctx.counters["buttons"] += 1
-                seq = self.node.next_seq(OPERATOR_SIGNAL)
-                out.append(OperatorSignal(t_ns=t_ns, seq=seq, name=name, source=f"ur DI{n}"))
+                out.append(OperatorSignal(t_ns=t_ns, seq=0, name=name, source=f"ur DI{n}"))
         return out
 
     def sample(self, safety: Supervisor, cycles: Cycles) -> Out:
@@ -42,7 +40,7 @@ class Telemetry:
         near = cycles.reactions.nearest.distance_m if cycles.reactions.on else None
         state = RobotState(
             t_ns=t_ns,
-            seq=self.node.next_seq(ROBOT_STATE),
+            seq=0,
             q=b.actual_q().tolist(),
             qd=b.actual_qd().tolist(),
             tcp=b.tcp_pose().tolist(),

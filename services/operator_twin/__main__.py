@@ -31,11 +31,6 @@ from schemas.ecg import AccChunk, EcgChunk
 from schemas.operator import OperatorError, OperatorSignal, Separation
 from schemas.robot import CycleReport, RobotState
 from schemas.topology import (
-    ECG_ACC,
-    ECG_SAMPLES,
-    OPERATOR_ERROR,
-    OPERATOR_SEPARATION,
-    OPERATOR_SIGNAL,
     ROBOT_CYCLE,
     ROBOT_STATE,
 )
@@ -88,8 +83,7 @@ class OperatorTwin(Node):
         for name, (when, said) in self.placed.items():
             if t - said >= SIGNAL_AGAIN_S:
                 self.placed[name] = (when, t)
-                seq = self.next_seq(OPERATOR_SIGNAL)
-                out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
+                out.append(OperatorSignal(t_ns=self.ns(when), seq=0, name=name, source="twin"))
         return out
 
     @on(ROBOT_CYCLE)
@@ -97,11 +91,10 @@ class OperatorTwin(Node):
         if not self.operator.makes_error():
             return []
         why = f"simulated (stress {self.operator.stress:.2f})"
-        seq = self.next_seq(OPERATOR_ERROR)
-        return [OperatorError(t_ns=report.t_ns, seq=seq, cycle=report.cycle, description=why,
+        return [OperatorError(t_ns=report.t_ns, seq=0, cycle=report.cycle, description=why,
                               kind="wrong_object", source="twin")]  # fmt: skip
 
-    @every("separation_period_s")
+    @every
     async def separation(self) -> Out:
         """As a safety scanner would: the distance now, at a wall-clock rate (the executor judges its age
         on the wall clock, whatever the demo's speed)."""
@@ -109,7 +102,7 @@ class OperatorTwin(Node):
             return []
         now = self.clock.now_ns()
         d = self.operator.separation((now - self.origin_ns) / 1e9)
-        return [Separation(t_ns=now, seq=self.next_seq(OPERATOR_SEPARATION), distance_m=d, source="twin")]
+        return [Separation(t_ns=now, seq=0, distance_m=d, source="twin")]
 
     async def stream(self) -> AsyncIterator[Out]:
         """The ECG, chunk by chunk as the strap sends it (a chunk exists once its last sample does), and
@@ -119,18 +112,13 @@ class OperatorTwin(Node):
             await asyncio.sleep(max(0.0, self.clock.wall_s(ahead_s)))
             t0, t1 = i / FS_HZ, (i + CHUNK) / FS_HZ
             x = np.rint(self.operator.ecg(t0, CHUNK)).astype(int).tolist()
-            out: list[Message] = [
-                EcgChunk(
-                    t_ns=self.ns(t0), seq=self.next_seq(ECG_SAMPLES), fs_hz=FS_HZ, samples_uv=x, source="twin"
-                )
-            ]
+            out: list[Message] = [EcgChunk(t_ns=self.ns(t0), seq=0, fs_hz=FS_HZ, samples_uv=x, source="twin")]
             if self.operator.p.accelerometer and (acc := self.operator.acc_until(t1)) is not None:
                 xyz = acc[1].T.tolist()
-                out.append(AccChunk(t_ns=self.ns(acc[0]), seq=self.next_seq(ECG_ACC), fs_hz=ACC_FS_HZ,
+                out.append(AccChunk(t_ns=self.ns(acc[0]), seq=0, fs_hz=ACC_FS_HZ,
                                     x_mg=xyz[0], y_mg=xyz[1], z_mg=xyz[2], source="twin"))  # fmt: skip
             for when, name in [p for p in self.pending if p[0] <= t1]:
-                seq = self.next_seq(OPERATOR_SIGNAL)
-                out.append(OperatorSignal(t_ns=self.ns(when), seq=seq, name=name, source="twin"))
+                out.append(OperatorSignal(t_ns=self.ns(when), seq=0, name=name, source="twin"))
                 self.placed[name] = (when, when)
             self.pending = [p for p in self.pending if p[0] > t1]
             self.ctx.counters["chunks"] += 1

@@ -21,7 +21,7 @@ from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.service import service_main
 from common.trajectory.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
-from schemas.topology import PARETO_SET, PARETO_SOLUTION, PLAN_PROGRESS, key, validated
+from schemas.topology import PARETO_SET, PARETO_SOLUTION, key, validated
 from services.pareto_store.jobs import abandon, lower_priority, plan_job, worker_pool
 from services.pareto_store.store import SetStore
 
@@ -85,7 +85,7 @@ class ParetoStore(Node):
 
     def progress(self, pid: str, state: PlanState, message: str = "") -> PlanProgress:
         done = sum(1 for p in self.task.paths if p in self.sets)
-        return PlanProgress(t_ns=time.time_ns(), seq=self.next_seq(PLAN_PROGRESS), path_id=pid, state=state,
+        return PlanProgress(t_ns=time.time_ns(), seq=0, path_id=pid, state=state,
                             done_paths=done, total_paths=len(self.task.paths), message=message)  # fmt: skip
 
     @answers(PARETO_SET)

@@ -4,41 +4,12 @@ the machines are shared and noisy."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
 import pytest
 
-EXPECTED = {
-    "period_us",
-    "ticks",
-    "p50_err_us",
-    "p99_err_us",
-    "p999_err_us",
-    "max_err_us",
-    "overruns",
-    "prepare_ms",
-}
-
-
-def check_bench_executor_output(r: subprocess.CompletedProcess[str]) -> dict[str, int | float]:
-    """The bench's contract, whichever way the run ended: the figures as the last JSON line, and exit 0
-    after the whole run, or exit 1 with the reason when the loop stopped the robot early (a shared
-    machine's stall of 10 ms is 5 overruns in a row, the executor's stop; the figures say so)."""
-    print("\n" + r.stdout)
-    figures = json.loads(r.stdout.strip().splitlines()[-1])
-    assert set(figures) == EXPECTED
-    assert figures["period_us"] == 2000
-    assert figures["prepare_ms"] > 0
-    assert figures["p50_err_us"] <= figures["p99_err_us"] <= figures["p999_err_us"] <= figures["max_err_us"]
-    if r.returncode == 0:
-        assert figures["ticks"] >= 1500, figures
-    else:
-        assert r.returncode == 1, r.stderr
-        assert "ended a motion early" in r.stderr, r.stderr
-        assert figures["overruns"] > 0 or "control script" in r.stderr, (figures, r.stderr)
-    return figures
+from tests.support.emulator import check_bench_executor_output
 
 
 @pytest.mark.bench

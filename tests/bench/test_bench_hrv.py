@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from cadence.bench import bench_hrv
-from tests.conftest import BENCH_QUICK
-from tests.test_rpeaks import ECG, needs_data
+from tests.support.data import ECG, needs_data
+from tests.support.paths import BENCH_QUICK
 
 pytestmark = pytest.mark.bench
 

@@ -7,7 +7,7 @@ import pytest
 
 from cadence.bench import bench_plan, bench_replanning
 from common.trajectory.task import load_task
-from tests.conftest import BENCH_QUICK, EXAMPLE_TASK
+from tests.support.paths import BENCH_QUICK, EXAMPLE_TASK
 
 pytestmark = pytest.mark.bench
 

@@ -8,7 +8,7 @@ import asyncio
 import pytest
 
 from cadence.bench import StoreBench, bench_store
-from tests.conftest import BENCH_QUICK, EXAMPLE_TASK
+from tests.support.paths import BENCH_QUICK, EXAMPLE_TASK
 
 pytestmark = pytest.mark.bench
 QUERIES = 50 if BENCH_QUICK else 200

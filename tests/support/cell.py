@@ -1,0 +1,130 @@
+"""The cell a test runs: its services in the test's event loop as `cadence run` runs them, on Zenoh or on the
+in-memory bus (``Cell``); data time near now; a test's raw put."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+from common.runtime.bus import Bus, BusConfig
+from schemas import ServiceStatus
+
+
+def now_ns() -> int:
+    """Data time for a test's messages: now, to the second. Receivers believe a stream's first message
+    when it is near their data clock (common/runtime/admission.py), as a live source's is."""
+    import time
+
+    return time.time_ns() // 1_000_000_000 * 1_000_000_000
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class InProcessService:
+    """A service running in this test's event loop exactly as `cadence run <name>` runs it (its real
+    ``main``, real Zenoh, data on disk), connecting to the test's listening endpoint; dora's MockNode."""
+
+    def __init__(
+        self,
+        name: str,
+        main,
+        settings: object,
+        data: Path,
+        endpoint: str,
+        speed: float = 1.0,
+        cell: str = "cell1",
+        epoch_ns: int | None = None,
+    ) -> None:
+        import asyncio
+
+        from common.runtime.config import CommonSettings
+        from common.runtime.service import serve
+
+        self.stop = asyncio.Event()
+        self.cell = cell
+        self.ctx = None  # the service's context once it runs (its bus, its counters)
+
+        async def wrapped(ctx) -> None:
+            self.ctx = ctx
+            await main(ctx)
+
+        # a faster clock needs an epoch, or its data time would be the wall's while its sleeps are shorter;
+        # services of one cell share it (``epoch_ns``), as a demo's do
+        epoch = epoch_ns if epoch_ns is not None else time.time_ns() if speed != 1.0 else None
+        common = CommonSettings(
+            cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed, epoch_ns=epoch
+        )
+        self.task = asyncio.ensure_future(
+            serve(
+                name,
+                wrapped,
+                common,
+                BusConfig(connect=[endpoint]),
+                settings,
+                stop=self.stop,
+                install_signals=False,
+            )
+        )
+
+    async def listening(self, bus, *suffixes: str, timeout: float = 30.0) -> None:
+        """Wait until this service's subscriptions to ``cadence/<its cell>/<suffix>`` are known to the test's
+        session, so what the test publishes next reaches them: Zenoh drops a put that has no known
+        subscriber, and a service's first status can come before its subscriptions. The right way to
+        wait before publishing; never wait on a status for that. (Matching counts every subscriber,
+        the test's own too: call it before the test subscribes to the same keys.)"""
+        import asyncio
+
+        async with asyncio.timeout(timeout):
+            for suffix in suffixes:
+                while True:
+                    if self.task.done():
+                        self.task.result()  # the service died: say why
+                        raise AssertionError(f"the service ended before subscribing to {suffix}")
+                    try:
+                        await bus.until_subscribed(f"cadence/{self.cell}/{suffix}", 0.5)
+                        break
+                    except TimeoutError:
+                        continue
+
+    async def reaches(self, *suffixes: str, timeout: float = 30.0) -> None:
+        """Wait until this service's own session knows a subscriber of each key, so what it publishes
+        next arrives (a service that feeds another: the analyser's windows, the decision maker)."""
+        import asyncio
+
+        async with asyncio.timeout(timeout):
+            while self.ctx is None:
+                if self.task.done():
+                    self.task.result()
+                await asyncio.sleep(0.01)  # polls a flag the service's first step sets; bounded above
+            for suffix in suffixes:
+                await self.ctx.bus.until_subscribed(self.ctx.bus.key(suffix), timeout)
+
+    async def close(self) -> None:
+        import asyncio
+
+        self.stop.set()
+        await asyncio.wait_for(self.task, 15)
+
+
+def put(bus, key: str, msg, block: bool = False) -> None:
+    """A message on any key from a session that speaks for nobody (a test's): the typed ports are the
+    services' only way to publish, so a test's raw put lives here, not on the Bus."""
+    from schemas.topology import encode
+
+    bus.put_raw(key, encode(msg), block)
+
+
+async def status_of(bus: Bus, name: str, pred, timeout: float = 20.0) -> ServiceStatus:
+    sub = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
+    async with asyncio.timeout(timeout):
+        async for _, st in sub:
+            if pred(st):
+                return st
+    raise AssertionError("unreachable")

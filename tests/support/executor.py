@@ -1,0 +1,105 @@
+"""The executor in a test: the example task shortened, a store serving its sets planned once, the sim
+backend's settings, and the next message of a kind."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+from common.runtime.bus import Bus
+from schemas import (
+    RobotEvent,
+    RobotState,
+    ServiceStatus,
+)
+from services.executor.__main__ import Settings
+from services.pareto_store.__main__ import Settings as StoreSettings
+from services.pareto_store.__main__ import main as store_main
+from tests.support.cell import InProcessService
+from tests.support.paths import planned_once
+
+TASK = """
+[task]
+name = "shuttle"
+[planner]
+population = 16
+generations = 6
+n_solutions = 5
+[[paths]]
+id = "there"
+unit = "deg"
+waypoints = [[0, -90, 90, -90, -90, 0], [30, -80, 100, -100, -90, 20], [45, -70, 95, -110, -90, 40]]
+[[paths]]
+id = "back"
+unit = "deg"
+waypoints = [[45, -70, 95, -110, -90, 40], [20, -85, 92, -95, -90, 10], [0, -90, 90, -90, -90, 0]]
+[[cycle]]
+gripper = "on"
+[[cycle]]
+move = "there"
+[[cycle]]
+wait_for = "part"
+[[cycle]]
+gripper = "off"
+[[cycle]]
+wait = 0.2
+[[cycle]]
+move = "back"
+"""
+
+
+SPEED = 8.0
+
+
+# Tests not about overruns: a loaded CI machine misses servo deadlines in runs, and a stop is latched
+CALM = 1000
+
+
+def sim_settings(task_file: Path, **changes: object) -> Settings:
+    """The executor as these tests run it: no FIFO, not stopped by a loaded machine's overruns, one cycle
+    with no operator, starting at k = 3 with no decision maker; ``changes`` override."""
+    base: dict[str, object] = {
+        "task": str(task_file),
+        "fifo_priority": 0,
+        "overrun_limit": CALM,
+        "cycles": 1,
+        "wait_for_signals": False,
+        "start_selection": "initial",
+        "initial_k": 3,
+    }
+    return Settings(**{**base, **changes})
+
+
+async def store_serving(
+    bus: Bus, task: Path, data: Path, endpoint: str, planned: Path | None = None
+) -> InProcessService:
+    """A store serving ``task``, from ``planned`` (a store's SQLite file), by default the task's sets as
+    planned once per test run: the store serves stored sets at once (tests of planning are elsewhere)."""
+    import shutil
+
+    data.mkdir(parents=True, exist_ok=True)
+    shutil.copy(planned or planned_once(task), data / "pareto.sqlite")
+    health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
+    store = InProcessService("pareto_store", store_main, StoreSettings(task=str(task)), data, endpoint)
+    async with asyncio.timeout(60):
+        async for _, status in health:
+            if status.state == "serving":
+                return store
+    raise AssertionError("unreachable")
+
+
+async def operator_resumes(bus: Bus) -> None:
+    """An operator who clears every latched stop as soon as it comes: for tests that are about a cycle,
+    not about stops, on a loaded machine that misses deadlines (a watchdog trip is latched too)."""
+    states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=1))
+    async for _, s in states:
+        if s.state == "stopped":
+            await bus.get(f"{bus.key('robot/resume')}?by=the operator of the test", RobotEvent, timeout=10)
+
+
+async def next_of(sub, pred=lambda m: True, timeout: float = 30.0):
+    async with asyncio.timeout(timeout):
+        async for _, msg in sub:
+            if pred(msg):
+                return msg
+    raise AssertionError("unreachable")
