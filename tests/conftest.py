@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.cell import free_port
+from common.runtime.mock_bus import MockNetwork
+from tests.support.cell import Cell, free_port
 from tests.support.decisions import _base_now  # noqa: F401 (autouse: each test's windows end near its now)
 from tests.support.paths import (
     EXAMPLE_TASK,
@@ -55,3 +56,15 @@ def example_sets(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def endpoint() -> str:
     """A loopback endpoint for one test's sessions (multicast scouting stays off)."""
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def cell() -> Cell:
+    """A cell on the in-memory bus: a node's logic with its real ports, decoding and graph checks."""
+    return Cell(network=MockNetwork())
+
+
+@pytest.fixture
+def zenoh_cell(endpoint: str) -> Cell:
+    """A cell on real Zenoh (loopback, scouting off): the bus itself and the cell end to end."""
+    return Cell(endpoint=endpoint)

@@ -1,5 +1,6 @@
-"""The decision maker as a service on real Zenoh: answers every window, holds without calibration, and
-goes on after a restart exactly where an uninterrupted run would be."""
+"""The decision maker as a service, on the in-memory bus (its ports, decoding and graph checks are the real
+bus's): answers every window, holds without calibration, and goes on after a restart exactly where an
+uninterrupted run would be."""
 
 from __future__ import annotations
 
@@ -12,19 +13,18 @@ import msgspec
 import pytest
 
 from common.decision import Params
-from common.runtime.bus import Bus, BusConfig
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main
-from tests.support.cell import InProcessService, now_ns, put
+from tests.support.cell import Cell, InProcessService, now_ns, put
 from tests.support.decisions import answer, expected, window
 
 pytestmark = pytest.mark.asyncio
 S = 1_000_000_000
 
 
-def start_decider(data: Path, endpoint: str, settings: Settings) -> InProcessService:
-    return InProcessService("decision_maker", main, settings, data, endpoint)
+def start_decider(data: Path, cell: Cell, settings: Settings) -> InProcessService:
+    return cell.service("decision_maker", main, settings, data)
 
 
 async def first_selection(sub) -> Selection:
@@ -43,18 +43,18 @@ def sequence(seed: int, n: int) -> list[HrvWindow]:
     return out
 
 
-async def test_a_restart_mid_sequence_gives_the_same_k_sequence(tmp_path: Path, endpoint: str) -> None:
+async def test_a_restart_mid_sequence_gives_the_same_k_sequence(tmp_path: Path, cell: Cell) -> None:
     windows = sequence(7, 40)
     settings = Settings(rr_rest_s=0.85, republish_s=0.2)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
-        svc = start_decider(tmp_path, endpoint, settings)
+        svc = start_decider(tmp_path, cell, settings)
         first = await first_selection(sub)
         assert (first.k, first.reason) == (8, "initial")
         got = [(await answer(bus, sub, w)).k for w in windows[:17]]
         await svc.close()
 
-        svc = start_decider(tmp_path, endpoint, settings)
+        svc = start_decider(tmp_path, cell, settings)
         resumed = await first_selection(sub)
         assert resumed.k == got[-1]
         # a window answered before the restart is not stepped again
@@ -65,13 +65,11 @@ async def test_a_restart_mid_sequence_gives_the_same_k_sequence(tmp_path: Path, 
     assert len(set(got)) > 3, "the sequence should move k"
 
 
-async def test_without_calibration_it_publishes_nothing_until_one_arrives(
-    tmp_path: Path, endpoint: str
-) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+async def test_without_calibration_it_publishes_nothing_until_one_arrives(tmp_path: Path, cell: Cell) -> None:
+    async with cell.session() as bus:
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         health = aiter(bus.subscribe(bus.key("health/decision_maker"), AnyMessage, maxsize=1))
-        svc = start_decider(tmp_path, endpoint, Settings(republish_s=0.1))
+        svc = start_decider(tmp_path, cell, Settings(republish_s=0.1))
         async with asyncio.timeout(10):
             async for _, status in health:
                 if status.state == "waiting for calibration":
@@ -101,13 +99,13 @@ async def test_without_calibration_it_publishes_nothing_until_one_arrives(
 
 @pytest.mark.parametrize(("fixed_k", "k"), [("a", 15), ("b", 1), (4, 4)])
 async def test_a_fixed_condition_holds_its_k_whatever_the_windows_say(
-    tmp_path: Path, endpoint: str, fixed_k: int | str, k: int
+    tmp_path: Path, cell: Cell, fixed_k: int | str, k: int
 ) -> None:
     """The study's conditions (a) and (b): one k, published as any selection is, with its own reason;
     windows are counted, not answered, and the adaptive state on disk is not touched."""
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         svc = start_decider(
-            tmp_path, endpoint, Settings(republish_s=0.1, rr_rest_s=0.9, mode="fixed", fixed_k=fixed_k)
+            tmp_path, cell, Settings(republish_s=0.1, rr_rest_s=0.9, mode="fixed", fixed_k=fixed_k)
         )
         await svc.listening(bus, "hrv/window")
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
@@ -131,13 +129,13 @@ async def test_a_fixed_k_above_n_is_refused_at_start() -> None:
         msgspec.convert({"n": 15, "mode": "fixed", "fixed_k": 16}, Settings)
 
 
-async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: Path, endpoint: str) -> None:
+async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: Path, cell: Cell) -> None:
     """`cadence session` switches conditions on a running decision maker (decision/condition); the reply is
     the selection the condition starts with, stamped with the data time it took effect; condition (c)
     starts Alg. 1 again from the initial k; a restarted service keeps the condition, not the config's."""
     settings = Settings(republish_s=0.1, rr_rest_s=0.9)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = start_decider(tmp_path, endpoint, settings)
+    async with cell.session() as bus:
+        svc = start_decider(tmp_path, cell, settings)
         await svc.listening(bus, "hrv/window")
         sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         assert (await answer(bus, sub, window(0, 0.80))).k == 4  # stressed: k moved from the initial 8
@@ -161,7 +159,7 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
         assert "mode='turbo'" in str(await ask("mode=turbo"))
         await svc.close()
 
-        svc = start_decider(tmp_path, endpoint, settings)  # restarted mid-session: still (a)
+        svc = start_decider(tmp_path, cell, settings)  # restarted mid-session: still (a)
         await svc.listening(bus, "hrv/window")
         assert (await first_selection(sub)).reason == "fixed"
         # a session that has just calibrated names its calibration; until it arrives: "not received yet"
@@ -179,7 +177,7 @@ async def test_a_session_sets_the_condition_and_a_restart_stays_in_it(tmp_path: 
 
 
 async def test_windows_missed_while_it_was_down_or_stopped_are_asked_for_and_decided_in_order(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, cell: Cell
 ) -> None:
     """A window published while the decision maker restarted (or was stopped) was never decided, and the
     next step was +3 in one go (issue 40). The analyser keeps its last windows and answers for them
@@ -198,10 +196,10 @@ async def test_windows_missed_while_it_was_down_or_stopped_are_asked_for_and_dec
         raise QueryError("no window after it")
 
     published: list[HrvWindow] = []
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         bus.serve(bus.key("hrv/window"), analyser)
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection, maxsize=1000))
-        svc = start_decider(tmp_path, endpoint, settings)
+        svc = start_decider(tmp_path, cell, settings)
         await svc.listening(bus, "hrv/window")
 
         async def send(w: HrvWindow) -> None:
@@ -221,7 +219,7 @@ async def test_windows_missed_while_it_was_down_or_stopped_are_asked_for_and_dec
             got.append((await answered(w.end_ns)).k)
         await svc.close()
         published.append(windows[2])  # published while it was down: nobody heard it
-        svc = start_decider(tmp_path, endpoint, settings)  # it asks at start
+        svc = start_decider(tmp_path, cell, settings)  # it asks at start
         got.append((await answered(windows[2].end_ns)).k)
         await svc.listening(bus, "hrv/window")
         published.append(windows[3])  # lost on the way (a freeze): it asks when the next one comes
@@ -233,7 +231,7 @@ async def test_windows_missed_while_it_was_down_or_stopped_are_asked_for_and_dec
     assert got == expected(windows, 0.85)
 
 
-async def test_the_personal_mode_resumes_its_state_after_a_restart(tmp_path: Path, endpoint: str) -> None:
+async def test_the_personal_mode_resumes_its_state_after_a_restart(tmp_path: Path, cell: Cell) -> None:
     """Every guarantee the service gives Alg. 1 holds for the personal mode: its state (the reference and
     the recent mean RR beside k) is persisted and resumed, and k stays within 1 … N."""
     from common.decision import Personal, PersonalState, personal_step
@@ -241,10 +239,10 @@ async def test_the_personal_mode_resumes_its_state_after_a_restart(tmp_path: Pat
     windows = [window(i, rr) for i, rr in enumerate([0.85, 0.80, 0.76, 0.74, 0.80, 0.88])]
     settings = Settings(rr_rest_s=0.85, republish_s=60, decide="personal")
     got = []
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection, maxsize=1000))
         for part in (windows[:3], windows[3:]):  # a restart between them
-            svc = start_decider(tmp_path, endpoint, settings)
+            svc = start_decider(tmp_path, cell, settings)
             await svc.listening(bus, "hrv/window")
             for w in part:
                 got.append((await answer(bus, sels, w)).k)

@@ -1,4 +1,5 @@
-"""The executor over real Zenoh with the real store (in-process, on loopback) and the sim backend."""
+"""The executor with the real store and the sim backend, in-process on the in-memory bus (the real bus's
+ports, decoding and graph checks); its SIGTERM as a process, over real Zenoh."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ from schemas import (
 from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
-from tests.support.cell import InProcessService, put
+from tests.support.cell import Cell, put
 from tests.support.executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
@@ -43,14 +44,14 @@ def task_file(tmp_path: Path) -> Path:
 
 
 async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_path_start(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
-        ex = InProcessService(
+        ex = cell.service(
             "executor",
             executor_main,
             Settings(
@@ -62,7 +63,6 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
                 cycles=3,
             ),
             tmp_path / "ex",
-            endpoint,
             speed=SPEED,
         )
         assert (await next_of(events, lambda e: e.kind == "started")).message.endswith("k = 2")
@@ -101,7 +101,7 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
 
 @pytest.mark.parametrize("on_late", ["wait", "go_on"])
 async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_says_what_follows(
-    tmp_path: Path, endpoint: str, on_late: str
+    tmp_path: Path, cell: Cell, on_late: str
 ) -> None:
     """The paper's "not placed in time to be picked": past a wait_for step's deadline (data time) the
     executor publishes an operator error of kind late, then keeps waiting (the part that comes ends the
@@ -110,14 +110,14 @@ async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_say
     task_file.write_text(
         TASK.replace('wait_for = "part"', f'wait_for = "part"\ndeadline = 2.0\non_late = "{on_late}"')
     )
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         errors = aiter(bus.subscribe(bus.key("operator/error"), OperatorError))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         settings = sim_settings(task_file, wait_for_signals=True)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         late = await next_of(errors)
         assert (late.kind, late.source, late.cycle) == ("late", "executor", 0)
         assert "'part' not there 2 s after the robot came" in late.description
@@ -138,13 +138,13 @@ async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_say
 
 
 async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused_without_moving(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
     task = load_task(task_file)
     cache = tmp_path / "ex" / "executor"
     cache.mkdir(parents=True)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         sets = {pid: (await bus.get(bus.key(f"pareto/{pid}"), ParetoSet))[0].message for pid in task.paths}
         await store.close()  # the store is down from here on
         for pid, s in sets.items():
@@ -152,7 +152,7 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
 
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         report = await next_of(cycles)
         await asyncio.wait_for(ex.task, 15)
         assert report.k_per_path == {"there": 3, "back": 3}
@@ -166,7 +166,7 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
         (cache / "there.msgpack").write_bytes(encode(tampered))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         refused = await next_of(events, lambda e: e.kind == "refused")
         state = await next_of(states, lambda s: s.mode == "refused")
         await ex.close()
@@ -179,10 +179,10 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
 
 @pytest.mark.parametrize("policy", ["refuse", "move"])
 async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
-    policy: str, task_file: Path, tmp_path: Path, endpoint: str
+    policy: str, task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = Settings(
@@ -195,7 +195,7 @@ async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
             start_policy=policy,
             start_selection="initial",
         )
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         first = await next_of(events, lambda e: e.path_id == "there")
         if policy == "refuse":
             assert first.kind == "refused"
@@ -274,19 +274,19 @@ async def sensor(bus: Bus, distance: list[float | None]) -> None:
 
 
 async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_over_within_a_path(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
     """Issue 31 end to end, at real-time speed: a sensor's distance on operator/separation slows, holds
     and frees the arm within a path; a silent sensor holds it; a selection during a path takes effect in
     it (a "switch" event, and the cycle reports the new k for that path)."""
     distance: list[float | None] = [None]
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file, separation=True, initial_k=2)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         feeding = asyncio.create_task(sensor(bus, distance))
         try:
             # no distance yet: the path has begun, and holds at its start
@@ -339,7 +339,7 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
 
 
 async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm(
-    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The scale's task outlives a failure of one look (here: planning a ramp raises once): it says so, and
     the next look slows the arm for the person as ever."""
@@ -355,13 +355,13 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
 
     monkeypatch.setattr(pathrun, "plan_ramp", flaky)
     distance: list[float | None] = [5.0]
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         feeding = asyncio.create_task(sensor(bus, distance))
         settings = sim_settings(task_file, separation=True)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         try:
             await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
             distance[0] = 0.6
@@ -405,17 +405,17 @@ async def held(states, for_s: float = 0.5) -> list[RobotState]:
 
 
 async def test_a_second_source_far_a_same_name_publisher_far_or_a_future_stamp_never_free_the_arm(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
     """Issue 38: the nearest fresh reading of every source wins. A scanner says 0.6 m: a second sensor at
     5 m, or a rogue saying 100 m under the scanner's own name, leaves the arm held; with every sensor
     dead, one reading of 100 m stamped an hour ahead is refused (counted) and the arm stays held."""
     table: dict[str, tuple[str, float, float]] = {"front": ("scanner:front", 5.0, 0.0)}
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         await ex.listening(bus, "operator/separation")
         feeding = asyncio.create_task(sensors(bus, table))
         try:
@@ -442,16 +442,16 @@ async def test_a_second_source_far_a_same_name_publisher_far_or_a_future_stamp_n
 
 
 async def test_a_declared_sensor_falling_silent_holds_the_arm_while_another_still_speaks(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
     table = {"front": ("scanner:front", 5.0, 0.0), "back": ("scanner:back", 5.0, 0.0)}
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5,
                                 separation_sources=["scanner:front", "scanner:back"])  # fmt: skip
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         await ex.listening(bus, "operator/separation")
         feeding = asyncio.create_task(sensors(bus, table))
         try:

@@ -1,6 +1,6 @@
 """The executor's fault paths, as the issue reproduced them: a stop is a latch (no motion until a resume),
 a restart never moves at initial_k silently, and two executors never share a servo core. With the sim
-backend over real Zenoh, and with the real ur-rtde client against the emulator."""
+backend, and with the real ur-rtde client against the emulator; on the in-memory bus."""
 
 from __future__ import annotations
 
@@ -11,12 +11,12 @@ from typing import Any
 
 import pytest
 
-from common.runtime.bus import Bus, BusConfig
+from common.runtime.bus import Bus
 from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatus
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.executor.backends import SimBackend, UrRtdeBackend
-from tests.support.cell import InProcessService, put
+from tests.support.cell import Cell, put
 from tests.support.executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
@@ -76,16 +76,16 @@ async def resume(bus: Bus, by: str = "the test") -> str:
 
 
 async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
-    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     on = stall(monkeypatch, SimBackend)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file, overrun_limit=RUN, cycles=0, initial_k=2)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         await next_of(states, lambda s: s.mode == "moving")
         on["stall"] = True
         stop = await next_of(events, lambda e: e.kind == "protective_stop")
@@ -103,16 +103,16 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
 
 
 async def test_a_stalled_host_never_stops_the_sim_arm(
-    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # stalls for twice the run of overruns that stops a real arm (8 servo calls a tick)
     on = stall(monkeypatch, SimBackend, realtime=False, calls=8 * 2 * RUN)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file, overrun_limit=RUN, cycles=1, initial_k=2)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         report = await next_of(cycles, timeout=60)
         await ex.close()
         await store.close()
@@ -135,12 +135,12 @@ async def _drained(sub) -> list[RobotEvent]:
 
 
 async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         settings = Settings(task=str(task_file), fifo_priority=0, overrun_limit=CALM, start_selection="wait")
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         await next_of(states, lambda s: s.state == "waiting_for_selection")
         (reply,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
         await ex.close()
@@ -149,17 +149,17 @@ async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(
 
 
 async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_off(
-    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     on = stall(monkeypatch, SimBackend)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(
             task_file, overrun_limit=RUN, cycles=0, initial_k=2, resume_policy="auto", auto_resume_s=0.5
         )
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         on["stall"] = True
         await next_of(events, lambda e: e.kind == "protective_stop")
         on["stall"] = False
@@ -172,14 +172,14 @@ async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_of
 
 @pytest.mark.parametrize("policy", ["last", "wait"])
 async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_initial_k(
-    policy: str, task_file: Path, tmp_path: Path, endpoint: str
+    policy: str, task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
     """The reproduction: k = 1 decided, the executor restarted, the decision maker frozen: it moved at
     initial_k (8). Now it goes on at the persisted k ("last"), or waits ("wait") until a selection. The
     persisted k is the newest decided, not the last applied: a selection that came while the last path
     ran (k 2) was once forgotten for the one that path ran at."""
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
@@ -194,9 +194,7 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
             return decided
 
         stand_in = bus.serve(bus.key("decision/selection"), answer)
-        ex = InProcessService(
-            "executor", executor_main, Settings(**common, cycles=1), tmp_path / "ex", endpoint
-        )
+        ex = cell.service("executor", executor_main, Settings(**common, cycles=1), tmp_path / "ex")
         await ex.listening(bus, "decision/selection")
         await next_of(states, lambda s: s.mode == "moving" and s.path_id == "back", timeout=60)
         newer = Selection(t_ns=2, seq=8, k=2, n=15, delta=1, reason="rest")  # during the last path
@@ -206,7 +204,7 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         stand_in.undeclare()  # the decision maker is gone (frozen: it answers nothing)
 
         settings = Settings(**common, cycles=1, start_selection=policy)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         chose = await next_of(events, lambda e: "the decision maker does not answer" in e.message, timeout=30)
         if policy == "wait":
             waiting = [await next_of(states, lambda s: s.state == "waiting_for_selection") for _ in range(50)]
@@ -226,16 +224,16 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
 
 
 async def test_with_nothing_on_file_the_sim_waits_then_moves_at_the_first_selection(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         settings = Settings(
             task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, cycles=1
         )
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         chose = await next_of(events, lambda e: "the decision maker does not answer" in e.message, timeout=30)
         await ex.listening(bus, "decision/selection")
         put(
@@ -252,13 +250,14 @@ async def test_with_nothing_on_file_the_sim_waits_then_moves_at_the_first_select
 
 
 async def test_two_executors_on_one_host_get_different_servo_cores(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         cores = {}
         execs = []
-        for cell in ("a", "b"):
-            health = aiter(bus.subscribe(f"cadence/{cell}/health/executor", ServiceStatus, maxsize=1))
+        for name in ("a", "b"):  # two cells on one host
+            other = Cell(name, network=cell.network)
+            health = aiter(bus.subscribe(other.key("health/executor"), ServiceStatus, maxsize=1))
             settings = Settings(
                 task=str(task_file),
                 fifo_priority=0,
@@ -266,11 +265,9 @@ async def test_two_executors_on_one_host_get_different_servo_cores(
                 start_selection="wait",
                 lock_dir=str(tmp_path),
             )
-            execs.append(
-                InProcessService("executor", executor_main, settings, tmp_path / cell, endpoint, cell=cell)
-            )
+            execs.append(other.service("executor", executor_main, settings, tmp_path / name))
             st = await next_of(health, lambda s: "servo_core" in s.counters or s.detail != "", timeout=30)
-            cores[cell] = st.counters.get("servo_core")
+            cores[name] = st.counters.get("servo_core")
         for ex in execs:
             await ex.close()
     assert None not in cores.values(), cores
@@ -281,15 +278,15 @@ async def test_two_executors_on_one_host_get_different_servo_cores(
 
 
 async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resumed(
-    task_file: Path, tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, free_loopback
 
     on = stall(monkeypatch, UrRtdeBackend)
     emu = EmulatorProcess(free_loopback(), q0_deg=[0.0, -90.0, 90.0, -90.0, -90.0, 0.0])  # the task's start
     try:
-        async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-            store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        async with cell.session() as bus:
+            store = await store_serving(bus, task_file, tmp_path / "store", cell)
             events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
             states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
             settings = Settings(
@@ -303,7 +300,7 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
                 initial_k=1,
                 watchdog_hz=WATCHDOG_HZ,
             )
-            ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+            ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
             await next_of(states, lambda s: s.mode == "moving", timeout=60)
             on["stall"] = True
             overrun = await next_of(events, lambda e: e.kind == "protective_stop", timeout=30)
@@ -343,16 +340,16 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
     assert any("external force" in line for line in emu.lines)
 
 
-async def test_a_cycle_cut_short_by_a_restart_is_said(task_file: Path, tmp_path: Path, endpoint: str) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+async def test_a_cycle_cut_short_by_a_restart_is_said(task_file: Path, tmp_path: Path, cell: Cell) -> None:
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         settings = sim_settings(task_file, cycles=0)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         await next_of(states, lambda s: s.mode == "moving" and s.path_id == "there")
         await ex.close()  # SIGTERM mid-motion, as systemd stops it
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         said = await next_of(events, lambda e: "cut short by a restart" in e.message)
         await ex.close()
         await store.close()

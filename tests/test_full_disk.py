@@ -18,13 +18,12 @@ import pytest
 from rich.console import Console
 
 from cadence.demo import keep_summary
-from common.runtime.bus import Bus, BusConfig
 from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatus
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.decision_maker.state import STATE_FILE
 from services.executor.__main__ import main as executor_main
-from tests.support.cell import InProcessService, status_of
+from tests.support.cell import Cell, status_of
 from tests.support.decisions import answer, window
 from tests.support.executor import TASK, next_of, sim_settings, store_serving
 
@@ -68,18 +67,16 @@ def task_file(tmp_path: Path) -> Path:
 
 @pytest.mark.asyncio
 async def test_the_executor_holds_the_arm_on_a_full_disk_and_goes_on_by_itself_when_space_returns(
-    task_file: Path, tmp_path: Path, endpoint: str, disk: Disk
+    task_file: Path, tmp_path: Path, cell: Cell, disk: Disk
 ) -> None:
     """Before: 14 restarts in 220 s, each dying on ENOSPC with a traceback, no cycle for 276 s."""
     data = disk.path / "ex"
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        ex = InProcessService(
-            "executor", executor_main, sim_settings(task_file, overrun_limit=5), data, endpoint
-        )
+        ex = cell.service("executor", executor_main, sim_settings(task_file, overrun_limit=5), data)
         try:
             # the sets are cached on the disk first, then it fills before the cycle's record is written
             said = await next_of(events, lambda e: e.kind == "started", timeout=30)
@@ -108,14 +105,14 @@ async def test_the_executor_holds_the_arm_on_a_full_disk_and_goes_on_by_itself_w
 
 @pytest.mark.asyncio
 async def test_the_decision_maker_decides_and_publishes_on_a_full_disk_and_says_k_is_not_persisted(
-    tmp_path: Path, endpoint: str, disk: Disk
+    tmp_path: Path, cell: Cell, disk: Disk
 ) -> None:
     """Before: it persisted before it published, so windows got no selection while the old k was
     republished, and k jumped when space came back."""
     windows = [window(i, rr) for i, rr in enumerate([0.85, 0.80, 0.74, 0.69, 0.66, 0.80])]
     settings = DecisionSettings(rr_rest_s=0.85, republish_s=0.2)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = InProcessService("decision_maker", decision_main, settings, disk.path, endpoint)
+    async with cell.session() as bus:
+        svc = cell.service("decision_maker", decision_main, settings, disk.path)
         await svc.listening(bus, "hrv/window")
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
 

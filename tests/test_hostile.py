@@ -14,7 +14,7 @@ import msgspec
 import pytest
 
 from common.hrv.calibration import CALIBRATION_FILE
-from common.runtime.bus import Bus, BusConfig
+from common.runtime.bus import Bus
 from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection
 from schemas.topology import encode
 from services.decision_maker.__main__ import Settings as DecisionSettings
@@ -23,7 +23,7 @@ from services.decision_maker.state import STATE_FILE, Decider, resume
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.pareto_store.store import SetStore
-from tests.support.cell import InProcessService, now_ns, put, status_of
+from tests.support.cell import Cell, now_ns, put, status_of
 from tests.support.data import DAY, S, chunks, synthetic_ecg
 from tests.support.decisions import answer, expected, window
 
@@ -53,12 +53,12 @@ HOSTILE_WINDOWS = {
 
 @pytest.mark.asyncio
 async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_answered(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, cell: Cell
 ) -> None:
     honest = [window(i, rr) for i, rr in enumerate([0.85, 0.81, 0.75, 0.70, 0.80])]
     settings = DecisionSettings(rr_rest_s=0.85, republish_s=0.2)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = InProcessService("decision_maker", decision_main, settings, tmp_path, endpoint)
+    async with cell.session() as bus:
+        svc = cell.service("decision_maker", decision_main, settings, tmp_path)
         await svc.listening(bus, "hrv/window")
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         key = bus.key("hrv/window")
@@ -91,7 +91,7 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
         await svc.close()
 
         # a restart resumes: no crash loop on what was persisted
-        svc = InProcessService("decision_maker", decision_main, settings, tmp_path, endpoint)
+        svc = cell.service("decision_maker", decision_main, settings, tmp_path)
         await svc.listening(bus, "hrv/window")
         got += [(await answered(w)).k for w in honest[3:]]
         await svc.close()
@@ -107,7 +107,7 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
 
 @pytest.mark.asyncio
 async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_the_honest_ones_answered(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, cell: Cell
 ) -> None:
     """20 contiguous relaxed windows up to 600 s ahead of its clock once moved the decision maker's time
     line, the honest windows after them were dropped as duplicates, and k stood for ten minutes."""
@@ -125,8 +125,8 @@ async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_t
         for i in range(20)
     ]
     settings = DecisionSettings(rr_rest_s=0.85, republish_s=0.2)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = InProcessService("decision_maker", decision_main, settings, tmp_path, endpoint)
+    async with cell.session() as bus:
+        svc = cell.service("decision_maker", decision_main, settings, tmp_path)
         await svc.listening(bus, "hrv/window")
         sels = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
         key = bus.key("hrv/window")
@@ -194,12 +194,10 @@ def test_a_corrupt_state_file_is_moved_aside_named_and_the_service_starts_at_the
 
 
 @pytest.mark.asyncio
-async def test_the_status_says_the_state_file_was_moved_aside(tmp_path: Path, endpoint: str) -> None:
+async def test_the_status_says_the_state_file_was_moved_aside(tmp_path: Path, cell: Cell) -> None:
     (tmp_path / STATE_FILE).write_text('{"k": "abc"}')
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = InProcessService(
-            "decision_maker", decision_main, DecisionSettings(rr_rest_s=0.85), tmp_path, endpoint
-        )
+    async with cell.session() as bus:
+        svc = cell.service("decision_maker", decision_main, DecisionSettings(rr_rest_s=0.85), tmp_path)
         status = await status_of(bus, "decision_maker", lambda s: bool(s.detail))
         await svc.close()
     assert status.state == "running"
@@ -239,7 +237,7 @@ async def windows_of(
 
 @pytest.mark.asyncio
 async def test_hostile_chunks_leave_the_analysers_windows_as_the_honest_stream_gives_them(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, cell: Cell
 ) -> None:
     T0 = now_ns() - 100 * S  # 100 s that have happened: nothing from the analyser's future is taken
     honest = chunks(synthetic_ecg(100), T0)
@@ -252,8 +250,8 @@ async def test_hostile_chunks_leave_the_analysers_windows_as_the_honest_stream_g
         raw(c, fs_hz=250.0),  # decodes: another rate than the stream's
         raw(c, t_ns=c.t_ns - 60 * S),  # decodes: a minute behind
     ]
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = InProcessService("hrv_analyser", analyser_main, AnalyserSettings(), tmp_path, endpoint)
+    async with cell.session() as bus:
+        svc = cell.service("hrv_analyser", analyser_main, AnalyserSettings(), tmp_path)
         await svc.listening(bus, "ecg/samples")
         got = await windows_of(bus, honest, {51: hostile}, 3)
         status = await status_of(bus, "hrv_analyser", lambda s: s.counters.get("decode_errors", 0) >= 3)
@@ -269,14 +267,12 @@ async def test_hostile_chunks_leave_the_analysers_windows_as_the_honest_stream_g
 
 
 @pytest.mark.asyncio
-async def test_a_hostile_first_chunk_does_not_lock_the_honest_stream_out(
-    tmp_path: Path, endpoint: str
-) -> None:
+async def test_a_hostile_first_chunk_does_not_lock_the_honest_stream_out(tmp_path: Path, cell: Cell) -> None:
     T0 = now_ns() - 100 * S
     honest = chunks(synthetic_ecg(100), T0)
     first = raw(honest[0], t_ns=T0 + 30 * DAY)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        svc = InProcessService("hrv_analyser", analyser_main, AnalyserSettings(), tmp_path, endpoint)
+    async with cell.session() as bus:
+        svc = cell.service("hrv_analyser", analyser_main, AnalyserSettings(), tmp_path)
         await svc.listening(bus, "ecg/samples")
         got = await windows_of(bus, honest, {0: [first]}, 2)
         await svc.close()
@@ -317,12 +313,12 @@ def test_a_stored_set_that_does_not_decode_is_deleted_so_it_is_planned_again(tmp
 
 @pytest.mark.asyncio
 async def test_a_failing_handler_is_counted_logged_once_per_10_s_and_the_next_message_handled(
-    endpoint: str, caplog: pytest.LogCaptureFixture
+    cell: Cell, caplog: pytest.LogCaptureFixture
 ) -> None:
     from common.runtime.config import CommonSettings
     from common.runtime.service import ServiceContext
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with cell.session() as bus:
         handled: list[int] = []
         done = asyncio.Event()
 
@@ -355,7 +351,7 @@ async def test_a_failing_handler_is_counted_logged_once_per_10_s_and_the_next_me
 
 @pytest.mark.asyncio
 async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_is_fetched_again(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, zenoh_cell: Cell
 ) -> None:
     from schemas import CycleReport
     from services.executor.__main__ import main as executor_main
@@ -365,8 +361,8 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
     task_file.write_text(TASK)
     cache = tmp_path / "ex" / "executor"
     cache.mkdir(parents=True)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+    async with zenoh_cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", zenoh_cell)
         there = (await bus.get(bus.key("pareto/there"), ParetoSet))[0].message
         back = (await bus.get(bus.key("pareto/back"), ParetoSet))[0].message
         await store.close()  # the store is down until the end
@@ -391,7 +387,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file)
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint, speed=SPEED)
+        ex = zenoh_cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         refused = await next_of(events, lambda e: e.kind == "refused" and "over its limit" in e.message)
         async with asyncio.timeout(20):
             await answered.wait()
@@ -402,7 +398,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
         assert "back.msgpack" in status.detail
         assert "solutions" in status.detail
 
-        store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        store = await store_serving(bus, task_file, tmp_path / "store", zenoh_cell)
         report = await next_of(cycles, timeout=60)
         await asyncio.wait_for(ex.task, 15)
         await store.close()

@@ -1,4 +1,4 @@
-"""The Pareto store, started in-process and as a process, queried over real Zenoh on loopback."""
+"""The Pareto store, started in-process on the in-memory bus and as a process on its own."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from schemas.topology import TOPICS, AnyMessage
 from services.pareto_store.__main__ import ParetoStore, Settings, main
 from services.pareto_store.jobs import plan_job
 from services.pareto_store.store import SetStore
-from tests.support.cell import InProcessService
+from tests.support.cell import Cell, InProcessService
 
 pytestmark = pytest.mark.asyncio
 
@@ -40,8 +40,8 @@ waypoints = [[45, -70, 95, -110, -90, 40], [0, -90, 90, -90, -90, 0]]
 """
 
 
-def start_store(task: Path, data: Path, endpoint: str) -> InProcessService:
-    return InProcessService("pareto_store", main, Settings(task=str(task)), data, endpoint)
+def start_store(task: Path, data: Path, cell: Cell) -> InProcessService:
+    return cell.service("pareto_store", main, Settings(task=str(task)), data)
 
 
 async def serving(sub) -> ServiceStatus:
@@ -61,12 +61,11 @@ def task_file(tmp_path: Path) -> Path:
 
 
 async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_stale_sets(
-    task_file: Path, tmp_path: Path, endpoint: str
+    task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    client = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
-    async with client:
+    async with cell.session() as client:
         health = client.key("health/pareto_store")
-        store = start_store(task_file, tmp_path / "data", endpoint)
+        store = start_store(task_file, tmp_path / "data", cell)
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed") == 2
 
@@ -96,7 +95,7 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
         await store.close()
 
         # restart: the same sets, from SQLite, nothing recomputed
-        store = start_store(task_file, tmp_path / "data", endpoint)
+        store = start_store(task_file, tmp_path / "data", cell)
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed", 0) == 0
         again = (await client.get(client.key("pareto/a"), ParetoSet))[0].message
@@ -106,7 +105,7 @@ async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_sta
 
         # a changed task program: path a is planned again, b is still valid
         task_file.write_text(TASK.replace("[30, -80, 100, -100, -90, 20]", "[25, -80, 100, -100, -90, 20]"))
-        store = start_store(task_file, tmp_path / "data", endpoint)
+        store = start_store(task_file, tmp_path / "data", cell)
         status = await serving(aiter(client.subscribe(health, ServiceStatus, maxsize=1)))
         assert status.counters.get("computed") == 1
         new_a = (await client.get(client.key("pareto/a"), ParetoSet))[0].message

@@ -5,19 +5,30 @@ ports, every decode (the schema's bounds), every drop counter and every rejectio
 code. Only delivery differs: a put reaches the matching subscribers of every ``MockBus`` of the same
 ``MockNetwork`` (key expressions matched as Zenoh matches them), and a query the matching queryables.
 The Zenoh tier of the tests stays for the bus itself and for end to end.
+
+``serving(Node, settings)`` serves one node on it beside a test's own session, and ``run_node`` feeds it
+inputs and gives back what it published: a node's logic tested with its ports, its decoding and its
+graph checks, in milliseconds and with no network. ``MockNetwork.settle`` waits until every put has been
+delivered and every handler has returned, so a test asserts on what the node did, not on a delay.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, cast
 
 import zenoh
 
-from common.runtime.bus import Bus, BusConfig, M, Request, answer
-from schemas.topology import DEFAULT_CELL
+from common.runtime.bus import Bus, BusConfig, M, Reply, Request, Subscription, answer
+from common.runtime.config import CommonSettings
+from common.runtime.node import Node, serve_node
+from common.runtime.service import ServiceContext
+from schemas.base import Message
+from schemas.topology import DEFAULT_CELL, Topic, decode_any, encode, topic_of
 
 
 @dataclass
@@ -40,7 +51,30 @@ class MockNetwork:
     subscribers: list[_Entry] = field(default_factory=list)
     queryables: list[_Entry] = field(default_factory=list)
     sent: list[tuple[str, bytes]] = field(default_factory=list)
+    senders: list[str | None] = field(default_factory=list)  # the role that sent each of ``sent``
     changed: asyncio.Event = field(default_factory=asyncio.Event)  # set at each declaration and put
+    in_flight: int = 0  # deliveries scheduled and not yet made
+    handling: int = 0  # handlers running
+    handled: list[Subscription[Any]] = field(default_factory=list)  # the handlers' queues
+
+    def settled(self) -> bool:
+        """Nothing on its way: every put delivered, every handler's queue empty, no handler running."""
+        return self.in_flight == 0 and self.handling == 0 and not any(s.pending for s in self.handled)
+
+    async def settle(self, timeout: float = 10.0) -> None:
+        """Until ``settled`` holds across a few turns of the loop (a handler's reply is delivered a turn
+        after it returns); TimeoutError after ``timeout``, with what was still on its way."""
+        try:
+            async with asyncio.timeout(timeout):
+                quiet = 0
+                while quiet < 3:
+                    await asyncio.sleep(0 if self.settled() else 0.001)  # a handler may wait on a thread
+                    quiet = quiet + 1 if self.settled() else 0
+        except TimeoutError:
+            raise TimeoutError(
+                f"the mock bus did not settle in {timeout:g} s: {self.in_flight} deliveries, "
+                f"{self.handling} handlers running, {sum(s.pending for s in self.handled)} queued"
+            ) from None
 
     async def until(self, condition: Callable[[], bool], timeout: float) -> None:
         """Until ``condition()`` holds, re-checked at each declaration and put; TimeoutError after."""
@@ -68,11 +102,35 @@ class MockBus(Bus):
         return entry
 
     def _send(self, key: str, payload: bytes, block: bool) -> None:
-        self.network.sent.append((key, payload))
-        self.network.changed.set()
-        for entry in list(self.network.subscribers):
+        network = self.network
+        network.sent.append((key, payload))
+        network.senders.append(self.role)
+        network.changed.set()
+
+        def deliver(callback: Callable[[str, bytes], None]) -> None:
+            network.in_flight -= 1
+            callback(key, payload)
+
+        for entry in list(network.subscribers):
             if _intersects(entry.key_expr, key):
-                self.loop.call_soon(entry.callback, key, payload)  # as from Zenoh's thread: later, in order
+                network.in_flight += 1
+                self.loop.call_soon(deliver, entry.callback)  # as from Zenoh's thread: later, in order
+
+    def handle(self, what: Any, /, *args: Any, maxsize: int = 256) -> Any:
+        """``Bus.handle``, counted: ``settle`` waits for the handler as for the delivery."""
+        *rest, handler = args
+        network = self.network
+
+        async def counted(key: str, msg: Any) -> None:
+            network.handling += 1
+            try:
+                await handler(key, msg)
+            finally:
+                network.handling -= 1
+
+        sub = super().handle(what, *rest, counted, maxsize=maxsize)  # type: ignore[call-overload]
+        network.handled.append(sub)
+        return sub
 
     def _declare_queryable(
         self, key_expr: str, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]]
@@ -108,3 +166,83 @@ class MockBus(Bus):
 
     async def _close_transport(self) -> None:
         pass
+
+
+@dataclass
+class NodeRun:
+    """One node served on a ``MockNetwork``, and the test's own session on it (``test``: a session that
+    speaks for nobody, as a test's on Zenoh does)."""
+
+    node: Node
+    network: MockNetwork
+    test: MockBus
+
+    def _sent_by_node(self) -> list[tuple[str, bytes]]:
+        return [
+            s for s, who in zip(self.network.sent, self.network.senders, strict=True) if who == self.node.role
+        ]
+
+    @property
+    def outputs(self) -> list[Message]:
+        """Everything the node has published on its outputs, in order, decoded as a receiver would (its
+        health statuses left out)."""
+        return [
+            decode_any(p) for k, p in self._sent_by_node() if (t := topic_of(k)) and t.family != "health/*"
+        ]
+
+    def published(self, topic: Topic[M]) -> list[M]:
+        """What the node published on ``topic``."""
+        key = self.test.key(topic.suffix)
+        return [cast(M, decode_any(p)) for k, p in self._sent_by_node() if k == key]
+
+    async def put(self, topic: Topic[Any], msg: Message, timeout: float = 10.0) -> None:
+        """``msg`` on ``topic`` once the node reads it, then until the node has handled it."""
+        key = self.test.key(topic.suffix)
+        await self.test.until_subscribed(key, timeout)
+        self.test.put_raw(key, encode(msg))
+        await self.network.settle(timeout)
+
+    async def ask(self, topic: Topic[M], parameters: str = "", timeout: float = 10.0) -> list[Reply[M]]:
+        return await self.test.get(topic, parameters=parameters, timeout=timeout)
+
+
+@contextlib.asynccontextmanager
+async def serving(
+    cls: type[Node], settings: Any, data_dir: Path, cell: str = DEFAULT_CELL, **common: Any
+) -> AsyncIterator[NodeRun]:
+    """``cls`` served as its service serves it (``serve_node``: the declared ports, the timers, the work),
+    on the in-memory bus; stopped, its work ended and ``close`` run at the end."""
+    network = MockNetwork()
+    bus = MockBus(cell, cls.role, network)
+    ctx = ServiceContext(cls.role, bus, CommonSettings(cell=cell, data_dir=str(data_dir), **common),
+                         settings, asyncio.Event())  # fmt: skip
+    node = cls(ctx)
+    await node.setup()
+    served = asyncio.ensure_future(serve_node(node))
+    test = MockBus(cell, None, network)
+    try:
+        yield NodeRun(node, network, test)
+        if served.done():
+            served.result()  # the node's work failed: say why
+    finally:
+        ctx.stop.set()
+        try:
+            await asyncio.wait_for(served, 15)
+        finally:
+            await node.close()
+            await test.close()
+            await bus.close()
+
+
+async def run_node(
+    cls: type[Node],
+    settings: Any,
+    inputs: Iterable[tuple[Topic[Any], Message]],
+    data_dir: Path,
+    **common: Any,
+) -> list[Message]:
+    """What ``cls`` publishes when fed ``inputs`` in order, each handled before the next is sent."""
+    async with serving(cls, settings, data_dir, **common) as run:
+        for topic, msg in inputs:
+            await run.put(topic, msg)
+        return run.outputs

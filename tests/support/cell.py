@@ -4,11 +4,16 @@ in-memory bus (``Cell``); data time near now; a test's raw put."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from common.runtime.bus import Bus, BusConfig
+from common.runtime.mock_bus import MockBus, MockNetwork
 from schemas import ServiceStatus
+from schemas.topology import DEFAULT_CELL
 
 
 def now_ns() -> int:
@@ -29,7 +34,8 @@ def free_port() -> int:
 
 class InProcessService:
     """A service running in this test's event loop exactly as `cadence run <name>` runs it (its real
-    ``main``, real Zenoh, data on disk), connecting to the test's listening endpoint; dora's MockNode."""
+    ``main``, data on disk): on real Zenoh, connecting to the test's listening ``endpoint``, or on the
+    in-memory bus of ``network`` (``Cell.service``); dora's MockNode."""
 
     def __init__(
         self,
@@ -37,10 +43,11 @@ class InProcessService:
         main,
         settings: object,
         data: Path,
-        endpoint: str,
+        endpoint: str | None = None,
         speed: float = 1.0,
-        cell: str = "cell1",
+        cell: str = DEFAULT_CELL,
         epoch_ns: int | None = None,
+        network: MockNetwork | None = None,
     ) -> None:
         import asyncio
 
@@ -66,10 +73,11 @@ class InProcessService:
                 name,
                 wrapped,
                 common,
-                BusConfig(connect=[endpoint]),
+                BusConfig(connect=[endpoint] if endpoint else []),
                 settings,
                 stop=self.stop,
                 install_signals=False,
+                bus=MockBus(cell, name, network) if network is not None else None,
             )
         )
 
@@ -128,3 +136,32 @@ async def status_of(bus: Bus, name: str, pred, timeout: float = 20.0) -> Service
             if pred(st):
                 return st
     raise AssertionError("unreachable")
+
+
+@dataclass
+class Cell:
+    """The cell a test runs services in, and its name (one place, not "cell1" in every test): on the
+    in-memory bus (``network``: the node-logic tests) or on Zenoh (``endpoint``, on which the test's own
+    session listens: the tests of the bus itself and end to end)."""
+
+    name: str = DEFAULT_CELL
+    endpoint: str | None = None
+    network: MockNetwork | None = None
+
+    @contextlib.asynccontextmanager
+    async def session(self) -> AsyncIterator[Bus]:
+        """The test's own session: it speaks for nobody, reads everything and puts raw (``put``)."""
+        if self.network is not None:
+            async with MockBus(self.name, None, self.network) as bus:
+                yield bus
+        else:
+            async with await Bus.open(BusConfig(listen=[self.endpoint or ""]), self.name) as bus:
+                yield bus
+
+    def service(self, name: str, main, settings: object, data: Path, **options) -> InProcessService:
+        """A service of this cell, started now in the test's event loop."""
+        return InProcessService(name, main, settings, data, self.endpoint, cell=self.name,
+                                network=self.network, **options)  # fmt: skip
+
+    def key(self, suffix: str) -> str:
+        return f"cadence/{self.name}/{suffix}"

@@ -15,7 +15,7 @@ from schemas import (
 from services.executor.__main__ import Settings
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.support.cell import InProcessService
+from tests.support.cell import Cell, InProcessService
 from tests.support.paths import planned_once
 
 TASK = """
@@ -71,16 +71,21 @@ def sim_settings(task_file: Path, **changes: object) -> Settings:
 
 
 async def store_serving(
-    bus: Bus, task: Path, data: Path, endpoint: str, planned: Path | None = None
+    bus: Bus, task: Path, data: Path, where: Cell | str, planned: Path | None = None
 ) -> InProcessService:
-    """A store serving ``task``, from ``planned`` (a store's SQLite file), by default the task's sets as
-    planned once per test run: the store serves stored sets at once (tests of planning are elsewhere)."""
+    """A store serving ``task`` in the cell ``where`` (or on the Zenoh endpoint ``where``), from
+    ``planned`` (a store's SQLite file), by default the task's sets as planned once per test run: the
+    store serves stored sets at once (tests of planning are elsewhere)."""
     import shutil
 
     data.mkdir(parents=True, exist_ok=True)
     shutil.copy(planned or planned_once(task), data / "pareto.sqlite")
     health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
-    store = InProcessService("pareto_store", store_main, StoreSettings(task=str(task)), data, endpoint)
+    settings = StoreSettings(task=str(task))
+    if isinstance(where, Cell):
+        store = where.service("pareto_store", store_main, settings, data)
+    else:  # a Zenoh endpoint
+        store = InProcessService("pareto_store", store_main, settings, data, where)
     async with asyncio.timeout(60):
         async for _, status in health:
             if status.state == "serving":
