@@ -15,8 +15,8 @@ from common.hrv.live import Taken
 from common.runtime.bus import Bus, QueryError
 from common.runtime.config import CommonSettings
 from common.runtime.errors import BusError
-from common.runtime.mock_bus import MockBus, MockNetwork
-from common.runtime.node import Node, Rejected, check, node_main, on
+from common.runtime.mock_bus import MockBus, MockNetwork, run_node, serving
+from common.runtime.node import Node, Rejected, check, every, node_main, on
 from common.runtime.service import ServiceContext, serve
 from schemas import Calibration, HrvWindow, Selection
 from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
@@ -432,3 +432,70 @@ async def test_the_analyser_answers_for_its_last_windows_one_at_a_time(tmp_path:
         await node.window_after(ask(base + (KEPT_WINDOWS + 10) * 30 * S))
     with pytest.raises(QueryError, match="expected after=<end_ns>"):
         await node.window_after(ask("soon"))
+
+
+@pytest.mark.asyncio
+async def test_run_node_feeds_the_inputs_in_order_and_gives_back_what_the_node_published(
+    tmp_path: Path,
+) -> None:
+    base, rrs = now_ns() - 8 * 30 * S, [0.80, 0.78, 0.70, 0.69, 0.90, 0.95]
+    inputs = [(HRV_WINDOW, window(base, i, rr)) for i, rr in enumerate(rrs)]
+    out = await run_node(DecisionMaker, Settings(rr_rest_s=0.85, republish_s=600), inputs, tmp_path)
+    answers = [m for m in out if isinstance(m, Selection) and m.reason != "initial"]
+    p = Params.of(0.85)
+    state, want = State.initial(p), []
+    for rr in rrs:
+        state = step(p, state, rr, True).state
+        want.append(state.k)
+    assert [a.k for a in answers] == want  # each window handled before the next was sent
+    assert [a.window_end_ns for a in answers] == [w.end_ns for _, w in inputs]
+
+
+@pytest.mark.asyncio
+async def test_the_output_port_numbers_what_a_node_sends_and_a_selection_keeps_its_own(
+    tmp_path: Path,
+) -> None:
+    from schemas.ecg import EcgChunk
+    from schemas.topology import ECG_SAMPLES
+
+    class Counting(Node):  # builds every chunk with seq 0: numbering is the port's
+        role = "ecg_gateway"
+
+        async def stream(self):  # type: ignore[override]
+            for i in range(3):
+                yield [EcgChunk(t_ns=now_ns() + i, seq=0, fs_hz=130.0, samples_uv=[0] * 73, source="test")]
+
+    async with serving(Counting, None, tmp_path) as run:
+        await run.network.until(lambda: len(run.published(ECG_SAMPLES)) == 3, 10)
+        assert [c.seq for c in run.published(ECG_SAMPLES)] == [0, 1, 2]
+
+    async with serving(DecisionMaker, Settings(rr_rest_s=0.85, republish_s=0.01), tmp_path) as run:
+        await run.network.until(lambda: len(run.published(SELECTION)) >= 3, 10)
+        seqs = {s.seq for s in run.published(SELECTION)}
+        assert len(seqs) == 1  # republished as it was: a selection's seq is its identity, not a count
+
+
+def test_a_timer_is_declared_in_the_graph_beside_the_ports() -> None:
+    class Ticking(Node):  # the gateway has no timer in the graph
+        role = "ecg_gateway"
+
+        @every
+        async def tick(self) -> list[msgspec.Struct]:
+            return []
+
+    with pytest.raises(BusError, match="does not let ecg_gateway time tick"):
+        check(Ticking)
+
+    class Idle(Node):  # the decision maker republishes its selection on a timer the graph declares
+        role = "decision_maker"
+
+        @on(HRV_WINDOW)
+        async def on_window(self, w: HrvWindow) -> list[msgspec.Struct]:
+            return []
+
+        @on(CALIBRATION)
+        async def on_calibration(self, c: Calibration) -> list[msgspec.Struct]:
+            return []
+
+    with pytest.raises(BusError, match=r"no handler for .*current"):
+        check(Idle)

@@ -163,6 +163,7 @@ def check(cls: type[Node]) -> None:
     role = ROLE.get(getattr(cls, "role", ""))
     if role is None:
         raise BusError(f"{cls.__name__}: role {getattr(cls, 'role', None)!r} is not in the graph")
+    missing = []
     for mark, declared, verb in (
         (_INPUT, role.inputs, "read"),
         (_ANSWER, role.answers, "answer"),
@@ -173,8 +174,9 @@ def check(cls: type[Node]) -> None:
         if have - want:
             raise BusError(f"the graph does not let {role.name} {verb} {', '.join(sorted(have - want))}")
         if want - have:
-            raise BusError(f"{cls.__name__} has no handler for {', '.join(sorted(want - have))}, which the "
-                           f"graph has {role.name} {verb} (schemas/topology.py)")  # fmt: skip
+            missing.append(f"{', '.join(sorted(want - have))}, which the graph has {role.name} {verb}")
+    if missing:
+        raise BusError(f"{cls.__name__} has no handler for {'; '.join(missing)} (schemas/topology.py)")
     types = [t.message for t in role.outputs]
     if len(set(types)) != len(types):
         raise BusError(f"{role.name}: two outputs carry the same message type")
