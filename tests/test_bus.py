@@ -15,7 +15,7 @@ from common.runtime.bus import Bus, BusConfig, QueryError, Request
 from common.runtime.errors import BusError
 from schemas import Selection, ServiceStatus
 from schemas.topology import TOPICS
-from tests.support.cell import free_port, put
+from tests.support.cell import CELL, free_port, put
 
 pytestmark = pytest.mark.asyncio
 
@@ -23,8 +23,8 @@ SEL = Selection(t_ns=5, seq=1, k=8, n=15, delta=0, reason="initial")
 
 
 async def pair(endpoint: str) -> tuple[Bus, Bus]:
-    a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
-    b = await Bus.open(BusConfig(connect=[endpoint]), "cell1")
+    a = await Bus.open(BusConfig(listen=[endpoint]), CELL)
+    b = await Bus.open(BusConfig(connect=[endpoint]), CELL)
     return a, b
 
 
@@ -40,7 +40,7 @@ async def test_a_published_message_arrives_decoded(endpoint: str) -> None:
                 put(a, a.key("decision/selection"), SEL, block=True)
                 await asyncio.wait({received}, timeout=0.05)
         key, msg = received.result()
-        assert key == "cadence/cell1/decision/selection"
+        assert key == f"cadence/{CELL}/decision/selection"
         assert msg == SEL
 
 
@@ -89,7 +89,7 @@ async def test_a_queryable_answers_and_an_error_reply_says_why(endpoint: str) ->
 
 
 async def test_a_closed_bus_refuses_use(endpoint: str) -> None:
-    a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    a = await Bus.open(BusConfig(listen=[endpoint]), CELL)
     await a.close()
     with pytest.raises(Exception, match="closed"):
         put(a, a.key("x"), SEL)
@@ -105,8 +105,8 @@ async def test_two_sessions_meet_through_cadence_router() -> None:
     try:
         assert "listening" in router.stderr.readline()
         ep = f"tcp/127.0.0.1:{port}"
-        a = await Bus.open(BusConfig(mode="client", connect=[ep]), "cell1")
-        b = await Bus.open(BusConfig(mode="client", connect=[ep]), "cell1")
+        a = await Bus.open(BusConfig(mode="client", connect=[ep]), CELL)
+        b = await Bus.open(BusConfig(mode="client", connect=[ep]), CELL)
         async with a, b:
             it = aiter(b.subscribe(b.key("health/x"), ServiceStatus))
             received = asyncio.ensure_future(anext(it))
@@ -123,7 +123,7 @@ async def test_two_sessions_meet_through_cadence_router() -> None:
 
 async def test_zenoh_cli_prints_cadence_messages_as_json(endpoint: str) -> None:
     """The `zenoh` command of zenoh-cli loads Cadence's decoder from its entry point."""
-    a = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    a = await Bus.open(BusConfig(listen=[endpoint]), CELL)
     zenoh_cli = os.path.join(os.path.dirname(sys.executable), "zenoh")
     proc = subprocess.Popen(
         [
@@ -206,8 +206,8 @@ async def test_a_session_opens_from_a_json5_zenoh_config_file(tmp_path, endpoint
     conf.write_text(
         "{\n  // a Zenoh config file\n  mode: 'peer',\n  listen: { endpoints: ['" + endpoint + "'] },\n}\n"
     )
-    a = await Bus.open(BusConfig(config_file=str(conf)), "cell1")
-    b = await Bus.open(BusConfig(connect=[endpoint]), "cell1")
+    a = await Bus.open(BusConfig(config_file=str(conf)), CELL)
+    b = await Bus.open(BusConfig(connect=[endpoint]), CELL)
     async with a, b:
         a.serve(a.key("decision/selection"), lambda req: asyncio.sleep(0, SEL))
         async with asyncio.timeout(5):
@@ -218,7 +218,7 @@ async def test_a_session_opens_from_a_json5_zenoh_config_file(tmp_path, endpoint
 
 async def test_a_missing_zenoh_config_file_is_a_bus_error(tmp_path) -> None:
     with pytest.raises(BusError, match="bad Zenoh configuration"):
-        await Bus.open(BusConfig(config_file=str(tmp_path / "none.json5")), "cell1")
+        await Bus.open(BusConfig(config_file=str(tmp_path / "none.json5")), CELL)
 
 
 async def test_a_burst_past_a_handlers_queue_is_counted_not_lost_silently(endpoint: str) -> None:

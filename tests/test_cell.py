@@ -30,7 +30,7 @@ from cadence.deploy.pki import common_name, issue, make_ca
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
 from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS
-from tests.support.cell import free_port, put
+from tests.support.cell import CELL, free_port, put
 from tests.support.paths import REPO
 
 
@@ -88,18 +88,18 @@ def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
 
 @pytest.mark.asyncio
 async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_keys(tmp_path: Path) -> None:
-    ca = make_ca("cell1")
+    ca = make_ca(CELL)
     passwords = {a: f"pw-{a}" for a in ACCOUNTS}
     (tmp_path / "users.txt").write_text(users_file(passwords))
     port = free_port()
     endpoint = [f"tls/127.0.0.1:{port}"]
-    leaf = issue(ca, "router", "cell1", ["127.0.0.1"])
+    leaf = issue(ca, "router", CELL, ["127.0.0.1"])
     router = _write(
         tmp_path,
         "router",
-        router_config("cell1", endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt")),
+        router_config(CELL, endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt")),
     )
-    certs = {a: issue(ca, a, "cell1", [a]) for a in ACCOUNTS}
+    certs = {a: issue(ca, a, CELL, [a]) for a in ACCOUNTS}
     assert common_name(certs["executor"].cert) == "executor"
 
     def account(cert: str, user: str) -> BusConfig:
@@ -115,12 +115,12 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
         t_ns=2, seq=0, start_ns=0, end_ns=2, mean_rr_s=0.8, n_beats=3, excluded_fraction=0.0, quality="good"
     )
     async with (
-        await Bus.open(router, "cell1"),
-        await Bus.open(account("monitor", "monitor"), "cell1") as monitor,
-        await Bus.open(account("decision_maker", "decision_maker"), "cell1") as decider,
-        await Bus.open(account("hrv_analyser", "hrv_analyser"), "cell1") as analyser,
+        await Bus.open(router, CELL),
+        await Bus.open(account("monitor", "monitor"), CELL) as monitor,
+        await Bus.open(account("decision_maker", "decision_maker"), CELL) as decider,
+        await Bus.open(account("hrv_analyser", "hrv_analyser"), CELL) as analyser,
         # a stolen password with another account's certificate
-        await Bus.open(account("monitor", "decision_maker"), "cell1") as mixed,
+        await Bus.open(account("monitor", "decision_maker"), CELL) as mixed,
     ):
         selections = monitor.subscribe(monitor.key("decision/selection"), Selection)
         windows = monitor.subscribe(monitor.key("hrv/window"), HrvWindow)
@@ -149,11 +149,11 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
     )
     own = ServiceStatus(t_ns=4, seq=0, service="executor", state="serving", uptime_s=1.0, counters={})
     async with (
-        await Bus.open(router, "cell1"),
-        await Bus.open(account("monitor", "monitor"), "cell1") as monitor,
-        await Bus.open(account("separation_sensor", "separation_sensor"), "cell1") as sensor,
-        await Bus.open(account("operator", "operator"), "cell1") as hmi,
-        await Bus.open(account("executor", "executor"), "cell1") as executor,
+        await Bus.open(router, CELL),
+        await Bus.open(account("monitor", "monitor"), CELL) as monitor,
+        await Bus.open(account("separation_sensor", "separation_sensor"), CELL) as sensor,
+        await Bus.open(account("operator", "operator"), CELL) as hmi,
+        await Bus.open(account("executor", "executor"), CELL) as executor,
     ):
         seps = monitor.subscribe(monitor.key("operator/separation"), Separation)
         signals = monitor.subscribe(monitor.key("operator/signal"), OperatorSignal)
@@ -178,8 +178,8 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
     stranger["transport"] = {"auth": {"usrpwd": {"user": "monitor", "password": passwords["monitor"]}}}
     with pytest.raises(Exception):  # noqa: B017 (Zenoh's own error type)
         async with (
-            await Bus.open(router, "cell1"),
-            await Bus.open(_write(tmp_path, "stranger", stranger), "cell1"),
+            await Bus.open(router, CELL),
+            await Bus.open(_write(tmp_path, "stranger", stranger), CELL),
         ):
             pass
 
@@ -205,7 +205,7 @@ def _listening_ports(pid: int) -> list[str]:
 
 @pytest.mark.asyncio
 async def test_a_peer_listens_on_loopback_only_unless_told() -> None:
-    async with await Bus.open(BusConfig(), "cell1"):
+    async with await Bus.open(BusConfig(), CELL):
         addrs = _listening_ports(os.getpid())
     assert addrs, "a peer listens somewhere"
     loopback = ("0100007F:",)  # 127.0.0.1, as /proc/net/tcp writes it

@@ -14,6 +14,7 @@ import pytest
 
 from common.trajectory.task import load_task
 from common.trajectory.validate import trajectory_problems
+from tests.support.cell import CELL
 from tests.support.cli import run_cli
 from tests.support.tasks import GOOD
 
@@ -102,14 +103,14 @@ async def test_a_person_signals_a_part_and_marks_an_error_only_when_something_li
     from schemas.topology import OPERATOR_ERROR, OPERATOR_SIGNAL
 
     async with (
-        await Bus.open(BusConfig(listen=[endpoint]), "cell1") as cell,
-        await Bus.open(BusConfig(connect=[endpoint]), "cell1", role="operator") as person,
+        await Bus.open(BusConfig(listen=[endpoint]), CELL) as cell,
+        await Bus.open(BusConfig(connect=[endpoint]), CELL, role="operator") as person,
     ):
         signals = cell.subscribe(cell.key("operator/signal"), OperatorSignal)
         sent = OperatorSignal(t_ns=1, seq=0, name="part_a2", source="cli")
-        assert await tell(person, OPERATOR_SIGNAL, sent, 10.0) == "cadence/cell1/operator/signal"
+        assert await tell(person, OPERATOR_SIGNAL, sent, 10.0) == f"cadence/{CELL}/operator/signal"
         assert (await signals.receive(10))[1] == sent
-        with pytest.raises(BusError, match="nothing on the bus reads cadence/cell1/operator/error"):
+        with pytest.raises(BusError, match=f"nothing on the bus reads cadence/{CELL}/operator/error"):
             await tell(person, OPERATOR_ERROR, OperatorError(t_ns=1, seq=0, kind="late"), 0.5)
         errors = cell.subscribe(cell.key("operator/error"), OperatorError)
         mark = OperatorError(t_ns=2, seq=0, kind="wrong_object", source="experimenter")
@@ -131,7 +132,7 @@ async def test_a_sensor_adapter_pipes_distances_in_and_a_bad_line_is_named_and_s
     from common.runtime.bus import Bus, BusConfig
     from schemas import Separation
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as cell:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as cell:
         heard = cell.subscribe(cell.key("operator/separation"), Separation)
         relay = ["separation", "-", "--source", "scanner:front", "--connect", endpoint]
         proc = subprocess.Popen([sys.executable, "-m", "cadence", *relay], stdin=subprocess.PIPE,
@@ -163,7 +164,7 @@ async def test_the_sensor_adapter_skips_a_bad_byte_a_huge_line_and_an_underscore
     from common.runtime.bus import Bus, BusConfig
     from schemas import Separation
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as cell:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as cell:
         heard = cell.subscribe(cell.key("operator/separation"), Separation)
         relay = ["separation", "-", "--source", "scanner:front", "--connect", endpoint]
         proc = subprocess.Popen([sys.executable, "-m", "cadence", *relay], stdin=subprocess.PIPE,

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.support.cell import CELL
+
 KILL_HRV, KILL_DECISION = 150.0, 260.0
 
 
@@ -225,7 +227,7 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
         async with asyncio.timeout(120):
             while True:  # until the demo's router listens (it plans the task's sets first)
                 try:
-                    bus = await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1")
+                    bus = await Bus.open(BusConfig(mode="client", connect=[endpoint]), CELL)
                     break
                 except BusError:
                     await asyncio.sleep(0.5)
@@ -253,7 +255,7 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
     logs = {name: (out / "logs" / f"{name}.log").read_text() for name in ("pareto_store", "hrv_analyser",
                                                                           "decision_maker")}  # fmt: skip
     assert "sets stored" in logs["pareto_store"]
-    assert "running: cell cell1" in logs["pareto_store"]
+    assert f"running: cell {CELL}" in logs["pareto_store"]
     assert "window of 30 s: mean RR" in logs["hrv_analyser"]
     assert "mean RR" in logs["decision_maker"]
     assert " → " in logs["decision_maker"]

@@ -15,6 +15,7 @@ from cadence.bench import decide as bd
 from common.decision import Personal
 from common.hrv.e4 import MG_PER_UNIT, read_e4
 from common.runtime.errors import InputError
+from tests.support.cell import CELL
 from tests.support.paths import SHARED_DATA
 
 START = 1_644_226_061
@@ -192,7 +193,7 @@ async def test_a_wristbands_export_replays_through_the_gateway_into_windows(
 
     folder = write_e4(tmp_path / "S01", [(0.0, 0.8)], gaps=((95.0, 150.0),), acc=False)
     start = now_ns() - 300 * 10**9  # replayed 40× faster than the clock: it ends by now
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         rr = aiter(bus.subscribe(bus.key("ecg/rr"), RrIntervals, maxsize=1000))
         wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
         analyser = InProcessService(

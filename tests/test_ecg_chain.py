@@ -22,7 +22,7 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.support.cell import InProcessService, now_ns, put
+from tests.support.cell import CELL, InProcessService, now_ns, put
 from tests.support.data import ECG, needs_data, record_cut
 
 pytestmark = pytest.mark.asyncio
@@ -34,7 +34,7 @@ async def test_replay_to_windows_to_selections(tmp_path: Path, endpoint: str) ->
     START_NS = now_ns()  # one cell clock at 40×, and the replay on it (DESIGN §4)
     expected = windows(peak_intervals(detect_peaks(x, 130.0), 130.0), 30.0, end_s=len(x) / 130.0)
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         cell = {"speed": 40.0, "epoch_ns": START_NS}
         decider = InProcessService(
             "decision_maker",
@@ -103,7 +103,7 @@ async def test_calibrate_records_resting_windows_stores_and_publishes_rr_rest(
         if w.quality == "good"
     ]
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         published = aiter(bus.subscribe(bus.key("operator/calibration"), Calibration))
         analyser = InProcessService(
             "hrv_analyser", analyser_main, AnalyserSettings(), tmp_path / "a", endpoint
@@ -150,7 +150,7 @@ async def test_device_rr_only_source_gives_windows(tmp_path: Path, endpoint: str
     beats = beats[beats < 100.0]
     expected = windows(intervals(beats), 30.0, start_s=float(beats[0]), end_s=float(beats[-1]))
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         wins = aiter(bus.subscribe(bus.key("hrv/window"), HrvWindow))
         analyser = InProcessService(
             "hrv_analyser", analyser_main, AnalyserSettings(input="rr"), tmp_path / "a", endpoint

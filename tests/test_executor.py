@@ -30,7 +30,7 @@ from schemas import (
 from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
-from tests.support.cell import Cell, put
+from tests.support.cell import CELL, Cell, put
 from tests.support.executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
@@ -216,7 +216,7 @@ async def test_sigterm_during_motion_stops_decelerating_and_exits_0(
     """As systemd stops it: a process, SIGTERM while a path runs, a decelerating stop, exit 0. Signals
     that come together (the kernel's parent-death SIGTERM beside a supervisor's, a terminal's SIGINT) are
     one stop: the second once cut the stop 40 ms after it began."""
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))

@@ -23,7 +23,7 @@ from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
 from services.decision_maker.state import STATE_FILE
 from services.executor.__main__ import main as executor_main
-from tests.support.cell import Cell, status_of
+from tests.support.cell import CELL, Cell, status_of
 from tests.support.decisions import answer, window
 from tests.support.executor import TASK, next_of, sim_settings, store_serving
 
@@ -201,7 +201,7 @@ def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(dis
     path = disk.path / "run.mcap"
     rec = Recorder(path)
     for i in range(200):
-        rec.write("cadence/cell1/decision/selection", encode(Selection(t_ns=i + 1, seq=i, k=3, n=15,
+        rec.write(f"cadence/{CELL}/decision/selection", encode(Selection(t_ns=i + 1, seq=i, k=3, n=15,
                   delta=0, reason="hold")), log_time_ns=i + 1)  # fmt: skip
     rec.flush()
     disk.fill()
@@ -209,7 +209,7 @@ def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(dis
         ServiceStatus(t_ns=1, seq=0, service="x" * 60, state="y" * 4000, uptime_s=1.0, counters={})
     )
     for i in range(2000):  # much more than is left: the disk refuses a flush
-        rec.write("cadence/cell1/health/x", payload, log_time_ns=1000 + i)
+        rec.write(f"cadence/{CELL}/health/x", payload, log_time_ns=1000 + i)
         if i % 100 == 99:
             rec.flush()
         if rec.failed:

@@ -37,7 +37,7 @@ from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
 from services.operator_twin.__main__ import Settings as TwinSettings
 from services.operator_twin.__main__ import main as twin_main
-from tests.support.cell import InProcessService, now_ns, put
+from tests.support.cell import CELL, InProcessService, now_ns, put
 from tests.support.data import DAY, S, chunks, synthetic_ecg
 from tests.support.executor import CALM, SPEED, TASK, store_serving
 from tests.support.messages import SAMPLES
@@ -124,7 +124,7 @@ def rss_mb() -> float:
 
 
 FUZZED = [t for t in TOPICS if t.pattern == "topic"]
-CELLS = ("cell1", "ecg", "twin")  # every hostile message goes to every service
+CELLS = (CELL, "ecg", "twin")  # every hostile message goes to every service
 
 
 def concrete(topic: Topic) -> str:
@@ -173,7 +173,7 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK)
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
         decider = InProcessService(
             "decision_maker",

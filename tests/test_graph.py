@@ -42,7 +42,7 @@ from services.operator_twin.__main__ import Settings as TwinSettings
 from services.operator_twin.__main__ import main as twin_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.support.cell import InProcessService, put
+from tests.support.cell import CELL, InProcessService, put
 from tests.support.paths import EXAMPLE_TASK
 
 Port = tuple[str, str, str]
@@ -120,9 +120,9 @@ def test_the_launch_order_starts_answerers_before_askers_and_readers_before_writ
 
 @pytest.mark.asyncio
 async def test_a_role_opens_only_the_ports_the_graph_gives_it(endpoint: str) -> None:
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1", role="hrv_analyser") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL, role="hrv_analyser") as bus:
         out = bus.publisher(HRV_WINDOW)
-        assert out.key == "cadence/cell1/hrv/window"
+        assert out.key == f"cadence/{CELL}/hrv/window"
         with pytest.raises(BusError, match="does not let hrv_analyser publish decision/selection"):
             bus.publisher(SELECTION)
         with pytest.raises(BusError, match="subscribe robot/state"):
@@ -130,18 +130,18 @@ async def test_a_role_opens_only_the_ports_the_graph_gives_it(endpoint: str) -> 
         with pytest.raises(BusError, match=r"through Bus\.publisher"):
             put(bus, bus.key("hrv/window"), Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))
         with pytest.raises(BusError, match="not a key of the graph"):
-            bus.subscribe("cadence/cell1/elsewhere", HrvWindow)
+            bus.subscribe(f"cadence/{CELL}/elsewhere", HrvWindow)
         with pytest.raises(TypeError, match="hrv/window carries HrvWindow, not Selection"):
             out.put(Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))  # type: ignore[arg-type]  # the mistake under test
         with pytest.raises(ValueError, match="needs one key"):
             bus.publisher(HEALTH)
         assert [(k, r, t.suffix) for k, r, t in bus.ports] == [("publish", "hrv_analyser", "hrv/window")]
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1", role="operator_twin") as twin:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL, role="operator_twin") as twin:
         twin.publisher(OPERATOR_SIGNAL)  # the twin is a node of its own
         with pytest.raises(BusError, match="does not let operator_twin publish hrv/window"):
             twin.publisher(HRV_WINDOW)
     with pytest.raises(BusError, match="unknown role"):
-        await Bus.open(BusConfig(listen=[endpoint]), "cell1", role="hrv-analyser")
+        await Bus.open(BusConfig(listen=[endpoint]), CELL, role="hrv-analyser")
 
 
 @pytest.mark.asyncio
@@ -167,7 +167,7 @@ async def test_every_service_opens_exactly_the_ports_of_its_roles(
             ExecutorSettings(task=task, backend="sim", start_selection="wait", separation=True),
         ),
     ]
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1"):
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL):
         services = [
             InProcessService(
                 name, main, settings, tmp_path / ("store" if name == "pareto_store" else f"d{i}"), endpoint
@@ -211,8 +211,8 @@ def test_the_zenoh_cli_decoder_decodes_each_key_as_the_graph_types_it() -> None:
     w = HrvWindow(
         t_ns=2, seq=0, start_ns=0, end_ns=2, mean_rr_s=0.8, n_beats=3, excluded_fraction=0.0, quality="good"
     )
-    assert msgspec.json.decode(decode("cadence/cell1/hrv/window", encode(w)))["mean_rr_s"] == 0.8
-    wrong = msgspec.json.decode(decode("cadence/cell1/decision/selection", encode(w)))
+    assert msgspec.json.decode(decode(f"cadence/{CELL}/hrv/window", encode(w)))["mean_rr_s"] == 0.8
+    wrong = msgspec.json.decode(decode(f"cadence/{CELL}/decision/selection", encode(w)))
     assert "error" in wrong
-    assert wrong["key"] == "cadence/cell1/decision/selection"
+    assert wrong["key"] == f"cadence/{CELL}/decision/selection"
     assert msgspec.json.decode(decode("other/key", encode(w)))["quality"] == "good"  # by its tag alone

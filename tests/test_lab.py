@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from tests.support.cell import free_port
+from tests.support.cell import CELL, free_port
 
 SPEED = "16"
 # (a) runs two minutes too: its k is read from the second cycle that ends in it on, and a loaded host
@@ -234,7 +234,7 @@ async def cut_short(endpoint: str, tmp_path: Path):
     async def never():
         raise AssertionError("this session does not calibrate")
 
-    async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1", role="operator") as bus:
+    async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), CELL, role="operator") as bus:
         return await run_session(bus, opts, stop, show, never, keys)
 
 
@@ -347,6 +347,6 @@ async def marked_session(endpoint: str, tmp_path: Path, plan, subject: str) -> N
                           data_dir=tmp_path / "cal2", task=EXAMPLE_TASK, ready_timeout_s=240,
                           settle_timeout_s=None, calibrate_minutes=1.0, posture="working", study=plan.name,
                           period=nxt.period)  # fmt: skip
-    async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), "cell1", role="operator") as bus:
+    async with await Bus.open(BusConfig(mode="client", connect=[endpoint]), CELL, role="operator") as bus:
         end = await run_session(bus, opts, asyncio.Event(), show, calibrated, keys)
     assert end.complete

@@ -23,7 +23,7 @@ from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
 from services.decision_maker.__main__ import DecisionMaker, Settings
 from services.hrv_analyser.__main__ import HrvAnalyser
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
-from tests.support.cell import now_ns, put
+from tests.support.cell import CELL, now_ns, put
 from tests.support.data import ECG, needs_data
 
 S = 1_000_000_000
@@ -245,7 +245,7 @@ def test_a_node_is_held_to_its_roles_declaration() -> None:
 def _request(parameters: str):
     from common.runtime.bus import Request
 
-    return Request("cadence/cell1/decision/condition", parameters)
+    return Request(f"cadence/{CELL}/decision/condition", parameters)
 
 
 @pytest.mark.asyncio
@@ -269,7 +269,7 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
     try:
         assert await node.state() == []  # nothing said about an arm not yet connected
         with pytest.raises(QueryError, match="nothing to resume: the robot is starting"):
-            await node.resume(Request("cadence/cell1/robot/resume", "by=test"))
+            await node.resume(Request(f"cadence/{CELL}/robot/resume", "by=test"))
         assert await node.safety.connect()
         node.connected = True
         assert node.safety.motion.state == "waiting_for_selection"
@@ -282,7 +282,7 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
         assert (state.state, state.mode, state.reason) == (
             "stopped", "fault", "a bump",
         )  # fmt: skip
-        reply = await node.resume(Request("cadence/cell1/robot/resume", "by=test"))
+        reply = await node.resume(Request(f"cadence/{CELL}/robot/resume", "by=test"))
         assert reply.message == "ready: resumed by test"
         changes = [(e.from_state, e.to_state) for e in node.published if isinstance(e, RobotEvent)
                    and e.kind == "state" and e.from_state is not None]  # fmt: skip
@@ -423,7 +423,7 @@ async def test_the_analyser_answers_for_its_last_windows_one_at_a_time(tmp_path:
         node.sent(Taken(None, [window(base, i, 0.8)]))
 
     def ask(after: int | str) -> Request:
-        return Request("cadence/cell1/hrv/window", f"after={after}")
+        return Request(f"cadence/{CELL}/hrv/window", f"after={after}")
 
     first_kept = base + 11 * 30 * S
     assert (await node.window_after(ask(0))).end_ns == first_kept

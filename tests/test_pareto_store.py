@@ -18,7 +18,7 @@ from schemas.topology import TOPICS, AnyMessage
 from services.pareto_store.__main__ import ParetoStore, Settings, main
 from services.pareto_store.jobs import plan_job
 from services.pareto_store.store import SetStore
-from tests.support.cell import Cell, InProcessService
+from tests.support.cell import CELL, Cell, InProcessService
 
 pytestmark = pytest.mark.asyncio
 
@@ -150,7 +150,7 @@ async def test_sigterm_stops_the_store_process_with_exit_0(
         f"[cadence]\ndata_dir = '{tmp_path / 'd'}'\nstatus_period_s = 0.1\n"
         f"[bus]\nconnect = ['{endpoint}']\n[pareto_store]\ntask = '{task_file}'\n"
     )
-    client = await Bus.open(BusConfig(listen=[endpoint]), "cell1")
+    client = await Bus.open(BusConfig(listen=[endpoint]), CELL)
     async with client:
         sub = aiter(client.subscribe(client.key("health/pareto_store"), ServiceStatus, maxsize=1))
         proc = subprocess.Popen([sys.executable, "-m", "services.pareto_store", "--config", str(cfg)])

@@ -30,7 +30,7 @@ import pytest
 
 from cadence.cli import SERVICES, build_parser
 from common.runtime.config import CONFIG_SECTIONS, CommonSettings, ConfigError, section
-from tests.support.cell import free_port
+from tests.support.cell import CELL, free_port
 from tests.support.paths import README, SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -222,9 +222,9 @@ def run_until(
 def test_the_router_store_get_and_zenoh_example_runs_as_written(
     shell_env: dict[str, str], tmp_path: Path
 ) -> None:
-    block = block_with("cadence get cadence/cell1/pareto")
+    block = block_with(f"cadence get cadence/{CELL}/pareto")
     script = block.text.replace(PORT, str(free_port()))
-    keyed = re.compile(r"^cadence/cell1/\S+ \{", re.MULTILINE)
+    keyed = re.compile(rf"^cadence/{CELL}/\S+ \{{", re.MULTILINE)
 
     def done(text: str) -> bool:
         return '"pareto.solution.v1"' in text and keyed.search(text) is not None

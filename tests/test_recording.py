@@ -22,7 +22,7 @@ from services.ecg_gateway.__main__ import Settings as GatewaySettings
 from services.ecg_gateway.__main__ import main as gateway_main
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
 from services.hrv_analyser.__main__ import main as analyser_main
-from tests.support.cell import InProcessService, now_ns, put
+from tests.support.cell import CELL, InProcessService, now_ns, put
 from tests.support.data import needs_data, record_cut
 
 WINDOWS = 2
@@ -69,7 +69,7 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
 ) -> None:
     csv, _ = record_cut(tmp_path, "100", 70)
     mcap = tmp_path / "live.mcap"
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         stop = asyncio.Event()
         services = await chain(bus, tmp_path / "live", endpoint)  # before the recorder subscribes to all
         recording = asyncio.ensure_future(record(bus, mcap, [bus.key("**")], stop))
@@ -109,7 +109,7 @@ async def test_replay_of_ecg_samples_gives_the_recorded_windows_and_selections(
     assert rec.undecodable == 0
     # what the file itself holds is what the services said live
     in_file = [
-        msgspec.msgpack.decode(m.data, type=HrvWindow) for m in read(mcap, ["cadence/cell1/hrv/window"])
+        msgspec.msgpack.decode(m.data, type=HrvWindow) for m in read(mcap, [f"cadence/{CELL}/hrv/window"])
     ]
     assert [content(w) for w in in_file[:WINDOWS]] == live[0]
     assert replayed[1.0] == live
@@ -124,8 +124,8 @@ def test_a_recording_opens_in_mcap_tools_with_schemas_and_a_broken_one_is_one_li
     path = tmp_path / "r.mcap"
     rec = Recorder(path)
     sel = Selection(t_ns=5, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=0)
-    rec.write("cadence/cell1/decision/selection", encode(sel))
-    rec.write("cadence/cell1/decision/selection", b"\xc1 not msgpack")  # kept, counted
+    rec.write(f"cadence/{CELL}/decision/selection", encode(sel))
+    rec.write(f"cadence/{CELL}/decision/selection", b"\xc1 not msgpack")  # kept, counted
     rec.close()
     with path.open("rb") as f:
         reader = make_reader(f)
@@ -204,12 +204,12 @@ def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_pat
     )  # fmt: skip
     msgs = [
         (
-            "cadence/cell1/decision/selection",
+            f"cadence/{CELL}/decision/selection",
             Selection(t_ns=5 * s, seq=0, k=8, n=15, delta=0, reason="initial"),
         ),
-        ("cadence/cell1/hrv/window", window),
+        (f"cadence/{CELL}/hrv/window", window),
         (
-            "cadence/cell1/robot/cycle",
+            f"cadence/{CELL}/robot/cycle",
             CycleReport(t_ns=40 * s, seq=0, cycle=0, cycle_time_s=12.5, k_per_path={"p": 8}),
         ),
     ]
@@ -236,7 +236,7 @@ def test_a_replay_that_nothing_received_says_so_and_exits_1(tmp_path: Path) -> N
 
     rec = Recorder(tmp_path / "one.mcap")
     sel = Selection(t_ns=5, seq=0, k=8, n=15, delta=0, reason="initial")
-    rec.write("cadence/cell1/decision/selection", encode(sel))
+    rec.write(f"cadence/{CELL}/decision/selection", encode(sel))
     rec.close()
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "replay", str(tmp_path / "one.mcap"), "--speed", "0"],
@@ -258,7 +258,7 @@ def test_a_recording_cut_without_its_footer_is_read_up_to_its_last_chunk(tmp_pat
     rec = Recorder(path)
     for i in range(3000):
         sel = Selection(t_ns=i + 1, seq=i, k=1 + i % 15, n=15, delta=0, reason="hold")
-        rec.write("cadence/cell1/decision/selection", encode(sel), log_time_ns=i + 1)
+        rec.write(f"cadence/{CELL}/decision/selection", encode(sel), log_time_ns=i + 1)
         if i == 2499:
             rec.flush()  # the last flush before the kill
     rec._file.close()  # killed: no finish, no footer (what was not flushed is lost, as in a kill)

@@ -15,6 +15,7 @@ from cadence.lab.session import Session, SessionOptions, SessionWriter, conditio
 from common.runtime.errors import InputError
 from schemas import Calibration, Selection
 from schemas.session import SessionEnd, SessionInfo
+from tests.support.cell import CELL
 
 T0 = 1_800_000_000_000_000_000
 MIN = 60_000_000_000
@@ -55,9 +56,9 @@ def test_a_plan_deals_balanced_blocks_keeps_the_yoked_control_last_and_reads_bac
 def session_file(folder: Path, subject: str, condition: str, start_min: float, complete: bool = True,
                  study: str = "pilot") -> Path:  # fmt: skip
     path = folder / f"{subject}_{condition}_{start_min:g}.mcap"
-    w = SessionWriter(path, "cell1")
+    w = SessionWriter(path, CELL)
     cal = Calibration(t_ns=1, seq=0, subject=subject, rr_rest_s=0.85)
-    w.begin(SessionInfo(subject=subject, condition=condition, cell="cell1", calibration=cal,  # type: ignore[arg-type]
+    w.begin(SessionInfo(subject=subject, condition=condition, cell=CELL, calibration=cal,  # type: ignore[arg-type]
                         start_ns=T0 + round(start_min * MIN), minutes=10, task="t.toml", task_sha256="0" * 64,
                         software="cadence", study=study))  # fmt: skip
     w.close(SessionEnd(end_ns=T0 + round((start_min + 10) * MIN), complete=complete))
@@ -86,7 +87,7 @@ def test_the_next_session_is_the_first_in_order_without_a_complete_file(tmp_path
 
 def test_the_yoked_k_is_cs_mean_k_over_its_data_time_and_is_asked_as_a_fixed_k() -> None:
     cal = Calibration(t_ns=1, seq=0, subject="S01", rr_rest_s=0.85)
-    info = SessionInfo(subject="S01", condition="c", cell="cell1", calibration=cal, start_ns=T0, minutes=10,
+    info = SessionInfo(subject="S01", condition="c", cell=CELL, calibration=cal, start_ns=T0, minutes=10,
                        task="t.toml", task_sha256="0" * 64, software="cadence")  # fmt: skip
     sels = [Selection(t_ns=T0 - MIN, seq=0, k=8, n=15, delta=0, reason="initial"),
             Selection(t_ns=T0 + 2 * MIN, seq=1, k=6, n=15, delta=-2, reason="stress"),

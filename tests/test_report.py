@@ -13,6 +13,7 @@ from common.trajectory.task import parse_task
 from schemas import CycleReport, RobotEvent, Selection
 from schemas.topology import encode
 from services.pareto_store.jobs import plan_job
+from tests.support.cell import CELL
 from tests.support.executor import TASK
 from tests.support.sessions import write_run
 
@@ -108,7 +109,7 @@ def test_a_recording_joined_mid_run_spans_its_streams_not_a_republished_selectio
 
     path = tmp_path / "joined.mcap"
     rec = Recorder(path)
-    key = "cadence/cell1/"
+    key = f"cadence/{CELL}/"
     old = Selection(t_ns=T0 - 260 * 10**9, seq=9, k=1, n=15, delta=0, reason="hold", window_end_ns=1)
     rec.write(key + "decision/selection", encode(old))  # republished: decided 260 s before
     for c in range(2):

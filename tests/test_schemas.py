@@ -16,6 +16,7 @@ from schemas import (
     ServiceStatus,
 )
 from schemas.topology import TOPICS, AnyMessage, decode_any, encode, topic_of
+from tests.support.cell import CELL
 from tests.support.messages import SAMPLES
 
 
@@ -35,11 +36,11 @@ def test_every_message_type_has_a_topic_and_a_distinct_versioned_tag() -> None:
 
 
 def test_keys_map_to_their_topics() -> None:
-    assert topic_of("cadence/cell1/pareto/progress").message is PlanProgress
+    assert topic_of(f"cadence/{CELL}/pareto/progress").message is PlanProgress
     assert topic_of("cadence/cell7/pareto/b1_to_b2").message is ParetoSet
-    assert topic_of("cadence/cell1/pareto/b1_to_b2/3").message is ParetoSolutionReply
-    assert topic_of("cadence/cell1/health/executor").message is ServiceStatus
-    assert topic_of("other/cell1/robot/state") is None
+    assert topic_of(f"cadence/{CELL}/pareto/b1_to_b2/3").message is ParetoSolutionReply
+    assert topic_of(f"cadence/{CELL}/health/executor").message is ServiceStatus
+    assert topic_of(f"other/{CELL}/robot/state") is None
 
 
 def as_dict(msg: object) -> dict:

@@ -11,6 +11,7 @@ from common.runtime.bus import BusConfig
 from common.runtime.config import CommonSettings, read_config, section
 from common.runtime.errors import ConfigError
 from common.runtime.service import sd_notify, watchdog_period_s
+from tests.support.cell import CELL
 
 
 def test_environment_variables_override_the_file(tmp_path: Path) -> None:
@@ -90,7 +91,7 @@ def test_cadence_get_alone_on_the_bus_says_why_no_reply_came() -> None:
     import sys
 
     r = subprocess.run(
-        [sys.executable, "-m", "cadence", "get", "cadence/cell1/decision/selection", "--timeout", "1"],
+        [sys.executable, "-m", "cadence", "get", f"cadence/{CELL}/decision/selection", "--timeout", "1"],
         capture_output=True,
         text=True,
         timeout=60,

@@ -15,6 +15,7 @@ import pytest
 from cadence.cli import SERVICES
 from common.runtime.bus import Bus, BusConfig
 from schemas import ServiceStatus
+from tests.support.cell import CELL
 
 pytestmark = pytest.mark.asyncio
 
@@ -37,7 +38,7 @@ async def test_the_service_starts_reports_and_stops_on_sigterm(
         np.savetxt(csv, np.c_[t, 1000 * np.exp(-(((t % 0.8) - 0.4) ** 2) / 2e-4)], delimiter=",")
         text += f"[ecg_gateway]\nrecord = '{csv}'\n"
     cfg.write_text(text)
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         health = aiter(bus.subscribe(bus.key(f"health/{name}"), ServiceStatus, maxsize=1))
         proc = subprocess.Popen([sys.executable, "-m", f"services.{name}", "--config", str(cfg)])
         try:

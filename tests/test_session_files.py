@@ -16,6 +16,7 @@ from common.runtime.errors import InputError
 from schemas import Calibration, OperatorError
 from schemas.session import SessionEnd
 from schemas.topology import encode
+from tests.support.cell import CELL
 from tests.support.sessions import T0, S, info, state, window, write, writer
 
 
@@ -42,7 +43,7 @@ def test_a_file_that_cannot_stand_for_its_session_is_refused_with_the_reason(tmp
         load_session(tmp_path / "killed.mcap")
 
     plain = Recorder(tmp_path / "plain.mcap")  # `cadence record`, not a session
-    plain.write("cadence/cell1/robot/state", encode(state(1.0)))
+    plain.write(f"cadence/{CELL}/robot/state", encode(state(1.0)))
     plain.close()
     with pytest.raises(InputError, match="not a session file"):
         load_session(tmp_path / "plain.mcap")
@@ -51,7 +52,7 @@ def test_a_file_that_cannot_stand_for_its_session_is_refused_with_the_reason(tmp
     w.put("robot/state", state(1.0), T0 + S)
     w.recorder.write("cadence/cell2/robot/state", encode(state(2.0)), T0 + 2 * S)
     w.close(SessionEnd(end_ns=T0 + 60 * S, complete=True))
-    with pytest.raises(InputError, match="mixes cells: keys of cell1, cell2"):
+    with pytest.raises(InputError, match=f"mixes cells: keys of {CELL}, cell2"):
         load_session(tmp_path / "cells.mcap")
 
 

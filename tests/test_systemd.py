@@ -24,7 +24,7 @@ import pytest
 from common.runtime.bus import Bus, BusConfig
 from common.trajectory.task import load_task
 from schemas import CycleReport, HrvWindow, Selection
-from tests.support.cell import free_port, put
+from tests.support.cell import CELL, free_port, put
 from tests.support.paths import EXAMPLE_TASK, REPO
 
 TOOLS = ("unshare", "nsenter", "systemctl", "uv")
@@ -233,7 +233,7 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
     )
     ready_s = time.monotonic() - t_start
 
-    async with await Bus.open(_account(m, tmp_path, "monitor"), "cell1") as monitor:
+    async with await Bus.open(_account(m, tmp_path, "monitor"), CELL) as monitor:
         selections = monitor.subscribe(monitor.key("decision/selection"), Selection)
         windows = monitor.subscribe(monitor.key("hrv/window"), HrvWindow)
         cycles = monitor.subscribe(monitor.key("robot/cycle"), CycleReport)
@@ -277,7 +277,7 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
         await windows.receive(120)  # windows again, from the new process
 
         # ACL: the analyser's own account cannot publish a selection
-        async with await Bus.open(_account(m, tmp_path, "hrv_analyser"), "cell1") as rogue:
+        async with await Bus.open(_account(m, tmp_path, "hrv_analyser"), CELL) as rogue:
             forged = Selection(t_ns=1, seq=999_999, k=1, n=15, delta=-1, reason="stress", window_end_ns=1)
             for _ in range(5):
                 put(rogue, rogue.key("decision/selection"), forged, block=True)
@@ -297,7 +297,7 @@ async def test_the_cell_installs_starts_and_survives_under_systemd(
     assert all(f":{port} " in line for line in listeners), listeners
     stranger = BusConfig(mode="client", connect=[f"tls/127.0.0.1:{port}"], config_file=None)
     with pytest.raises(Exception):  # noqa: B017 (Zenoh raises its own error type when it cannot connect)
-        await Bus.open(stranger, "cell1")
+        await Bus.open(stranger, CELL)
 
     t_halt = time.monotonic()
     m.sh("systemctl stop cadence.target", timeout=120)  # returns with the target's job; the units' follow
@@ -358,7 +358,7 @@ async def test_a_second_host_joins_the_cell_with_the_first_hosts_bundle(
     _speed_ups(second, example_sets)
     for m in (cell_pc, second):
         m.sh("systemctl start cadence.target")
-    async with await Bus.open(_account(cell_pc, tmp_path, "monitor"), "cell1") as monitor:
+    async with await Bus.open(_account(cell_pc, tmp_path, "monitor"), CELL) as monitor:
         cycles = monitor.subscribe(monitor.key("robot/cycle"), CycleReport)
         _, cycle = await cycles.receive(300)
     assert set(cycle.k_per_path) == set(load_task(EXAMPLE_TASK).paths)

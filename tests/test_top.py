@@ -16,6 +16,7 @@ from rich.console import Console
 from cadence.tools.top import Top
 from schemas import HrvWindow, Selection, ServiceStatus
 from schemas.topology import encode
+from tests.support.cell import CELL
 
 
 def render(top: Top, now: float) -> str:
@@ -25,16 +26,16 @@ def render(top: Top, now: float) -> str:
 
 
 def test_rates_ages_bad_payloads_and_gone_services_are_counted() -> None:
-    top = Top("cell1")
+    top = Top(CELL)
     sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial")
     for i in range(21):  # 2 Hz for 10 s
-        top.on("cadence/cell1/decision/selection", encode(sel), now=100.0 + i * 0.5)
-    top.on("cadence/cell1/decision/selection", b"\xc1 not msgpack", now=110.0)
+        top.on(f"cadence/{CELL}/decision/selection", encode(sel), now=100.0 + i * 0.5)
+    top.on(f"cadence/{CELL}/decision/selection", b"\xc1 not msgpack", now=110.0)
     status = ServiceStatus(t_ns=1, seq=0, service="executor", state="moving", uptime_s=5.0, counters={
-        "decode_errors": 2, "rejected/cadence/cell1/decision/selection/stale": 1,
-        "handler_errors/cadence/cell1/operator/signal/ValueError": 4})  # fmt: skip
-    top.on("cadence/cell1/health/executor", encode(status), now=101.0)
-    k = top.keys["cadence/cell1/decision/selection"]
+        "decode_errors": 2, f"rejected/cadence/{CELL}/decision/selection/stale": 1,
+        f"handler_errors/cadence/{CELL}/operator/signal/ValueError": 4})  # fmt: skip
+    top.on(f"cadence/{CELL}/health/executor", encode(status), now=101.0)
+    k = top.keys[f"cadence/{CELL}/decision/selection"]
     assert (k.count, k.undecodable, k.type_name) == (22, 1, "decision.selection.v1")
     assert k.rate_hz(110.0) == pytest.approx(2.1, abs=0.15)
     text = render(top, now=110.0)
@@ -50,16 +51,16 @@ def test_rates_ages_bad_payloads_and_gone_services_are_counted() -> None:
 
 
 def test_the_operator_is_shown_with_their_movement_beside_rr_and_k() -> None:
-    top = Top("cell1")
+    top = Top(CELL)
     assert "the operator" not in render(top, now=1.0)  # nothing read yet: nothing said
     win = HrvWindow(t_ns=30, seq=0, start_ns=0, end_ns=30, mean_rr_s=0.742, n_beats=40, excluded_fraction=0.0,
                     quality="good", movement_mg=251.0, moving_fraction=0.9)  # fmt: skip
-    top.on("cadence/cell1/hrv/window", encode(win), now=1.0)
-    top.on("cadence/cell1/decision/selection",
+    top.on(f"cadence/{CELL}/hrv/window", encode(win), now=1.0)
+    top.on(f"cadence/{CELL}/decision/selection",
            encode(Selection(t_ns=30, seq=1, k=10, n=15, delta=0, reason="movement")), now=1.0)  # fmt: skip
     row = render(top, now=2.0).split("the operator")[1].splitlines()[4]
     assert all(part in row for part in ("0.742 s", "good", "251 mg", "90%", "10 of 15", "movement")), row
-    top.on("cadence/cell1/hrv/window", encode(msgspec.structs.replace(win, movement_mg=None)), now=3.0)
+    top.on(f"cadence/{CELL}/hrv/window", encode(msgspec.structs.replace(win, movement_mg=None)), now=3.0)
     assert "no accelerometer" in render(top, now=3.0)
 
 
@@ -69,7 +70,7 @@ async def test_cadence_top_shows_a_running_services_keys(tmp_path: Path, endpoin
     from services.decision_maker.__main__ import Settings, main
     from tests.support.cell import InProcessService
 
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1"):
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL):
         svc = InProcessService(
             "decision_maker", main, Settings(republish_s=0.1, rr_rest_s=0.9), tmp_path, endpoint
         )

@@ -22,6 +22,7 @@ from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
 from services.executor.backends import UrRtdeBackend
 from services.executor.servo import ServoLoop
+from tests.support.cell import CELL
 from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, check_bench_executor_output, free_loopback
 from tests.support.paths import EXAMPLE_TASK
 
@@ -151,7 +152,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
 
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
-        async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
             store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
             cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
             events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
@@ -210,7 +211,7 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
 
     host = free_loopback()
     emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
@@ -270,7 +271,7 @@ async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
     task_file.write_text(TASK.replace('wait_for = "part"', 'wait_for = "part"\ninput = 2'))
     emu = EmulatorProcess(free_loopback())
     try:
-        async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+        async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
             store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
             signals = aiter(bus.subscribe(bus.key("operator/signal"), OperatorSignal))
             cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
@@ -337,7 +338,7 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
 
     host = free_loopback()
     emu = EmulatorProcess(host, None, [float(x) for x in FIRST_WAYPOINT_DEG], "--restart-s", "3")
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))

@@ -24,7 +24,7 @@ from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import FOXGLOVE_LAYOUT
 from schemas import HrvWindow, RobotState
 from schemas.topology import TOPICS
-from tests.support.cell import free_port, put
+from tests.support.cell import CELL, free_port, put
 
 PROTOCOL = "foxglove.sdk.v1"
 
@@ -55,7 +55,7 @@ async def next_message(ws, sub_ids: dict[int, str]) -> tuple[str, bytes]:
 async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: str) -> None:
     port = free_port()
     q = [0.3, -1.2, 1.5, -1.8, -1.57, 0.4]
-    async with await Bus.open(BusConfig(listen=[endpoint]), "cell1") as bus:
+    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "cadence", "view", "--connect", endpoint, "--port", str(port),
             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -65,18 +65,18 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
             async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[PROTOCOL]) as ws:
                 info = json.loads(await ws.recv())
                 assert info["op"] == "serverInfo"
-                assert info["name"] == "cadence cell1"
+                assert info["name"] == f"cadence {CELL}"
                 graph = {
-                    f"/cadence/cell1/{t.suffix}"
+                    f"/cadence/{CELL}/{t.suffix}"
                     for t in TOPICS
                     if t.pattern == "topic" and "*" not in t.suffix
                 }
                 channels = await advertised(ws, graph | {"/robot/joint_states", "/tf", "/robot/model"})
-                window_ch = channels["/cadence/cell1/hrv/window"]
+                window_ch = channels[f"/cadence/{CELL}/hrv/window"]
                 assert (window_ch["encoding"], window_ch["schemaName"]) == ("json", "hrv.window.v1")
                 assert "mean_rr_s" in json.loads(window_ch["schema"])["$defs"]["HrvWindow"]["properties"]
                 print("channels:", ", ".join(sorted(channels)))
-                wanted = ["/cadence/cell1/hrv/window", JOINT_STATES, TF, SCENE]
+                wanted = [f"/cadence/{CELL}/hrv/window", JOINT_STATES, TF, SCENE]
                 sub_ids = {i: topic for i, topic in enumerate(wanted, start=1)}
                 await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                     {"id": i, "channelId": channels[t]["id"]} for i, t in sub_ids.items()]}))  # fmt: skip
@@ -104,7 +104,7 @@ async def test_a_foxglove_client_sees_the_graph_and_decodes_the_cell(endpoint: s
             proc.send_signal(signal.SIGINT)
             await asyncio.wait_for(proc.wait(), 30)
     assert proc.returncode == 0
-    assert got["/cadence/cell1/hrv/window"]["mean_rr_s"] == 0.81
+    assert got[f"/cadence/{CELL}/hrv/window"]["mean_rr_s"] == 0.81
     joints = got["/robot/joint_states"]["joints"]
     assert [j["position"] for j in joints] == pytest.approx(q)
     assert joints[0]["name"] == "base"
@@ -133,7 +133,7 @@ def test_the_shipped_layout_names_only_channels_and_fields_the_bridge_gives() ->
     import msgspec
 
     layout = json.loads(Path(FOXGLOVE_LAYOUT).read_text())
-    types = {f"/cadence/cell1/{t.suffix}": t.message for t in TOPICS if t.pattern == "topic"}
+    types = {f"/cadence/{CELL}/{t.suffix}": t.message for t in TOPICS if t.pattern == "topic"}
     topics = set(types) | {JOINT_STATES, TF, SCENE}
     named, plotted = set(), set()
     for config in layout["configById"].values():
@@ -144,13 +144,13 @@ def test_the_shipped_layout_names_only_channels_and_fields_the_bridge_gives() ->
         named |= set(config.get("topics", {}))
     assert named, "the layout names no topic"
     for topic in named:
-        assert topic in topics or re.fullmatch(r"/cadence/cell1/health/\w+", topic), topic
+        assert topic in topics or re.fullmatch(rf"/cadence/{CELL}/health/\w+", topic), topic
     for path in plotted:  # a plotted field of a Cadence message is one of its fields
         topic, _, field = path.partition(".")
         if topic in types:
             assert field in {f.name for f in msgspec.structs.fields(types[topic])}, path
     # RR is plotted with the thresholds k is decided against
-    selection = "/cadence/cell1/decision/selection"
+    selection = f"/cadence/{CELL}/decision/selection"
     thresholds = {f"{selection}.rr_rest_s", f"{selection}.rr_stress_s", f"{selection}.rr_stress_max_s"}
-    assert thresholds | {"/cadence/cell1/hrv/window.mean_rr_s"} <= plotted
-    assert "/cadence/cell1/hrv/window.movement_mg" in plotted  # and movement beside them
+    assert thresholds | {f"/cadence/{CELL}/hrv/window.mean_rr_s"} <= plotted
+    assert f"/cadence/{CELL}/hrv/window.movement_mg" in plotted  # and movement beside them

@@ -15,6 +15,8 @@ from common.runtime.mock_bus import MockBus, MockNetwork
 from schemas import ServiceStatus
 from schemas.topology import DEFAULT_CELL
 
+CELL = DEFAULT_CELL  # the cell every test runs in, unless it needs two
+
 
 def now_ns() -> int:
     """Data time for a test's messages: now, to the second. Receivers believe a stream's first message

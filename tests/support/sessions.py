@@ -15,6 +15,7 @@ from schemas import Calibration, CycleReport, HrvWindow, OperatorError, RobotEve
 from schemas.session import SessionEnd, SessionInfo
 from schemas.topology import encode
 from services.pareto_store.jobs import plan_job
+from tests.support.cell import CELL
 from tests.support.executor import TASK
 
 T0 = 1_800_000_000 * 10**9
@@ -22,7 +23,7 @@ S = 10**9
 CAL = Calibration(t_ns=T0, seq=0, subject="s1", rr_rest_s=0.9)
 
 
-def info(subject: str = "s1", condition: str = "a", cal: Calibration | None = CAL, cell: str = "cell1"):
+def info(subject: str = "s1", condition: str = "a", cal: Calibration | None = CAL, cell: str = CELL):
     return SessionInfo(
         subject=subject, condition=condition, cell=cell, calibration=cal, start_ns=T0, minutes=2.0,
         task="box_filling.toml", task_sha256="0" * 64, software="cadence test",
@@ -59,7 +60,7 @@ def write_run(tmp_path: Path) -> Path:
     }
     path = tmp_path / "run.mcap"
     rec = Recorder(path)
-    key = "cadence/cell1/"
+    key = f"cadence/{CELL}/"
     for s in sets.values():
         rec.write(key + f"pareto/{s.path_id}", encode(s))
     for i, (rr, k) in enumerate([(0.85, 5), (0.80, 3), (0.82, 4), (0.84, 5)]):
