@@ -13,7 +13,7 @@ from typing import Annotated, NamedTuple
 import msgspec
 
 from common.decision import Params, Personal, PersonalState, State, Step, personal_step, step
-from common.hrv.calibration import load_calibration as load_stored_calibration
+from common.hrv.calibration import load_calibration
 from common.hrv.movement import Baseline, baseline_of, moved
 from common.runtime.admission import SKEW_S, TimeLine
 from common.runtime.node import admitted
@@ -236,9 +236,10 @@ class Decider:
         atomic_write(self.path, msgspec.json.format(msgspec.json.encode(record), indent=1))
 
 
-def load_calibration(data_dir: Path, rr_rest_s: float | None, problems: list[str]) -> Calibration | None:
-    """The calibration `cadence calibrate` stored, else one from the config's ``rr_rest_s``."""
-    loaded = load_stored_calibration(data_dir)
+def calibration_in_force(data_dir: Path, rr_rest_s: float | None, problems: list[str]) -> Calibration | None:
+    """The calibration `cadence calibrate` stored (``load_calibration``), else one from the config's
+    ``rr_rest_s``."""
+    loaded = load_calibration(data_dir)
     if loaded.problem:
         problems.append(loaded.problem)
     if loaded.value is not None:
@@ -251,7 +252,7 @@ def load_calibration(data_dir: Path, rr_rest_s: float | None, problems: list[str
 def resume(decider: Decider, data: Path, rr_rest_s: float | None) -> list[str]:
     """Resume the persisted state, or start at the initial k; what was wrong with the files on disk."""
     problems: list[str] = []
-    cal = load_calibration(data, rr_rest_s, problems)
+    cal = calibration_in_force(data, rr_rest_s, problems)
     loaded = load_record(decider.path)
     if loaded.problem:
         problems.append(loaded.problem)
