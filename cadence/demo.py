@@ -62,7 +62,7 @@ from schemas.topology import (
     ROBOT_STATE,
     SELECTION,
 )
-from services.decision_maker.state import STATE_FILE
+from services.decision_maker import STATE_FILE
 from services.registry import launch_order
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up

@@ -592,8 +592,7 @@ def bench_executor(
     from common.trajectory.validate import validated_samples
     from schemas.robot import RobotState
     from schemas.topology import encode
-    from services.executor.backends import SimBackend, UrRtdeBackend
-    from services.executor.servo import ServoLoop
+    from services.executor import ServoLoop, SimBackend, UrRtdeBackend
 
     task = load_task(task_file or EXAMPLE_TASK)
     path = longest_path(task)

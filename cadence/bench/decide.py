@@ -35,7 +35,7 @@ from common.hrv.movement import Movement
 from common.hrv.stream import window_message
 from common.runtime.errors import InputError
 from schemas import Calibration, HrvWindow
-from services.decision_maker.state import Decider, MovementRule
+from services.decision_maker import Decider, MovementRule
 
 N = 15  # the paper's Pareto set: k = 1 … 15
 WINDOW_S = 30.0

@@ -206,7 +206,7 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
 @arg("--json", action="store_true", help="print only the JSON line")
 def cmd_bench_executor(args: argparse.Namespace) -> int:
     from cadence.bench import bench_executor
-    from services.executor.backends import RobotUnavailable
+    from services.executor import RobotUnavailable
 
     if not args.json:
         out.print(f"[dim]servo loop on the {args.backend} backend for {args.seconds:g} s …[/dim]")
