@@ -20,14 +20,14 @@ from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 
 if TYPE_CHECKING:
-    from cadence.lab.study import Cohort
+    from cadence.lab.simulate import Cohort
 
 
 cli = Commands()
 
 
 def cohort(args: argparse.Namespace) -> Cohort:
-    from cadence.lab.study import Cohort
+    from cadence.lab.simulate import Cohort
 
     return Cohort(Path(args.task), args.subjects, args.minutes, args.calibrate, args.seed, Path(args.out))
 
@@ -208,7 +208,7 @@ def cmd_study_analyse(args: argparse.Namespace) -> int:
 )
 @flags_from(add_cohort_flags, "study-out")
 def cmd_study_simulate(args: argparse.Namespace) -> int:
-    from cadence.lab.study import simulate_study
+    from cadence.lab.simulate import simulate_study
 
     simulate_study(cohort(args))
     return 0
@@ -226,7 +226,7 @@ def cmd_study_simulate(args: argparse.Namespace) -> int:
 @arg("--fit-subjects", type=positive_int(1), default=6, help="of them, fit on (default 6)")
 def cmd_study_fit(args: argparse.Namespace) -> int:
     from cadence.lab.fit import write_fit
-    from cadence.lab.study import simulate_study
+    from cadence.lab.simulate import simulate_study
     from cadence.lab.tables import fit_table
 
     study, fitted = simulate_study(cohort(args), fit_subjects=args.fit_subjects)
