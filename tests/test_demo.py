@@ -211,7 +211,7 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
     import signal
 
     from common.runtime.bus import Bus, BusConfig
-    from schemas import CycleReport
+    from schemas import CycleReport, Selection
     from tests.support.cell import free_port
 
     out, endpoint = tmp_path / "demo", f"tcp/127.0.0.1:{free_port()}"
@@ -231,9 +231,13 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
                     break
                 except BusError:
                     await asyncio.sleep(0.5)
-        async with bus:
+        async with bus:  # a cycle ended and a window decided: each service has something to say
             cycles = bus.subscribe(bus.key("robot/cycle"), CycleReport)
+            selections = bus.subscribe(bus.key("decision/selection"), Selection)
             await cycles.receive(240)
+            async with asyncio.timeout(240):
+                while (await selections.receive(240))[1].window_end_ns is None:
+                    pass
 
     try:
         asyncio.run(first_cycle())

@@ -54,7 +54,7 @@ def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path, example_sets:
     assert s["selections"]
     assert all(code == 0 for code in s["exit_codes"].values())
     site = next((venv / "lib").glob("python3*/site-packages"))
-    assert (site / "cadence" / "deploy" / "tasks" / "box_filling.toml").exists()
+    assert (site / "cadence" / "deploy" / "files" / "tasks" / "box_filling.toml").exists()
     assert (site / "cadence" / "deploy" / "files" / "systemd" / "cadence-executor.service").exists()
     for package in ("cadence", "common", "schemas", "services"):  # PEP 561: their type hints are used
         assert (site / package / "py.typed").exists()

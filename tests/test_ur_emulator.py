@@ -22,7 +22,7 @@ from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
 from services.executor.backends import UrRtdeBackend
 from services.executor.servo import ServoLoop
-from tests.support.cell import CELL
+from tests.support.cell import Cell
 from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, check_bench_executor_output, free_loopback
 from tests.support.paths import EXAMPLE_TASK
 
@@ -141,19 +141,17 @@ FIRST_WAYPOINT_DEG = ["-62", "-78", "112", "-124", "-90", "28"]  # box_filling's
 
 @pytest.mark.asyncio
 async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_real_client(
-    tmp_path: Path, endpoint: str, example_sets: Path
+    tmp_path: Path, cell: Cell, example_sets: Path
 ) -> None:
-    from common.runtime.bus import Bus, BusConfig
     from schemas import CycleReport, RobotEvent
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.support.cell import InProcessService
     from tests.support.executor import CALM, next_of, operator_resumes, store_serving
 
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
-        async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
-            store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
+        async with cell.session() as bus:
+            store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", cell, example_sets)
             cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
             events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
             settings = Settings(
@@ -167,7 +165,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 start_selection="initial",
                 initial_k=1,  # the slowest: headroom below the speed limits under CI's jitter
             )
-            ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+            ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
             operator = asyncio.ensure_future(operator_resumes(bus))  # a stall's watchdog trip is latched
             assert (await next_of(events, lambda e: e.kind == "connected", timeout=30)).message.startswith(
                 "ur_rtde"
@@ -200,19 +198,17 @@ async def back_and_resumed(bus: Any, events: Any, states: Any) -> tuple[Any, Any
 
 @pytest.mark.asyncio
 async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_reconnects_and_a_resume_clears(
-    tmp_path: Path, endpoint: str, example_sets: Path
+    tmp_path: Path, cell: Cell, example_sets: Path
 ) -> None:
-    from common.runtime.bus import Bus, BusConfig
     from schemas import RobotEvent, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.support.cell import InProcessService
     from tests.support.executor import CALM, next_of, store_serving
 
     host = free_loopback()
     emu = EmulatorProcess(host, q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
-    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
-        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
+    async with cell.session() as bus:
+        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", cell, example_sets)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         settings = Settings(
@@ -225,7 +221,7 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
             initial_k=1,
             watchdog_hz=WATCHDOG_HZ,
         )
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         try:
             await next_of(states, lambda s: s.mode == "moving" and s.path_id == "b1_to_b2", timeout=60)
             emu.stop(signal.SIGKILL)  # the controller is gone mid-motion
@@ -256,23 +252,21 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
 
 @pytest.mark.asyncio
 async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
-    tmp_path: Path, endpoint: str
+    tmp_path: Path, cell: Cell
 ) -> None:
     """A part placed, signalled by a button wired to the controller's DI 2 (the task step's ``input = 2``):
     read through the real client, published on operator/signal with its source, and it ends the wait."""
-    from common.runtime.bus import Bus, BusConfig
     from schemas import CycleReport, OperatorSignal, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.support.cell import InProcessService
     from tests.support.executor import CALM, TASK, next_of, operator_resumes, store_serving
 
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK.replace('wait_for = "part"', 'wait_for = "part"\ninput = 2'))
     emu = EmulatorProcess(free_loopback())
     try:
-        async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
-            store = await store_serving(bus, task_file, tmp_path / "store", endpoint)
+        async with cell.session() as bus:
+            store = await store_serving(bus, task_file, tmp_path / "store", cell)
             signals = aiter(bus.subscribe(bus.key("operator/signal"), OperatorSignal))
             cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
             states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
@@ -280,7 +274,7 @@ async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
                 task=str(task_file), backend="ur_rtde", host=emu.host, fifo_priority=0, overrun_limit=CALM,
                 cycles=1, watchdog_hz=WATCHDOG_HZ, start_selection="initial", initial_k=1,
             )  # fmt: skip
-            ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+            ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
             operator = asyncio.ensure_future(operator_resumes(bus))
             await next_of(states, lambda s: s.waiting_for == "part", timeout=90)
             emu.press(2)
@@ -325,27 +319,25 @@ def test_an_rtde_client_that_stops_reading_is_dropped_and_the_others_are_not_hel
 
 @pytest.mark.asyncio
 async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and_says_so(
-    tmp_path: Path, endpoint: str, example_sets: Path
+    tmp_path: Path, cell: Cell, example_sets: Path
 ) -> None:
     """A reconnect right after an e-stop fails while the controller restarts its RTDE server: the executor
     tries again with back-off and says when, then holds the arm stopped until a person resumes."""
-    from common.runtime.bus import Bus, BusConfig
     from schemas import RobotEvent, RobotState
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.support.cell import InProcessService
     from tests.support.executor import CALM, next_of, store_serving
 
     host = free_loopback()
     emu = EmulatorProcess(host, None, [float(x) for x in FIRST_WAYPOINT_DEG], "--restart-s", "3")
-    async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as bus:
-        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", endpoint, example_sets)
+    async with cell.session() as bus:
+        store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", cell, example_sets)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         settings = Settings(backend="ur_rtde", host=host, fifo_priority=0, overrun_limit=CALM,
                             wait_for_signals=False, start_selection="initial", initial_k=1,
                             watchdog_hz=WATCHDOG_HZ)  # fmt: skip
-        ex = InProcessService("executor", executor_main, settings, tmp_path / "ex", endpoint)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         try:
             await next_of(states, lambda s: s.mode == "moving", timeout=60)
             emu.say("estop")

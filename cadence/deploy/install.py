@@ -386,7 +386,7 @@ def ensure_python(opts: Options, uv: str, say: list[str]) -> str:
 
 
 def _checkout() -> Path | None:
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]  # cadence/deploy/install.py in a checkout
     return root if (root / "uv.lock").exists() and (root / "pyproject.toml").exists() else None
 
 
