@@ -55,7 +55,15 @@ def test_the_wheel_runs_the_demo_from_a_fresh_venv(tmp_path: Path, example_sets:
     assert all(code == 0 for code in s["exit_codes"].values())
     site = next((venv / "lib").glob("python3*/site-packages"))
     assert (site / "cadence" / "deploy" / "files" / "tasks" / "box_filling.toml").exists()
-    assert (site / "cadence" / "deploy" / "files" / "systemd" / "cadence-executor.service").exists()
+    assert (site / "cadence" / "deploy" / "files" / "systemd" / "cadence-service.in").exists()
+    # the units `cadence install` writes, rendered by the installed package from its own template
+    render = (
+        "from common.runtime.resources import DEPLOY; from services.registry import BY_NAME, unit; "
+        "print(unit(BY_NAME['executor'], (DEPLOY / 'systemd' / 'cadence-service.in').read_text()))"
+    )
+    executor_unit = _run([str(venv / "bin" / "python"), "-c", render], work, 60)
+    assert "ExecStart=/opt/cadence/.venv/bin/cadence run executor" in executor_unit
+    assert "LimitRTPRIO=90" in executor_unit
     for package in ("cadence", "common", "schemas", "services"):  # PEP 561: their type hints are used
         assert (site / package / "py.typed").exists()
     version = _run([str(venv / "bin" / "cadence"), "--version"], work, 60)
