@@ -20,6 +20,7 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,7 @@ from rich.table import Table
 
 from cadence.lab.marks import counted
 from cadence.lab.report import event_row, from_demo, scale_row, window_row, write_report
+from cadence.tools.gaps import Gaps
 from common.hrv.calibration import CALIBRATION_FILE
 from common.runtime.bus import Bus, BusConfig, Request
 from common.runtime.clock import Clock
@@ -171,6 +173,21 @@ class Observed:
     marked: list[OperatorError] = field(default_factory=list)  # operator/error as it came
     events: list[dict] = field(default_factory=list)
     scale: list[dict] = field(default_factory=list)  # report.scale_row
+    gaps: Gaps = field(default_factory=Gaps)  # what the senders' numbers say this observer missed
+
+    def watch(self, key: str, fn: Callable[[Any], None]) -> Callable[[str, Any], Awaitable[None]]:
+        """A handler of one sender's key that also notes the message's number."""
+
+        async def handler(_: str, msg: Any) -> None:
+            self.gaps.note(key, msg.seq)
+            fn(msg)
+
+        return handler
+
+    @property
+    def n_cycles(self) -> int:
+        """The cycles the executor reported, by its numbers: those seen and those it sent unseen."""
+        return len(self.cycles) + sum(n for k, n in self.gaps.missed.items() if k.endswith("/robot/cycle"))
 
     @property
     def error_times_s(self) -> list[float]:
@@ -271,7 +288,7 @@ def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, S
     k = str(obs.selections[-1]["k"]) if obs.selections else "—"
     last = f"{obs.cycles[-1].cycle_time_s:.1f} s" if obs.cycles else "—"
     restarts = ", ".join(f"{n} {p.restarts}" for n, p in procs.items() if p.restarts) or "none"
-    t.add_row(rr, moved, k, str(len(obs.cycles)), last, str(obs.errors), restarts)
+    t.add_row(rr, moved, k, str(obs.n_cycles), last, str(obs.errors), restarts)
     ev = Table(show_header=False, box=None)
     for e in obs.events[-5:]:
         ev.add_row(f"{e['t_s']:7.1f} s", e["source"], e["kind"], e["message"][:90])
@@ -342,12 +359,16 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             return CellClock(t_ns=clock.now_ns(), seq=0, epoch_ns=epoch_ns, speed=opts.speed)
 
         bus.serve(CELL_CLOCK, tell_clock)
-        bus.handle(HRV_WINDOW, _call(obs.on_window))
-        bus.handle(SELECTION, _call(obs.on_selection))
-        bus.handle(ROBOT_CYCLE, _call(obs.cycles.append))
+        # each of these has one sender, whose numbers say what this observer missed (cadence/tools/gaps.py)
+        bus.handle(HRV_WINDOW, obs.watch(bus.key(HRV_WINDOW.suffix), obs.on_window))
+        bus.handle(SELECTION, obs.watch(bus.key(SELECTION.suffix), obs.on_selection))
+        bus.handle(ROBOT_CYCLE, obs.watch(bus.key(ROBOT_CYCLE.suffix), obs.cycles.append))
         bus.handle(
             ROBOT_EVENT,
-            _call(lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state))),
+            obs.watch(
+                bus.key(ROBOT_EVENT.suffix),
+                lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state)),
+            ),
         )
 
         bus.handle(OPERATOR_ERROR, _call(obs.marked.append))
@@ -409,7 +430,9 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
     down, up = obs.k_steps()
     ran_s = cut_short_s if cut_short_s is not None else opts.duration_s
     minutes = ran_s / 60.0
-    cycles = len(obs.cycles)
+    cycles = obs.n_cycles
+    if said := obs.gaps.said():
+        console.print(said, style="yellow")
     summary = {
         "duration_s": round(ran_s, 3),
         "cut_short": cut_short_s is not None,
@@ -430,6 +453,8 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "cycle_k": [dict(c.k_per_path) for c in obs.cycles],
         "events": obs.events,
         "scale": obs.scale,
+        # by key, messages the cell sent that the observer did not see (their figures above are missing)
+        "unseen": {k.split("/", 2)[-1]: n for k, n in obs.gaps.missed.items() if n},
     }
     keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
     try:
