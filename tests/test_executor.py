@@ -31,7 +31,7 @@ from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from tests.support.cell import CELL, Cell, put
-from tests.support.executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
+from tests.support.executor import SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
 
@@ -57,7 +57,6 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
             Settings(
                 task=str(task_file),
                 fifo_priority=0,
-                overrun_limit=CALM,
                 start_selection="initial",
                 initial_k=2,
                 cycles=3,
@@ -188,7 +187,6 @@ async def test_an_arm_away_from_the_start_is_refused_or_moved_there_slowly(
         settings = Settings(
             task=str(task_file),
             fifo_priority=0,
-            overrun_limit=CALM,
             cycles=1,
             wait_for_signals=False,
             sim_start_deg=[10, -90, 90, -90, -90, 0],
@@ -226,7 +224,6 @@ async def test_sigterm_during_motion_stops_decelerating_and_exits_0(
             "CADENCE_EXECUTOR_TASK": str(task_file),
             "CADENCE_EXECUTOR_WAIT_FOR_SIGNALS": "false",
             "CADENCE_EXECUTOR_FIFO_PRIORITY": "0",
-            "CADENCE_EXECUTOR_OVERRUN_LIMIT": str(CALM),
             "CADENCE_EXECUTOR_START_SELECTION": "initial",
             "CADENCE_DATA_DIR": str(tmp_path / "ex"),
         }

@@ -17,7 +17,7 @@ from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.executor.backends import SimBackend, UrRtdeBackend
 from tests.support.cell import Cell, put
-from tests.support.executor import CALM, SPEED, TASK, next_of, sim_settings, store_serving
+from tests.support.executor import SPEED, TASK, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
 STALL_S = 0.02  # a servo call this slow is an overrun at any speed
@@ -139,7 +139,7 @@ async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(
 ) -> None:
     async with cell.session() as bus:
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        settings = Settings(task=str(task_file), fifo_priority=0, overrun_limit=CALM, start_selection="wait")
+        settings = Settings(task=str(task_file), fifo_priority=0, start_selection="wait")
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         await next_of(states, lambda s: s.state == "waiting_for_selection")
         (reply,) = await bus.get(bus.key("robot/resume"), RobotEvent, timeout=20)
@@ -185,7 +185,7 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         decided = Selection(t_ns=1, seq=7, k=1, n=15, delta=-2, reason="stress")
         common = dict(
-            task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, initial_k=8,
+            task=str(task_file), fifo_priority=0, wait_for_signals=False, initial_k=8,
             switch_within_path=False,
         )  # fmt: skip
 
@@ -230,9 +230,7 @@ async def test_with_nothing_on_file_the_sim_waits_then_moves_at_the_first_select
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
-        settings = Settings(
-            task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False, cycles=1
-        )
+        settings = Settings(task=str(task_file), fifo_priority=0, wait_for_signals=False, cycles=1)
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         chose = await next_of(events, lambda e: "the decision maker does not answer" in e.message, timeout=30)
         await ex.listening(bus, "decision/selection")
@@ -261,7 +259,6 @@ async def test_two_executors_on_one_host_get_different_servo_cores(
             settings = Settings(
                 task=str(task_file),
                 fifo_priority=0,
-                overrun_limit=CALM,
                 start_selection="wait",
                 lock_dir=str(tmp_path),
             )

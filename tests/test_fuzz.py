@@ -39,7 +39,7 @@ from services.operator_twin.__main__ import Settings as TwinSettings
 from services.operator_twin.__main__ import main as twin_main
 from tests.support.cell import CELL, InProcessService, now_ns, put
 from tests.support.data import DAY, S, chunks, synthetic_ecg
-from tests.support.executor import CALM, SPEED, TASK, store_serving
+from tests.support.executor import SPEED, TASK, store_serving
 from tests.support.messages import SAMPLES
 
 pytestmark = pytest.mark.asyncio
@@ -189,9 +189,7 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
         executor = InProcessService(
             "executor",
             executor_main,
-            ExecutorSettings(
-                task=str(task_file), fifo_priority=0, overrun_limit=CALM, wait_for_signals=False
-            ),
+            ExecutorSettings(task=str(task_file), fifo_priority=0, wait_for_signals=False),
             tmp_path / "x",
             endpoint,
             speed=SPEED,

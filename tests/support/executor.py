@@ -51,17 +51,18 @@ move = "back"
 SPEED = 8.0
 
 
-# Tests not about overruns: a loaded CI machine misses servo deadlines in runs, and a stop is latched
+# The UR controller's tests not about overruns: a controller paces the samples on the wall clock, and a
+# loaded CI machine misses servo deadlines in runs (the sim arm's time is its samples: no run stops it)
 CALM = 1000
 
 
 def sim_settings(task_file: Path, **changes: object) -> Settings:
-    """The executor as these tests run it: no FIFO, not stopped by a loaded machine's overruns, one cycle
-    with no operator, starting at k = 3 with no decision maker; ``changes`` override."""
+    """The executor as these tests run it: the sim arm, no FIFO, one cycle with no operator, starting at
+    k = 3 with no decision maker; the real overrun rule (the sim arm's time is the samples it was sent, so
+    a loaded machine's overruns are counted and never stop it); ``changes`` override."""
     base: dict[str, object] = {
         "task": str(task_file),
         "fifo_priority": 0,
-        "overrun_limit": CALM,
         "cycles": 1,
         "wait_for_signals": False,
         "start_selection": "initial",
