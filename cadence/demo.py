@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import itertools
 import json
+import math
 import os
 import signal
 import socket
@@ -51,6 +52,7 @@ from schemas import (
     Selection,
     ServiceStatus,
 )
+from schemas.pareto import ParetoSet
 from schemas.topology import (
     CELL_CLOCK,
     DEFAULT_CELL,
@@ -359,20 +361,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             return CellClock(t_ns=clock.now_ns(), seq=0, epoch_ns=epoch_ns, speed=opts.speed)
 
         bus.serve(CELL_CLOCK, tell_clock)
-        # each of these has one sender, whose numbers say what this observer missed (cadence/tools/gaps.py)
-        bus.handle(HRV_WINDOW, obs.watch(bus.key(HRV_WINDOW.suffix), obs.on_window))
-        bus.handle(SELECTION, obs.watch(bus.key(SELECTION.suffix), obs.on_selection))
-        bus.handle(ROBOT_CYCLE, obs.watch(bus.key(ROBOT_CYCLE.suffix), obs.cycles.append))
-        bus.handle(
-            ROBOT_EVENT,
-            obs.watch(
-                bus.key(ROBOT_EVENT.suffix),
-                lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state)),
-            ),
-        )
-
-        bus.handle(OPERATOR_ERROR, _call(obs.marked.append))
-        bus.handle(ROBOT_STATE, _call(lambda m: scale_row(obs.scale, m, obs.t(m.t_ns))))
+        watch(bus, obs)
         running: set[str] = set()
         all_up = asyncio.Event()
 
@@ -427,16 +416,50 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         # 4. stop; exit codes are checked
         await stop_all()
 
-    down, up = obs.k_steps()
     ran_s = cut_short_s if cut_short_s is not None else opts.duration_s
+    restarts = {n: p.restarts for n, p in procs.items()}
+    exit_codes = {n: p.exit_code for n, p in procs.items()}
+    return summarise(obs, opts, ran_s, cut_short_s is not None, restarts, exit_codes, sets, console)
+
+
+def watch(bus: Bus, obs: Observed) -> None:
+    """The demo's observer on the cell's bus: what the summary and the report are made of."""
+    # each of these has one sender, whose numbers say what this observer missed (cadence/tools/gaps.py)
+    bus.handle(HRV_WINDOW, obs.watch(bus.key(HRV_WINDOW.suffix), obs.on_window))
+    bus.handle(SELECTION, obs.watch(bus.key(SELECTION.suffix), obs.on_selection))
+    bus.handle(ROBOT_CYCLE, obs.watch(bus.key(ROBOT_CYCLE.suffix), obs.cycles.append))
+    bus.handle(
+        ROBOT_EVENT,
+        obs.watch(
+            bus.key(ROBOT_EVENT.suffix),
+            lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state)),
+        ),
+    )
+
+    bus.handle(OPERATOR_ERROR, _call(obs.marked.append))
+    bus.handle(ROBOT_STATE, _call(lambda m: scale_row(obs.scale, m, obs.t(m.t_ns))))
+
+
+def summarise(
+    obs: Observed,
+    opts: DemoOptions,
+    ran_s: float,
+    cut_short: bool,
+    restarts: dict[str, int],
+    exit_codes: dict[str, int | None],
+    sets: dict[str, ParetoSet],
+    console: Console,
+) -> dict[str, Any]:
+    """``summary.json`` and the report (index.html and its figures) of a run, in its folder."""
+    down, up = obs.k_steps()
     minutes = ran_s / 60.0
     cycles = obs.n_cycles
     if said := obs.gaps.said():
         console.print(said, style="yellow")
     summary = {
         "duration_s": round(ran_s, 3),
-        "cut_short": cut_short_s is not None,
-        "speed": opts.speed,
+        "cut_short": cut_short,
+        "speed": opts.speed if math.isfinite(opts.speed) else "max",
         "cycles": cycles,
         "productivity_per_min": round(cycles / minutes, 3),
         "errors": obs.errors,
@@ -446,8 +469,8 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         "selections": [{k: v for k, v in s.items() if k != "window_end_s"} for s in obs.selections],
         "k_steps_down": down,
         "k_steps_up": up,
-        "restarts": {n: p.restarts for n, p in procs.items()},
-        "exit_codes": {n: p.exit_code for n, p in procs.items()},
+        "restarts": restarts,
+        "exit_codes": exit_codes,
         "cycle_times_s": [round(c.cycle_time_s, 3) for c in obs.cycles],
         "cycle_ends_s": [obs.t(c.t_ns) for c in obs.cycles],
         "cycle_k": [dict(c.k_per_path) for c in obs.cycles],

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, TypeVar
@@ -104,10 +105,13 @@ MAX_SPEED = 1000.0  # CommonSettings.speed's bound: every service refuses more
 
 def speed(text: str) -> float:
     """A simulated cell's speed: every service refuses one above MAX_SPEED at its start, which a demo
-    took for a crash and restarted for ever: refused here, once, with the range."""
+    took for a crash and restarted for ever: refused here, once, with the range. ``max``: a lockstep
+    cell, as fast as the host allows (infinity here)."""
+    if text == "max":
+        return math.inf
     value = positive_float(text)
     if value > MAX_SPEED:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_SPEED:g}, got {text}")
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SPEED:g} (or max), got {text}")
     return value
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import time
 import tomllib
 from pathlib import Path
@@ -28,7 +29,14 @@ cli = Commands()
     "DIR/index.html (the report that shows them).",
 )
 @arg("--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)")
-@arg("--speed", type=speed, default=8.0, help="data time per wall time, above 0 and at most 1000 (default 8)")
+@arg(
+    "--speed",
+    type=speed,
+    default=8.0,
+    help="data time per wall time, above 0 and at most 1000 (default 8); max: the whole cell in one process "
+    "on a driven clock, as fast as the host allows, the same run on every host (the services' own code; "
+    "no processes, router or --kill)",
+)
 @arg("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
 @arg("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
 @arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
@@ -92,7 +100,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     except msgspec.ValidationError as exc:
         raise InputError(f"--twin: {exc}") from None
     t0 = time.monotonic()
-    summary = asyncio.run(run_demo(opts, out))
+    if math.isinf(opts.speed):
+        from cadence.lockstep import run_lockstep
+        from common.runtime import lockstep
+
+        summary = lockstep.run(run_lockstep(opts, out))
+    else:
+        summary = asyncio.run(run_demo(opts, out))
     wall = time.monotonic() - t0
     out.print(summary_table(summary, wall))
     out.print(

@@ -4,6 +4,10 @@ simulation can run every service ``speed`` times faster than real time on one sh
 
 All processes of one run share ``epoch_ns`` (a wall-clock instant) and ``speed``: data time is
 ``epoch + (wall − epoch) · speed``, whoever computes it. Without an epoch data time is wall time.
+
+A driven clock (``driven``: a lockstep cell, common/runtime/lockstep.py) is the event loop's own: data
+time is ``epoch + loop.time()``, and the loop takes its next instant only when every task of the cell
+waits for one. A busy host then slows the run and never changes it.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from dataclasses import dataclass
 class Clock:
     speed: float = 1.0
     epoch_ns: int | None = None
+    driven: bool = False  # the event loop's time is data time (a lockstep cell); ``speed`` is not used
 
     def __post_init__(self) -> None:
         if not self.speed > 0:
@@ -28,11 +33,22 @@ class Clock:
         return self.epoch_ns + round((wall_ns - self.epoch_ns) * self.speed)
 
     def now_ns(self) -> int:
+        if self.driven:
+            return (self.epoch_ns or 0) + round(asyncio.get_running_loop().time() * 1e9)
         return self.data_ns(time.time_ns())
 
     def wall_s(self, data_s: float) -> float:
-        """How long a stretch of data time takes on the wall clock."""
-        return data_s / self.speed
+        """How long a stretch of data time takes on the event loop's clock (the wall's, unless driven)."""
+        return data_s if self.driven else data_s / self.speed
 
     async def sleep(self, data_s: float) -> None:
-        await asyncio.sleep(max(0.0, data_s) / self.speed)
+        await asyncio.sleep(max(0.0, self.wall_s(data_s)))
+
+
+def monotonic() -> float:
+    """Seconds on the clock a node's waits run on, for ages and timeouts: the running event loop's, which
+    is the wall's monotonic clock, or a lockstep cell's data time (off the loop: the wall's)."""
+    try:
+        return asyncio.get_running_loop().time()
+    except RuntimeError:
+        return time.monotonic()

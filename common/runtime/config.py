@@ -35,6 +35,8 @@ class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # data time (common/runtime/clock.py): one epoch and speed for every process of a simulated run
     speed: Annotated[float, msgspec.Meta(gt=0.0, le=1000.0)] = 1.0
     epoch_ns: TimeNs | None = None
+    # a lockstep cell (common/runtime/lockstep.py, simulation only): data time is its event loop's
+    lockstep: bool = False
     # the most two hosts' clocks of the cell may differ (NTP on a LAN: milliseconds; PTP: microseconds):
     # data stamped further ahead of a receiver's clock is refused, not believed (DESIGN §4)
     clock_skew_s: Annotated[float, msgspec.Meta(ge=0.0, le=10.0)] = 0.05
@@ -45,7 +47,7 @@ class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
     @property
     def clock(self) -> Clock:
-        return Clock(self.speed, self.epoch_ns)
+        return Clock(self.speed, self.epoch_ns, self.lockstep)
 
 
 def read_config(path: str | None) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import sys
 from typing import Any
 
@@ -50,10 +51,12 @@ class Executor(Node):
     stop_grace_s = 30.0  # at a stop, a moving arm decelerates to rest and the cycles say so
 
     async def setup(self) -> None:
-        s, speed = self.ctx.settings, self.ctx.common.speed
+        s, driven = self.ctx.settings, self.ctx.common.clock.driven
+        speed = 1.0 if driven else self.ctx.common.speed  # a driven clock's time is data time
         task = load_task(s.task)
-        self.backend = backend_for(s, task, speed)
-        self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime)
+        # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
+        self.backend = backend_for(s, task, math.inf if driven else speed)
+        self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
         if self.claim.core is not None:
             self.ctx.counters["servo_core"] = self.claim.core
         self.safety = Supervisor(self, self.backend, s)

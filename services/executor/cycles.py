@@ -11,7 +11,6 @@ import contextlib
 import logging
 import os
 import threading
-import time
 from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -21,6 +20,7 @@ from typing import Literal
 import numpy as np
 
 from common.decision import k_for_path
+from common.runtime.clock import monotonic
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.node import Node, Rejected
 from common.runtime.service import first_of
@@ -37,7 +37,7 @@ from services.executor.backends import Backend
 from services.executor.pathrun import PathRun
 from services.executor.persist import ExecutorStore
 from services.executor.reaction import Reactions
-from services.executor.servo import MotionResult, ServoLoop
+from services.executor.servo import MotionResult, Servo
 from services.executor.sets import SetCache
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
@@ -85,11 +85,11 @@ class Signals:
         self, name: str, stop: asyncio.Event, timeout_s: float | None = None
     ) -> Literal["arrived", "stopped", "late"]:
         """``timeout_s``: wall seconds to wait at most (a step's deadline at the clock's speed)."""
-        end = None if timeout_s is None else time.monotonic() + timeout_s
+        end = None if timeout_s is None else monotonic() + timeout_s
         while self.received[name] <= self.consumed[name]:
             if stop.is_set():
                 return "stopped"
-            left = None if end is None else end - time.monotonic()
+            left = None if end is None else end - monotonic()
             if left is not None and left <= 0:
                 return "late"
             self.arrived.clear()
@@ -106,13 +106,16 @@ class Cycles:
         safety: Supervisor,
         task: Task,
         backend: Backend,
-        loop: ServoLoop,
+        loop: Servo,
         reactions: Reactions,
     ) -> None:
         self.node, self.ctx, self.safety, self.reactions = node, node.ctx, safety, reactions
         self.task, self.backend, self.loop = task, backend, loop
         self.settings: Settings = node.ctx.settings
         self.clock = node.ctx.common.clock
+        # data time per second of the loop's clock: the demo's speed, or 1 in a lockstep cell (its loop's
+        # time is data time)
+        self.speed = 1.0 if self.clock.driven else node.ctx.common.speed
         self.notes: list[str] = []  # what was wrong with the files on disk, for the status
         folder = node.ctx.common.data_path / "executor"
         self.sets = SetCache(node.ctx.bus, folder, task)
@@ -406,7 +409,7 @@ class Cycles:
             self.backend.prepare(own.waypoints[:1])
             start = self.reactions.start_ramp(own, self.carried, figures)
             run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
-                                               self.task.limits, self.ctx.common.speed)  # fmt: skip
+                                               self.task.limits, self.speed)  # fmt: skip
             settle = round(self.settings.settle_s * RATE_HZ)
             try:
                 result: MotionResult = await run.play(self.loop, settle)

@@ -15,18 +15,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from collections.abc import Callable
 
 import numpy as np
 
 from common.robot.ur16e import JointLimits
+from common.runtime.clock import monotonic
 from common.runtime.service import first_of
 from common.safety.separation import Figures
 from common.trajectory.scaling import LIMIT_RTOL, Curve, Ramp, plan_ramp, ramp_ratio, switch_curve
 from common.trajectory.task import PathPlan
 from services.executor.playback import SIGMA_EPS, InForce, Playback, Switch
-from services.executor.servo import MotionResult, ServoLoop
+from services.executor.servo import MotionResult, Servo
 from services.executor.settings import RAMP_LEAD_S
 
 Scale = Callable[[Figures], float]  # the σ the person's distance allows now, for a curve of these figures
@@ -67,7 +67,7 @@ class PathRun:
         pending = self.pending_figures
         return self.figures if pending is None else self.figures.worst(pending)
 
-    async def play(self, loop: ServoLoop, settle_ticks: int) -> MotionResult:
+    async def play(self, loop: Servo, settle_ticks: int) -> MotionResult:
         try:
             return await asyncio.wrap_future(loop.run(self.playback, settle_ticks))
         finally:
@@ -144,9 +144,9 @@ class PathRun:
                     ramp = now.pending_ramp or now.ramp
                     ends = float(ramp.state(np.array([max(ramp.end, pb.t)]))[0][0])
                     s_switch = max(pb.s + ahead, ends + 1e-6)
-                    started = time.monotonic()
+                    started = monotonic()
                     planned = await asyncio.to_thread(self.plan_switch, now, h_new, s_switch)
-                    self.plan_s = 0.7 * self.plan_s + 0.3 * (time.monotonic() - started)
+                    self.plan_s = 0.7 * self.plan_s + 0.3 * (monotonic() - started)
                     if planned is None:
                         return False, f"k = {k} cannot take over within '{self.path.id}' inside the limits"
                     joined, figures = planned

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import OrderedDict
 
 import numpy as np
 
 from common.robot.ur16e import JointLimits
+from common.runtime.clock import monotonic
 from common.runtime.node import Node, Rejected
 from common.safety.separation import Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Curve, Ramp
@@ -76,7 +76,7 @@ class Reactions:
         """A reading, judged on this executor's clock: refused (``Rejected``, counted) when stamped ahead
         of it by more than the skew bound, or already too old."""
         stamp_age = self.clock.wall_s((self.clock.now_ns() - sep.t_ns) / 1e9)
-        why = self.sources.admit(sep.source, sep.distance_m, stamp_age, sep.age_s, time.monotonic())
+        why = self.sources.admit(sep.source, sep.distance_m, stamp_age, sep.age_s, monotonic())
         if why == "ahead":
             raise Rejected("ahead", f"'{sep.source}' stamped {-stamp_age:.3f} s ahead of the executor's "
                            f"clock (the cell's skew bound is {self.sources.skew_s:g} s)")  # fmt: skip
@@ -86,7 +86,7 @@ class Reactions:
                            f"{self.sources.max_age_s:g} s is used)")  # fmt: skip
 
     def look_distance(self) -> Nearest:
-        self.nearest = self.sources.nearest(time.monotonic())
+        self.nearest = self.sources.nearest(monotonic())
         return self.nearest
 
     def allowed(self, figures: Figures) -> float:
@@ -166,7 +166,7 @@ class Reactions:
         else:
             zone = "full" if sigma >= 1.0 else "hold" if sigma <= 0.0 else "reduced"
             text = f"a person at {nearest.distance_m:.2f} m ({nearest.source}): scale {sigma:.2f}"
-        folded = self.zones.update(zone, time.monotonic())
+        folded = self.zones.update(zone, monotonic())
         if folded is None:
             return
         if folded:

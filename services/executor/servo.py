@@ -21,6 +21,7 @@ real robot (``ur_rtde``, the emulator) keeps the overrun stop exactly as it is.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import ctypes
 import ctypes.util
@@ -252,11 +253,110 @@ class ServoLoop:
         return MotionResult(outcome, sent, tick, overruns)
 
 
+class Servo(Protocol):
+    """What the executor drives: the 500 Hz thread (``ServoLoop``), or a lockstep cell's task."""
+
+    index: int
+    ticks: int
+    overruns: int
+    warnings: list[str]
+
+    def start(self) -> None: ...
+    def run(
+        self, targets: Sequence[object] | Source, settle_ticks: int = 0
+    ) -> Future[MotionResult] | asyncio.Future[MotionResult]: ...
+    def request_stop(self) -> None: ...
+    def close(self) -> None: ...
+    def summary(self) -> TickSummary: ...
+
+
+class LockstepServo:
+    """The servo loop of a lockstep cell (common/runtime/lockstep.py): a task on the cell's own event loop,
+    one controller step per 2 ms of its data time, sent ``batch`` steps at a time. Nothing waits on the
+    wall, so there are no deadlines to miss and no overruns; what the arm does at each step is what
+    ``ServoLoop`` has it do (the same source, settling, braking and fault outcomes)."""
+
+    def __init__(self, backend: ServoBackend, batch: int = 5) -> None:
+        self.backend, self.batch = backend, batch
+        self.period_ns = PERIOD_NS
+        self.ticks = 0
+        self.overruns = 0  # none: its time waits for it
+        self.index = -1
+        self.warnings: list[str] = []
+        self._stop = False
+        self._one_at_a_time = asyncio.Lock()
+
+    def start(self) -> None:
+        pass
+
+    def run(self, targets: Sequence[object] | Source, settle_ticks: int = 0) -> asyncio.Future[MotionResult]:
+        source = targets if hasattr(targets, "next") else Samples(targets)
+        return asyncio.ensure_future(self._motion(cast(Source, source), settle_ticks))
+
+    def request_stop(self) -> None:
+        self._stop = True
+
+    def close(self) -> None:
+        self._stop = True
+
+    def summary(self) -> TickSummary:
+        return summarise(np.zeros(0, dtype=np.int64), self.ticks, 0, self.period_ns)
+
+    async def _motion(self, source: Source, settle_ticks: int) -> MotionResult:
+        async with self._one_at_a_time:
+            try:
+                return await self._servo(source, settle_ticks)
+            finally:
+                self.index = -1
+
+    async def _servo(self, source: Source, settle_ticks: int) -> MotionResult:
+        backend, last = self.backend, source.last
+        sent = tick = 0
+        outcome: Outcome = "done"
+        braking = False
+        while True:
+            await asyncio.sleep(self.batch * PERIOD_NS / 1e9)  # the loop's time: data time
+            tick += self.batch
+            if self._stop and not braking:
+                braking, outcome = True, "stopped"
+            ok, at_rest = True, False
+            for _ in range(self.batch):
+                if braking:
+                    at_rest = backend.brake()
+                    if at_rest:
+                        break
+                elif not source.done:
+                    target = source.next()
+                    if target is None:
+                        target = last
+                        settle_ticks -= 1
+                    else:
+                        self.index = sent
+                        sent += 1
+                    ok = backend.servo(target)
+                else:
+                    ok = backend.servo(last)
+                    settle_ticks -= 1
+                if not ok:
+                    break
+            if not ok:
+                outcome = "fault"
+                break
+            if at_rest:
+                break
+            if not braking and source.done and (settle_ticks <= 0 or backend.settled(last)):
+                break
+        self.ticks += tick
+        return MotionResult(outcome, sent, tick, 0)
+
+
 def servo_for(
-    backend: ServoBackend, settings: Settings, speed: float, realtime: bool
-) -> tuple[ServoLoop, CoreClaim]:
+    backend: ServoBackend, settings: Settings, speed: float, realtime: bool, lockstep: bool = False
+) -> tuple[Servo, CoreClaim]:
     """The executor's loop, on a core it claimed (cores.py); FIFO only there, so that two executors on one
-    host never share a core at FIFO priority."""
+    host never share a core at FIFO priority. In a lockstep cell: a task on its loop, and no core."""
+    if lockstep:
+        return LockstepServo(backend), CoreClaim(None, None)
     s = settings
     claim = claim_core(os.sched_getaffinity(0), Path(s.lock_dir or default_lock_dir()), s.servo_core)
     if claim.note:

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections import deque
 
 from common.runtime.bus import QueryError
+from common.runtime.clock import monotonic
 from common.runtime.node import Node
 from common.runtime.service import first_of
 from common.safety.states import Event, Motion, State, transition
@@ -146,7 +146,7 @@ class Supervisor:
                     wait_s, delay = delay, min(delay * 2, 10.0)
                     self.event("disconnected", f"{exc}; trying again in {wait_s:.0f} s")
             elif self.motion.state is State.STOPPED and self.auto is not None:
-                auto_s = self.auto.delay_s(time.monotonic())
+                auto_s = self.auto.delay_s(monotonic())
                 if auto_s is None:
                     self.event(
                         "info",
@@ -157,7 +157,7 @@ class Supervisor:
                     await first_of(asyncio.sleep(auto_s), stop.wait())  # wall time: a person's
                     if stop.is_set() or self.motion.state is not State.STOPPED:
                         continue
-                    self.auto.used(time.monotonic())
+                    self.auto.used(monotonic())
                     await self.resume(f'resumed automatically after {auto_s:.0f} s (resume_policy = "auto")')
                     continue
             self.changed.clear()

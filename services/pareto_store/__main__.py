@@ -16,6 +16,7 @@ import msgspec
 
 from common.runtime.bus import QueryError, Request
 from common.runtime.config import CommonSettings
+from common.runtime.lockstep import Inline
 from common.runtime.node import Node, Out, answers, node_main
 from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.service import service_main
@@ -81,7 +82,8 @@ class ParetoStore(Node):
             self.ctx.detail = problem
         self.digests, self.sets = await asyncio.to_thread(self.store.current, self.task)
         self.reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
-        self.pool = worker_pool(self.ctx.settings.workers)
+        # a lockstep cell's planning is done in its loop's thread: its time waits for it (lockstep.py)
+        self.pool = Inline() if self.ctx.common.clock.driven else worker_pool(self.ctx.settings.workers)
 
     def progress(self, pid: str, state: PlanState, message: str = "") -> PlanProgress:
         done = sum(1 for p in self.task.paths if p in self.sets)

@@ -7,7 +7,7 @@ import contextlib
 import multiprocessing
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 
 import numpy as np
 
@@ -44,7 +44,7 @@ def plan_job(
     )
 
 
-def lower_priority(pool: ProcessPoolExecutor) -> None:
+def lower_priority(pool: Executor) -> None:
     """Planning is background work: the service's loop and its queries come first. The parent renices
     the workers as soon as they exist, so even their start-up (the imports) runs at low priority."""
     for proc in list((getattr(pool, "_processes", None) or {}).values()):
@@ -59,7 +59,7 @@ def worker_pool(workers: int) -> ProcessPoolExecutor:
                                initializer=die_with_parent, initargs=(os.getpid(),))  # fmt: skip
 
 
-def abandon(pool: ProcessPoolExecutor) -> None:
+def abandon(pool: Executor) -> None:
     """A plan still in flight is abandoned: its worker is ended, not waited for."""
     workers = list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)

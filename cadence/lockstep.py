@@ -1,0 +1,132 @@
+"""`cadence demo --speed max`: the whole cell in one process on a driven clock (common/runtime/lockstep.py).
+
+The wall-clock demo runs every service as its own process at ``--speed`` times real time, so a busy host
+changes what the simulated cell does: an arm whose samples come late moves later, a twin that is
+starved sees the robot later, and the same seed tells another story. Here the services are the same
+code, nodes on the in-memory bus of one event loop whose clock is data time: time moves on only when
+every node waits for a later instant. The run is a function of its options and seed: the same windows,
+selections, cycles and errors on every host, loaded or idle, as fast as the host allows.
+
+What it does not have: processes to kill (``--kill``), a router to join, a live view of wall time.
+The services log into ``DIR/logs/cell.log``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from cadence.demo import ORDER, DemoOptions, Observed, demo_settings, summarise, watch
+from common.runtime.bus import BusConfig
+from common.runtime.config import CommonSettings, section
+from common.runtime.errors import CadenceError
+from common.runtime.mock_bus import MockBus, MockNetwork
+from common.runtime.service import serve
+from schemas.clock import CellClock
+from schemas.health import ServiceStatus
+from schemas.pareto import ParetoSet
+from schemas.topology import CELL_CLOCK, DEFAULT_CELL, HEALTH, PARETO_SET
+from services.decision_maker import STATE_FILE
+from services.registry import BY_NAME
+
+PROGRESS_EVERY_S = 60.0  # data time between the lines that say how far the run is
+
+
+def settings_of(name: str, opts: DemoOptions) -> Any:
+    """The service's settings in the demo, as the wall-clock demo hands them over in its environment."""
+    env = {f"CADENCE_{name.upper()}_{k.upper()}": v for k, v in demo_settings(opts).get(name, {}).items()}
+    return section({}, name, BY_NAME[name].settings(), "<demo>", env)
+
+
+async def run_lockstep(opts: DemoOptions, console: Console) -> dict[str, Any]:
+    """The demo's run, in lockstep; its summary (written with the report, as the wall-clock demo's)."""
+    if opts.kill:
+        raise CadenceError("--kill SIGKILLs a service's process: the lockstep cell (--speed max) has none")
+    data, logs = opts.out / "data", opts.out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    (data / STATE_FILE).unlink(missing_ok=True)  # a demo starts from a rested operator
+    handler = logging.FileHandler(logs / "cell.log", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s"))
+    root, level = logging.getLogger(), logging.getLogger().level
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    try:
+        return await _run(opts, console, data)
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
+        handler.close()
+
+
+async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any]:
+    loop = asyncio.get_running_loop()
+    epoch_ns = time.time_ns() // 1_000_000_000 * 1_000_000_000  # data time starts now, to the second
+    common = CommonSettings(data_dir=str(data), epoch_ns=epoch_ns, lockstep=True, status_period_s=1.0)
+    network, stop = MockNetwork(), asyncio.Event()
+    obs = Observed(epoch_ns=epoch_ns)
+    services: dict[str, asyncio.Task[None]] = {}
+
+    def start(name: str) -> None:
+        main, settings = BY_NAME[name].module().main, settings_of(name, opts)
+        bus = MockBus(DEFAULT_CELL, name, network)
+        served = serve(name, main, common, BusConfig(), settings, stop=stop, install_signals=False, bus=bus)
+        services[name] = asyncio.ensure_future(served)
+
+    async with MockBus(DEFAULT_CELL, "demo", network) as bus:
+
+        async def tell_clock(_: object) -> CellClock:
+            return CellClock(t_ns=epoch_ns + round(loop.time() * 1e9), seq=0, epoch_ns=epoch_ns, speed=0.0)
+
+        bus.serve(CELL_CLOCK, tell_clock)
+        health = bus.subscribe(HEALTH.at("pareto_store"), maxsize=1)
+        with console.status("planning the task's Pareto sets (once; they are stored) …"):
+            start("pareto_store")  # it plans what it lacks before the others start, as in the demo
+            while (await health.receive(3600.0))[1].state != "serving":
+                if services["pareto_store"].done():
+                    services["pareto_store"].result()
+        watch(bus, obs)
+        running: set[str] = set()
+
+        async def on_status(_: str, st: ServiceStatus) -> None:
+            running.add(st.service)
+
+        bus.handle(HEALTH, on_status)
+        began = loop.time()
+        obs.epoch_ns = epoch_ns + round(began * 1e9)
+        for name in ORDER:
+            if name != "pareto_store":
+                start(name)
+        wall = time.monotonic()
+        while (now := loop.time() - began) < opts.duration_s - 1e-6:  # to the float's precision
+            await asyncio.sleep(min(PROGRESS_EVERY_S, opts.duration_s - now))
+            for name, task in services.items():
+                if task.done():  # a service that ends in a lockstep cell is a fault of the run: said now
+                    task.result()
+                    raise CadenceError(f"{name} ended at {loop.time() - began:.0f} s of data time")
+            if opts.live:
+                k = obs.selections[-1]["k"] if obs.selections else "—"
+                done_s, wall_s = loop.time() - began, time.monotonic() - wall
+                console.print(f"data time {done_s:6.0f} / {opts.duration_s:.0f} s, {obs.n_cycles} cycles, "
+                              f"k {k}, {wall_s:.1f} s of wall time")  # fmt: skip
+        sets: dict[str, ParetoSet] = {}
+        for pid in {p for c in obs.cycles for p in c.k_per_path}:
+            replies = await bus.get(PARETO_SET.at(pid), timeout=5.0)
+            if replies and replies[0].message is not None:
+                sets[pid] = replies[0].message
+        missing = set(ORDER) - running
+        stop.set()
+        results = await asyncio.gather(*services.values(), return_exceptions=True)
+    exit_codes: dict[str, int | None] = {
+        name: 0 if not isinstance(r, BaseException) else 1 for name, r in zip(services, results, strict=True)
+    }
+    for name, r in zip(services, results, strict=True):
+        if isinstance(r, BaseException):
+            console.print(f"{name} failed: {r!r}", style="red")
+    if missing:
+        console.print(f"no status came from {', '.join(sorted(missing))}", style="red")
+    return summarise(obs, opts, opts.duration_s, False, dict.fromkeys(services, 0), exit_codes, sets, console)

@@ -1,0 +1,93 @@
+"""A cell whose time is driven, not read (DESIGN §4; ROS 2's ``/clock`` with ``use_sim_time``, trio's
+``MockClock(autojump_threshold=0)``): its nodes run in one process, on one event loop whose clock is data
+time. The loop takes its next instant only when every task of the cell is waiting for a later one: a
+handler, a timer, a stream's next chunk all run to their next wait before time moves on. So a run is a
+function of its inputs and seeds. A busy host makes it slower and never different, and nothing waits
+on the wall: ten minutes of a cell take what its computing takes.
+
+Work a node hands to a thread (``asyncio.to_thread``: SQLite, a file) runs at once, in the loop's own
+thread, at the instant it was asked for. Time does not move while it runs, and no other task runs
+beside it, so its result comes back in the same order on every host.
+
+Only for simulation: a lockstep cell has no wall clock, no sockets and no threads of its own. Its nodes
+meet on the in-memory bus (common/runtime/mock_bus.py), and its services read ``Clock(driven=True)``
+(``CommonSettings.lockstep``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import selectors
+from collections.abc import Callable, Coroutine
+from concurrent.futures import Executor, Future
+from typing import Any, TypeVar, TypeVarTuple, Unpack
+
+T = TypeVar("T")
+Ts = TypeVarTuple("Ts")
+
+
+class _Jumping(selectors.DefaultSelector):
+    """The loop's selector: when nothing is ready, the wait for the next timer is not waited, it is
+    skipped: the loop's clock moves to that timer at once."""
+
+    def __init__(self, loop: LockstepLoop) -> None:
+        super().__init__()
+        self.loop = loop
+
+    def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
+        ready: list[tuple[selectors.SelectorKey, int]] = super().select(0)
+        if ready or timeout == 0:
+            return ready
+        if timeout is None:  # no timer at all: only the outside (another thread) can wake the loop
+            return super().select(None)
+        self.loop.now += timeout
+        return []
+
+
+class LockstepLoop(asyncio.SelectorEventLoop):
+    """An event loop whose ``time()`` is the cell's data time, from 0 (seconds)."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        super().__init__(_Jumping(self))
+
+    def time(self) -> float:
+        return self.now
+
+    def run_in_executor(
+        self, executor: Executor | None, func: Callable[[Unpack[Ts]], T], *args: *Ts
+    ) -> asyncio.Future[T]:
+        """At once, here: a thread's result would come back after a wall-clock delay, between other
+        tasks in an order the host's speed decides."""
+        done: asyncio.Future[T] = self.create_future()
+        try:
+            done.set_result(contextvars.copy_context().run(func, *args))
+        except BaseException as exc:  # the caller awaits it, as it would a thread's
+            done.set_exception(exc)
+        return done
+
+
+class Inline(Executor):
+    """An executor that does the work when it is handed over, in the caller's thread: a process pool's
+    stand-in in a lockstep cell (the store's planning takes no data time, and comes back in order)."""
+
+    def submit(self, fn: Callable[..., T], /, *args: Any, **kwargs: Any) -> Future[T]:
+        done: Future[T] = Future()
+        try:
+            done.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # the caller gets it from the future, as from a pool
+            done.set_exception(exc)
+        return done
+
+
+def run(main: Coroutine[Any, Any, T]) -> T:
+    """``main`` on a fresh lockstep loop, as ``asyncio.run`` runs it on a wall-clock one."""
+    loop = LockstepLoop()
+    try:
+        asyncio.set_event_loop(loop)
+        return loop.run_until_complete(main)
+    finally:
+        asyncio.set_event_loop(None)
+        loop.run_until_complete(loop.shutdown_asyncgens())
+        loop.close()
