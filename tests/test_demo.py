@@ -263,3 +263,48 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
     assert "window of 30 s: mean RR" in logs["hrv_analyser"]
     assert "mean RR" in logs["decision_maker"]
     assert " → " in logs["decision_maker"]
+
+
+def test_the_lockstep_cell_tells_one_story_idle_or_loaded_with_walks_movement_and_stress(
+    tmp_path: Path, example_sets: Path
+) -> None:
+    """`cadence demo --speed max`: every service's own code on one driven clock (issue 39). The twin walks
+    in now and then, carries heavier parts for a stretch and is stressed by the robot's pace, all in one
+    run; the run beside two busy loops and a storm of short processes gives the same windows, selections,
+    cycles, errors and events as the run on an idle host, only later."""
+    import shutil
+
+    def run(out: Path) -> dict:
+        (out / "data").mkdir(parents=True)
+        shutil.copy(example_sets, out / "data" / "pareto.sqlite")  # planned once per test run
+        r = subprocess.run(
+            [sys.executable, "-m", "cadence", "demo", "--speed", "max", "--duration", "480", "--no-live",
+             "--out", str(out), "--twin", "heavy_from_s=150", "--twin", "heavy_until_s=270"],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stdout + r.stderr
+        return json.loads((out / "summary.json").read_text())
+
+    idle = run(tmp_path / "idle")
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    load.append(subprocess.Popen(["sh", "-c", "while :; do /bin/true; done"]))
+    try:
+        loaded = run(tmp_path / "loaded")
+    finally:
+        for p in load:
+            p.kill()
+            p.wait()
+    story = ("windows", "selections", "cycle_ends_s", "cycle_times_s", "error_times_s", "events", "cycles")
+    for key in story:
+        assert loaded[key] == idle[key], key
+    s = idle
+    assert s["speed"] == "max"
+    assert set(s["exit_codes"].values()) == {0}
+    assert s["cycles"] >= 10
+    assert any(e["kind"] == "scale" for e in s["events"])  # the walks held the arm now and then
+    down = [x for x in s["selections"] if x["delta"] < 0]
+    assert down
+    assert down[0]["reason"] == "stress"  # the pace stressed the twin
+    held = [x["t_s"] for x in s["selections"] if x["reason"] == "movement"]
+    assert len(held) >= 3  # the heavier parts: windows held for movement, not read as stress
+    assert min(held) >= 150

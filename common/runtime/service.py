@@ -31,6 +31,7 @@ from typing import Any
 import msgspec
 
 from common.runtime.bus import Bus, BusConfig
+from common.runtime.clock import monotonic
 from common.runtime.config import CommonSettings, read_config, section
 from common.runtime.errors import BusError, ConfigError, InputError
 from common.runtime.lifetime import die_with_supervisor
@@ -142,7 +143,7 @@ async def _periodic(ctx: ServiceContext) -> None:
     next_status = 0.0
     alone_since: float | None = None
     while True:
-        now = time.monotonic()
+        now = monotonic()  # the loop's clock: a lockstep cell's statuses come on its data time
         problem = ctx.bus.isolation()
         if problem is None:
             if ctx.link:

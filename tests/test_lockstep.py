@@ -1,0 +1,67 @@
+"""The lockstep loop (common/runtime/lockstep.py): a cell's clock that is driven, not read. Its time moves
+on only when every task waits for a later instant; work handed to a thread is done at once, in order."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+from common.runtime import lockstep
+from common.runtime.clock import Clock, monotonic
+
+
+def test_time_moves_only_when_every_task_waits_and_then_straight_to_the_next_instant() -> None:
+    seen: list[tuple[str, float]] = []
+
+    async def busy() -> None:
+        loop = asyncio.get_running_loop()
+        before = loop.time()
+        sum(i * i for i in range(200_000))  # computing takes no data time
+        seen.append(("busy", loop.time() - before))
+        await asyncio.sleep(0.5)
+        seen.append(("busy woke", loop.time()))
+
+    async def sleeper() -> None:
+        await asyncio.sleep(3600.0)  # an hour of data time, not waited for
+        seen.append(("hour", asyncio.get_running_loop().time()))
+
+    async def main() -> None:
+        await asyncio.gather(sleeper(), busy())
+
+    lockstep.run(main())
+    assert seen == [("busy", 0.0), ("busy woke", 0.5), ("hour", 3600.0)]
+
+
+def test_work_handed_to_a_thread_is_done_at_once_in_the_loops_own_thread_and_in_order() -> None:
+    order: list[tuple[str, float, bool]] = []
+
+    def work(name: str) -> str:
+        order.append(
+            (name, asyncio.get_event_loop().time(), threading.current_thread() is threading.main_thread())
+        )
+        return name
+
+    async def task(name: str, after_s: float) -> str:
+        await asyncio.sleep(after_s)
+        return await asyncio.to_thread(work, name)
+
+    async def main() -> list[str]:
+        return list(await asyncio.gather(task("late", 2.0), task("early", 1.0)))
+
+    assert lockstep.run(main()) == ["late", "early"]
+    assert order == [("early", 1.0, True), ("late", 2.0, True)]
+
+
+def test_a_driven_clock_is_the_loops_time_from_its_epoch() -> None:
+    clock = Clock(speed=16.0, epoch_ns=1_000_000_000_000, driven=True)
+
+    async def main() -> tuple[int, int, float]:
+        start = clock.now_ns()
+        await clock.sleep(30.0)  # data time, whatever the speed
+        return start, clock.now_ns(), monotonic()
+
+    start, after, mono = lockstep.run(main())
+    assert start == 1_000_000_000_000
+    assert after - start == 30_000_000_000
+    assert mono == 30.0
+    assert clock.wall_s(30.0) == 30.0
