@@ -87,6 +87,47 @@ class _Job:
     future: Future[MotionResult]
 
 
+OK, FAULT, AT_REST = 0, 1, 2  # what one tick's steps came to
+
+
+class _Motion:
+    """One motion's steps, as both loops take them: the next target or the last one held, a braking
+    stop's decelerating steps, and whether the arm has settled. Its counters are the motion's."""
+
+    __slots__ = ("backend", "last", "loop", "sent", "settle_ticks", "source")
+
+    def __init__(self, loop: ServoLoop | LockstepServo, source: Source, settle_ticks: int) -> None:
+        self.loop, self.backend, self.source = loop, loop.backend, source
+        self.last, self.sent, self.settle_ticks = source.last, 0, settle_ticks
+
+    def step(self, steps: int, braking: bool) -> int:
+        """``steps`` controller steps: OK, FAULT (the arm refused one) or AT_REST (a stop is done)."""
+        backend, source = self.backend, self.source
+        for _ in range(steps):
+            if braking:
+                if backend.brake():
+                    return AT_REST
+                continue
+            if not source.done:
+                target = source.next()
+                if target is None:  # it ended at this step: hold the last
+                    target = self.last
+                    self.settle_ticks -= 1
+                else:
+                    self.loop.index = self.sent
+                    self.sent += 1
+                ok = backend.servo(target)
+            else:
+                ok = backend.servo(self.last)
+                self.settle_ticks -= 1
+            if not ok:
+                return FAULT
+        return OK
+
+    def settled(self) -> bool:
+        return self.source.done and (self.settle_ticks <= 0 or self.backend.settled(self.last))
+
+
 class ServoLoop:
     def __init__(
         self,
@@ -194,11 +235,11 @@ class ServoLoop:
             )
 
     def _servo(self, source: Source, settle_ticks: int) -> MotionResult:
-        backend, errors, ring = self.backend, self.errors_ns, self.errors_ns.size
+        errors, ring = self.errors_ns, self.errors_ns.size
+        motion = _Motion(self, source, settle_ticks)
         period, spin, steps, limit = self.period_ns, self.spin_ns, self.steps, self.overrun_limit
         clock, sleep = time.perf_counter_ns, time.sleep
-        last = source.last
-        sent = tick = run_of_overruns = overruns = 0
+        tick = run_of_overruns = overruns = 0
         outcome: Outcome = "done"
         braking = False  # a decelerating stop, paced like any motion
         t0 = clock() + period
@@ -214,30 +255,11 @@ class ServoLoop:
             tick += 1
             if self._stop and not braking:
                 braking, outcome = True, "stopped"
-            ok, at_rest = True, False
-            for _ in range(steps):
-                if braking:
-                    at_rest = backend.brake()
-                    if at_rest:
-                        break
-                elif not source.done:
-                    target = source.next()
-                    if target is None:  # it ended at this step: hold the last
-                        target = last
-                        settle_ticks -= 1
-                    else:
-                        self.index = sent
-                        sent += 1
-                    ok = backend.servo(target)
-                else:
-                    ok = backend.servo(last)
-                    settle_ticks -= 1
-                if not ok:
-                    break
-            if not ok:
+            step = motion.step(steps, braking)
+            if step == FAULT:
                 outcome = "fault"
                 break
-            if at_rest:
+            if step == AT_REST:
                 break
             if clock() > deadline + period:
                 overruns += 1
@@ -246,11 +268,11 @@ class ServoLoop:
                     braking, outcome = True, "overruns"
             else:
                 run_of_overruns = 0
-            if not braking and source.done and (settle_ticks <= 0 or backend.settled(last)):
+            if not braking and motion.settled():
                 break
         self.ticks += tick
         self.overruns += overruns
-        return MotionResult(outcome, sent, tick, overruns)
+        return MotionResult(outcome, motion.sent, tick, overruns)
 
 
 class Servo(Protocol):
@@ -310,8 +332,8 @@ class LockstepServo:
                 self.index = -1
 
     async def _servo(self, source: Source, settle_ticks: int) -> MotionResult:
-        backend, last = self.backend, source.last
-        sent = tick = 0
+        motion = _Motion(self, source, settle_ticks)
+        tick = 0
         outcome: Outcome = "done"
         braking = False
         while True:
@@ -319,35 +341,14 @@ class LockstepServo:
             tick += self.batch
             if self._stop and not braking:
                 braking, outcome = True, "stopped"
-            ok, at_rest = True, False
-            for _ in range(self.batch):
-                if braking:
-                    at_rest = backend.brake()
-                    if at_rest:
-                        break
-                elif not source.done:
-                    target = source.next()
-                    if target is None:
-                        target = last
-                        settle_ticks -= 1
-                    else:
-                        self.index = sent
-                        sent += 1
-                    ok = backend.servo(target)
-                else:
-                    ok = backend.servo(last)
-                    settle_ticks -= 1
-                if not ok:
-                    break
-            if not ok:
+            step = motion.step(self.batch, braking)
+            if step == FAULT:
                 outcome = "fault"
                 break
-            if at_rest:
-                break
-            if not braking and source.done and (settle_ticks <= 0 or backend.settled(last)):
+            if step == AT_REST or (not braking and motion.settled()):
                 break
         self.ticks += tick
-        return MotionResult(outcome, sent, tick, 0)
+        return MotionResult(outcome, motion.sent, tick, 0)
 
 
 def servo_for(
