@@ -27,10 +27,9 @@ from common.runtime.config import CommonSettings, section
 from common.runtime.errors import CadenceError
 from common.runtime.mock_bus import MockBus, MockNetwork
 from common.runtime.service import serve
-from schemas.clock import CellClock
 from schemas.health import ServiceStatus
 from schemas.pareto import ParetoSet
-from schemas.topology import CELL_CLOCK, DEFAULT_CELL, HEALTH, PARETO_SET
+from schemas.topology import DEFAULT_CELL, HEALTH, PARETO_SET
 from services.decision_maker import STATE_FILE
 from services.registry import BY_NAME
 
@@ -77,12 +76,7 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
         served = serve(name, main, common, BusConfig(), settings, stop=stop, install_signals=False, bus=bus)
         services[name] = asyncio.ensure_future(served)
 
-    async with MockBus(DEFAULT_CELL, "demo", network) as bus:
-
-        async def tell_clock(_: object) -> CellClock:
-            return CellClock(t_ns=epoch_ns + round(loop.time() * 1e9), seq=0, epoch_ns=epoch_ns, speed=0.0)
-
-        bus.serve(CELL_CLOCK, tell_clock)
+    async with MockBus(DEFAULT_CELL, "demo", network) as bus:  # no router: nobody joins a lockstep cell
         health = bus.subscribe(HEALTH.at("pareto_store"), maxsize=1)
         with console.status("planning the task's Pareto sets (once; they are stored) …"):
             start("pareto_store")  # it plans what it lacks before the others start, as in the demo
