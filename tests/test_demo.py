@@ -155,8 +155,8 @@ def test_carrying_heavier_parts_steps_k_down_only_without_the_accelerometer(tmp_
     runs = {}
     for acc in (True, False):
         r = subprocess.run(
-            [sys.executable, "-m", "cadence", "demo", "--duration", "480", "--speed", "max", "--out", str(out),
-             "--no-live", "--twin", "tolerance=5", "--twin", f"heavy_from_s={HEAVY[0]}",
+            [sys.executable, "-m", "cadence", "demo", "--duration", "480", "--speed", "max", "--out",
+             str(out), "--no-live", "--twin", "tolerance=5", "--twin", f"heavy_from_s={HEAVY[0]}",
              "--twin", f"heavy_until_s={HEAVY[1]}", "--twin", f"accelerometer={str(acc).lower()}"],
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip
