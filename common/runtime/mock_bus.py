@@ -23,7 +23,7 @@ from typing import Any, cast
 
 import zenoh
 
-from common.runtime.bus import Bus, BusConfig, M, Reply, Request, Subscription, answer
+from common.runtime.bus import Bus, BusConfig, M, Request, Subscription, answer
 from common.runtime.config import CommonSettings
 from common.runtime.node import Node, serve_node
 from common.runtime.service import ServiceContext
@@ -201,9 +201,6 @@ class NodeRun:
         await self.test.until_subscribed(key, timeout)
         self.test.put_raw(key, encode(msg))
         await self.network.settle(timeout)
-
-    async def ask(self, topic: Topic[M], parameters: str = "", timeout: float = 10.0) -> list[Reply[M]]:
-        return await self.test.get(topic, parameters=parameters, timeout=timeout)
 
 
 @contextlib.asynccontextmanager
