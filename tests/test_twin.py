@@ -83,3 +83,33 @@ def test_the_twin_walks_into_the_shared_area_and_out_at_walking_speed() -> None:
     assert np.abs(np.diff(d)).max() <= 1.0 * 0.01 + 1e-9  # never faster than walking
     assert {op.separation(x) for x in (10.0, 60.0)} == {3.5}
     assert Operator(TwinParams(walk_every_s=0.0)).separation(500.0) == TwinParams().far_m
+
+
+def test_exposure_is_the_held_states_time_weighted_mean_over_the_window_however_they_come() -> None:
+    """The window's integrals are kept running (a study asks at every beat); they must equal the plain
+    sum over the held states, whether the states come one by one or in blocks, and when asked for a
+    time between states or before the newest one."""
+    p = TwinParams(seed=3)
+    one, many = Operator(p), Operator(p)
+    rng = np.random.default_rng(0)
+    ts = np.cumsum(rng.uniform(0.0, 0.4, 600))
+    ts[100:103] = ts[100]  # three states at one instant: no acceleration from them
+    qd = rng.normal(0.0, 1.0, (600, 6))
+    for t, v in zip(ts, qd, strict=True):
+        one.observe(float(t), v)
+    for block in np.array_split(np.arange(600), 37):
+        many.observe_all(ts[block], qd[block])
+
+    def direct(t: float) -> float:  # the definition: a zero-order hold, summed over the window
+        lo, speed, accel = t - p.window_s, 0.0, 0.0
+        nxt = [*ts[1:], np.inf]
+        for i, t0 in enumerate(ts):
+            dt = max(0.0, min(nxt[i], t) - max(t0, lo))
+            speed += float(np.linalg.norm(qd[i])) * dt
+            if i and t0 > ts[i - 1] + 1e-3:
+                accel += float(np.linalg.norm(qd[i] - qd[i - 1])) / (t0 - ts[i - 1]) * dt
+        return (speed / p.pace_ref_rad_s + p.accel_weight * accel / p.accel_ref_rad_s2) / p.window_s
+
+    for t in (5.0, 37.3, float(ts[300]), float(ts[300]) + 0.01, float(ts[-1]) - 3.0, float(ts[-1]) + 1.0):
+        assert one.exposure(t) == pytest.approx(direct(t), rel=1e-9, abs=1e-12)
+        assert many.exposure(t) == pytest.approx(direct(t), rel=1e-9, abs=1e-12)

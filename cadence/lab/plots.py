@@ -309,9 +309,12 @@ def subject_figure(sessions: list) -> bytes:
     from common.decision import Params
     from schemas.session import CONDITION_NAMES
 
-    fig, axes = plt.subplots(
-        len(sessions), 1, figsize=(11, 2.9 * len(sessions)), squeeze=False, constrained_layout=True
-    )
+    rows = len(sessions)
+    fig, axes = plt.subplots(rows, 1, figsize=(11, 2.9 * rows), squeeze=False)
+    # fixed margins, in inches: a layout engine draws every figure twice, and a study has one per subject
+    height = 2.9 * rows
+    fig.subplots_adjust(left=0.7 / 11, right=1 - 0.75 / 11, top=1 - 0.35 / height, bottom=0.5 / height,
+                        hspace=0.45)  # fmt: skip
     for ax, s in zip(axes[:, 0], sessions, strict=True):
         t0 = s.info.start_ns
 
@@ -320,12 +323,11 @@ def subject_figure(sessions: list) -> bytes:
 
         cal = s.info.calibration
         p = Params.of(cal.rr_rest_s, 1, cal.sigma_rest_s, cal.rr_stress_offset_s, cal.sigma_stress_s)
-        for w in s.windows:
-            if w.mean_rr_s is None or not s.inside(w.end_ns):
-                continue
-            good = w.quality == "good"
-            ax.plot(minutes(w.end_ns), w.mean_rr_s, "o", ms=4, c="tab:red",
-                    mfc="tab:red" if good else "none")  # fmt: skip
+        shown = [w for w in s.windows if w.mean_rr_s is not None and s.inside(w.end_ns)]
+        for good, face in ((True, "tab:red"), (False, "none")):  # one artist each: a figure per subject
+            mine = [w for w in shown if (w.quality == "good") == good]
+            ax.plot([minutes(w.end_ns) for w in mine], [w.mean_rr_s for w in mine], "o", ms=4,
+                    c="tab:red", mfc=face, ls="none")  # fmt: skip
         for y, what, style in ((float(p.rr_rest), "RR_r", "-"), (float(p.rr_stress), "RR_s", "--"),
                                (float(p.rr_stress_max), "RR_s^max", ":")):  # fmt: skip
             ax.axhline(y, c="0.35", ls=style, lw=0.9)
@@ -333,9 +335,8 @@ def subject_figure(sessions: list) -> bytes:
                         textcoords="offset points", fontsize=7, color="0.3")  # fmt: skip
         ax.set_ylabel("window mean RR [s]", color="tab:red")
         ax.set_xlim(0.0, s.minutes)
-        for c in s.cycles:
-            if s.inside(c.t_ns):
-                ax.axvline(minutes(c.t_ns), ymin=0.0, ymax=0.04, c="0.2", lw=0.8)
+        ends = [minutes(c.t_ns) for c in s.cycles if s.inside(c.t_ns)]
+        ax.vlines(ends, 0.0, 0.04, transform=ax.get_xaxis_transform(), colors="0.2", lw=0.8)
         ax2 = ax.twinx()
         sel = [x for x in s.selections if x.t_ns <= s.end.end_ns]
         if sel:

@@ -112,8 +112,8 @@ def calibrate_twin(subject: Subject, minutes: float, model: Model | None = None)
     makes one: RR_r is measured, not the twin's parameter."""
     op = Operator(subject.twin(model))
     end = minutes * 60.0
-    for x in np.arange(0.0, end + 15.0, 1.0 / OBSERVE_HZ):
-        op.observe(float(x), np.zeros(6))
+    ts = np.arange(0.0, end + 15.0, 1.0 / OBSERVE_HZ)
+    op.observe_all(ts, np.zeros((len(ts), 6)))
     op.advance(end + 15.0)
     iv = intervals(np.array(op.beats_until(end + 15.0)))
     wins = windows(iv, WINDOW_S, 0.0, end)
@@ -172,8 +172,8 @@ def simulate(
 
     def idle(seconds: float) -> None:
         nonlocal t
-        for x in np.arange(t, t + seconds, 1.0 / OBSERVE_HZ):
-            op.observe(float(x), np.zeros(6))
+        ts = np.arange(t, t + seconds, 1.0 / OBSERVE_HZ)
+        op.observe_all(ts, np.zeros((len(ts), 6)))
         t += seconds
 
     def close_windows() -> None:
@@ -203,8 +203,7 @@ def simulate(
                 ks.append(k)
                 used[s.move] = k
                 t_f, qd = moves[(s.move, k)]
-                for i, v in enumerate(qd):
-                    op.observe(t + i / OBSERVE_HZ, v)
+                op.observe_all(t + np.arange(len(qd)) / OBSERVE_HZ, np.asarray(qd, dtype=float))
                 t += t_f
             elif s.wait is not None:
                 idle(s.wait)

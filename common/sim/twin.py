@@ -31,6 +31,7 @@ A simulation model for demos and tests, not a claim about real people. Every par
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from typing import Annotated
@@ -108,6 +109,53 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     walk_stay_s: Annotated[float, _in(0.0, 1e6)] = 4.0
 
 
+class _Held:
+    """Two signals held from one sample to the next (zero-order hold), with their running integrals, so
+    that the integral over a window costs a search, not a sum: the twin asks for it at every beat, and
+    the study simulates hours of beats."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.value: list[tuple[float, float]] = []
+        self.area: list[tuple[float, float]] = []  # the integrals from the first sample kept up to t[i]
+        self.first = 0  # samples before it have left every window that will be asked for
+
+    def extend(self, t: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> None:
+        """Samples in time order, after those held."""
+        values = np.column_stack([a, b])
+        if self.t:
+            steps = np.maximum(0.0, np.diff(t, prepend=self.t[-1]))[:, None]
+            held = np.vstack([self.value[-1], values[:-1]])
+            area = np.add.accumulate(np.vstack([self.area[-1], held * steps]))[1:]
+        else:
+            steps = np.maximum(0.0, np.diff(t))[:, None]
+            area = np.add.accumulate(np.vstack([[0.0, 0.0], values[:-1] * steps]))
+        self.t.extend(t.tolist())
+        self.value.extend(map(tuple, values.tolist()))
+        self.area.extend(map(tuple, area.tolist()))
+
+    def _at(self, x: float) -> tuple[float, float]:
+        """The integrals from the first sample kept up to x."""
+        i = bisect.bisect_right(self.t, x, self.first) - 1
+        if i < self.first:
+            return self.area[self.first]
+        (a, b), (ia, ib), dt = self.value[i], self.area[i], x - self.t[i]
+        return ia + a * dt, ib + b * dt
+
+    def integrals(self, lo: float, hi: float) -> tuple[float, float]:
+        """The integrals over [lo, hi], from the first sample on. Windows only move forward: samples
+        before the one in force at lo are dropped."""
+        while len(self.t) - self.first > 1 and self.t[self.first + 1] <= lo:
+            self.first += 1
+        if self.first > 4096:  # bounded: a shift is hours of states
+            del self.t[: self.first], self.value[: self.first], self.area[: self.first]
+            self.first = 0
+        if len(self.t) == self.first:
+            return 0.0, 0.0
+        (a0, b0), (a1, b1) = self._at(max(lo, self.t[self.first])), self._at(hi)
+        return max(0.0, a1 - a0), max(0.0, b1 - b0)
+
+
 class Operator:
     """The twin's state on data time (seconds from its start)."""
 
@@ -121,7 +169,7 @@ class Operator:
         self._acc_rng = np.random.default_rng([p.seed, 1])
         self._acc_sent = 0  # accelerometer samples given (acc_until)
         self.t = 0.0  # data time up to which the state is integrated
-        self._obs: deque[tuple[float, float, float]] = deque()  # (t, speed, accel)
+        self._obs = _Held()  # the robot's speed and acceleration as the operator saw them
         self._last_qd: tuple[float, NDArray[np.float64]] | None = None
         self._noise = 0.0
         self.beats: list[float] = [0.3]  # R-peak times, s
@@ -132,26 +180,25 @@ class Operator:
 
     def observe(self, t: float, qd: NDArray[np.float64]) -> None:
         """One robot state (joint velocities) at data time t."""
-        accel = 0.0
-        if self._last_qd is not None and t > self._last_qd[0] + 1e-3:  # no rate from two near-equal times
-            accel = float(np.linalg.norm(qd - self._last_qd[1])) / (t - self._last_qd[0])
-        self._last_qd = (t, np.asarray(qd, dtype=float))
-        self._obs.append((t, float(np.linalg.norm(qd)), accel))
+        self.observe_all(np.array([t], dtype=float), np.asarray(qd, dtype=float)[None, :])
+
+    def observe_all(self, t: NDArray[np.float64], qd: NDArray[np.float64]) -> None:
+        """Robot states in time order (rows of joint velocities), as ``observe`` would take them one by
+        one: a simulated study observes hundreds of thousands."""
+        if not len(t):
+            return
+        before = self._last_qd if self._last_qd is not None else (t[0], qd[0])
+        dt = np.diff(t, prepend=before[0])
+        step = np.linalg.norm(np.diff(qd, axis=0, prepend=before[1][None, :]), axis=1)
+        quick = dt <= 1e-3  # no rate from two near-equal times
+        accel = np.where(quick, 0.0, step / np.where(quick, 1.0, dt))
+        self._last_qd = (float(t[-1]), qd[-1])
+        self._obs.extend(t, np.linalg.norm(qd, axis=1), accel)
 
     def exposure(self, t: float) -> float:
         """u at time t: time-weighted means over the last window (a zero-order hold between states)."""
         p = self.p
-        while len(self._obs) > 1 and self._obs[1][0] <= t - p.window_s:
-            self._obs.popleft()
-        if not self._obs:
-            return 0.0
-        lo = t - p.window_s
-        speed = accel = 0.0
-        obs = list(self._obs)
-        for (t0, s0, a0), nxt in zip(obs, [*obs[1:], (t, 0.0, 0.0)], strict=True):
-            dt = max(0.0, min(nxt[0], t) - max(t0, lo))
-            speed += s0 * dt
-            accel += a0 * dt
+        speed, accel = self._obs.integrals(t - p.window_s, t)
         return (speed / p.pace_ref_rad_s + p.accel_weight * accel / p.accel_ref_rad_s2) / p.window_s
 
     def handle(self, t: float, duration_s: float) -> None:
