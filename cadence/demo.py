@@ -90,6 +90,7 @@ class DemoOptions:
     listen: str | None = None  # the router's endpoint; a free loopback port when None
     twin: tuple[tuple[str, bool | int | float], ...] = ()  # TwinParams fields over the demo's own
     decide: str = "paper"  # the decision maker's mode: "paper" (Alg. 1) or "personal" (DESIGN §7)
+    processes: bool = False  # every service its own process on the wall clock (cadence/demo.py), not lockstep
 
 
 def twin_table(opts: DemoOptions) -> dict[str, bool | int | float]:
@@ -281,7 +282,9 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
 
 def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, Supervised]) -> Group:
     shown = min(now_s, opts.duration_s)  # the run ends at its duration, whatever a late message says
-    t = Table(title=f"cadence demo — data time {shown:6.0f} / {opts.duration_s:.0f} s at {opts.speed:g}×")
+    pace = (f"at {opts.speed:g}×" if opts.processes else f"lockstep, at most {opts.speed:g}×"
+            if math.isfinite(opts.speed) else "lockstep, as fast as the host allows")  # fmt: skip
+    t = Table(title=f"cadence demo — data time {shown:6.0f} / {opts.duration_s:.0f} s {pace}")
     for col in ("mean RR (last window)", "movement", "k", "cycles", "last cycle", "errors", "restarts"):
         t.add_column(col, justify="right")
     w = obs.windows[-1] if obs.windows else None
@@ -460,6 +463,7 @@ def summarise(
         "duration_s": round(ran_s, 3),
         "cut_short": cut_short,
         "speed": opts.speed if math.isfinite(opts.speed) else "max",
+        "cell": "processes" if opts.processes else "lockstep",
         "cycles": cycles,
         "productivity_per_min": round(cycles / minutes, 3),
         "errors": obs.errors,

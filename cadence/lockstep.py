@@ -1,27 +1,31 @@
-"""`cadence demo --speed max`: the whole cell in one process on a driven clock (common/runtime/lockstep.py).
+"""`cadence demo`: the whole cell in one process on a driven clock (common/runtime/lockstep.py).
 
-The wall-clock demo runs every service as its own process at ``--speed`` times real time, so a busy host
-changes what the simulated cell does: an arm whose samples come late moves later, a twin that is
-starved sees the robot later, and the same seed tells another story. Here the services are the same
-code, nodes on the in-memory bus of one event loop whose clock is data time: time moves on only when
-every node waits for a later instant. The run is a function of its options and seed: the same windows,
-selections, cycles and errors on every host, loaded or idle, as fast as the host allows.
+Every service's own code runs as a node on the in-memory bus of one event loop whose clock is data time:
+time moves on only when every node waits for a later instant. The run is a function of its options and
+seed: the same windows, selections, cycles and errors on every host, loaded or idle. ``--speed X`` is a
+ceiling (data time never runs ahead of X times the wall time), ``--speed max`` none: as fast as the host
+allows.
 
-What it does not have: processes to kill (``--kill``), a router to join, a live view of wall time.
-The services log into ``DIR/logs/cell.log``.
+The process cell (``cadence demo --processes``, cadence/demo.py) runs every service as its own process,
+at ``--speed`` times the wall clock, the way systemd runs them: a busy host changes what it does (an arm
+whose samples come late moves later, a starved twin sees the robot later). It has what this one does
+not: processes to kill (``--kill``) and a router to join (``--listen``). Here the services log into
+``DIR/logs/cell.log``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.live import Live
 
-from cadence.demo import ORDER, DemoOptions, Observed, demo_settings, summarise, watch
+from cadence.demo import ORDER, DemoOptions, Observed, demo_settings, live_view, summarise, watch
 from common.runtime.bus import BusConfig
 from common.runtime.config import CommonSettings, section
 from common.runtime.errors import CadenceError
@@ -33,7 +37,7 @@ from schemas.topology import DEFAULT_CELL, HEALTH, PARETO_SET
 from services.decision_maker import STATE_FILE
 from services.registry import BY_NAME
 
-PROGRESS_EVERY_S = 60.0  # data time between the lines that say how far the run is
+TICK_S = 1.0  # data time between two looks at the services and the live view
 
 
 def settings_of(name: str, opts: DemoOptions) -> Any:
@@ -45,7 +49,7 @@ def settings_of(name: str, opts: DemoOptions) -> Any:
 async def run_lockstep(opts: DemoOptions, console: Console) -> dict[str, Any]:
     """The demo's run, in lockstep; its summary (written with the report, as the wall-clock demo's)."""
     if opts.kill:
-        raise CadenceError("--kill SIGKILLs a service's process: the lockstep cell (--speed max) has none")
+        raise CadenceError("--kill SIGKILLs a service's process: the lockstep cell has none (--processes)")
     data, logs = opts.out / "data", opts.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     (data / STATE_FILE).unlink(missing_ok=True)  # a demo starts from a rested operator
@@ -95,18 +99,7 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
         for name in ORDER:
             if name != "pareto_store":
                 start(name)
-        wall = time.monotonic()
-        while (now := loop.time() - began) < opts.duration_s - 1e-6:  # to the float's precision
-            await asyncio.sleep(min(PROGRESS_EVERY_S, opts.duration_s - now))
-            for name, task in services.items():
-                if task.done():  # a service that ends in a lockstep cell is a fault of the run: said now
-                    task.result()
-                    raise CadenceError(f"{name} ended at {loop.time() - began:.0f} s of data time")
-            if opts.live:
-                k = obs.selections[-1]["k"] if obs.selections else "—"
-                done_s, wall_s = loop.time() - began, time.monotonic() - wall
-                console.print(f"data time {done_s:6.0f} / {opts.duration_s:.0f} s, {obs.n_cycles} cycles, "
-                              f"k {k}, {wall_s:.1f} s of wall time")  # fmt: skip
+        cut_short_s = await _until_done(opts, console, obs, services, began)
         sets: dict[str, ParetoSet] = {}
         for pid in {p for c in obs.cycles for p in c.k_per_path}:
             replies = await bus.get(PARETO_SET.at(pid), timeout=5.0)
@@ -123,4 +116,39 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
             console.print(f"{name} failed: {r!r}", style="red")
     if missing:
         console.print(f"no status came from {', '.join(sorted(missing))}", style="red")
-    return summarise(obs, opts, opts.duration_s, False, dict.fromkeys(services, 0), exit_codes, sets, console)
+    ran_s = cut_short_s if cut_short_s is not None else opts.duration_s
+    restarts = dict.fromkeys(services, 0)
+    return summarise(obs, opts, ran_s, cut_short_s is not None, restarts, exit_codes, sets, console)
+
+
+async def _until_done(
+    opts: DemoOptions, console: Console, obs: Observed, services: dict[str, asyncio.Task[None]], began: float
+) -> float | None:
+    """Data time passes until the run's duration, with the live view; the data time run when Ctrl-C
+    ended it early (None when it did not)."""
+    loop = asyncio.get_running_loop()
+    live = Live(console=console, refresh_per_second=4, transient=False) if opts.live else None
+    shown = -math.inf  # wall time the view was last drawn: at most 4 times a second, however fast the run
+    try:
+        if live is not None:
+            live.start()
+        while (now := loop.time() - began) < opts.duration_s - 1e-6:  # to the float's precision
+            await asyncio.sleep(min(TICK_S, opts.duration_s - now))
+            for name, task in services.items():
+                if task.done():  # a service that ends in a lockstep cell is a fault of the run: said now
+                    task.result()
+                    raise CadenceError(f"{name} ended at {loop.time() - began:.0f} s of data time")
+            if live is not None and time.monotonic() - shown >= 0.25:
+                shown = time.monotonic()
+                live.update(live_view(obs, opts, loop.time() - began, {}))
+        return None
+    except asyncio.CancelledError:  # Ctrl-C: what ran is still summarised and reported, as cut short
+        if (me := asyncio.current_task()) is not None:
+            me.uncancel()
+        ran_s = loop.time() - began
+        console.print(f"interrupted after {ran_s:.0f} s of data time: stopping, then the summary")
+        return ran_s
+    finally:
+        if live is not None:
+            live.update(live_view(obs, opts, loop.time() - began, {}))
+            live.stop()

@@ -208,3 +208,16 @@ def test_a_demo_speed_every_service_would_refuse_is_refused_at_the_command() -> 
                           text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2
     assert "--speed: must be at most 1000" in proc.stderr
+
+
+def test_what_only_the_process_cell_has_is_refused_in_lockstep_with_the_flag_that_gives_it() -> None:
+    """The lockstep demo has no process to kill and no router to join: said at the command, not found out
+    from a run that ignored them."""
+    proc = subprocess.run([sys.executable, "-m", "cadence", "demo", "--kill", "executor@30", "--listen",
+                           "tcp/127.0.0.1:7447"], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2
+    assert "--kill and --listen need --processes" in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "cadence", "demo", "--processes", "--speed", "max"],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2
+    assert "--speed max runs the cell in lockstep" in proc.stderr

@@ -1,6 +1,7 @@
-"""The closed loop with every service as its own process (`cadence demo`), fast: a fast robot stresses
-the operator twin, k goes down; relief brings it up again. Killing the HRV analyser and the decision
-maker mid-run: the executor keeps cycling, the supervisor restarts them, the run completes."""
+"""The closed loop (`cadence demo`): in lockstep, one story on every host, with the walks, the heavier
+parts and the stress; with every service as its own process (`--processes`), fast: a fast robot
+stresses the operator twin, k goes down; relief brings it up again. Killing the HRV analyser and the
+decision maker mid-run: the executor keeps cycling, the supervisor restarts them, the run completes."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import itertools
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,7 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
             "-m",
             "cadence",
             "demo",
+            "--processes",
             "--duration",
             "420",
             "--speed",
@@ -220,8 +223,8 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
 
     out, endpoint = tmp_path / "demo", f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cadence", "demo", "--duration", "600", "--speed", "16", "--out", str(out),
-         "--no-live", "--listen", endpoint, "--twin", "walk_every_s=0"],
+        [sys.executable, "-m", "cadence", "demo", "--processes", "--duration", "600", "--speed", "16",
+         "--out", str(out), "--no-live", "--listen", endpoint, "--twin", "walk_every_s=0"],
         start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
 
@@ -312,3 +315,45 @@ def test_the_lockstep_cell_tells_one_story_idle_or_loaded_with_walks_movement_an
     held = [x["t_s"] for x in s["selections"] if x["reason"] == "movement"]
     assert len(held) >= 3  # the heavier parts: windows held for movement, not read as stress
     assert min(held) >= 100
+
+
+def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports_what_ran(
+    tmp_path: Path, example_sets: Path
+) -> None:
+    """`cadence demo`, the lockstep cell at its default ceiling: Ctrl-C reaches the one process, which
+    stops every service, then writes the summary and the report of what ran, as the process cell does."""
+    import os
+    import shutil
+    import signal
+
+    out = tmp_path / "demo"
+    (out / "data").mkdir(parents=True)
+    shutil.copy(example_sets, out / "data" / "pareto.sqlite")  # planned once per test run
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", "--duration", "600", "--speed", "16", "--out", str(out),
+         "--no-live"],
+        start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    log = out / "logs" / "cell.log"
+    try:
+        deadline = time.monotonic() + 240
+        # a decided window (the second comes after the first cycle's end): each service has said something
+        while not (log.exists() and log.read_text().count("decision_maker: window to") >= 2):
+            assert proc.poll() is None, proc.communicate()[0]
+            assert time.monotonic() < deadline, "no decided window in the cell's log within 240 s"
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal sends it
+        said, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, said
+    s = json.loads((out / "summary.json").read_text())
+    assert s["cut_short"] is True
+    assert s["cell"] == "lockstep"
+    assert 30 <= s["duration_s"] < 600
+    assert s["cycles"] >= 1
+    assert len(s["windows"]) >= 2
+    assert set(s["exit_codes"].values()) == {0}
+    assert (out / "index.html").exists()
+    assert "(cut short)" in said
+    assert "interrupted after" in said

@@ -95,8 +95,8 @@ def demo_cell(tmp_path: Path) -> tuple[subprocess.Popen[str], str]:
     """The demo cell, running until the test ends it, once its router listens; and that endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     demo = subprocess.Popen(
-        [sys.executable, "-m", "cadence", "demo", "--duration", "3000", "--speed", SPEED, "--no-live",
-         "--listen", endpoint, "--out", str(tmp_path / "demo"),
+        [sys.executable, "-m", "cadence", "demo", "--processes", "--duration", "3000", "--speed", SPEED,
+         "--no-live", "--listen", endpoint, "--out", str(tmp_path / "demo"),
          # the twin stays at its place: these sessions are about the study, and a minute-long one has
          # no room for the walks into the shared area that hold the arm (tests/test_scaling.py has those)
          "--twin", "walk_every_s=0"],

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 
 from common.runtime import lockstep
 from common.runtime.clock import Clock, monotonic
@@ -65,3 +66,25 @@ def test_a_driven_clock_is_the_loops_time_from_its_epoch() -> None:
     assert after - start == 30_000_000_000
     assert mono == 30.0
     assert clock.wall_s(30.0) == 30.0
+
+
+def test_under_a_ceiling_data_time_never_runs_ahead_of_the_wall_and_the_run_is_the_same() -> None:
+    """``--speed 20``: the loop waits for the wall where it is ahead of it. A slow host can only put it
+    further behind, so the bound below holds on any host, and what happens is the run without one."""
+
+    async def ticking(record: list[tuple[float, float]], start: float) -> list[float]:
+        loop, seen = asyncio.get_running_loop(), []
+        for i in range(20):
+            await asyncio.sleep(0.05 * (1 + i % 3))
+            record.append((loop.time(), time.monotonic() - start))
+            seen.append(loop.time())
+        return seen
+
+    free = lockstep.run(ticking([], time.monotonic()))
+    record: list[tuple[float, float]] = []
+    start = time.monotonic()
+    capped = lockstep.run(ticking(record, start), ceiling=20.0)
+    assert capped == free
+    for data_s, wall_s in record:
+        assert data_s <= 20.0 * wall_s + 1e-9, (data_s, wall_s)
+    assert time.monotonic() - start >= free[-1] / 20.0

@@ -120,6 +120,7 @@ def test_a_killed_store_or_demo_leaves_no_process_behind(tmp_path: Path) -> None
             "-m",
             "cadence",
             "demo",
+            "--processes",
             "--duration",
             "600",
             "--no-live",

@@ -21,21 +21,27 @@ cli = Commands()
 @cli.command(
     "demo",
     help="the whole closed loop on this machine: operator twin, every service, simulated UR16e",
-    description="Opens a Zenoh router on loopback, plans the task if its sets are not stored, starts "
-    "every service as its own process (ECG gateway with the operator twin, HRV analyser, Pareto store, "
-    "decision maker, executor with the simulated UR16e), restarts any that dies, shows a live view, "
-    "stops them all with SIGTERM and writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time), "
-    "DIR/cycles.png (joint positions of the first and last cycle), DIR/pareto.png (the sets) and "
-    "DIR/index.html (the report that shows them).",
+    description="Plans the task if its sets are not stored, then runs every service (the operator twin as "
+    "the ECG source, HRV analyser, Pareto store, decision maker, executor with the simulated UR16e) on one "
+    "driven clock, in lockstep: the same run on every host, loaded or idle, at most --speed times real "
+    "time. --processes runs each service as its own process on the wall clock instead, with a Zenoh "
+    "router on loopback to join and a supervisor that restarts any that dies. Shows a live view and "
+    "writes DIR/summary.json, DIR/rr_k.png (mean RR and k over time), DIR/cycles.png (joint positions of "
+    "the first and last cycle), DIR/pareto.png (the sets) and DIR/index.html (the report that shows them).",
 )
 @arg("--duration", type=positive_float, default=600.0, help="data time to run, s (default 600)")
 @arg(
     "--speed",
     type=speed,
     default=8.0,
-    help="data time per wall time, above 0 and at most 1000 (default 8); max: the whole cell in one process "
-    "on a driven clock, as fast as the host allows, the same run on every host (the services' own code; "
-    "no processes, router or --kill)",
+    help="data time per wall time, above 0 and at most 1000 (default 8): a ceiling in lockstep, the "
+    "processes' clock with --processes; max: as fast as the host allows (lockstep only)",
+)
+@arg(
+    "--processes",
+    action="store_true",
+    help="every service its own process, on the wall clock times --speed, as systemd runs them (what "
+    "--kill and --listen need): a busy host changes what such a run does",
 )
 @arg("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
 @arg("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
@@ -45,10 +51,15 @@ cli = Commands()
     action="append",
     default=[],
     metavar="SERVICE@S",
-    help="SIGKILL a service at data time S (repeatable): shows the supervisor restarting it",
+    help="with --processes: SIGKILL a service at data time S (repeatable): shows the supervisor "
+    "restarting it",
 )
 @arg("--no-live", action="store_true", help="no live view (for logs and CI)")
-@arg("--listen", metavar="ENDPOINT", help="the router's endpoint (default: a free port on 127.0.0.1)")
+@arg(
+    "--listen",
+    metavar="ENDPOINT",
+    help="with --processes: the router's endpoint (default: a free port on 127.0.0.1)",
+)
 @arg(
     "--twin",
     action="append",
@@ -68,6 +79,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from cadence.demo import ORDER, DemoOptions, run_demo, summary_table, twin_table
     from common.sim.twin import TwinParams
 
+    if not args.processes:
+        needs = [flag for flag, given in (("--kill", args.kill), ("--listen", args.listen)) if given]
+        if needs:
+            raise InputError(f"{' and '.join(needs)} need --processes: the lockstep cell has no processes "
+                             "to kill and no router to join")  # fmt: skip
+    elif math.isinf(args.speed):
+        raise InputError("--speed max runs the cell in lockstep: --processes run on the wall clock, "
+                         "give them a number (at most 1000)")  # fmt: skip
     kills = []
     for spec in args.kill:
         name, _, at = spec.partition("@")
@@ -94,19 +113,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
         listen=args.listen,
         twin=tuple(twin),
         decide=args.decide,
+        processes=args.processes,
     )
     try:  # a parameter the twin does not have, or out of its range: said now, not by a service at start
         msgspec.convert(twin_table(opts), TwinParams)
     except msgspec.ValidationError as exc:
         raise InputError(f"--twin: {exc}") from None
     t0 = time.monotonic()
-    if math.isinf(opts.speed):
+    if opts.processes:
+        summary = asyncio.run(run_demo(opts, out))
+    else:
         from cadence.lockstep import run_lockstep
         from common.runtime import lockstep
 
-        summary = lockstep.run(run_lockstep(opts, out))
-    else:
-        summary = asyncio.run(run_demo(opts, out))
+        ceiling = opts.speed if math.isfinite(opts.speed) else None
+        summary = lockstep.run(run_lockstep(opts, out), ceiling)
     wall = time.monotonic() - t0
     out.print(summary_table(summary, wall))
     out.print(

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import selectors
+import time
 from collections.abc import Callable, Coroutine
 from concurrent.futures import Executor, Future
 from typing import Any, TypeVar, TypeVarTuple, Unpack
@@ -29,7 +30,8 @@ Ts = TypeVarTuple("Ts")
 
 class _Jumping(selectors.DefaultSelector):
     """The loop's selector: when nothing is ready, the wait for the next timer is not waited, it is
-    skipped: the loop's clock moves to that timer at once."""
+    skipped: the loop's clock moves to that timer at once, or, under a ceiling, once the wall clock
+    allows it."""
 
     def __init__(self, loop: LockstepLoop) -> None:
         super().__init__()
@@ -39,17 +41,30 @@ class _Jumping(selectors.DefaultSelector):
         ready: list[tuple[selectors.SelectorKey, int]] = super().select(0)
         if ready or timeout == 0:
             return ready
-        if timeout is None:  # no timer at all: only the outside (another thread) can wake the loop
+        if timeout is None:  # no timer at all: only the outside (a signal, a thread) can wake the loop
             return super().select(None)
-        self.loop.now += timeout
+        due = self.loop.now + timeout
+        if self.loop.ceiling is not None:
+            wait = self.loop.wall0 + due / self.loop.ceiling - time.monotonic()
+            if wait > 0 and (ready := super().select(wait)):  # a signal: it is handled at this instant
+                return ready
+        self.loop.now = due
         return []
 
 
 class LockstepLoop(asyncio.SelectorEventLoop):
-    """An event loop whose ``time()`` is the cell's data time, from 0 (seconds)."""
+    """An event loop whose ``time()`` is the cell's data time, from 0 (seconds).
 
-    def __init__(self) -> None:
+    ``ceiling``: data time never runs ahead of ``ceiling`` times the wall time since the start
+    (``--speed``: a run at a pace a person can follow). Where it is ahead, the loop waits for the wall;
+    behind (a slow host, a stall), it runs as fast as it can. A ceiling changes when a run happens,
+    never what it does.
+    """
+
+    def __init__(self, ceiling: float | None = None) -> None:
         self.now = 0.0
+        self.ceiling = ceiling
+        self.wall0 = time.monotonic()
         super().__init__(_Jumping(self))
 
     def time(self) -> float:
@@ -81,13 +96,8 @@ class Inline(Executor):
         return done
 
 
-def run(main: Coroutine[Any, Any, T]) -> T:
-    """``main`` on a fresh lockstep loop, as ``asyncio.run`` runs it on a wall-clock one."""
-    loop = LockstepLoop()
-    try:
-        asyncio.set_event_loop(loop)
-        return loop.run_until_complete(main)
-    finally:
-        asyncio.set_event_loop(None)
-        loop.run_until_complete(loop.shutdown_asyncgens())
-        loop.close()
+def run(main: Coroutine[Any, Any, T], ceiling: float | None = None) -> T:
+    """``main`` on a fresh lockstep loop, as ``asyncio.run`` runs it on a wall-clock one: Ctrl-C cancels
+    it, so that it can still say what ran (``LockstepLoop`` for ``ceiling``)."""
+    with asyncio.Runner(loop_factory=lambda: LockstepLoop(ceiling)) as runner:
+        return runner.run(main)
