@@ -134,10 +134,8 @@ def concrete(topic: Topic) -> str:
 async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_input(
     tmp_path: Path, endpoint: str
 ) -> None:
-    T0 = now_ns() - 100 * S  # 100 s of ECG that have happened: nothing from the future is taken
-    base = T0 - 290 * S  # the decision maker's windows: near the clock, off the analyser's grid (T0 + 30 k)
-    honest_chunks = chunks(synthetic_ecg(100), T0)
-    n_hostile = len(honest_chunks) * HOSTILE_PER_CHUNK
+    ecg = synthetic_ecg(100)
+    n_hostile = len(chunks(ecg, 0)) * HOSTILE_PER_CHUNK
     drawn = draw(
         st.sampled_from(FUZZED).flatmap(lambda t: st.tuples(st.just(t), mutations(t.message))), n_hostile
     )
@@ -157,19 +155,21 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
         except (msgspec.ValidationError, msgspec.DecodeError):
             return True
 
-    honest_windows = [
-        HrvWindow(
-            t_ns=base + (i + 1) * 30 * S,
-            seq=i,
-            start_ns=base + i * 30 * S,
-            end_ns=base + (i + 1) * 30 * S,
-            mean_rr_s=rr,
-            n_beats=37,
-            excluded_fraction=0.0,
-            quality="good",
-        )
-        for i, rr in enumerate([0.85, 0.81, 0.75, 0.70, 0.62, 0.80, 0.85, 0.90, 0.84, 0.86])
-    ]
+    def honest_windows_from(base: int) -> list[HrvWindow]:
+        return [
+            HrvWindow(
+                t_ns=base + (i + 1) * 30 * S,
+                seq=i,
+                start_ns=base + i * 30 * S,
+                end_ns=base + (i + 1) * 30 * S,
+                mean_rr_s=rr,
+                n_beats=37,
+                excluded_fraction=0.0,
+                quality="good",
+            )
+            for i, rr in enumerate([0.85, 0.81, 0.75, 0.70, 0.62, 0.80, 0.85, 0.90, 0.84, 0.86])
+        ]
+
     task_file = tmp_path / "shuttle.toml"
     task_file.write_text(TASK)
 
@@ -209,6 +209,13 @@ async def test_hostile_messages_on_every_key_leave_every_service_serving_honest_
         statuses = bus.subscribe("cadence/*/health/*", ServiceStatus, maxsize=10_000)
         async with asyncio.timeout(10):
             _, selection = await anext(sels)  # the decision maker's state: what valid copies repeat
+        # the honest stream, stamped now that the cell is up (a loaded host can take many seconds to get
+        # here): 100 s of ECG that have happened, nothing from the future, and not so old that an
+        # analyser with no stream yet takes it for a stray from another time (far_from_clock)
+        T0 = now_ns() - 100 * S
+        honest_chunks = chunks(ecg, T0)
+        # the decision maker's windows: near the clock, off the analyser's grid (T0 + 30 k)
+        honest_windows = honest_windows_from(T0 - 290 * S)
         rss_before = rss_mb()
 
         sent: Counter[str] = Counter()
