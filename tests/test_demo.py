@@ -1,7 +1,7 @@
-"""The closed loop (`cadence demo`): in lockstep, one story on every host, with the walks, the heavier
-parts and the stress; with every service as its own process (`--processes`), fast: a fast robot
-stresses the operator twin, k goes down; relief brings it up again. Killing the HRV analyser and the
-decision maker mid-run: the executor keeps cycling, the supervisor restarts them, the run completes."""
+"""The closed loop (`cadence demo`). In lockstep, one story on every host: the twin's walks, its heavier
+parts, the stress the robot's pace puts on it (k goes down) and the relief (k goes up again), the same
+idle or loaded. With every service as its own process (`--processes`): killing the HRV analyser and the
+decision maker mid-run, the executor keeps cycling, the supervisor restarts them, the run completes."""
 
 from __future__ import annotations
 
@@ -39,10 +39,6 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
             f"hrv_analyser@{KILL_HRV}",
             "--kill",
             f"decision_maker@{KILL_DECISION}",
-            # the twin's walks into the shared area hold the arm a tenth of the time: on a loaded host
-            # that kept this twin below stress in 3 runs of 5 (the walks: the test below)
-            "--twin",
-            "walk_every_s=0",
         ],
         capture_output=True,
         text=True,
@@ -50,16 +46,10 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     )
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((out / "summary.json").read_text())
-
-    # stress from the fast initial pace lowers k; relief raises it again
+    # (what the pace does to the twin is held in lockstep, below, where a loaded host cannot change it:
+    # here, with the twin's walks, a loaded host once kept it below stress in 3 runs of 5)
     sel = s["selections"]
     assert sel[0]["reason"] == "initial"
-    first_down = next(i for i, x in enumerate(sel) if x["delta"] < 0)
-    # (on a loaded machine the robot can fall behind its pace at first, so k may rise before it falls)
-    assert sel[first_down]["reason"] == "stress"
-    assert any(x["delta"] > 0 and x["reason"] == "rest" for x in sel[first_down + 1 :])
-    assert s["k_steps_down"] >= 1
-    assert s["k_steps_up"] >= 1
 
     # both killed services came back, and nothing else needed to
     assert s["restarts"] == {
@@ -226,7 +216,7 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
         # an hour of data time, 225 s of wall: the run is still going when the test, on a loaded host,
         # has seen what it waits for (600 s, 38 s of wall, once ended before the test's Ctrl-C)
         [sys.executable, "-m", "cadence", "demo", "--processes", "--duration", "3600", "--speed", "16",
-         "--out", str(out), "--no-live", "--listen", endpoint, "--twin", "walk_every_s=0"],
+         "--out", str(out), "--no-live", "--listen", endpoint],
         start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
 
@@ -278,17 +268,17 @@ def test_the_lockstep_cell_tells_one_story_idle_or_loaded_with_walks_movement_an
     tmp_path: Path, example_sets: Path
 ) -> None:
     """`cadence demo --speed max`: every service's own code on one driven clock (issue 39). The twin walks
-    in now and then, carries heavier parts for a stretch and is stressed by the robot's pace, all in one
-    run; the run beside a busy loop gives the same windows, selections, cycles, errors and events as the
-    one before it, only later. (Beside two busy loops and a storm of short processes too, README; here one
-    loop, so as not to starve the tests the other worker runs meanwhile.)"""
+    in now and then, carries heavier parts for a stretch, is stressed by the robot's pace and then
+    relieved, all in one run; the run beside a busy loop gives the same windows, selections, cycles,
+    errors and events as the one before it, only later. (Beside two busy loops and a storm of short
+    processes too, README; here one loop, so as not to starve the tests the other worker runs meanwhile.)"""
     import shutil
 
     def run(out: Path) -> dict:
         (out / "data").mkdir(parents=True)
         shutil.copy(example_sets, out / "data" / "pareto.sqlite")  # planned once per test run
         r = subprocess.run(
-            [sys.executable, "-m", "cadence", "demo", "--speed", "max", "--duration", "300", "--no-live",
+            [sys.executable, "-m", "cadence", "demo", "--speed", "max", "--duration", "420", "--no-live",
              "--out", str(out), "--twin", "heavy_from_s=100", "--twin", "heavy_until_s=200"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
@@ -314,6 +304,8 @@ def test_the_lockstep_cell_tells_one_story_idle_or_loaded_with_walks_movement_an
     down = [x for x in s["selections"] if x["delta"] < 0]
     assert down
     assert down[0]["reason"] == "stress"  # the pace stressed the twin
+    # and relief brought k up again, after the heavier parts
+    assert any(x["delta"] > 0 and x["reason"] == "rest" and x["t_s"] > 200 for x in s["selections"])
     held = [x["t_s"] for x in s["selections"] if x["reason"] == "movement"]
     assert len(held) >= 3  # the heavier parts: windows held for movement, not read as stress
     assert min(held) >= 100
