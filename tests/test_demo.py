@@ -204,8 +204,6 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
     """A terminal's Ctrl-C reaches the whole foreground group: before, the demo wrote no summary and no
     report, and the services got the SIGINT too (then the demo's SIGTERM: two signals, an unclean exit)."""
     import asyncio
-    import os
-    import signal
 
     from common.runtime.bus import Bus, BusConfig
     from schemas import CycleReport, Selection
@@ -240,19 +238,14 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
 
     try:
         asyncio.run(first_cycle())
-        os.killpg(proc.pid, signal.SIGINT)  # as a terminal sends it
-        said, _ = proc.communicate(timeout=120)
+        _, s = ctrl_c(proc, out)
     finally:
         proc.kill()
-    assert proc.returncode == 130, said
-    s = json.loads((out / "summary.json").read_text())
-    assert s["cut_short"] is True
     assert 0 < s["duration_s"] < 3600
     assert s["cycles"] >= 1
     assert set(s["exit_codes"].values()) == {0}
     assert set(s["restarts"].values()) == {0}
     assert (out / "index.html").exists()
-    assert "(cut short)" in said
     # each service's log says what it did (the store's, the analyser's and the decision maker's once held
     # one line each: "stopping")
     logs = {name: (out / "logs" / f"{name}.log").read_text() for name in ("pareto_store", "hrv_analyser",
@@ -316,9 +309,7 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
 ) -> None:
     """`cadence demo`, the lockstep cell at its default ceiling: Ctrl-C reaches the one process, which
     stops every service, then writes the summary and the report of what ran, as the process cell does."""
-    import os
     import shutil
-    import signal
 
     out = tmp_path / "demo"
     (out / "data").mkdir(parents=True)
@@ -338,18 +329,28 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
             assert proc.poll() is None, proc.communicate()[0]
             assert time.monotonic() < deadline, "no decided window in the cell's log within 240 s"
             time.sleep(0.2)
-        os.killpg(proc.pid, signal.SIGINT)  # as a terminal sends it
-        said, _ = proc.communicate(timeout=120)
+        said, s = ctrl_c(proc, out)
     finally:
         proc.kill()
-    assert proc.returncode == 130, said
-    s = json.loads((out / "summary.json").read_text())
-    assert s["cut_short"] is True
     assert s["cell"] == "lockstep"
     assert 30 <= s["duration_s"] < 3600
     assert s["cycles"] >= 1
     assert len(s["windows"]) >= 2
     assert set(s["exit_codes"].values()) == {0}
     assert (out / "index.html").exists()
-    assert "(cut short)" in said
     assert "interrupted after" in said
+
+
+def ctrl_c(proc: subprocess.Popen[str], out: Path) -> tuple[str, dict]:
+    """Ctrl-C, as a terminal sends it to the demo's process group; what the demo said and its summary,
+    which says that the run was cut short (exit code 130, as a shell reports an interrupted command)."""
+    import os
+    import signal
+
+    os.killpg(proc.pid, signal.SIGINT)
+    said, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 130, said
+    s = json.loads((out / "summary.json").read_text())
+    assert s["cut_short"] is True
+    assert "(cut short)" in said
+    return said, s
