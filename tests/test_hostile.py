@@ -7,15 +7,17 @@ import asyncio
 import json
 import logging
 import sqlite3
+import time
 from pathlib import Path
 from typing import Any
 
 import msgspec
+import numpy as np
 import pytest
 
 from common.hrv.calibration import CALIBRATION_FILE
 from common.runtime.bus import Bus
-from schemas import EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection
+from schemas import AccChunk, EcgChunk, HrvWindow, ParetoSet, RobotEvent, Selection
 from schemas.topology import encode
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
@@ -107,10 +109,12 @@ async def test_impossible_windows_never_move_k_and_the_next_honest_window_is_ans
 
 @pytest.mark.asyncio
 async def test_a_run_of_windows_from_the_decision_makers_future_is_refused_and_the_honest_ones_answered(
-    tmp_path: Path, cell: Cell
+    tmp_path: Path, zenoh_cell: Cell
 ) -> None:
     """20 contiguous relaxed windows up to 600 s ahead of its clock once moved the decision maker's time
-    line, the honest windows after them were dropped as duplicates, and k stood for ten minutes."""
+    line, the honest windows after them were dropped as duplicates, and k stood for ten minutes. Over
+    real Zenoh: what a planting sender would use."""
+    cell = zenoh_cell
     honest = [window(i, rr) for i, rr in enumerate([0.85, 0.81, 0.75, 0.70, 0.80])]
     ahead = now_ns() + 5 * S  # 20 contiguous 30 s windows, ending 35 s to 605 s ahead of the clock
     planted = [
@@ -280,6 +284,54 @@ async def test_a_hostile_first_chunk_does_not_lock_the_honest_stream_out(tmp_pat
     # the honest stream's first chunk is near the clock and starts the stream
     assert [w.start_ns for w in got] == [T0, T0 + 30 * S]
     assert all(w.quality == "good" for w in got)
+
+
+@pytest.mark.asyncio
+async def test_planted_accelerometer_ahead_of_the_clock_is_refused_counted_said_once_and_the_honest_goes_on(
+    tmp_path: Path, zenoh_cell: Cell, caplog: pytest.LogCaptureFixture
+) -> None:
+    """1,000 s of ±16 g planted in under a second once made the next windows read 5,399–7,833 mg against
+    an honest 14 mg, and held Alg. 1 for movement for 17 minutes. Over real Zenoh, into the service: the
+    planted chunks are refused as from its future and counted, and the honest stream's windows carry the
+    honest movement."""
+    T0 = now_ns() - 100 * S  # 100 s that have happened
+    rng = np.random.default_rng(3)
+
+    def acc(i: int, t_ns: int, loud: bool) -> AccChunk:
+        if loud:
+            x = [16_000, -16_000] * 12 + [16_000]
+            return AccChunk(t_ns=t_ns, seq=i, fs_hz=25.0, x_mg=x, y_mg=x, z_mg=x)
+        still = rng.normal(0.0, 8.0, (3, 25)).round().astype(int) + np.array([[0], [0], [1000]])
+        x, y, z = still.tolist()
+        return AccChunk(t_ns=t_ns, seq=i, fs_hz=25.0, x_mg=x, y_mg=y, z_mg=z)
+
+    honest = [acc(i, T0 + i * S, loud=False) for i in range(100)]
+    now = now_ns()
+    planted = [acc(1000 + j, now + (1 + j) * S, loud=True) for j in range(1000)]
+    began = time.monotonic()
+    async with zenoh_cell.session() as bus:
+        svc = zenoh_cell.service("hrv_analyser", analyser_main, AnalyserSettings(), tmp_path)
+        await svc.listening(bus, "ecg/samples", "ecg/acc")
+        key = bus.key("ecg/acc")
+        for i, c in enumerate(honest):
+            put(bus, key, c, block=True)
+            if i == 30:  # in the middle of the honest stream, as fast as a sender can
+                for p in planted:
+                    put(bus, key, p, block=True)
+        got = await windows_of(bus, chunks(synthetic_ecg(100), T0), {}, 3)
+        status = await status_of(
+            bus, "hrv_analyser", lambda s: s.counters.get("rejected/ecg/acc/ahead", 0) >= len(planted)
+        )
+        await svc.close()
+    assert [(w.start_ns - T0) // S for w in got] == [0, 30, 60]
+    for w in got:
+        assert w.movement_mg is not None
+        assert w.movement_mg < 100  # the honest, still wearer's
+    assert status.counters["rejected/ecg/acc/ahead"] == len(planted)
+    assert status.counters["acc_chunks"] == len(honest)  # every honest chunk taken
+    # the run of refusals is said once, then at most once per 10 s of it (however slow the host)
+    said = [r for r in caplog.records if "(ahead) on cadence/cell1/ecg/acc" in r.getMessage()]
+    assert 1 <= len(said) <= 1 + (time.monotonic() - began) // 10
 
 
 # --- the Pareto store's database ------------------------------------------------------------------
