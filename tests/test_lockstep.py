@@ -69,22 +69,33 @@ def test_a_driven_clock_is_the_loops_time_from_its_epoch() -> None:
 
 
 def test_under_a_ceiling_data_time_never_runs_ahead_of_the_wall_and_the_run_is_the_same() -> None:
-    """``--speed 20``: the loop waits for the wall where it is ahead of it. A slow host can only put it
-    further behind, so the bound below holds on any host, and what happens is the run without one."""
+    """``--speed 20``: the loop waits for the wall where it is ahead of it, and where it fell behind (here
+    a stall of 0.2 s, 4 s of data time at 20×) it goes on from there, with no burst to catch up. A slow
+    host can only put it further behind, so the bounds below hold on any host, and what happens is the
+    run without a ceiling."""
 
-    async def ticking(record: list[tuple[float, float]], start: float) -> list[float]:
+    Record = list[tuple[float, float]]
+
+    async def ticking(record: Record, start: float, stall: dict[str, float]) -> list[float]:
         loop, seen = asyncio.get_running_loop(), []
-        for i in range(20):
+        for i in range(30):
             await asyncio.sleep(0.05 * (1 + i % 3))
             record.append((loop.time(), time.monotonic() - start))
             seen.append(loop.time())
+            if i == 9:
+                time.sleep(0.2)  # the host stalls
+                stall["data_s"], stall["wall_s"] = loop.time(), time.monotonic() - start
         return seen
 
-    free = lockstep.run(ticking([], time.monotonic()))
+    free = lockstep.run(ticking([], time.monotonic(), {}))
     record: list[tuple[float, float]] = []
+    stall: dict[str, float] = {}
     start = time.monotonic()
-    capped = lockstep.run(ticking(record, start), ceiling=20.0)
+    capped = lockstep.run(ticking(record, start, stall), ceiling=20.0)
     assert capped == free
     for data_s, wall_s in record:
         assert data_s <= 20.0 * wall_s + 1e-9, (data_s, wall_s)
+    # after the stall: one step at once (the loop was behind), then at the ceiling from there
+    last_data_s, last_wall_s = record[-1]
+    assert last_data_s - stall["data_s"] - 0.15 <= 20.0 * (last_wall_s - stall["wall_s"]) + 1e-9
     assert time.monotonic() - start >= free[-1] / 20.0

@@ -44,10 +44,13 @@ class _Jumping(selectors.DefaultSelector):
         if timeout is None:  # no timer at all: only the outside (a signal, a thread) can wake the loop
             return super().select(None)
         due = self.loop.now + timeout
-        if self.loop.ceiling is not None:
-            wait = self.loop.wall0 + due / self.loop.ceiling - time.monotonic()
+        if (ceiling := self.loop.ceiling) is not None:
+            wait = self.loop.wall0 + due / ceiling - time.monotonic()
             if wait > 0 and (ready := super().select(wait)):  # a signal: it is handled at this instant
                 return ready
+            # reached late (behind, or a wait that overslept): from here on at the ceiling, with no burst
+            # to catch up
+            self.loop.wall0 = max(self.loop.wall0, time.monotonic() - due / ceiling)
         self.loop.now = due
         return []
 
@@ -55,10 +58,10 @@ class _Jumping(selectors.DefaultSelector):
 class LockstepLoop(asyncio.SelectorEventLoop):
     """An event loop whose ``time()`` is the cell's data time, from 0 (seconds).
 
-    ``ceiling``: data time never runs ahead of ``ceiling`` times the wall time since the start
-    (``--speed``: a run at a pace a person can follow). Where it is ahead, the loop waits for the wall;
-    behind (a slow host, a stall), it runs as fast as it can. A ceiling changes when a run happens,
-    never what it does.
+    ``ceiling``: data time runs at most ``ceiling`` times as fast as the wall clock (``--speed``: a run
+    at a pace a person can follow). Where it is ahead, the loop waits for the wall; where it fell behind
+    (planning, a slow host, a stall), it goes on from there at the ceiling, with no burst to catch up.
+    A ceiling changes when a run happens, never what it does.
     """
 
     def __init__(self, ceiling: float | None = None) -> None:
