@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from tests.support.cell import CELL
+from tests.support.cli import as_in_a_terminal
 
 KILL_HRV, KILL_DECISION = 150.0, 260.0
 
@@ -211,11 +212,12 @@ def test_ctrl_c_stops_the_demo_in_order_and_still_summarises_and_reports_what_ra
 
     out, endpoint = tmp_path / "demo", f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen(
-        # an hour of data time, 225 s of wall: the run is still going when the test, on a loaded host,
-        # has seen what it waits for (600 s, 38 s of wall, once ended before the test's Ctrl-C)
+        # an hour of data time, 225 s of wall: the run is still going when the test, however loaded the
+        # host, has seen what it waits for
         [sys.executable, "-m", "cadence", "demo", "--processes", "--duration", "3600", "--speed", "16",
          "--out", str(out), "--no-live", "--listen", endpoint],
-        start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True,
     )  # fmt: skip
 
     async def first_cycle() -> None:
@@ -315,11 +317,12 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
     (out / "data").mkdir(parents=True)
     shutil.copy(example_sets, out / "data" / "pareto.sqlite")  # planned once per test run
     proc = subprocess.Popen(
-        # an hour of data time at most 8× (at least 450 s of wall): still going when the test, on a loaded
-        # host, has seen what it waits for
+        # an hour of data time at most 8× (at least 450 s of wall): still going when the test, however
+        # loaded the host, has seen what it waits for
         [sys.executable, "-m", "cadence", "demo", "--duration", "3600", "--speed", "8", "--out", str(out),
          "--no-live"],
-        start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True,
     )  # fmt: skip
     log = out / "logs" / "cell.log"
     try:
