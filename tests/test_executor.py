@@ -422,7 +422,9 @@ async def test_a_second_source_far_a_same_name_publisher_far_or_a_future_stamp_n
             await held(states)
             table["rogue"] = ("scanner:front", 100.0, 0.0)  # the scanner's own name, far
             seen = await held(states)
-            assert {s.separation_m for s in seen} == {0.6}
+            # the scanner's 0.6 m, never the far readings; none (stale: a loaded host starves the test's
+            # sender, not the rule) holds the arm too, as held() checked
+            assert {s.separation_m for s in seen} - {None} == {0.6}
             del table["twin"], table["rogue"]
             table["front"] = ("scanner:front", 5.0, 0.0)
             await next_of(states, lambda s: s.scale == 1.0, timeout=10)
