@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from pathlib import Path
 
 import pytest
 
+from common.runtime.lockstep import LockstepLoop
 from common.runtime.mock_bus import MockNetwork
 from tests.support.cell import Cell, free_port
 from tests.support.decisions import _base_now  # noqa: F401 (autouse: each test's windows end near its now)
@@ -40,6 +43,15 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: item.path.name not in CELL_FILES)
 
 
+def pytest_asyncio_loop_factories(config: pytest.Config, item: pytest.Item) -> dict[str, object]:
+    """A test marked ``lockstep`` runs on a lockstep loop: its cell's clock is driven, so what it checks
+    cannot depend on how fast the host is (a servo loop's deadlines, a sender's rate, a switch planned in
+    time); every other test on asyncio's own loop."""
+    if item.get_closest_marker("lockstep") is not None:
+        return {"lockstep": LockstepLoop}
+    return {"asyncio": asyncio.new_event_loop}
+
+
 @pytest.fixture
 def example_task_path() -> Path:
     return EXAMPLE_TASK
@@ -59,8 +71,12 @@ def endpoint() -> str:
 
 
 @pytest.fixture
-def cell() -> Cell:
-    """A cell on the in-memory bus: a node's logic with its real ports, decoding and graph checks."""
+def cell(request: pytest.FixtureRequest) -> Cell:
+    """A cell on the in-memory bus: a node's logic with its real ports, decoding and graph checks. In a
+    test marked ``lockstep`` its services read the lockstep loop's data time, from now to the second, and
+    the test stamps its own messages with ``Cell.now_ns``."""
+    if request.node.get_closest_marker("lockstep") is not None:
+        return Cell(network=MockNetwork(), epoch_ns=time.time_ns() // 1_000_000_000 * 1_000_000_000)
     return Cell(network=MockNetwork())
 
 

@@ -138,6 +138,7 @@ async def _drained(sub) -> list[RobotEvent]:
         out.append(msg)
 
 
+@pytest.mark.lockstep
 async def test_a_resume_when_nothing_is_stopped_is_refused_with_the_state(
     task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
@@ -175,6 +176,7 @@ async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_of
 
 
 @pytest.mark.parametrize("policy", ["last", "wait"])
+@pytest.mark.lockstep
 async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_initial_k(
     policy: str, task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
@@ -227,6 +229,7 @@ async def test_a_restart_with_the_decision_maker_unreachable_never_moves_at_init
         assert report.k_per_path == {"there": 3, "back": 3}
 
 
+@pytest.mark.lockstep
 async def test_with_nothing_on_file_the_sim_waits_then_moves_at_the_first_selection(
     task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
@@ -341,6 +344,7 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
     assert any("external force" in line for line in emu.lines)
 
 
+@pytest.mark.lockstep
 async def test_a_cycle_cut_short_by_a_restart_is_said(task_file: Path, tmp_path: Path, cell: Cell) -> None:
     async with cell.session() as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", cell)

@@ -7,8 +7,11 @@ import asyncio
 import threading
 import time
 
+import pytest
+
 from common.runtime import lockstep
 from common.runtime.clock import Clock, monotonic
+from tests.support.cell import Cell
 
 
 def test_time_moves_only_when_every_task_waits_and_then_straight_to_the_next_instant() -> None:
@@ -99,3 +102,18 @@ def test_under_a_ceiling_data_time_never_runs_ahead_of_the_wall_and_the_run_is_t
     last_data_s, last_wall_s = record[-1]
     assert last_data_s - stall["data_s"] - 0.15 <= 20.0 * (last_wall_s - stall["wall_s"]) + 1e-9
     assert time.monotonic() - start >= free[-1] / 20.0
+
+
+@pytest.mark.lockstep
+@pytest.mark.asyncio
+async def test_a_test_marked_lockstep_runs_on_a_lockstep_loop_and_its_cell_stamps_data_time(
+    cell: Cell,
+) -> None:
+    """The harness of the executor's separation tests (tests/conftest.py): an hour of the cell's data time
+    passes in no wall time, and the test's own stamps follow it, from now to the second."""
+    assert isinstance(asyncio.get_running_loop(), lockstep.LockstepLoop)
+    assert abs(cell.now_ns() - time.time_ns()) < 2e9
+    before, wall = cell.now_ns(), time.monotonic()
+    await asyncio.sleep(3600.0)
+    assert cell.now_ns() - before == 3600 * 10**9
+    assert time.monotonic() - wall < 60

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from common.runtime.bus import Bus, BusConfig
+from common.runtime.clock import Clock
 from common.runtime.mock_bus import MockBus, MockNetwork
 from schemas import ServiceStatus
 from schemas.topology import DEFAULT_CELL
@@ -50,6 +51,7 @@ class InProcessService:
         cell: str = DEFAULT_CELL,
         epoch_ns: int | None = None,
         network: MockNetwork | None = None,
+        lockstep: bool = False,
     ) -> None:
         import asyncio
 
@@ -68,7 +70,7 @@ class InProcessService:
         # services of one cell share it (``epoch_ns``), as a demo's do
         epoch = epoch_ns if epoch_ns is not None else time.time_ns() if speed != 1.0 else None
         common = CommonSettings(
-            cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed, epoch_ns=epoch
+            cell=cell, data_dir=str(data), status_period_s=0.1, speed=speed, epoch_ns=epoch, lockstep=lockstep
         )
         self.task = asyncio.ensure_future(
             serve(
@@ -149,6 +151,13 @@ class Cell:
     name: str = DEFAULT_CELL
     endpoint: str | None = None
     network: MockNetwork | None = None
+    epoch_ns: int | None = None  # a lockstep cell's (in-memory only): its data time is epoch + loop time
+
+    def now_ns(self) -> int:
+        """Data time for the test's own messages: the cell's driven clock in lockstep, else the wall's."""
+        if self.epoch_ns is not None:
+            return Clock(epoch_ns=self.epoch_ns, driven=True).now_ns()
+        return time.time_ns()
 
     @contextlib.asynccontextmanager
     async def session(self) -> AsyncIterator[Bus]:
@@ -162,6 +171,8 @@ class Cell:
 
     def service(self, name: str, main, settings: object, data: Path, **options) -> InProcessService:
         """A service of this cell, started now in the test's event loop."""
+        if self.epoch_ns is not None:
+            options |= {"lockstep": True, "epoch_ns": self.epoch_ns}
         return InProcessService(name, main, settings, data, self.endpoint, cell=self.name,
                                 network=self.network, **options)  # fmt: skip
 
