@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import subprocess
 import sys
 import time
@@ -68,21 +69,21 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
         e["kind"] == "state" and e["to"] == "waiting_for_selection" and e["t_s"] > started
         for e in s["events"]
     )
-    # the robot went on cycling while each was down and restarting: a cycle ended within twice the
-    # longest cycle of the run away from the kills. A cycle's length is the twin's as much as the robot's
-    # (its walks, its errors): from 21 s to 91 s in one loaded run. A fixed 30 s failed 1 run in 5 under
-    # load, twice the median cycle 1 in 15, when the twin's slow cycles came early and its quick ones late.
-    fired_s = [e["t_s"] for e in s["events"] if e["kind"] == "kill"]
-    spans = [(end - took, end) for end, took in zip(ends, s["cycle_times_s"], strict=True)]
-    within = 2 * max(b - a for a, b in spans if not any(a <= k <= b for k in fired_s))
     # the kills as the demo fired them (data time): on a loaded machine the demo's clock reaches the
     # planned time late, so the planned times say nothing of when the services were down
     fired = {e["message"]: e["t_s"] for e in s["events"] if e["kind"] == "kill"}
     assert set(fired) == {"SIGKILL hrv_analyser", "SIGKILL decision_maker"}, fired
     assert fired["SIGKILL hrv_analyser"] >= KILL_HRV
     assert fired["SIGKILL decision_maker"] >= KILL_DECISION
-    for kill in fired.values():
-        assert any(kill < t < kill + within for t in ends)
+    # the robot went on cycling while each was down and restarting: a cycle ended after each kill, before
+    # the next one or the run's end. How soon is not asked here: on the wall clock at 16x a cycle is the
+    # host's as much as the cell's (a loaded host's late separation readings hold the arm, as they
+    # should; cycles of 20 to 100 s in one run), and bounds drawn from the run's other cycles failed 1
+    # loaded run in 20. That the executor moves with neither service there is held in lockstep
+    # (tests/test_executor*.py: selections from the test, a restart with the decision maker unreachable).
+    kills = sorted(fired.values())
+    for kill, after in itertools.pairwise([*kills, math.inf]):
+        assert any(kill < t < after for t in ends), (fired, list(zip(ends, s["cycle_times_s"], strict=True)))
     # the restarted analyser windows again
     assert any(w["end_s"] > fired["SIGKILL hrv_analyser"] + 40 for w in s["windows"])
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
