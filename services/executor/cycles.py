@@ -129,6 +129,7 @@ class Cycles:
         self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last path ended with
         self.switching: asyncio.Task[None] | None = None
         self.unwritten: str | None = None  # what could not be written (a full disk), while it cannot
+        self.held_unwritten = False  # the arm held for it: said once, apart from the first refusal
         self.writes: set[asyncio.Task[bool]] = set()  # records written in the background
 
     def load(self) -> None:
@@ -271,12 +272,17 @@ class Cycles:
             except OSError as exc:
                 if self.unwritten is None:
                     self.unwritten = f"cannot write {self.store.path}: {exc.strerror or exc}"
-                    then = "holding the arm still until it can" if hold else "going on without it"
-                    self.safety.event("refused" if hold else "info", f"{self.unwritten}; {then}")
                     self.ctx.detail = "; ".join([*self.notes, self.unwritten])
                     self.ctx.counters["write_errors"] += 1
+                    if not hold:
+                        self.safety.event("info", f"{self.unwritten}; going on without it")
                 if not hold:
                     return True
+                # a disk that first refused a write the arm did not wait for (a selection received while
+                # it moved) was said as going on: the hold that follows is news, said once too
+                if not self.held_unwritten:
+                    self.held_unwritten = True
+                    self.safety.event("refused", f"{self.unwritten}; holding the arm still until it can")
                 if self.safety.motion.state is State.READY:
                     self.safety.fire(Event.REFUSE, self.unwritten)
                 await first_of(asyncio.sleep(2.0), self.ctx.stop.wait())
@@ -285,7 +291,7 @@ class Cycles:
                 continue
             if self.unwritten is not None:
                 self.safety.event("info", f"{self.store.path} written again: going on")
-                self.unwritten, self.ctx.detail = None, "; ".join(self.notes)
+                self.unwritten, self.held_unwritten, self.ctx.detail = None, False, "; ".join(self.notes)
                 self.safety.ready()
             return True
 
