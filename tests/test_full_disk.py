@@ -78,9 +78,9 @@ async def cached_sets(bus: Bus, task_file: Path, data: Path) -> None:
         (cache / f"{pid}.msgpack").write_bytes(encode(s))
 
 
-# In lockstep: the executor's writes (in a worker thread on the wall clock) run at the instant they are
-# asked for, so the disk fills between two of them, never during one. Filled beside a write in progress,
-# the page the write's rename frees let every later write through: no refusal (1 CI run in about 20).
+# The disk fills while no write is in flight: before the start, or while the arm waits, in lockstep (where
+# the executor's writes run at once, in the loop's thread). Filled beside a write in a worker thread, the
+# page that write's rename freed let every later write through: no refusal, and the test timed out (CI).
 @pytest.mark.lockstep
 @pytest.mark.asyncio
 async def test_the_executor_holds_the_arm_on_a_full_disk_and_goes_on_by_itself_when_space_returns(
@@ -125,8 +125,8 @@ async def test_the_executor_holds_the_arm_on_a_full_disk_and_goes_on_by_itself_w
 async def test_a_hold_for_a_full_disk_is_said_when_the_disk_first_refused_a_write_the_arm_did_not_wait_for(
     task_file: Path, tmp_path: Path, cell: Cell, disk: Disk
 ) -> None:
-    """A selection received while the arm waits is kept going on without it; the next path's record is
-    one the arm waits for. Before: the hold went unsaid, the events said only "going on without it"."""
+    """A selection received while the arm waits is written without holding the arm (on a full disk: "going
+    on without it"); the next path's record is one the arm waits for. Before: the hold went unsaid."""
     async with cell.session() as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
