@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import math
 import subprocess
 import sys
 import time
@@ -75,19 +74,21 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert set(fired) == {"SIGKILL hrv_analyser", "SIGKILL decision_maker"}, fired
     assert fired["SIGKILL hrv_analyser"] >= KILL_HRV
     assert fired["SIGKILL decision_maker"] >= KILL_DECISION
-    # the robot went on cycling while each was down and restarting: a cycle ended after each kill, before
-    # the next one or the run's end. How soon is not asked here: on the wall clock at 16x a cycle is the
-    # host's as much as the cell's (a loaded host's late separation readings hold the arm, as they
-    # should; cycles of 20 to 100 s in one run), and bounds drawn from the run's other cycles failed 1
-    # loaded run in 20. That the executor moves with neither service there is held in lockstep
-    # (tests/test_executor*.py: selections from the test, a restart with the decision maker unreachable).
-    kills = sorted(fired.values())
-    for kill, after in itertools.pairwise([*kills, math.inf]):
-        assert any(kill < t < after for t in ends), (fired, list(zip(ends, s["cycle_times_s"], strict=True)))
+    # the robot went on cycling after the kills: a cycle ended after the last one, before the run's end.
+    # Not between the kills, nor how soon, nor how many: in the process cell each service's data time is
+    # its wall clock at 16x, and a loaded host's late separation readings hold the arm, as they should, so
+    # a cycle's length is the host's as much as the cell's (20 to 100 s; once a first cycle of 232 s that
+    # spanned both kills, 1265 servo overruns in one path). Never waiting for a selection (above) is what
+    # says the robot did not wait on the killed services; that the executor moves with neither of them
+    # is held in lockstep (tests/test_executor*.py: selections from the test, a restart with the decision
+    # maker unreachable), where the host's speed changes nothing.
+    assert any(t > max(fired.values()) for t in ends), (
+        fired,
+        list(zip(ends, s["cycle_times_s"], strict=True)),
+    )
     # the restarted analyser windows again
     assert any(w["end_s"] > fired["SIGKILL hrv_analyser"] + 40 for w in s["windows"])
     assert [x["reason"] for x in sel].count("initial") == 1  # the decision maker reloaded its k
-    assert s["cycles"] >= 5
     assert len(ends) == s["cycles"]
     assert len(s["error_times_s"]) == s["errors"]  # the twin's errors, marked on rr_k.png
     for fig in ("rr_k.png", "cycles.png", "pareto.png"):
