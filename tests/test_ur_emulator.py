@@ -20,7 +20,7 @@ import pytest
 
 from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
-from services.executor.backends import RobotUnavailable, UrRtdeBackend
+from services.executor.backends import UrRtdeBackend
 from services.executor.servo import ServoLoop
 from tests.support.cell import Cell
 from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, check_bench_executor_output, free_loopback
@@ -122,27 +122,6 @@ def test_the_watchdog_stops_the_program_when_the_executor_stalls(
     assert "control script stopped" in backend.fault()
     backend.reset_fault()  # reconnects, uploads the script again
     assert backend.fault() == ""
-
-
-def test_a_control_script_not_seen_running_is_uploaded_once_more_then_said(
-    emulator: EmulatorProcess, backend: UrRtdeBackend
-) -> None:
-    """ur_rtde gives up on a script not seen running within 5 s (a busy controller host; a CB3 ignores the
-    first script after a released stop). Before: one such upload failed a reset (the watchdog test, in 1
-    loaded suite run: "Failed to start control script")."""
-    started = [line for line in emulator.lines if "program running" in line]
-    emulator.say("drop-script")
-    emulator.wait_for_line("will not start")
-    backend.reconnect()  # the first upload is taken and never started, the second runs
-    assert backend.fault() == ""
-    assert "not started" in emulator.wait_for_line("not started")
-    assert len([line for line in emulator.lines if "program running" in line]) == len(started) + 1
-
-    for _ in range(2):  # twice: said, not tried for ever
-        emulator.say("drop-script")
-    emulator.wait_for_line("will not start", nth=3)
-    with pytest.raises(RobotUnavailable, match=r"Failed to start control script.*\(uploaded twice\)"):
-        backend.reconnect()
 
 
 @pytest.mark.bench

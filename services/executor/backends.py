@@ -8,7 +8,6 @@ thread of the service (they block: moveJ waits for the motion, connecting waits 
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
 from collections.abc import Sequence
 from typing import Any, Protocol, cast
@@ -23,8 +22,6 @@ from common.trajectory.task import Task
 from services.executor.settings import Settings
 
 Array = NDArray[np.float64]
-
-log = logging.getLogger("cadence.executor")
 
 
 class RobotUnavailable(CadenceError):
@@ -150,9 +147,6 @@ class SimBackend:
         self.arm.digital_out = (self.arm.digital_out | bit) if on else (self.arm.digital_out & ~bit)
 
 
-SCRIPT_NOT_STARTED = "Failed to start control script"  # ur_rtde's words when the script was not seen running
-
-
 class UrRtdeBackend:
     """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
     every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
@@ -187,24 +181,15 @@ class UrRtdeBackend:
         self._inputs = 0
 
     def connect(self) -> None:
-        """A control script uploaded but not seen running within ur_rtde's 5 s (a busy controller host; a
-        CB3 ignores the first script after a released stop) is uploaded once more before the controller
-        is said to be unavailable: what people at UR cells do by hand, so a resume that would have failed
-        once goes through, and one that fails twice is said."""
         import rtde_control
         import rtde_receive
 
-        for attempt in (1, 2):
-            try:
-                self._r = rtde_receive.RTDEReceiveInterface(self.host, 500.0)
-                self._c = rtde_control.RTDEControlInterface(self.host, 500.0)
-                break
-            except RuntimeError as exc:
-                self.close()
-                if attempt == 2 or SCRIPT_NOT_STARTED not in str(exc):
-                    tried = " (uploaded twice)" if attempt == 2 else ""
-                    raise RobotUnavailable(f"UR controller at {self.host}: {exc}{tried}") from None
-                log.warning("UR controller at %s: %s; uploading the control script again", self.host, exc)
+        try:
+            self._r = rtde_receive.RTDEReceiveInterface(self.host, 500.0)
+            self._c = rtde_control.RTDEControlInterface(self.host, 500.0)
+        except RuntimeError as exc:
+            self.close()
+            raise RobotUnavailable(f"UR controller at {self.host}: {exc}") from None
         self._lost = ""
         self._watchdog = False
 

@@ -7,8 +7,6 @@ dashboard's ``unlock protective stop`` clears (and not within 5 s of it). A line
 standard input sets (clears) standard digital input N, as a button wired to the controller would: what the
 executor reads as an operator's signal (a task step's ``input = N``). A line ``estop`` presses and releases
 the emergency stop: the program ends, the RTDE clients are dropped and none is taken for ``--restart-s``.
-A line ``drop-script`` makes it take the next control script uploaded and never start it, as a CB3 does
-with the first script after a released protective stop.
 An RTDE client that stops reading for ``--stall-s`` (10 s, as a real controller) is dropped.
 """
 
@@ -27,18 +25,12 @@ from services.ur_emulator.server import Emulator
 
 
 def read_inputs(controller: Controller, emulator: Emulator) -> None:
-    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs; ``estop``;
-    ``drop-script``: the next control script uploaded is taken and never started."""
+    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs; ``estop``."""
     for line in sys.stdin:
         parts = line.split()
         if parts == ["estop"]:
             emulator.emergency_stop()
             print("emergency stop: RTDE restarting", flush=True)
-            continue
-        if parts == ["drop-script"]:
-            with controller.lock:
-                controller.scripts_to_drop += 1
-            print("the next control script uploaded will not start", flush=True)
             continue
         if len(parts) == 3 and parts[0] == "di" and parts[1].isdecimal() and parts[2] in ("0", "1"):
             n = int(parts[1])
@@ -48,9 +40,7 @@ def read_inputs(controller: Controller, emulator: Emulator) -> None:
                     controller.digital_in = bits | (int(parts[2]) << n)
                 print(f"digital input {n} {'on' if parts[2] == '1' else 'off'}", flush=True)
                 continue
-        print(
-            f"ignored {line.strip()!r}: expected 'di N 0|1' with N 0–7, 'estop' or 'drop-script'", flush=True
-        )
+        print(f"ignored {line.strip()!r}: expected 'di N 0|1' with N 0–7", flush=True)
 
 
 def run(argv: list[str] | None = None) -> int:

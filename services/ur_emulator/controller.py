@@ -57,16 +57,11 @@ class Controller:
         self.log: list[str] = []  # what happened, for the operator's terminal and the tests
         self.fault_since = 0.0  # when the current protective stop began (monotonic)
         self._faulted = False
-        self.scripts_to_drop = 0  # uploads taken and never started (``drop-script`` on stdin)
 
     # --- from the sockets ---------------------------------------------------------------------------
 
     def load_script(self, text: str) -> None:
         with self.lock:
-            if self.scripts_to_drop:  # as a CB3 just released from a stop, or a controller too busy
-                self.scripts_to_drop -= 1
-                self.log.append(f"script uploaded ({len(text)} bytes), not started")
-                return
             self.runtime_state = PLAYING
             self._running = None
             self.watchdog_hz = 0.0

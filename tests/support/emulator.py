@@ -60,15 +60,14 @@ class EmulatorProcess:
             self.proc.kill()
             raise RuntimeError(f"the emulator did not start: {self.lines}")
 
-    def wait_for_line(self, text: str, timeout: float = 10.0, nth: int = 1) -> str:
-        """The ``nth`` line the emulator printed with ``text`` in it, once it is there."""
+    def wait_for_line(self, text: str, timeout: float = 10.0) -> str:
         end = time.monotonic() + timeout
         while time.monotonic() < end:
-            found = [line for line in self.lines if text in line]
-            if len(found) >= nth:
-                return found[nth - 1]
+            for line in self.lines:
+                if text in line:
+                    return line
             time.sleep(0.02)  # polling the reader thread's list; bounded by the timeout
-        raise AssertionError(f"no line {nth} with {text!r} in {self.lines}")
+        raise AssertionError(f"no line with {text!r} in {self.lines}")
 
     def say(self, line: str) -> None:
         """A line on the emulator's standard input (``estop``, ``di N 1``)."""
