@@ -31,7 +31,7 @@ from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from tests.support.cell import CELL, Cell, put
-from tests.support.executor import SPEED, TASK, next_of, sim_settings, store_serving
+from tests.support.executor import SPEED, TASK, cached_sets, next_of, sim_settings, store_serving
 
 pytestmark = pytest.mark.asyncio
 
@@ -144,13 +144,10 @@ async def test_with_the_store_down_cached_sets_run_and_a_tampered_one_is_refused
 ) -> None:
     task = load_task(task_file)
     cache = tmp_path / "ex" / "executor"
-    cache.mkdir(parents=True)
     async with cell.session() as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
-        sets = {pid: (await bus.get(bus.key(f"pareto/{pid}"), ParetoSet))[0].message for pid in task.paths}
+        sets = await cached_sets(bus, task_file, tmp_path / "ex")
         await store.close()  # the store is down from here on
-        for pid, s in sets.items():
-            (cache / f"{pid}.msgpack").write_bytes(encode(s))
 
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file)

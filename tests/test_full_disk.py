@@ -18,9 +18,8 @@ import pytest
 from rich.console import Console
 
 from cadence.demo import keep_summary
-from common.runtime.bus import Bus
 from common.trajectory.task import load_task
-from schemas import CycleReport, OperatorSignal, ParetoSet, RobotEvent, RobotState, Selection, ServiceStatus
+from schemas import CycleReport, OperatorSignal, RobotEvent, RobotState, Selection, ServiceStatus
 from schemas.topology import encode
 from services.decision_maker.__main__ import Settings as DecisionSettings
 from services.decision_maker.__main__ import main as decision_main
@@ -28,7 +27,7 @@ from services.decision_maker.state import STATE_FILE
 from services.executor.__main__ import main as executor_main
 from tests.support.cell import CELL, Cell, put, status_of
 from tests.support.decisions import answer, window
-from tests.support.executor import TASK, next_of, sim_settings, store_serving
+from tests.support.executor import TASK, cached_sets, next_of, sim_settings, store_serving
 
 
 class Disk:
@@ -66,16 +65,6 @@ def task_file(tmp_path: Path) -> Path:
     p = tmp_path / "shuttle.toml"
     p.write_text(TASK)
     return p
-
-
-async def cached_sets(bus: Bus, task_file: Path, data: Path) -> None:
-    """The task's sets in the executor's cache under ``data``, as a run before this one left them: with
-    them there, a start on a full disk writes nothing before its first cycle's record."""
-    cache = data / "executor"
-    cache.mkdir(parents=True)
-    for pid in load_task(task_file).paths:
-        s = (await bus.get(bus.key(f"pareto/{pid}"), ParetoSet))[0].message
-        (cache / f"{pid}.msgpack").write_bytes(encode(s))
 
 
 # The disk fills while no write is in flight: before the start, or while the arm waits, in lockstep (where

@@ -7,11 +7,14 @@ import asyncio
 from pathlib import Path
 
 from common.runtime.bus import Bus
+from common.trajectory.task import load_task
 from schemas import (
+    ParetoSet,
     RobotEvent,
     RobotState,
     ServiceStatus,
 )
+from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
@@ -92,6 +95,19 @@ async def store_serving(
             if status.state == "serving":
                 return store
     raise AssertionError("unreachable")
+
+
+async def cached_sets(bus: Bus, task_file: Path, data: Path) -> dict[str, ParetoSet]:
+    """The task's sets from the store, put in the executor's cache under ``data`` as a run before this one
+    leaves them: a start with the store down runs them, and a start on a full disk writes nothing before
+    its first cycle's record."""
+    cache = data / "executor"
+    cache.mkdir(parents=True)
+    sets = {}
+    for pid in load_task(task_file).paths:
+        sets[pid] = (await bus.get(bus.key(f"pareto/{pid}"), ParetoSet))[0].message
+        (cache / f"{pid}.msgpack").write_bytes(encode(sets[pid]))
+    return sets
 
 
 async def operator_resumes(bus: Bus) -> None:
