@@ -22,6 +22,7 @@ from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
 from services.executor.backends import UrRtdeBackend
 from services.executor.servo import ServoLoop
+from services.ur_emulator.server import SCRIPT_QUIET_S, take_programs
 from tests.support.cell import Cell
 from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, check_bench_executor_output, free_loopback
 from tests.support.paths import EXAMPLE_TASK
@@ -122,6 +123,32 @@ def test_the_watchdog_stops_the_program_when_the_executor_stalls(
     assert "control script stopped" in backend.fault()
     backend.reset_fault()  # reconnects, uploads the script again
     assert backend.fault() == ""
+
+
+def test_the_script_port_stays_open_and_runs_every_program_however_late_it_comes(
+    emulator: EmulatorProcess,
+) -> None:
+    """ur_rtde opens port 30003 early in its set-up and uploads its program at the end, after some 25
+    round trips on RTDE. The emulator closed a script connection quiet for 0.5 s: on a loaded host the
+    set-up took longer, the upload was lost, and the client said "Failed to start control script, before
+    timeout of 5 seconds" (the watchdog test's reset, about 1 loaded suite run in 7)."""
+    first = b'def first():\n  textmsg("one")\nend\n'
+    second = b'def the_second():\n  if True:\n    textmsg("two")\n  end\nend\n'
+    with socket.create_connection((emulator.host, 30003)) as s:
+        time.sleep(2 * SCRIPT_QUIET_S)  # not a wait for an event: the client is busy on RTDE meanwhile
+        s.sendall(first)
+        emulator.wait_for_line(f"script uploaded ({len(first)} bytes)")
+        s.sendall(second)  # a later program on the same connection runs too, as on the controller
+        emulator.wait_for_line(f"script uploaded ({len(second)} bytes)")
+
+
+def test_a_program_on_the_script_port_ends_at_its_top_level_end() -> None:
+    a = b"def a():\n  if x:\n    y()\n  end\nend\n"
+    programs, rest = take_programs(a + b"def b():\n  z()\n", flush=False)
+    assert programs == [a]
+    assert rest == b"def b():\n  z()\n"  # waits for its end, or for the client to go quiet
+    assert take_programs(rest, flush=True) == ([rest], b"")
+    assert take_programs(b"  \n", flush=True) == ([], b"")
 
 
 @pytest.mark.bench

@@ -54,6 +54,7 @@ class RtdeConnection:
 
 STALL_S = 10.0  # the controller drops an RTDE client that has not read its outputs for this long
 RESTART_S = 3.0  # after an emergency stop the RTDE server takes this long to take clients again
+SCRIPT_QUIET_S = 0.5  # a program on port 30003 without its closing "end" runs after this long without data
 
 
 class Emulator:
@@ -72,6 +73,7 @@ class Emulator:
         self.recipes_seen: list[tuple[str, list[str]]] = []  # ('O' | 'I', names), for the contract test
         self._stop = threading.Event()
         self._listeners: list[socket.socket] = []
+        self._served: set[socket.socket] = set()  # every open connection, closed on stop
         self._threads: list[threading.Thread] = []
 
     # --- lifecycle ----------------------------------------------------------------------------------
@@ -94,8 +96,8 @@ class Emulator:
         self._stop.set()
         for s in self._listeners:
             s.close()
-        for c in list(self.connections):
-            c.sock.close()
+        for sock in list(self._served):
+            sock.close()
 
     def _spawn(self, target: Callable[..., None], *args: object) -> None:
         t = threading.Thread(target=target, args=args, daemon=True)
@@ -117,6 +119,7 @@ class Emulator:
             self._spawn(self._serve, handler, sock, f"{addr[0]}:{addr[1]}")
 
     def _serve(self, handler: Handler, sock: socket.socket, peer: str) -> None:
+        self._served.add(sock)
         try:
             handler(sock, peer)
         except (OSError, ConnectionError, struct.error) as exc:
@@ -124,6 +127,7 @@ class Emulator:
         except Exception:  # a bad request ends its connection, never the emulator
             log.exception("%s: request failed; closing the connection", peer)
         finally:
+            self._served.discard(sock)
             sock.close()
 
     # --- RTDE ---------------------------------------------------------------------------------------
@@ -253,21 +257,40 @@ class Emulator:
                 sock.sendall(self.controller.dashboard(line.decode(errors="replace")).encode() + b"\n")
 
     def _script(self, sock: socket.socket, peer: str) -> None:
-        chunks = []
-        sock.settimeout(0.5)
+        """Port 30003 as a real controller keeps it: open for as long as the client keeps it, and every
+        program that comes on it runs. ur_rtde opens it early in its set-up and uploads at the end, after
+        some 25 round trips on RTDE: on a loaded host that took over half a second, and a connection
+        closed after 0.5 s without data lost the upload ("Failed to start control script")."""
+        buf = b""
         while True:
+            sock.settimeout(SCRIPT_QUIET_S if buf else None)
             try:
-                data = sock.recv(65536)
+                data: bytes | None = sock.recv(65536)
             except TimeoutError:
-                break
-            if not data:
-                break
-            chunks.append(data)
-            if b"\nend" in data[-200:] or data.rstrip().endswith(b"end"):
-                break
-        text = b"".join(chunks).decode(errors="replace")
-        if text.strip():
-            self.controller.load_script(text)
+                data = None  # the client went quiet within a program that never ended: run what came
+            programs, buf = take_programs(buf + (data or b""), flush=not data)
+            for text in programs:
+                self.controller.load_script(text.decode(errors="replace"))
+            if data == b"":
+                return
+
+
+def take_programs(buf: bytes, flush: bool) -> tuple[list[bytes], bytes]:
+    """The whole programs at the head of what came on port 30003, each up to its top-level ``end`` line
+    (``def rtde_control(): … end``), and the rest; with ``flush`` (the client closed, or went quiet) the
+    rest is a program too, as the controller runs a bare line of script."""
+    programs, start, pos = [], 0, 0
+    while (nl := buf.find(b"\n", pos)) >= 0:
+        if buf[pos:nl].rstrip() == b"end":
+            programs.append(buf[start : nl + 1])
+            start = nl + 1
+        pos = nl + 1
+    rest = buf[start:]
+    if flush:
+        if rest.strip():
+            programs.append(rest)
+        rest = b""
+    return programs, rest
 
 
 def _or_zero(value: object, kind: str) -> object:
