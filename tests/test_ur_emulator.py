@@ -129,9 +129,9 @@ def test_the_script_port_stays_open_and_runs_every_program_however_late_it_comes
     emulator: EmulatorProcess,
 ) -> None:
     """ur_rtde opens port 30003 early in its set-up and uploads its program at the end, after some 25
-    round trips on RTDE. The emulator closed a script connection quiet for 0.5 s: on a loaded host the
-    set-up took longer, the upload was lost, and the client said "Failed to start control script, before
-    timeout of 5 seconds" (the watchdog test's reset, about 1 loaded suite run in 7)."""
+    round trips on RTDE. The emulator closed a script connection quiet for 0.5 s: when a loaded host made
+    the set-up longer, the upload was lost and the client said "Failed to start control script, before
+    timeout of 5 seconds" (the watchdog test's reset failed so in about 1 loaded suite run in 10)."""
     first = b'def first():\n  textmsg("one")\nend\n'
     second = b'def the_second():\n  if True:\n    textmsg("two")\n  end\nend\n'
     with socket.create_connection((emulator.host, 30003)) as s:

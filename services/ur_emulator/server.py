@@ -259,8 +259,8 @@ class Emulator:
     def _script(self, sock: socket.socket, peer: str) -> None:
         """Port 30003 as a real controller keeps it: open for as long as the client keeps it, and every
         program that comes on it runs. ur_rtde opens it early in its set-up and uploads at the end, after
-        some 25 round trips on RTDE: on a loaded host that took over half a second, and a connection
-        closed after 0.5 s without data lost the upload ("Failed to start control script")."""
+        some 25 round trips on RTDE (0.1–0.2 s here): a connection closed after 0.5 s without data lost
+        the upload whenever a loaded host made the set-up longer ("Failed to start control script")."""
         buf = b""
         while True:
             sock.settimeout(SCRIPT_QUIET_S if buf else None)
