@@ -93,6 +93,9 @@ class DemoOptions:
     processes: bool = False  # every service its own process on the wall clock (cadence/demo.py), not lockstep
 
 
+TWIN_SOURCE = '[{ name = "twin", detects = "body", to_robot = true }]'
+
+
 def twin_table(opts: DemoOptions) -> dict[str, bool | int | float]:
     """The twin's parameters in the demo: its seed, a co-worker less tolerant than the default, and what
     ``--twin`` asks."""
@@ -276,6 +279,8 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
             # the twin walks into the shared area now and then: speed and separation monitoring, unless
             # the twin is told to publish no distance (then nothing would free the arm)
             "separation": "true" if twin_table(opts).get("separation", True) else "false",
+            # the twin is the cell's one source: a tracker that sees the body and measures to the arm
+            "separation_sources": TWIN_SOURCE,
         },
     }
 

@@ -65,13 +65,28 @@ class OperatorError(Message, frozen=True, tag="operator.error.v1"):
     source: Name | None = None  # who saw it: "twin", "experimenter" (`cadence mark error`)
 
 
+Coordinate = Annotated[float, msgspec.Meta(ge=-100.0, le=100.0)]
+Point = tuple[Coordinate, Coordinate, Coordinate]
+MAX_POINTS = 64  # a person's nearest points per reading: a few body parts, a cluster's hull
+
+
 class Separation(Message, frozen=True, tag="operator.separation.v1"):
-    """The distance from the robot to the nearest person (speed and separation monitoring, ISO/TS 15066),
-    from a sensor: the twin in simulation; in a cell a safety laser scanner's or a camera's adapter
-    (README, "Separation"). ``t_ns`` is when it was measured; ``age_s`` how old the measurement already
-    was then (the sensor's own latency), so a reader's age of it is ``now − t_ns + age_s``. A sensor that
-    sees nobody says its range."""
+    """Where the nearest person is, for speed and separation monitoring (ISO/TS 15066), from a sensor: the
+    twin in simulation; in a cell a safety laser scanner's or a camera's adapter (README, "Separation").
+    ``t_ns`` is when it was measured; ``age_s`` how old the measurement already was then (the sensor's own
+    latency), so a reader's age of it is ``now − t_ns + age_s``.
+
+    What it says, most precise first (common/safety/geometry.py): ``points``, the person's nearest points
+    in the sensor's frame (or the cell's, ``placed``), from which the executor finds the distance to the
+    arm and its tool; else ``distance_m`` measured to the robot already (``to_robot``, or declared so for
+    the source); else ``distance_m`` is a range from the sensor, and the executor reads it on the safe
+    side. With points, ``distance_m`` is the sensor's own range to the nearest of them (for a reader that
+    knows nothing of points). A sensor that sees nobody says its range and no points."""
 
     distance_m: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)]
     source: Name
     age_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 0.0
+    # new fields: old decoders skip them
+    points: Annotated[tuple[Point, ...], msgspec.Meta(max_length=MAX_POINTS)] = ()
+    to_robot: bool = False
+    placed: bool = False  # the points are in the cell frame already (the adapter placed them)

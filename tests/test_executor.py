@@ -31,7 +31,7 @@ from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from tests.support.cell import CELL, Cell, put
-from tests.support.executor import SPEED, TASK, cached_sets, next_of, sim_settings, store_serving
+from tests.support.executor import SPEED, TASK, cached_sets, next_of, sim_settings, store_serving, tracked
 
 pytestmark = pytest.mark.asyncio
 
@@ -286,7 +286,7 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = sim_settings(task_file, separation=True, initial_k=2)
+        settings = sim_settings(task_file, separation=True, initial_k=2, separation_sources=tracked("test"))
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
         try:
@@ -295,7 +295,7 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
             assert first.scale == 0.0
             assert first.separation_m is None
             said = await next_of(events, lambda e: e.kind == "scale")
-            assert "no separation yet: holding" in said.message
+            assert "no fresh distance from test (declared): holding" in said.message
             later = await next_of(states, lambda s: s.t_ns > first.t_ns + 300_000_000)
             np.testing.assert_allclose(later.q, first.q, atol=1e-9)
             distance[0] = 5.0  # free: full speed
@@ -303,7 +303,7 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
             distance[0] = None  # the sensor falls silent: held again within its age and a stop
             held = await next_of(states, lambda s: s.scale == 0.0, timeout=10)
             await next_of(
-                events, lambda e: e.kind == "scale" and e.message.endswith("old: holding on the path")
+                events, lambda e: e.kind == "scale" and e.message.endswith("(declared): holding on the path")
             )
             distance[0] = 5.0
             await next_of(states, lambda s: s.scale == 1.0 and s.t_ns > held.t_ns)
@@ -362,7 +362,7 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
-        settings = sim_settings(task_file, separation=True)
+        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         try:
             await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
@@ -418,7 +418,8 @@ async def test_a_second_source_far_a_same_name_publisher_far_or_a_future_stamp_n
     async with cell.session() as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5)
+        settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5,
+                                separation_sources=tracked("scanner:front"))  # fmt: skip
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         await ex.listening(bus, "operator/separation")
         feeding = asyncio.create_task(sensors(bus, table, cell.now_ns))
@@ -458,7 +459,7 @@ async def test_a_declared_sensor_falling_silent_holds_the_arm_while_another_stil
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         settings = sim_settings(task_file, separation=True, cycles=0, overrun_limit=5,
-                                separation_sources=["scanner:front", "scanner:back"])  # fmt: skip
+                                separation_sources=tracked("scanner:front", "scanner:back"))  # fmt: skip
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         await ex.listening(bus, "operator/separation")
         feeding = asyncio.create_task(sensors(bus, table, cell.now_ns))

@@ -164,7 +164,13 @@ async def test_every_service_opens_exactly_the_ports_of_its_roles(
         (
             "executor",
             executor_main,
-            ExecutorSettings(task=task, backend="sim", start_selection="wait", separation=True),
+            ExecutorSettings(
+                task=task,
+                backend="sim",
+                start_selection="wait",
+                separation=True,
+                separation_sources=["scanner:front"],
+            ),
         ),
     ]
     async with await Bus.open(BusConfig(listen=[endpoint]), CELL):

@@ -85,12 +85,12 @@ def rotation_vector(r: Array) -> Array:
     return axis * angle
 
 
-def link_points(q: Array) -> Array:
-    """The origins of the UR16e's DH frames 1–6 (shoulder, elbow, wrists, flange) for joint rows q (m, 6):
-    (m, 6, 3). The points a person can meet; the speed of the fastest is the arm's speed."""
+def frames(q: Array) -> Array:
+    """The DH frames 1–6 of the UR16e for joint rows q (m, 6): (m, 6, 4, 4), in the base frame."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
     m = len(q)
     t = np.broadcast_to(np.eye(4), (m, 4, 4)).copy()
-    out = np.empty((m, 6, 3))
+    out = np.empty((m, 6, 4, 4))
     for j in range(6):
         ct, st = np.cos(q[:, j]), np.sin(q[:, j])
         ca, sa = math.cos(DH_ALPHA[j]), math.sin(DH_ALPHA[j])
@@ -100,5 +100,11 @@ def link_points(q: Array) -> Array:
         a[:, 2, 1], a[:, 2, 2], a[:, 2, 3] = sa, ca, DH_D[j]
         a[:, 3, 3] = 1.0
         t = t @ a
-        out[:, j] = t[:, :3, 3]
+        out[:, j] = t
     return out
+
+
+def link_points(q: Array) -> Array:
+    """The origins of the UR16e's DH frames 1–6 (shoulder, elbow, wrists, flange) for joint rows q (m, 6):
+    (m, 6, 3). The arm's joints; its tool is common/safety/geometry.py's."""
+    return frames(q)[:, :, :3, 3]

@@ -35,16 +35,21 @@ Out = Sequence[Message]  # what a handler returns: published in order, each on t
 F = TypeVar("F", bound=Callable[..., Any])
 
 _INPUT, _ANSWER, _TIMER = "_cadence_input", "_cadence_answer", "_cadence_timer"
-_MAXSIZE = "_cadence_maxsize"
+_MAXSIZE, _ARRIVAL = "_cadence_maxsize", "_cadence_arrival"
 
 
-def on(topic: Topic[Any], maxsize: int = 256) -> Callable[[F], F]:
+def on(topic: Topic[Any], maxsize: int = 256, arrival: bool = False) -> Callable[[F], F]:
     """Mark ``async def handler(self, msg) -> Out`` as the node's reader of ``topic``; ``maxsize``
-    messages wait for it before the oldest is dropped (``Bus.handle``)."""
+    messages wait for it before the oldest is dropped (``Bus.handle``). With ``arrival``, a plain
+    ``def handler(self, msg) -> None`` takes each message as it arrives, with no queue (``Bus.take``):
+    for input judged and kept per sender at once, that no flood may push out of a queue."""
 
     def mark(fn: F) -> F:
+        if arrival == inspect.iscoroutinefunction(fn):
+            raise TypeError(f"{fn.__name__}: an arrival handler is a plain function, a queued one async")
         setattr(fn, _INPUT, topic)
         setattr(fn, _MAXSIZE, maxsize)
+        setattr(fn, _ARRIVAL, arrival)
         return fn
 
     return mark
@@ -223,10 +228,22 @@ async def serve_node(node: Node) -> None:
 
         return handle
 
+    def taker(fn: Callable[[Any], None]) -> Callable[[str, Any], None]:
+        def take(key: str, msg: Any) -> None:
+            try:
+                fn(msg)
+            except Rejected as r:
+                bus.reject(key, r.code, r.detail)
+
+        return take
+
     for topic, name in handlers(type(node), _INPUT).values():
         if node.reads(topic):
             fn = getattr(node, name)
-            bus.handle(topic, reader(fn), maxsize=getattr(fn, _MAXSIZE))
+            if getattr(fn, _ARRIVAL):
+                bus.take(topic, taker(fn))
+            else:
+                bus.handle(topic, reader(fn), maxsize=getattr(fn, _MAXSIZE))
 
     def replier(fn: Callable[[Request], Awaitable[Any]]) -> Callable[[Request], Awaitable[Any]]:
         async def reply(req: Request) -> Any:

@@ -47,10 +47,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from common.robot.ur16e import JointLimits, link_points
+from common.robot.ur16e import JointLimits
+from common.safety.geometry import Arm
 from common.trajectory.scaling import Curve, stop_time
 
 Array = NDArray[np.float64]
+BARE = Arm()  # the arm alone, at the cell's origin: a tool's points are the cell's to declare
 QUANTUM = 0.05  # σ is chosen in steps of this (rounded down: the safe side), so a walk is a few ramps
 
 
@@ -98,12 +100,10 @@ def stepped(sigma: float) -> float:
     return 1.0 if sigma >= 1.0 else math.floor(sigma / QUANTUM + 1e-9) * QUANTUM
 
 
-def path_speed(q: Array, dt: float) -> float:
-    """The top Cartesian speed of any link point along joint samples q (m, 6) taken every ``dt`` s."""
-    if len(q) < 2:
-        return 0.0
-    p = link_points(q)
-    return float(np.linalg.norm(np.diff(p, axis=0), axis=2).max() / dt)
+def path_speed(q: Array, dt: float, arm: Arm = BARE) -> float:
+    """The top Cartesian speed of any point of the arm and its tool along joint samples q (m, 6) taken
+    every ``dt`` s (common/safety/geometry.py: the DH origins, the tool's spheres and their surfaces)."""
+    return arm.top_speed(q, dt)
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,12 +116,14 @@ class Figures:
     stop_travel_s: float = 0.0
 
     @classmethod
-    def of(cls, curve: Curve, limits: JointLimits, s_from: float = 0.0, dt: float = 0.002) -> Figures:
+    def of(
+        cls, curve: Curve, limits: JointLimits, s_from: float = 0.0, dt: float = 0.002, arm: Arm = BARE
+    ) -> Figures:
         """Before the curve is played (a path's, or a joined one before a switch is accepted): in a worker
-        thread, some tenths of a second for a long path."""
+        thread, some tenths of a second for a long path. ``arm``: its tool's points count too."""
         s = np.append(np.arange(s_from, curve.t_f, dt), curve.t_f)
         stop = stop_time(curve, limits, s_from)
-        return cls(path_speed(curve.at(s, order=0)[0], dt), stop.time_s, stop.travel_s)
+        return cls(path_speed(curve.at(s, order=0)[0], dt, arm), stop.time_s, stop.travel_s)
 
     def worst(self, other: Figures) -> Figures:
         """The conservative reading of two (a switch pending: either curve may be played)."""
@@ -179,7 +181,10 @@ class Sources:
 
     ``declared``: sources that must each have a fresh reading, or the arm holds. ``keep`` bounds what one
     source keeps and ``max_sources`` how many names are told apart; past either, readings are merged on the
-    safe side (the nearer distance, the longer life), never dropped."""
+    safe side (the nearer distance, the longer life), never dropped. A source that sends more than
+    ``max_rate_hz`` readings in a second is flooding: what it sends past that is not looked at (a flood
+    must not cost the others their turn), and it holds the arm until a second after its last reading past
+    the rate, for a reading it sent and was not looked at may have been the near one."""
 
     def __init__(
         self,
@@ -188,33 +193,69 @@ class Sources:
         declared: tuple[str, ...] = (),
         keep: int = 32,
         max_sources: int = 32,
+        max_rate_hz: float = math.inf,
     ) -> None:
         self.max_age_s, self.skew_s, self.declared = max_age_s, skew_s, tuple(declared)
-        self.keep, self.max_sources = keep, max_sources
+        self.keep, self.max_sources, self.max_rate_hz = keep, max_sources, max_rate_hz
         self.readings: dict[str, _Readings] = {name: _Readings() for name in self.declared}
+        self.rates: dict[str, tuple[float, int]] = {}  # source: (start of its second, readings in it)
+        self.flooding: dict[str, float] = {}  # source: until when it holds the arm
         self.heard = False
+
+    def name(self, source: str) -> str:
+        """The name a source's readings are kept under: past ``max_sources`` names, all others are one."""
+        return source if source in self.readings or len(self.readings) < self.max_sources else OTHERS
+
+    def judge(self, source: str, stamp_age_s: float, sensor_age_s: float, now: float) -> str:
+        """What a reading's envelope says before its content is looked at: "" to look at it, else why not:
+        "ahead" (stamped ahead of the receiver's clock by more than the skew), "stale" (too old already),
+        "flood" (its source is past its rate this second)."""
+        if stamp_age_s < -self.skew_s:
+            return "ahead"
+        if max(stamp_age_s, 0.0) + sensor_age_s >= self.max_age_s:
+            return "stale"
+        name = self.name(source)
+        if len(self.rates) > 4 * self.max_sources:  # names judged and never kept (a flood of names)
+            self.rates = {k: v for k, v in self.rates.items() if k in self.readings}
+        start, n = self.rates.get(name, (now, 0))
+        if now - start >= 1.0:
+            start, n = now, 0
+        self.rates[name] = (start, n + 1)
+        if n + 1 > self.max_rate_hz:
+            self.flooding[name] = now + 1.0
+            return "flood"
+        return ""
+
+    def take(
+        self, source: str, distance_m: float, stamp_age_s: float, sensor_age_s: float, now: float
+    ) -> str:
+        """Keep a reading ``judge`` let through: "" when kept, "far" when its distance is not a number."""
+        if not math.isfinite(distance_m):
+            return "far"
+        age = max(stamp_age_s, 0.0) + sensor_age_s
+        self.readings.setdefault(self.name(source), _Readings()).add(
+            now + self.max_age_s - age, distance_m, self.keep
+        )
+        self.heard = True
+        return ""
 
     def admit(
         self, source: str, distance_m: float, stamp_age_s: float, sensor_age_s: float, now: float
     ) -> str:
         """Take one reading: ``stamp_age_s`` is the receiver's clock minus the sender's stamp (negative: the
         stamp is ahead), ``sensor_age_s`` the age it says it had when stamped. Returns "" when taken, else
-        why not: "ahead" (stamped ahead of the receiver's clock by more than the skew), "stale" (too old
-        already), "far" (not a number)."""
-        if stamp_age_s < -self.skew_s:
-            return "ahead"
-        if not math.isfinite(distance_m):
-            return "far"
-        age = max(stamp_age_s, 0.0) + sensor_age_s
-        if age >= self.max_age_s:
-            return "stale"
-        if source not in self.readings and len(self.readings) >= self.max_sources:
-            source = OTHERS
-        self.readings.setdefault(source, _Readings()).add(now + self.max_age_s - age, distance_m, self.keep)
-        self.heard = True
-        return ""
+        why not (``judge``, ``take``)."""
+        return self.judge(source, stamp_age_s, sensor_age_s, now) or self.take(
+            source, distance_m, stamp_age_s, sensor_age_s, now
+        )
 
     def nearest(self, now: float) -> Nearest:
+        for name, until in list(self.flooding.items()):
+            if until < now:
+                del self.flooding[name]
+        if self.flooding:
+            name = next(iter(self.flooding))
+            return Nearest(None, name, f"'{name}' sends over {self.max_rate_hz:g} readings a second")
         best: tuple[float, str] | None = None
         silent = []
         for name, readings in list(self.readings.items()):
@@ -224,6 +265,7 @@ class Sources:
                     silent.append(name)
                 else:
                     del self.readings[name]  # heard again, it is tracked again
+                    self.rates.pop(name, None)
                 continue
             if best is None or d < best[0]:
                 best = (d, name)

@@ -24,8 +24,8 @@ A simulation model for demos and tests, not a claim about real people. Every par
   scale with √RR, as the QT interval does), plus baseline wander and white noise, in µV, so that the
   real R-peak detector has to find the beats.
 - Errors: per cycle, probability error_base + error_pace · max(0, u − tolerance) + error_stress · S.
-- Separation (the distance a safety scanner would measure, ``operator/separation``): ``far_m`` at the
-  operator's own place; every ``walk_every_s`` (data time, from ``walk_every_s`` on) the operator walks
+- Separation (the distance to the arm a person tracker would measure, ``operator/separation``): ``far_m``
+  at the operator's own place; every ``walk_every_s`` (data time, from ``walk_every_s`` on) the operator walks
   into the shared area at ``walk_m_s``, down to ``walk_near_m``, stays ``walk_stay_s`` and walks back out.
 """
 
@@ -101,8 +101,9 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     tau_exert_down_s: Positive = 25.0
     accelerometer: bool = True  # the strap sends its accelerometer
     separation: bool = True  # publish the distance to the robot (operator/separation)
-    # the operator's own station: beyond S_p of the example task's fastest paths at full speed (4.3 m)
-    far_m: Annotated[float, _in(0.0, 100.0)] = 4.5
+    # the operator's own station: beyond S_p of the example task's fastest paths at full speed, with the
+    # default tool and a sensor that sees the body (C = 0.85 m): 5.0 m (README "Separation")
+    far_m: Annotated[float, _in(0.0, 100.0)] = 5.5
     walk_near_m: Annotated[float, _in(0.0, 100.0)] = 1.5
     walk_m_s: Annotated[float, msgspec.Meta(gt=0.0, le=5.0)] = 1.0
     walk_every_s: Annotated[float, _in(0.0, 1e6)] = 45.0  # 0: the operator never comes near

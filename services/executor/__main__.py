@@ -60,7 +60,7 @@ class Executor(Node):
         if self.claim.core is not None:
             self.ctx.counters["servo_core"] = self.claim.core
         self.safety = Supervisor(self, self.backend, s)
-        self.reactions = Reactions(self, self.safety, task.limits)
+        self.reactions = Reactions(self, self.safety, task.limits, self.backend.actual_q)
         self.cycles = Cycles(self, self.safety, task, self.backend, self.loop, self.reactions)
         self.telemetry = Telemetry(self, self.backend, task)
         self.cycles.load()
@@ -79,10 +79,9 @@ class Executor(Node):
         self.cycles.signals.admit(sig)
         return []
 
-    @on(OPERATOR_SEPARATION)  # every reading counts: the nearest fresh one of all wins
-    async def on_separation(self, sep: Separation) -> Out:
+    @on(OPERATOR_SEPARATION, arrival=True)  # every reading counts, kept per source as it comes
+    def on_separation(self, sep: Separation) -> None:
         self.reactions.admit(sep)
-        return []
 
     def reads(self, topic: Topic[Any]) -> bool:
         return topic.suffix != OPERATOR_SEPARATION.suffix or self.ctx.settings.separation
@@ -142,6 +141,7 @@ main = node_main(Executor)
 
 def prepare(settings: Settings, common: CommonSettings) -> None:
     backend_for(settings, load_task(settings.task), common.speed)  # a bad task file: one line, exit 2
+    settings.sensors()  # monitoring with no source, or a C below ISO 13855's: one line, exit 2
     if settings.resume_policy == "auto" and settings.backend != "sim":
         raise ConfigError(
             f'[{NAME}] resume_policy: "auto" is for the sim backend only; a real robot\'s stop needs a person'

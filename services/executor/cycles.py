@@ -415,7 +415,7 @@ class Cycles:
             self.backend.prepare(own.waypoints[:1])
             start = self.reactions.start_ramp(own, self.carried, figures)
             run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
-                                               self.task.limits, self.speed)  # fmt: skip
+                                               self.task.limits, self.speed, self.reactions.arm)  # fmt: skip
             settle = round(self.settings.settle_s * RATE_HZ)
             try:
                 result: MotionResult = await run.play(self.loop, settle)

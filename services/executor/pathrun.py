@@ -22,7 +22,8 @@ import numpy as np
 from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
 from common.runtime.service import first_of
-from common.safety.separation import Figures
+from common.safety.geometry import Arm
+from common.safety.separation import BARE, Figures
 from common.trajectory.scaling import LIMIT_RTOL, Curve, Ramp, plan_ramp, ramp_ratio, switch_curve
 from common.trajectory.task import PathPlan
 from services.executor.playback import SIGMA_EPS, InForce, Playback, Switch
@@ -43,9 +44,12 @@ class PathRun:
         convert: Callable[[np.ndarray], object],
         limits: JointLimits,
         speed: float = 1.0,
+        arm: Arm = BARE,
     ) -> None:
-        """``speed``: playback seconds per wall second (the clock's speed), for leads given in wall time."""
+        """``speed``: playback seconds per wall second (the clock's speed), for leads given in wall time;
+        ``arm``: the robot and its tool, whose fastest point a switched curve's figures take."""
         self.path, self.k, self.figures, self.limits, self.speed = path, k, figures, limits, speed
+        self.arm = arm
         self.pending_figures: Figures | None = None  # of a switched curve not yet taken
         self.changed = asyncio.Event()
         self.ended = asyncio.Event()
@@ -122,7 +126,7 @@ class PathRun:
         ramps = [r for r in (now.ramp, now.pending_ramp) if r is not None]
         if sw is None or any(ramp_ratio(sw.curve, r, self.limits) > 1 + LIMIT_RTOL for r in ramps):
             return None
-        return sw.curve, Figures.of(sw.curve, self.limits, s_switch)
+        return sw.curve, Figures.of(sw.curve, self.limits, s_switch, arm=self.arm)
 
     async def switch(
         self, k: int, h_new: np.ndarray, wanted: Callable[[], int], lead_s: float, allowed: Scale

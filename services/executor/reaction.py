@@ -11,12 +11,14 @@ from __future__ import annotations
 import logging
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 
 import numpy as np
 
 from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
 from common.runtime.node import Node, Rejected
+from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
 from common.safety.separation import Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
@@ -28,6 +30,7 @@ from services.executor.supervisor import Supervisor
 log = logging.getLogger("cadence.executor")
 RAISE_BY = 0.1  # a higher σ is taken only when it is this much higher (or 1): no ramp per centimetre
 SAY_EVERY_S = 1.0  # a zone is said at most this often (two sources flapping made 20–40 events a second)
+UNDECLARED_C = intrusion_iso13855("legs")  # 1.2 m: the largest C of ISO 13855, for a source nobody placed
 FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found once, some tenths of a s)
 
 
@@ -53,15 +56,22 @@ class Zones:
 
 
 class Reactions:
-    def __init__(self, node: Node, safety: Supervisor, limits: JointLimits) -> None:
-        self.node, self.safety, self.limits = node, safety, limits
+    def __init__(
+        self, node: Node, safety: Supervisor, limits: JointLimits, joints: Callable[[], np.ndarray]
+    ) -> None:
+        """``joints``: the arm's joints now (the backend's), where a reading's points are measured to."""
+        self.node, self.safety, self.limits, self.joints = node, safety, limits, joints
         s: Settings = node.ctx.settings
         common = node.ctx.common
         self.settings, self.clock, self.on = s, common.clock, s.separation
         self.reaction_parts = s.reaction_parts(common.clock_skew_s)
-        self.ssm = Ssm(s.human_speed_m_s, sum(self.reaction_parts.values()), s.stop_time_s, s.intrusion_m,
+        # C is each source's own: a reading is kept as S − C, the room a person has before S_p's other terms
+        self.ssm = Ssm(s.human_speed_m_s, sum(self.reaction_parts.values()), s.stop_time_s, 0.0,
                        s.uncertainty_m, s.separation_max_age_s)  # fmt: skip
-        self.sources = Sources(s.separation_max_age_s, common.clock_skew_s, tuple(s.separation_sources))
+        self.arm, self.sensors = s.arm(), s.sensors()
+        self.sources = Sources(s.separation_max_age_s, common.clock_skew_s, tuple(self.sensors),
+                               max_rate_hz=s.separation_max_rate_hz)  # fmt: skip
+        self._body: tuple[bytes, Body] | None = None  # the arm's body at the joints it was last found for
         self.nearest = Nearest(None, "", "no separation yet")
         self.run: PathRun | None = None
         self.idle_scale = 0.0 if self.on else 1.0
@@ -73,10 +83,13 @@ class Reactions:
     # --- the distance -------------------------------------------------------------------------------
 
     def admit(self, sep: Separation) -> None:
-        """A reading, judged on this executor's clock: refused (``Rejected``, counted) when stamped ahead
-        of it by more than the skew bound, or already too old."""
+        """A reading as it arrives, judged on this executor's clock before its content is looked at:
+        refused (``Rejected``, counted) when stamped ahead of it by more than the skew bound, already too
+        old, or past its source's rate; else S, the person's distance to the arm and tool at the joints
+        now (common/safety/geometry.py), kept less the source's C."""
         stamp_age = self.clock.wall_s((self.clock.now_ns() - sep.t_ns) / 1e9)
-        why = self.sources.admit(sep.source, sep.distance_m, stamp_age, sep.age_s, monotonic())
+        now = monotonic()
+        why = self.sources.judge(sep.source, stamp_age, sep.age_s, now)
         if why == "ahead":
             raise Rejected("ahead", f"'{sep.source}' stamped {-stamp_age:.3f} s ahead of the executor's "
                            f"clock (the cell's skew bound is {self.sources.skew_s:g} s)")  # fmt: skip
@@ -84,6 +97,35 @@ class Reactions:
             old = max(stamp_age, 0.0) + sep.age_s
             raise Rejected("stale", f"'{sep.source}' {old:.3f} s old on arrival (at most "
                            f"{self.sources.max_age_s:g} s is used)")  # fmt: skip
+        if why == "flood":
+            raise Rejected("flood", f"'{sep.source}' sends over {self.sources.max_rate_hz:g} readings a "
+                           "second: the arm holds until it sends at its rate again")  # fmt: skip
+        sensor = self.sensor(sep.source)
+        points = np.asarray(sep.points, dtype=float) if sep.points else None
+        s = separation(self.body(), sensor, sep.distance_m, points, sep.to_robot, sep.placed)
+        self.sources.take(sep.source, s - sensor.intrusion_m, stamp_age, sep.age_s, now)
+
+    def sensor(self, name: str) -> Sensor:
+        """A declared source, or one nobody declared: in the cell frame, with the largest C a scanner can
+        have (legs at the floor), its plain distances ranges from the cell's origin."""
+        return self.sensors.get(name) or Sensor(name, Pose(), UNDECLARED_C)
+
+    def body(self) -> Body:
+        """The arm and tool at the joints now, found again only when the joints moved."""
+        q = np.asarray(self.joints(), dtype=float)
+        key = q.tobytes()
+        if self._body is None or self._body[0] != key:
+            self._body = (key, self.arm.body(q))
+        return self._body[1]
+
+    def shown_m(self) -> float | None:
+        """S of the nearest reading, as a person reads it (the distance, not the room past C)."""
+        n = self.nearest
+        if n.distance_m is None:
+            return None
+        return n.distance_m + (
+            self.sensors[n.source].intrusion_m if n.source in self.sensors else UNDECLARED_C
+        )
 
     def look_distance(self) -> Nearest:
         self.nearest = self.sources.nearest(monotonic())
@@ -104,7 +146,7 @@ class Reactions:
             if (known := self._figures.get(key)) is not None:
                 self._figures.move_to_end(key)
                 return known
-        found = Figures.of(curve, self.limits)
+        found = Figures.of(curve, self.limits, arm=self.arm)
         with self._figures_lock:
             self._figures[key] = found
             while len(self._figures) > FIGURES_KEPT:
@@ -165,7 +207,7 @@ class Reactions:
             zone, text = "unknown", f"{nearest.why}: holding on the path"
         else:
             zone = "full" if sigma >= 1.0 else "hold" if sigma <= 0.0 else "reduced"
-            text = f"a person at {nearest.distance_m:.2f} m ({nearest.source}): scale {sigma:.2f}"
+            text = f"a person at {self.shown_m():.2f} m ({nearest.source}): scale {sigma:.2f}"
         folded = self.zones.update(zone, monotonic())
         if folded is None:
             return

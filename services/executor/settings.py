@@ -7,7 +7,9 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from common.runtime.errors import ConfigError
 from common.runtime.resources import EXAMPLE_TASK
+from common.safety.geometry import NO_TOOL, Arm, Detects, Pose, Sensor, Tool, intrusion_iso13855
 from schemas.decision import MAX_N
 
 RAMP_LEAD_S = 0.022  # a ramp of the scale starts this far ahead of the loop (planning, a step; wall s)
@@ -15,6 +17,28 @@ RAMP_LEAD_S = 0.022  # a ramp of the scale starts this far ahead of the loop (pl
 
 def _range(lo: float, hi: float) -> msgspec.Meta:
     return msgspec.Meta(ge=lo, le=hi)
+
+
+Metres = Annotated[float, _range(-100.0, 100.0)]
+PoseRow = tuple[Metres, Metres, Metres, Annotated[float, _range(-360.0, 360.0)]]
+Near = Annotated[float, _range(-2.0, 2.0)]
+Sphere = tuple[Near, Near, Near, Annotated[float, _range(0.0, 2.0)]]
+# a gripper and a small part, 0.27 m past the flange at most: what the example task's EPick and box need
+DEFAULT_TOOL = (0.0, 0.0, 0.15, 0.12)
+SourceName = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+class SourceSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """One separation source of the cell (``separation_sources``; common/safety/geometry.py): where it
+    stands, what it detects (its C by ISO 13855), and what its plain distances mean."""
+
+    name: SourceName
+    pose: PoseRow = (0.0, 0.0, 0.0, 0.0)  # in the cell frame: x, y, z (m), yaw (°)
+    detects: Detects = "legs"  # hand, arm, body, legs: ISO 13855's C follows
+    resolution_mm: Annotated[float, _range(1.0, 500.0)] | None = None
+    height_m: Annotated[float, _range(0.0, 3.0)] = 0.0  # legs: the scan plane above the floor (H)
+    intrusion_m: Annotated[float, _range(0.0, 3.0)] | None = None  # a C of its own, never below ISO 13855's
+    to_robot: bool = False  # its plain distances are measured to the arm already (else: from the sensor)
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -62,15 +86,21 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # separation_max_age_s), or none from a declared source, holds the arm on its path. Off: the robot
     # always runs at the planned speed.
     separation: bool = False
-    # sources that must each be heard (e.g. ["scanner:front", "scanner:back"]): one silent holds the arm
-    separation_sources: list[Annotated[str, msgspec.Meta(min_length=1, max_length=64)]] = []
+    # the cell's sources, each of which must be heard (one silent holds the arm): a table each (pose,
+    # detects, ...: SourceSettings), or a bare name, read as a scanner at the robot's base that sees legs
+    # at the floor (the largest C) and gives ranges from itself. Monitoring on with none is refused.
+    separation_sources: list[SourceName | SourceSettings] = []
+    separation_max_rate_hz: Annotated[float, _range(1.0, 100_000.0)] = 1000.0  # per source; past it: a hold
+    # where the robot's base stands in the cell frame (x, y, z m, yaw °), and its tool and payload as
+    # spheres in the flange frame (x, y, z, r m): the distance and the top speed are to and of these too
+    robot_base: PoseRow = (0.0, 0.0, 0.0, 0.0)
+    tool: list[Sphere] = msgspec.field(default_factory=lambda: [DEFAULT_TOOL])
     separation_max_age_s: Annotated[float, _range(0.01, 10.0)] = 0.3  # the oldest reading used (T_r)
     # T_r, the reaction time, is the sum of sensor_latency_s, separation_max_age_s, the cell's
     # clock_skew_s, a ramp's lead and, on ur_rtde, lookahead_s (README "Separation")
     sensor_latency_s: Annotated[float, _range(0.0, 2.0)] = 0.1  # what the sensor's age_s leaves out
     human_speed_m_s: Annotated[float, _range(0.0, 5.0)] = 1.6  # v_h (ISO 13855)
     stop_time_s: Annotated[float, _range(0.0, 5.0)] = 0.0  # T_s at least this (each path's own is found)
-    intrusion_m: Annotated[float, _range(0.0, 2.0)] = 0.2  # C
     uncertainty_m: Annotated[float, _range(0.0, 2.0)] = 0.1  # Z_d + Z_r
     scale_period_s: Annotated[float, _range(0.005, 1.0)] = 0.02  # how often the scale is reconsidered
 
@@ -87,3 +117,37 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
             "ramp lead": RAMP_LEAD_S,
             "servoJ lookahead": self.lookahead_s if self.backend == "ur_rtde" else 0.0,
         }
+
+    def arm(self) -> Arm:
+        """The robot as separation monitoring sees it: its base in the cell, its tool."""
+        x, y, z, yaw = self.robot_base
+        return Arm(Pose(x, y, z, yaw), Tool.of([list(t) for t in self.tool]) if self.tool else NO_TOOL)
+
+    def sensors(self) -> dict[str, Sensor]:
+        """The declared sources by name, each with its C by ISO 13855; ``ConfigError`` in one line naming
+        the source for a C below the standard's, a source named twice, or monitoring on with no source
+        (nothing would tell a scanner that died from a cell with nobody in it)."""
+        out: dict[str, Sensor] = {}
+        for entry in self.separation_sources:
+            src = SourceSettings(entry) if isinstance(entry, str) else entry
+            where = f"[executor] separation_sources '{src.name}'"
+            if src.name in out:
+                raise ConfigError(f"{where} is declared twice")
+            try:
+                iso = intrusion_iso13855(src.detects, src.resolution_mm, src.height_m)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
+            c = iso if src.intrusion_m is None else src.intrusion_m
+            if c < iso - 1e-9:
+                raise ConfigError(
+                    f"{where}: intrusion_m = {c:g} m is below ISO 13855's C = {iso:.3f} m for a sensor that "
+                    f"detects {src.detects}" + (f" at {src.height_m:g} m" if src.detects == "legs" else "")
+                )
+            x, y, z, yaw = src.pose
+            out[src.name] = Sensor(src.name, Pose(x, y, z, yaw), c, src.to_robot)
+        if self.separation and not out:
+            raise ConfigError(
+                "[executor] separation = true needs separation_sources: declare each scanner or camera "
+                '(e.g. separation_sources = ["scanner:front"], or a table with its pose and what it detects)'
+            )
+        return out

@@ -37,7 +37,7 @@ class Telemetry:
         t_ns = self.node.ctx.common.clock.now_ns()
         pressed = self.pressed(t_ns)
         b, m = self.backend, safety.motion
-        near = cycles.reactions.nearest.distance_m if cycles.reactions.on else None
+        near = cycles.reactions.shown_m() if cycles.reactions.on else None
         state = RobotState(
             t_ns=t_ns,
             seq=0,
@@ -51,6 +51,6 @@ class Telemetry:
             state=m.state,
             reason=m.reason[:4000],
             scale=min(1.0, max(0.0, float(cycles.reactions.scale_now()))),
-            separation_m=None if near is None else min(100.0, float(near)),
+            separation_m=None if near is None else min(100.0, round(float(near), 4)),  # to 0.1 mm: S − C + C
         )
         return [*pressed, state]

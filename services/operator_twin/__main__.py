@@ -96,13 +96,13 @@ class OperatorTwin(Node):
 
     @every
     async def separation(self) -> Out:
-        """As a safety scanner would: the distance now, at a wall-clock rate (the executor judges its age
-        on the wall clock, whatever the demo's speed)."""
+        """As a person tracker would: the distance to the arm now (``to_robot``), at a wall-clock rate (the
+        executor judges its age on the wall clock, whatever the demo's speed)."""
         if not self.operator.p.separation:
             return []
         now = self.clock.now_ns()
         d = self.operator.separation((now - self.origin_ns) / 1e9)
-        return [Separation(t_ns=now, seq=0, distance_m=d, source="twin")]
+        return [Separation(t_ns=now, seq=0, distance_m=d, source="twin", to_robot=True)]
 
     async def stream(self) -> AsyncIterator[Out]:
         """The ECG, chunk by chunk as the strap sends it (a chunk exists once its last sample does), and

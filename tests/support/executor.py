@@ -16,6 +16,7 @@ from schemas import (
 )
 from schemas.topology import encode
 from services.executor.__main__ import Settings
+from services.executor.settings import SourceSettings
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
 from tests.support.cell import Cell, InProcessService
@@ -57,6 +58,12 @@ SPEED = 8.0
 # The UR controller's tests not about overruns: a controller paces the samples on the wall clock, and a
 # loaded CI machine misses servo deadlines in runs (the sim arm's time is its samples: no run stops it)
 CALM = 1000
+
+
+def tracked(*names: str) -> list[str | SourceSettings]:
+    """Declared sources that measure to the arm and see the body (C = 0.85 m by ISO 13855): a test's
+    distances are the person's distance to the arm, S."""
+    return [SourceSettings(n, detects="body", to_robot=True) for n in names]
 
 
 def sim_settings(task_file: Path, **changes: object) -> Settings:
