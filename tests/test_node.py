@@ -273,9 +273,9 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
         assert await node.safety.connect()
         node.connected = True
         assert node.safety.motion.state == "waiting_for_selection"
-        await node.on_selection(Selection(t_ns=now_ns(), seq=0, k=3, n=15, delta=0, reason="initial"))
+        node.on_selection(Selection(t_ns=now_ns(), seq=0, k=3, n=15, delta=0, reason="initial"))
         node.safety.fire(Event.FAULT, "a bump")
-        await node.on_selection(Selection(t_ns=now_ns(), seq=1, k=4, n=15, delta=1, reason="window"))
+        node.on_selection(Selection(t_ns=now_ns(), seq=1, k=4, n=15, delta=1, reason="window"))
         assert (node.safety.motion.state, node.safety.motion.reason) == ("stopped", "a bump")
         (*_, state) = await node.state()
         assert isinstance(state, RobotState)
@@ -403,9 +403,12 @@ async def test_a_part_put_down_is_said_again_while_the_robot_waits_and_counted_o
     assert await twin.on_state(state(when + 5.0, None)) == []  # taken: not said again
     assert await twin.on_state(state(when + 9.0, None)) == []
 
-    signals = Signals({"part_a2"})
+    signals, stop = Signals({"part_a2"}), asyncio.Event()
+    waiting = asyncio.create_task(signals.wait("part_a2", stop))
+    await asyncio.sleep(0)  # the robot waits now
     for m in again * 3:
         signals.admit(m)
+    assert await waiting == "arrived"
     assert signals.received["part_a2"] == 1
 
 

@@ -33,6 +33,7 @@ Constraints = Literal["hull", "exact"]
 _LIMIT_RTOL = 1e-9
 CONTINUITY_TOL_RAD = 1e-6
 MAX_WAIT_S = 3600.0
+MAX_EARLY_S = 60.0  # a signal older than this at the wait is about another part
 MAX_INPUT = 7  # the UR controller's standard digital inputs: DI 0–7
 MIN_LIMIT_SHARE = 1e-3  # a limit lowered further than this is a typo, and would plan hour-long paths
 
@@ -84,6 +85,8 @@ class _StepSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     on_late: Literal["wait", "go_on"] = "wait"
     # with wait_for only: the UR's standard digital input (0–7) whose rising edge is this signal
     input: int | None = None
+    # with wait_for only: a signal at most this many seconds before the wait opens still counts for it
+    early: float | None = None
 
 
 class _TaskMeta(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -125,6 +128,9 @@ class Step:
     deadline: float | None = None
     on_late: Literal["wait", "go_on"] = "wait"
     input: int | None = None  # a wait_for met by this UR standard digital input's rising edge
+    # a signal at most this many seconds before the wait opens counts for it (a part put down as the robot
+    # comes); without it only a signal while the robot waits counts (DESIGN §8: a signal is about now)
+    early: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -304,7 +310,7 @@ def _cycle(file: str, steps: list[_StepSpec] | None, paths: dict[str, PathPlan])
             raise TaskError(
                 file, f"cycle[{i}].wait_for", f"{st.wait_for!r} must be 1–64 letters, digits, '_' or '-'"
             )
-        extra = [k for k in ("deadline", "input") if getattr(st, k) is not None]
+        extra = [k for k in ("deadline", "input", "early") if getattr(st, k) is not None]
         if st.on_late != "wait":
             extra.append("on_late")
         if extra and st.wait_for is None:
@@ -316,7 +322,12 @@ def _cycle(file: str, steps: list[_StepSpec] | None, paths: dict[str, PathPlan])
         if st.input is not None and not 0 <= st.input <= MAX_INPUT:
             why = f"a UR standard digital input is 0–{MAX_INPUT}, got {st.input}"
             raise TaskError(file, f"cycle[{i}].input", why)
-        out.append(Step(st.move, st.gripper, st.wait, st.wait_for, st.deadline, st.on_late, st.input))
+        if st.early is not None and not (math.isfinite(st.early) and 0 < st.early <= MAX_EARLY_S):
+            why = f"must be seconds in (0, {MAX_EARLY_S:g}], got {st.early}"
+            raise TaskError(file, f"cycle[{i}].early", why)
+        out.append(
+            Step(st.move, st.gripper, st.wait, st.wait_for, st.deadline, st.on_late, st.input, st.early)
+        )
     if not any(s.move for s in out):
         raise TaskError(file, "cycle", "the cycle moves along no path")
     return out

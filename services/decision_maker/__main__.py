@@ -94,7 +94,8 @@ class DecisionMaker(Node):
         self.apply(self.conditions.current, self.ctx.common.clock.now_ns())
 
     def apply(self, c: Condition, t_ns: int) -> None:
-        self.ctx.state = self.conditions.apply(c, t_ns, self.decider.params is not None)
+        seq = self.decider.record.seq if self.decider.record is not None else 0
+        self.ctx.state = self.conditions.apply(c, t_ns, self.decider.params is not None, seq)
 
     async def adopt(self, record: DecisionRecord) -> None:
         """Persisted before it is announced, so what is published is what a restart resumes. A disk that

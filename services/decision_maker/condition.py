@@ -43,9 +43,11 @@ def store_condition(data_dir: Path, condition: Condition) -> None:
     atomic_write(data_dir / CONDITION_FILE, msgspec.json.format(msgspec.json.encode(condition), indent=1))
 
 
-def fixed_selection(preset: int | str, n: int, t_ns: int) -> Selection:
-    """A fixed condition's selection: one k, stated once, republished like any other."""
-    return Selection(t_ns=t_ns, seq=0, k=fixed_k(preset, n), n=n, delta=0, reason="fixed")
+def fixed_selection(preset: int | str, n: int, t_ns: int, seq: int = 0) -> Selection:
+    """A fixed condition's selection: one k, stated once, republished like any other. ``seq``: the
+    decider's last, so a selection captured before it is older by seq and by stamp (the executor refuses
+    such a one: DESIGN §8)."""
+    return Selection(t_ns=t_ns, seq=seq, k=fixed_k(preset, n), n=n, delta=0, reason="fixed")
 
 
 def parse_condition(p: dict[str, str], n: int, t_ns: int) -> Condition:
@@ -84,10 +86,10 @@ class Conditions:
                 problems.append(f"{CONDITION_FILE}: {exc} (n = {self.n}); the config's condition holds")
         return problems
 
-    def apply(self, c: Condition, t_ns: int, calibrated: bool) -> str:
+    def apply(self, c: Condition, t_ns: int, calibrated: bool, seq: int = 0) -> str:
         """Put ``c`` in force; the service's state that says so."""
         self.current = c
-        self.fixed = fixed_selection(c.fixed_k, self.n, t_ns) if c.mode == "fixed" else None
+        self.fixed = fixed_selection(c.fixed_k, self.n, t_ns, seq) if c.mode == "fixed" else None
         if self.fixed is not None:
             return f"fixed at k = {self.fixed.k} of {self.n} (fixed_k = {c.fixed_k!r})"
         return "running" if calibrated else "waiting for calibration"

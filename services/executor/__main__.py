@@ -66,13 +66,12 @@ class Executor(Node):
         self.cycles.load()
         self.connected = False
 
-    @on(SELECTION, maxsize=1)
-    async def on_selection(self, sel: Selection) -> Out:
+    @on(SELECTION, arrival=True)  # judged as it comes: a replayed flood cannot push a new one out of a queue
+    def on_selection(self, sel: Selection) -> None:
         ahead_s = (sel.t_ns - self.ctx.common.clock.now_ns()) / 1e9
         if ahead_s > self.ctx.common.clock_skew_s:  # it would stand until a later stamp: never
             raise Rejected("ahead", f"a selection stamped {ahead_s:.3f} s ahead of the executor's clock")
         self.cycles.select(sel)
-        return []
 
     @on(OPERATOR_SIGNAL)
     async def on_signal(self, sig: OperatorSignal) -> Out:

@@ -53,22 +53,27 @@ def _lowest_priority() -> None:
 
 
 class Signals:
-    """Operator signals by name. A ``wait_for`` is met by a signal that arrived since the last wait for
-    the same name, so a part put down before the robot got there is not missed. Only the names the task
-    waits for are counted: any other is refused, so a flood of names cannot grow the table. A signal is
-    state its sender says again while it holds (DESIGN §9): a copy of one already counted (same name,
-    sender and stamp) counts nothing, so a signal lost once (the executor stopped for a while) comes
-    again."""
+    """Operator signals by name, each a fact about now (DESIGN §8). A signal counts once, for the wait open
+    for its name when it comes; a step's ``early`` lets one that came at most that long before the wait
+    opened count for it (a part put down as the robot comes), the latest such one, never more. A signal
+    for a name nothing waits for is refused (``not_waiting``, counted and said), not banked for a later
+    wait: twenty presses must not let the arm through twenty waits. Only the names the task waits for
+    are known: any other is refused, so a flood of names cannot grow the table. A signal is state its
+    sender says again while it holds (DESIGN §9): a copy of one already taken (same name, sender and
+    stamp) counts nothing, so a signal lost once (the executor stopped for a while) comes again."""
 
     KEPT = 32  # stamps remembered per name, to know a copy when it comes again
 
-    def __init__(self, names: set[str]) -> None:
-        self.names = names
-        self.received: Counter[str] = Counter()
-        self.consumed: Counter[str] = Counter()
+    def __init__(self, names: set[str], early: dict[str, float] | None = None) -> None:
+        """``early``: per name, how long before its wait opens a signal still counts (loop seconds)."""
+        self.names, self.early = names, early or {}
+        self.received: Counter[str] = Counter()  # signals that met a wait
         self.seen: dict[str, deque[tuple[int, str | None]]] = {
             name: deque(maxlen=self.KEPT) for name in names
         }
+        self.open: str | None = None  # the name the robot waits for now
+        self.met = False  # the open wait has its signal
+        self.came_early: dict[str, float] = {}  # name: when a signal for it came while nothing waited
         self.arrived = asyncio.Event()
 
     def admit(self, sig: OperatorSignal) -> None:
@@ -78,25 +83,42 @@ class Signals:
         if said in self.seen[sig.name]:
             return  # said again while it holds: counted once
         self.seen[sig.name].append(said)
-        self.received[sig.name] += 1
-        self.arrived.set()
+        if self.open == sig.name and not self.met:
+            self.met = True
+            self.received[sig.name] += 1
+            self.arrived.set()
+        elif sig.name in self.early and self.open != sig.name:
+            self.came_early[sig.name] = monotonic()  # the latest one only: not banked
+        else:
+            why = (
+                "its wait has its signal already"
+                if self.open == sig.name
+                else "the robot does not wait for it"
+            )
+            raise Rejected("not_waiting", f"'{sig.name}' from {sig.source or 'unnamed'}: {why} (not kept)")
 
     async def wait(
         self, name: str, stop: asyncio.Event, timeout_s: float | None = None
     ) -> Literal["arrived", "stopped", "late"]:
         """``timeout_s``: wall seconds to wait at most (a step's deadline at the clock's speed)."""
         end = None if timeout_s is None else monotonic() + timeout_s
-        while self.received[name] <= self.consumed[name]:
-            if stop.is_set():
-                return "stopped"
-            left = None if end is None else end - monotonic()
-            if left is not None and left <= 0:
-                return "late"
-            self.arrived.clear()
-            timer = [asyncio.sleep(left)] if left is not None else []
-            await first_of(self.arrived.wait(), stop.wait(), *timer)
-        self.consumed[name] += 1
-        return "arrived"
+        early = self.came_early.pop(name, None)
+        self.open, self.met = name, early is not None and monotonic() - early <= self.early.get(name, 0.0)
+        if self.met:
+            self.received[name] += 1
+        try:
+            while not self.met:
+                if stop.is_set():
+                    return "stopped"
+                left = None if end is None else end - monotonic()
+                if left is not None and left <= 0:
+                    return "late"
+                self.arrived.clear()
+                timer = [asyncio.sleep(left)] if left is not None else []
+                await first_of(self.arrived.wait(), stop.wait(), *timer)
+            return "arrived"
+        finally:
+            self.open, self.met = None, False
 
 
 class Cycles:
@@ -120,7 +142,9 @@ class Cycles:
         folder = node.ctx.common.data_path / "executor"
         self.sets = SetCache(node.ctx.bus, folder, task)
         self.store = ExecutorStore(folder)
-        self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None})
+        self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None},
+                               {s.wait_for: self.clock.wall_s(s.early) for s in task.cycle
+                                if s.wait_for is not None and s.early is not None})  # fmt: skip
         self.selection: Selection | None = None
         self.selection_changed = asyncio.Event()
         self.k: int | None = None
@@ -142,14 +166,25 @@ class Cycles:
             self.cut_short = loaded.value.cycle_in_progress
 
     def select(self, sel: Selection) -> None:
-        if self.selection is None or (sel.t_ns, sel.seq) != (self.selection.t_ns, self.selection.seq):
-            self.selection = sel
-            self.selection_changed.set()
-            self.remember(sel)
-            self.safety.fire(Event.SELECTION)
-            run = self.reactions.run
-            if run is not None and self.settings.switch_within_path and self.switching is None:
-                self.switching = asyncio.create_task(self.switch_within(run))
+        """A selection is a sequence (DESIGN §8): one that is no newer than the newest applied, by its seq
+        and by its stamp both, is refused (``Rejected``, counted as ``stale``): a captured selection
+        replayed, or a copy of the current one with another k. Either alone may go back legitimately (a
+        fixed condition is numbered with the decider's last seq, a calibration restarts the stamps from
+        its own), never both. The decision maker's republishing of the current one is no new decision."""
+        cur = self.selection
+        if cur is not None and sel.seq <= cur.seq and sel.t_ns <= cur.t_ns:
+            if (sel.seq, sel.t_ns, sel.k, sel.n) == (cur.seq, cur.t_ns, cur.k, cur.n):
+                return  # said again while it holds
+            older = f"{(cur.t_ns - sel.t_ns) / 1e9:.3f} s older"
+            raise Rejected("stale", f"a selection (k = {sel.k}, seq {sel.seq}) no newer than the one applied "
+                           f"(k = {cur.k}, seq {cur.seq}): {older}")  # fmt: skip
+        self.selection = sel
+        self.selection_changed.set()
+        self.remember(sel)
+        self.safety.fire(Event.SELECTION)
+        run = self.reactions.run
+        if run is not None and self.settings.switch_within_path and self.switching is None:
+            self.switching = asyncio.create_task(self.switch_within(run))
 
     def remember(self, sel: Selection) -> None:
         """Kept on disk in the background (a restart goes on at the newest k decided); a disk that
@@ -232,7 +267,8 @@ class Cycles:
             )
         elif policy == "initial":
             k = self.settings.initial_k
-            self.select(Selection(t_ns=self.clock.now_ns(), seq=0, k=k, n=k, delta=0, reason="initial"))
+            # stamped 0: the executor's own, older than any the decision maker makes
+            self.select(Selection(t_ns=0, seq=0, k=k, n=k, delta=0, reason="initial"))
             self.safety.event(
                 "info",
                 f'{unreachable}: starting at initial_k = {k}, as configured (start_selection = "initial")',
