@@ -100,6 +100,18 @@ class TimeLine:
         p = line.position_ns
         return kind == line.kind and p - self.tolerance_ns <= start_ns <= p + self.ahead_ns and end_ns > p
 
+    def future(self, end_ns: int, clock_ns: int) -> Verdict | None:
+        """The verdict on a message that ends after the receiver's clock (plus the skew bound), judged
+        alone, before anything is asked or moved for it; None for one that does not."""
+        if end_ns <= clock_ns + self.skew_ns:
+            return None
+        return Verdict(
+            "drop",
+            "ahead",
+            f"data time {(end_ns - clock_ns) / 1e9:.3f} s ahead of the receiver's clock (the skew "
+            f"bound is {self.skew_ns / 1e9:g} s): from the future, refused",
+        )
+
     def admit(
         self, start_ns: int, end_ns: int, kind: Hashable = None, clock_ns: int | None = None
     ) -> Verdict:
@@ -108,13 +120,8 @@ class TimeLine:
         is itself far from the clock (a stale persisted position, a replay that ended); elsewhere the
         stream's own line rules, so replays of old recordings work on their recorded times. A message that
         ends after the clock (plus the skew bound) is refused before anything else."""
-        if clock_ns is not None and end_ns > clock_ns + self.skew_ns:
-            return Verdict(
-                "drop",
-                "ahead",
-                f"data time {(end_ns - clock_ns) / 1e9:.3f} s ahead of the receiver's clock (the skew "
-                f"bound is {self.skew_ns / 1e9:g} s): from the future, refused",
-            )
+        if clock_ns is not None and (future := self.future(end_ns, clock_ns)) is not None:
+            return future
         line = self._line
         near = clock_ns is not None and abs(start_ns - clock_ns) <= self.ahead_ns
         if line is None and (clock_ns is None or near):

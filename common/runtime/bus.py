@@ -141,20 +141,23 @@ class Subscription(Generic[M]):
         msg_type: type[M],
         maxsize: int,
         arrival: Callable[[str, M], None] | None = None,
+        screen: Callable[[str, M], bool] | None = None,
     ) -> None:
         self._bus = bus
         self._decoder = msgspec.msgpack.Decoder(msg_type)
         self._queue: asyncio.Queue[tuple[str, M]] = asyncio.Queue(maxsize)
-        self._arrival = arrival
+        self._arrival, self._screen = arrival, screen
         self.dropped = 0
         self._sub: Any = bus._declare_subscriber(key_expr, self._put)
 
     def _put(self, key: str, payload: bytes) -> None:
         """On the loop thread: decode at arrival, so bad input is counted whether or not anyone reads. With
         ``arrival``, each message is taken there and then, and never queued: what one sender floods
-        cannot push another's message out of a queue (the executor's separation readings)."""
+        cannot push another's message out of a queue (the executor's separation readings). ``screen``
+        says at arrival whether a message may wait in the queue at all (what is from the future never
+        takes an honest message's place)."""
         msg = self._bus.decode(key, payload, self._decoder)
-        if msg is None:
+        if msg is None or (self._screen is not None and not self._screen(key, msg)):
             return
         if self._arrival is not None:
             try:
@@ -484,6 +487,7 @@ class Bus:
         /,
         *,
         maxsize: int = 256,
+        screen: Callable[[str, M], bool] | None = None,
     ) -> Subscription[M]: ...
 
     @overload
@@ -495,18 +499,28 @@ class Bus:
         /,
         *,
         maxsize: int = 256,
+        screen: Callable[[str, M], bool] | None = None,
     ) -> Subscription[M]: ...
 
-    def handle(self, what: Topic[Any] | str, /, *args: Any, maxsize: int = 256) -> Any:
+    def handle(
+        self,
+        what: Topic[Any] | str,
+        /,
+        *args: Any,
+        maxsize: int = 256,
+        screen: Callable[[str, Any], bool] | None = None,
+    ) -> Any:
         """Subscribe with a handler coroutine, run for each message in order in a task the bus owns.
         A handler that raises is counted and logged (rate-limited) and the next message is handled: bad
-        input never stops a service."""
+        input never stops a service. ``screen``: whether a message may be queued (``Subscription``)."""
         if isinstance(what, str):
             msg_type, handler = args
-            sub = self.subscribe(what, msg_type, maxsize)
+            key_expr, msg_type = self._resolve("subscribe", what, msg_type)
         else:
             (handler,) = args
-            sub = self.subscribe(what, None, maxsize)
+            key_expr, msg_type = self._resolve("subscribe", what, None)
+        sub = Subscription(self, key_expr, msg_type, maxsize, screen=screen)
+        self._declared.append(sub)
 
         async def pump() -> None:
             async for key, msg in sub:

@@ -116,7 +116,7 @@ class MockBus(Bus):
                 network.in_flight += 1
                 self.loop.call_soon(deliver, entry.callback)  # as from Zenoh's thread: later, in order
 
-    def handle(self, what: Any, /, *args: Any, maxsize: int = 256) -> Any:
+    def handle(self, what: Any, /, *args: Any, maxsize: int = 256, screen: Any = None) -> Any:
         """``Bus.handle``, counted: ``settle`` waits for the handler as for the delivery."""
         *rest, handler = args
         network = self.network
@@ -128,7 +128,7 @@ class MockBus(Bus):
             finally:
                 network.handling -= 1
 
-        sub = super().handle(what, *rest, counted, maxsize=maxsize)  # type: ignore[call-overload]
+        sub = super().handle(what, *rest, counted, maxsize=maxsize, screen=screen)  # type: ignore[call-overload]
         network.handled.append(sub)
         return sub
 

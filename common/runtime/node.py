@@ -35,14 +35,18 @@ Out = Sequence[Message]  # what a handler returns: published in order, each on t
 F = TypeVar("F", bound=Callable[..., Any])
 
 _INPUT, _ANSWER, _TIMER = "_cadence_input", "_cadence_answer", "_cadence_timer"
-_MAXSIZE, _ARRIVAL = "_cadence_maxsize", "_cadence_arrival"
+_MAXSIZE, _ARRIVAL, _SCREEN = "_cadence_maxsize", "_cadence_arrival", "_cadence_screen"
 
 
-def on(topic: Topic[Any], maxsize: int = 256, arrival: bool = False) -> Callable[[F], F]:
+def on(
+    topic: Topic[Any], maxsize: int = 256, arrival: bool = False, screen: str | None = None
+) -> Callable[[F], F]:
     """Mark ``async def handler(self, msg) -> Out`` as the node's reader of ``topic``; ``maxsize``
     messages wait for it before the oldest is dropped (``Bus.handle``). With ``arrival``, a plain
     ``def handler(self, msg) -> None`` takes each message as it arrives, with no queue (``Bus.take``):
-    for input judged and kept per sender at once, that no flood may push out of a queue."""
+    for input judged and kept per sender at once, that no flood may push out of a queue. ``screen`` names
+    a plain method ``(msg) -> None`` run on arrival, before the queue: what it refuses (``Rejected``)
+    never takes a place in the queue (a window from the future, before any query it would make)."""
 
     def mark(fn: F) -> F:
         if arrival == inspect.iscoroutinefunction(fn):
@@ -50,6 +54,7 @@ def on(topic: Topic[Any], maxsize: int = 256, arrival: bool = False) -> Callable
         setattr(fn, _INPUT, topic)
         setattr(fn, _MAXSIZE, maxsize)
         setattr(fn, _ARRIVAL, arrival)
+        setattr(fn, _SCREEN, screen)
         return fn
 
     return mark
@@ -237,13 +242,26 @@ async def serve_node(node: Node) -> None:
 
         return take
 
+    def screener(fn: Callable[[Any], None]) -> Callable[[str, Any], bool]:
+        def screen(key: str, msg: Any) -> bool:
+            try:
+                fn(msg)
+            except Rejected as r:
+                bus.reject(key, r.code, r.detail)
+                return False
+            return True
+
+        return screen
+
     for topic, name in handlers(type(node), _INPUT).values():
         if node.reads(topic):
             fn = getattr(node, name)
             if getattr(fn, _ARRIVAL):
                 bus.take(topic, taker(fn))
             else:
-                bus.handle(topic, reader(fn), maxsize=getattr(fn, _MAXSIZE))
+                screen = getattr(fn, _SCREEN)
+                bus.handle(topic, reader(fn), maxsize=getattr(fn, _MAXSIZE),
+                           screen=screener(getattr(node, screen)) if screen else None)  # fmt: skip
 
     def replier(fn: Callable[[Request], Awaitable[Any]]) -> Callable[[Request], Awaitable[Any]]:
         async def reply(req: Request) -> Any:
