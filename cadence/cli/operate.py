@@ -12,6 +12,7 @@ import msgspec
 
 from cadence.cli._common import Commands, add_bus_flags, arg, err, flags_from, joining, out
 from cadence.tools.say import cell_clock, checked, separation_line, tell
+from common.runtime.errors import InputError
 from schemas.base import Message
 from schemas.operator import OperatorError, OperatorSignal
 from schemas.topology import OPERATOR_ERROR, OPERATOR_SEPARATION, OPERATOR_SIGNAL, Topic
@@ -100,38 +101,57 @@ def cmd_signal(args: argparse.Namespace) -> int:
 
 @cli.command(
     "separation",
-    help="publish the nearest person's distance (operator/separation): a sensor's adapter",
+    help="publish where the nearest person is (operator/separation): a sensor's adapter",
     description="The interface of a cell's safety laser scanner or camera to the executor's speed and "
     "separation monitoring: DISTANCE in metres once, or - to read one measurement per line from stdin, "
     "'DISTANCE_M [AGE_S]' (AGE_S: how old it already is, the sensor's latency), each published at once. "
-    "A bad line (not two decimal numbers, not UTF-8, over 256 bytes) is reported with its number and "
-    "skipped. Pipe a driver into it: `scanner-driver | cadence separation - --source scanner:front`. On a "
-    "deployed cell it joins as the separation_sensor account, the only one the router lets publish "
-    "distances: --zenoh-config /etc/cadence/credentials/separation_sensor.json5.",
+    "A plain distance is a range from the sensor, which the executor reads on the safe side (the person "
+    "may stand anywhere at that range: the arm's extent is taken off); --to-robot says it was measured to "
+    "the arm already. With --points each line is the person's nearest point, 'X Y [Z]' in metres in the "
+    "sensor's frame (a value once: 'X,Y[,Z]'), placed in the cell by --pose X,Y,YAW, or else by the "
+    "executor from the source's pose in its config (an undeclared source's frame is the cell's: its "
+    "origin is the robot's base unless the config moves it). A bad line (not decimal numbers, not UTF-8, "
+    "over 256 bytes) is reported with its number and skipped. Pipe a driver into it: `scanner-driver | "
+    "cadence separation - --source scanner:front`. On a deployed cell it joins as the separation_sensor "
+    "account, the only one the router lets publish distances: --zenoh-config "
+    "/etc/cadence/credentials/separation_sensor.json5.",
 )
-@arg("distance", metavar="DISTANCE|-", help="metres, or - for lines on stdin")
+@arg("distance", metavar="DISTANCE|X,Y[,Z]|-", help="metres (a point with --points), or - for stdin lines")
 @arg(
     "--source",
     default="cli",
     help="the sensor, e.g. scanner:front (declare it in [executor] separation_sources)",
 )
+@arg("--points", action="store_true", help="the person's nearest points, 'X Y [Z]' a line (metres)")
+@arg("--pose", metavar="X,Y,YAW", help="with --points: the sensor's pose in the cell frame (m, m, degrees)")
+@arg("--to-robot", action="store_true", help="plain distances are measured to the arm, not from the sensor")
 @flags_from(add_bus_flags, 10.0)
 def cmd_separation(args: argparse.Namespace) -> int:
-    """A sensor's distances onto the bus. Unheard, the executor holds the arm (stale separation)."""
+    """A sensor's readings onto the bus. Unheard, the executor holds the arm (stale separation)."""
     import asyncio
     import sys
 
-    from cadence.tools.say import relay_separations
+    from cadence.tools.say import Form, parse_pose, relay_separations
     from common.runtime.bus import Bus
 
+    if args.pose and not args.points:
+        raise InputError("--pose places points: it goes with --points")
+    if args.to_robot and args.points:
+        raise InputError("--to-robot says what a plain distance means: points need no such word")
+    try:
+        pose = parse_pose(args.pose) if args.pose else None
+    except ValueError as exc:
+        raise InputError(f"--pose: {exc}") from None
+    form = Form(args.points, pose, args.to_robot)
     if args.distance != "-":
-        one = lambda t: separation_line(args.distance, args.source, 0, t)  # noqa: E731
+        value = args.distance.replace(",", " ") if args.points else args.distance
+        one = lambda t: separation_line(value, args.source, 0, t, form)  # noqa: E731
         return _tell_once(args, OPERATOR_SEPARATION, one, role="separation_sensor")
 
     async def relay() -> int:
         async with await Bus.open(joining(args), args.cell, role="separation_sensor") as bus:
             bad = await relay_separations(
-                bus, args.source, sys.stdin.buffer, lambda line: err.print(line, markup=False)
+                bus, args.source, sys.stdin.buffer, lambda line: err.print(line, markup=False), form
             )
         return 1 if bad else 0
 

@@ -8,13 +8,16 @@ import asyncio
 import re
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, BinaryIO, TypeVar
 
 import msgspec
+import numpy as np
 
 from common.runtime.bus import Bus, BusConfig, Reply
 from common.runtime.clock import Clock
 from common.runtime.errors import BusError, InputError
+from common.safety.geometry import Pose
 from schemas.base import Message
 from schemas.operator import Separation
 from schemas.topology import CELL_CLOCK, DEFAULT_CELL, OPERATOR_SEPARATION, AnyMessage, Topic, validated
@@ -58,17 +61,48 @@ NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")  # no 1_0,
 MAX_LINE = 256  # bytes: a measurement is a few; a longer line is skipped, not read whole into memory
 
 
-def separation_line(line: str, source: str, seq: int, t_ns: int) -> Separation:
-    """``DISTANCE [AGE_S]`` (metres, seconds, plain decimal numbers) as a message; InputError says what is
-    wrong with it."""
+@dataclass(frozen=True, slots=True)
+class Form:
+    """What a sensor's lines say (`cadence separation`): plain distances (ranges from the sensor, or
+    ``to_robot``: measured to the arm), or ``points``, a person's nearest point per line in the sensor's
+    frame, placed in the cell frame by ``pose`` when given (else by the executor, from the source's pose
+    in its config; an undeclared source's frame is the cell's)."""
+
+    points: bool = False
+    pose: Pose | None = None
+    to_robot: bool = False
+
+
+def parse_pose(text: str) -> Pose:
+    """``X,Y,YAW`` (metres, metres, degrees) in the cell frame; ValueError says what is wrong."""
+    fields = text.split(",")
+    if len(fields) != 3 or not all(NUMBER.fullmatch(f.strip()) for f in fields):
+        raise ValueError(f"expected X,Y,YAW (metres, metres, degrees), got {text[:40]!r}")
+    x, y, yaw = (float(f) for f in fields)
+    return Pose(x, y, 0.0, yaw)
+
+
+def separation_line(line: str, source: str, seq: int, t_ns: int, form: Form = Form()) -> Separation:
+    """``DISTANCE [AGE_S]`` (metres, seconds), or with ``form.points`` ``X Y [Z]`` (metres), plain
+    decimal numbers, as a message; InputError says what is wrong with it."""
     fields = line.split()
-    if not 1 <= len(fields) <= 2:
-        raise InputError("expected DISTANCE_M [AGE_S]")
+    shape = "X Y [Z]" if form.points else "DISTANCE_M [AGE_S]"
+    if not 1 + form.points <= len(fields) <= 2 + form.points:
+        raise InputError(f"expected {shape}")
     if bad := [f for f in fields if not NUMBER.fullmatch(f)]:
         raise InputError(f"not a decimal number: {bad[0][:40]!r}")
     values = [float(f) for f in fields]
-    age = values[1] if len(values) == 2 else 0.0
-    return checked(Separation(t_ns=t_ns, seq=seq, distance_m=values[0], source=source, age_s=age))
+    if not form.points:
+        age = values[1] if len(values) == 2 else 0.0
+        return checked(Separation(t_ns=t_ns, seq=seq, distance_m=values[0], source=source, age_s=age,
+                                  to_robot=form.to_robot))  # fmt: skip
+    point = np.array([values[0], values[1], values[2] if len(values) == 3 else 0.0])
+    rng = min(100.0, float(np.linalg.norm(point)))  # the sensor's own range to it
+    if form.pose is not None:
+        point = form.pose.place(point[None])[0]
+    p = (float(point[0]), float(point[1]), float(point[2]))
+    return checked(Separation(t_ns=t_ns, seq=seq, distance_m=rng, source=source, points=(p,),
+                              placed=form.pose is not None))  # fmt: skip
 
 
 def read_line(stream: BinaryIO) -> bytes | None:
@@ -83,9 +117,12 @@ def read_line(stream: BinaryIO) -> bytes | None:
     return line
 
 
-async def relay_separations(bus: Bus, source: str, stream: BinaryIO, say: Callable[[str], None]) -> int:
-    """Each line of ``stream`` (``DISTANCE_M [AGE_S]``) published at once, stamped on the cell's clock; a
-    bad line is said with its number and skipped. The number of bad lines."""
+async def relay_separations(
+    bus: Bus, source: str, stream: BinaryIO, say: Callable[[str], None], form: Form = Form()
+) -> int:
+    """Each line of ``stream`` (``DISTANCE_M [AGE_S]``, or ``X Y [Z]`` with ``form.points``) published at
+    once, stamped on the cell's clock; a bad line is said with its number and skipped. The number of bad
+    lines."""
     bad = 0
     pub = bus.publisher(OPERATOR_SEPARATION)
     clock = await cell_clock(bus)  # a simulated cell's time runs at its own speed
@@ -99,7 +136,7 @@ async def relay_separations(bus: Bus, source: str, stream: BinaryIO, say: Callab
             line = raw.decode("utf-8")
             if not line.strip():
                 continue
-            pub.put(separation_line(line, source, n, clock.now_ns()))
+            pub.put(separation_line(line, source, n, clock.now_ns(), form))
         except UnicodeDecodeError as exc:
             bad += 1
             say(f"stdin line {n}: not UTF-8 ({exc.reason} at byte {exc.start}); skipped")
