@@ -45,8 +45,24 @@ cli = Commands()
 @arg("--no-venv", action="store_true", help="files and units only")
 @arg("--no-systemctl", action="store_true", help="no daemon-reload or enable")
 @arg("--dry-run", action="store_true", help="print every file it would write, and stop")
+@arg(
+    "--scanner",
+    action="append",
+    default=[],
+    metavar="NAME:X,Y,YAW:KIND",
+    help="a separation source (repeat for each): its pose in the cell frame and what it detects (hand, "
+    "arm, body, legs, legs@HEIGHT_M), e.g. scanner:front:1.5,0,180:legs@0.3; given, the executor's "
+    "separation monitoring is on and requires each",
+)
 def cmd_install(args: argparse.Namespace) -> int:
     from cadence.deploy.install import Options, install
+    from common.runtime.errors import InputError
+    from services.executor.settings import SourceSettings
+
+    try:
+        scanners = tuple(SourceSettings.parse(s) for s in args.scanner)
+    except ValueError as exc:
+        raise InputError(f"--scanner {exc}") from None
 
     opts = Options(
         robot=args.robot,
@@ -61,6 +77,7 @@ def cmd_install(args: argparse.Namespace) -> int:
         source=args.source,
         venv=not args.no_venv,
         systemctl=not args.no_systemctl,
+        scanners=scanners,
     )
     for line in install(opts, dry_run=args.dry_run):
         print(line)

@@ -37,6 +37,7 @@ from cadence.deploy.pki import Pem, issue, load_ca, make_ca
 from common.runtime.errors import InputError
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
 from schemas.topology import DEFAULT_CELL, ROLES, SERVICES
+from services.executor.settings import SourceSettings
 from services.registry import BY_NAME, unit
 
 USER = "cadence"
@@ -82,6 +83,8 @@ class Options:
     python: str | None = None
     source: str | None = None  # what to install in the venv (default: this checkout, or cadence==VERSION)
     venv: bool = True  # False: write files and units only (a venv already there)
+    # the cell's separation sources (`--scanner`): given, the executor's monitoring is on and requires them
+    scanners: tuple[SourceSettings, ...] = ()
     systemctl: bool = True  # False: no daemon-reload / enable (an image being built)
 
 
@@ -180,6 +183,8 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
     executor: dict[str, object] = task | (
         {"backend": "sim"} if sim else {"backend": "ur_rtde", "host": opts.robot}
     )
+    if opts.scanners:  # monitoring on, each source required (DESIGN §8)
+        executor |= {"separation": True, "separation_sources": list(opts.scanners)}
     decision: dict[str, object] = {}
     if twin:
         from common.sim.twin import TwinParams
@@ -188,6 +193,12 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
     values = {"ecg_gateway": gateway, "decision_maker": decision, "pareto_store": task, "executor": executor}
     calibrate = "# run `cadence calibrate` once per operator: it writes the calibration this reads"
     notes = {} if twin else {"decision_maker": calibrate}
+    if not opts.scanners:
+        notes["executor"] = (
+            "# separation monitoring is off: no --scanner was given. To turn it on, declare each source\n"
+            '# (separation_sources = [{ name = "scanner:front", pose = [x, y, z, yaw], detects = "legs" }])\n'
+            "# and set separation = true; it slows the arm, the scanner's own stop is the safety function"
+        )
     head = (
         f"# Cadence, cell {bundle.cell}: written by `cadence install`"
         f" (robot: {opts.robot}; strap: {opts.strap}).\n"

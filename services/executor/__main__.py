@@ -110,6 +110,10 @@ class Executor(Node):
         if not self.ctx.settings.separation:
             self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
                               "runs at the planned speed whoever is near")  # fmt: skip
+        elif self.ctx.settings.backend == "ur_rtde":  # a software ramp is not safety-rated (ISO 13849)
+            self.safety.event("info", "separation monitoring slows the arm as a second layer, not a safety "
+                              "function: the scanners' safety outputs must be wired to the controller's "
+                              "safeguard or reduced-speed inputs")  # fmt: skip
         try:
             await self.cycles.start()
             await self.cycles.run()

@@ -40,6 +40,26 @@ class SourceSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     intrusion_m: Annotated[float, _range(0.0, 3.0)] | None = None  # a C of its own, never below ISO 13855's
     to_robot: bool = False  # its plain distances are measured to the arm already (else: from the sensor)
 
+    @classmethod
+    def parse(cls, text: str) -> SourceSettings:
+        """``NAME:X,Y,YAW:KIND`` as `cadence install --scanner` takes it (the name may hold colons): the
+        pose in the cell frame (m, m, degrees), KIND one of hand, arm, body, legs, a scanner's plane
+        height after ``@`` (``legs@0.3``). ValueError says what is wrong."""
+        name, pose, kind = ([*text.rsplit(":", 2)] + ["", ""])[:3] if text.count(":") >= 2 else (text, "", "")
+        if not (name and pose and kind):
+            raise ValueError(
+                f"expected NAME:X,Y,YAW:KIND (e.g. scanner:front:1.2,0,180:legs@0.3), got {text!r}"
+            )
+        detects, _, height = kind.partition("@")
+        try:
+            x, y, yaw = (float(v) for v in pose.split(","))
+            return msgspec.convert(
+                {"name": name, "pose": [x, y, 0.0, yaw], "detects": detects, "height_m": float(height or 0)},
+                cls,
+            )
+        except (ValueError, msgspec.ValidationError) as exc:
+            raise ValueError(f"{text!r}: {exc}") from None
+
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: str = str(EXAMPLE_TASK)
