@@ -45,7 +45,7 @@ class SourceSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         """``NAME:X,Y,YAW:KIND`` as `cadence install --scanner` takes it (the name may hold colons): the
         pose in the cell frame (m, m, degrees), KIND one of hand, arm, body, legs, a scanner's plane
         height after ``@`` (``legs@0.3``). ValueError says what is wrong."""
-        name, pose, kind = ([*text.rsplit(":", 2)] + ["", ""])[:3] if text.count(":") >= 2 else (text, "", "")
+        name, pose, kind = text.rsplit(":", 2) if text.count(":") >= 2 else (text, "", "")
         if not (name and pose and kind):
             raise ValueError(
                 f"expected NAME:X,Y,YAW:KIND (e.g. scanner:front:1.2,0,180:legs@0.3), got {text!r}"
