@@ -275,3 +275,92 @@ class Sources:
             old = f"the last separation is over {self.max_age_s:.2f} s old"
             return Nearest(None, "", old if self.heard else "no separation yet")
         return Nearest(best[0], best[1])
+
+
+class Adoption:
+    """How long the executor takes to act on a reading (a part of T_r, DESIGN §8): from its arrival to the
+    controller step in which the servo plays the scale it led to (a ramp's first step), or, when the
+    scale in force already answers it, to the look that found so. Times are the loop's clock in seconds.
+
+    ``budget_s`` is the term T_r holds for it. A reading not answered within it (one measured over it, or
+    one still waiting past it) makes the arm hold (``late``) until a reading is answered within it again:
+    S_p was computed for the budget, not for what the host gave."""
+
+    KEPT = 100_000  # the latest delays kept for the distribution
+
+    def __init__(self, budget_s: float) -> None:
+        self.budget_s = budget_s
+        self.oldest: float | None = None  # the arrival of the oldest reading no look has taken yet
+        self.waiting: tuple[object, float] | None = None  # a ramp offered, and the oldest arrival it answers
+        self.delays: deque[float] = deque(maxlen=self.KEPT)
+        self.late = False
+        self.times_late = 0  # how often the arm was held for it
+
+    def arrived(self, now: float) -> None:
+        if self.oldest is None:
+            self.oldest = now
+
+    def take(self) -> float | None:
+        """At a look: the oldest arrival it answers (the readings since the last look)."""
+        oldest, self.oldest = self.oldest, None
+        return oldest
+
+    def answered(self, arrival: float | None, at: float) -> None:
+        if arrival is not None:
+            self._record(at - arrival)
+
+    def offered(self, ramp: object, arrival: float | None) -> None:
+        """A ramp that answers readings from ``arrival`` on; answered once the servo plays it (``began``)."""
+        if arrival is None:
+            return
+        if self.waiting is not None:
+            arrival = min(arrival, self.waiting[1])
+        self.waiting = (ramp, arrival)
+
+    def began(self, ramp: object | None, at: float | None, now: float) -> None:
+        """At each look: what the servo has begun playing (``ramp`` from ``at``). The ramp waited for, when
+        begun, is measured; a wait past the budget makes the arm hold before the ramp comes."""
+        if self.waiting is None:
+            return
+        wanted, arrival = self.waiting
+        if ramp is wanted and at is not None:
+            self.waiting = None
+            self._record(at - arrival)
+        elif now - arrival > self.budget_s:
+            self._over()
+
+    def dropped_arrival(self, arrival: float | None) -> None:
+        """Readings a look could not answer (its ramp was refused): the next look answers them."""
+        if arrival is not None:
+            self.oldest = arrival if self.oldest is None else min(arrival, self.oldest)
+
+    def dropped(self) -> None:
+        """The ramp waited for will never play (the path ended, the loop dropped it): its readings are
+        answered by the next look."""
+        if self.waiting is not None:
+            _, arrival = self.waiting
+            self.waiting = None
+            self.dropped_arrival(arrival)
+
+    def _record(self, delay_s: float) -> None:
+        self.delays.append(delay_s)
+        if delay_s > self.budget_s:
+            self._over()
+        elif self.waiting is None:
+            self.late = False
+
+    def _over(self) -> None:
+        if not self.late:
+            self.times_late += 1
+        self.late = True
+
+    def quantiles(self) -> dict[str, float]:
+        """p50, p99.9 and the max of the delays kept, in seconds (empty when none)."""
+        if not self.delays:
+            return {}
+        d = np.fromiter(self.delays, dtype=float)
+        return {
+            "p50": float(np.quantile(d, 0.5)),
+            "p99.9": float(np.quantile(d, 0.999)),
+            "max": float(d.max()),
+        }

@@ -101,9 +101,9 @@ class PathRun:
 
     # --- the scale ------------------------------------------------------------------------------------
 
-    async def ramp_to(self, sigma: float, lead_s: float) -> bool:
+    async def ramp_to(self, sigma: float, lead_s: float) -> Ramp | None:
         """Plan and offer a ramp to ``sigma`` from ``lead_s`` (wall) ahead of the loop, inside the limits
-        on the curve in force and on a pending switched one."""
+        on the curve in force and on a pending switched one: the ramp the loop adopted, or None."""
         async with self.lock:
             pb = self.playback
             now = pb.now
@@ -112,10 +112,10 @@ class PathRun:
             ramp = await asyncio.to_thread(plan_ramp, *args)
             if ramp is None:
                 self.ramps_refused += 1
-                return False
+                return None
             took = await self.post(now, ramp=ramp)
             self.ramps += took
-            return took
+            return ramp if took else None
 
     # --- a new k within the path ----------------------------------------------------------------------
 

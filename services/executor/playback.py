@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from common.runtime.clock import monotonic
 from common.trajectory.scaling import DT, Curve, Ramp
 
 Array = NDArray[np.float64]
@@ -115,6 +116,9 @@ class Playback:
         self.finished = False
         self.mailbox: Offer | None = None  # written by the owner only
         self._seen: Offer | None = None  # read and written by the loop only
+        # the last ramp that began to play and when (the loop's clock: the wall's, or a lockstep cell's data
+        # time), one tuple written whole: the owner measures how soon a reading's scale was in force by it
+        self.began: tuple[Ramp, float] | None = None
         self.adopted = 0  # offers taken into the state
         self.missed = 0  # offers or pending changes dropped: too late, or planned from another state
         self.span = 0
@@ -178,6 +182,7 @@ class Playback:
         pending = now.pending_ramp
         if pending is not None and t >= pending.t0 - DT / 2:
             now = self.now = replace(now, ramp=pending, pending_ramp=None)
+            self.began = (pending, monotonic())
             self.notify()
         s, sigma = now.ramp.at(t)
         switch = now.pending_switch

@@ -9,6 +9,7 @@ zone, with the changes folded in between counted.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
 from common.runtime.node import Node, Rejected
 from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
-from common.safety.separation import Figures, Nearest, Sources, Ssm
+from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
@@ -72,6 +73,9 @@ class Reactions:
         self.sources = Sources(s.separation_max_age_s, common.clock_skew_s, tuple(self.sensors),
                                max_rate_hz=s.separation_max_rate_hz)  # fmt: skip
         self._body: tuple[bytes, Body] | None = None  # the arm's body at the joints it was last found for
+        self.adoption = Adoption(s.adoption_budget_s)
+        self.offered_on: PathRun | None = None  # the path the ramp the adoption waits for was offered on
+        self._counted_at = -math.inf
         self.nearest = Nearest(None, "", "no separation yet")
         self.run: PathRun | None = None
         self.idle_scale = 0.0 if self.on else 1.0
@@ -104,6 +108,7 @@ class Reactions:
         points = np.asarray(sep.points, dtype=float) if sep.points else None
         s = separation(self.body(), sensor, sep.distance_m, points, sep.to_robot, sep.placed)
         self.sources.take(sep.source, s - sensor.intrusion_m, stamp_age, sep.age_s, now)
+        self.adoption.arrived(now)
 
     def sensor(self, name: str) -> Sensor:
         """A declared source, or one nobody declared: in the cell frame, with the largest C a scanner can
@@ -132,8 +137,11 @@ class Reactions:
         return self.nearest
 
     def allowed(self, figures: Figures) -> float:
-        """σ, stepped, for the nearest fresh distance now, on a curve of these figures (1 when off)."""
-        return figures.scale(self.ssm, self.nearest.distance_m) if self.on else 1.0
+        """σ, stepped, for the nearest fresh distance now, on a curve of these figures (1 when off); 0 while
+        the executor answers readings later than T_r allows it (``Adoption``)."""
+        if not self.on:
+            return 1.0
+        return 0.0 if self.adoption.late else figures.scale(self.ssm, self.nearest.distance_m)
 
     # --- the figures of a curve -----------------------------------------------------------------------
 
@@ -189,21 +197,53 @@ class Reactions:
                               r.path.id if r else None)  # fmt: skip
 
     async def _look(self) -> None:
+        r, a = self.run, self.adoption
+        if r is None or r is not self.offered_on:  # a ramp offered on a path that ended never plays
+            a.dropped()
+        ramp, at = (r.playback.began if r is not None else None) or (None, None)
+        a.began(ramp, at, monotonic())
+        arrival = a.take()  # the readings this look answers
         nearest = self.look_distance()
-        r = self.run
         wanted = self.allowed(r.guard if r is not None else self.last_figures)
         self.say_zone(wanted, nearest)
+        self.count_adoption()
         if r is None:
-            self.idle_scale = wanted
+            self.idle_scale = wanted  # the next path starts at it
+            a.answered(arrival, monotonic())
             return
         self.last_figures = r.figures
         current = r.playback.now.target
         if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
+            a.answered(arrival, monotonic())  # the scale in force answers them
             return
-        await r.ramp_to(wanted, RAMP_LEAD_S)
+        ramp = await r.ramp_to(wanted, RAMP_LEAD_S)
+        if ramp is None:  # the next look plans again, for these readings too
+            a.dropped_arrival(arrival)
+        elif wanted < current:  # answered when the servo plays its first step
+            a.offered(ramp, arrival)
+            self.offered_on = r
+        else:  # a rise may come late: nothing waits for it
+            a.answered(arrival, monotonic())
+
+    def count_adoption(self) -> None:
+        """The adoption's figures in the status (ms), at most every 5 s: a quantile of 10⁵ delays is not
+        free."""
+        c, a, now = self.node.ctx.counters, self.adoption, monotonic()
+        c["adoption_late"] = a.times_late
+        if now - self._counted_at < 5.0:
+            return
+        self._counted_at = now
+        for name, value in a.quantiles().items():
+            c[f"adoption_{name}_ms"] = round(value * 1000)
 
     def say_zone(self, sigma: float, nearest: Nearest) -> None:
-        if nearest.distance_m is None:
+        if self.on and self.adoption.late:
+            budget = self.adoption.budget_s * 1000
+            zone, text = (
+                "late",
+                f"a reading's scale was not in force within {budget:.0f} ms: holding on the path",
+            )
+        elif nearest.distance_m is None:
             zone, text = "unknown", f"{nearest.why}: holding on the path"
         else:
             zone = "full" if sigma >= 1.0 else "hold" if sigma <= 0.0 else "reduced"

@@ -117,8 +117,11 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     tool: list[Sphere] = msgspec.field(default_factory=lambda: [DEFAULT_TOOL])
     separation_max_age_s: Annotated[float, _range(0.01, 10.0)] = 0.3  # the oldest reading used (T_r)
     # T_r, the reaction time, is the sum of sensor_latency_s, separation_max_age_s, the cell's
-    # clock_skew_s, a ramp's lead and, on ur_rtde, lookahead_s (README "Separation")
+    # clock_skew_s, adoption_budget_s and, on ur_rtde, lookahead_s (README "Separation")
     sensor_latency_s: Annotated[float, _range(0.0, 2.0)] = 0.1  # what the sensor's age_s leaves out
+    # from a reading's arrival to the controller step that plays the scale it led to (look, planning,
+    # mailbox, servo), measured on the loop's clock for every look: past it the arm holds until it is met
+    adoption_budget_s: Annotated[float, _range(0.03, 1.0)] = 0.1
     human_speed_m_s: Annotated[float, _range(0.0, 5.0)] = 1.6  # v_h (ISO 13855)
     stop_time_s: Annotated[float, _range(0.0, 5.0)] = 0.0  # T_s at least this (each path's own is found)
     uncertainty_m: Annotated[float, _range(0.0, 2.0)] = 0.1  # Z_d + Z_r
@@ -134,7 +137,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
             "sensor latency": self.sensor_latency_s,
             "oldest reading used": self.separation_max_age_s,
             "clock skew": clock_skew_s,
-            "ramp lead": RAMP_LEAD_S,
+            "executor's adoption": self.adoption_budget_s,  # the ramp's lead is inside it
             "servoJ lookahead": self.lookahead_s if self.backend == "ur_rtde" else 0.0,
         }
 
