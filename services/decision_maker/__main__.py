@@ -163,6 +163,7 @@ class DecisionMaker(Node):
         if before_ns is not None and before_ns <= after + MISSED_GAP_NS:
             return []  # contiguous: nothing was missed
         for _ in range(MAX_MISSED):
+            self.ctx.counters["missed_queries"] += 1
             replies = await self.ctx.bus.get(HRV_WINDOW, timeout=2.0, parameters=f"after={after}")
             w = next((r.message for r in replies if r.message is not None), None)
             if w is None or (before_ns is not None and w.end_ns > before_ns):

@@ -243,7 +243,10 @@ class Cycles:
         """Selections are state: ask for the current one at start (DESIGN §11). True when one came."""
         for r in await self.ctx.bus.get(SELECTION, timeout=self.settings.query_timeout_s):
             if r.message is not None:
-                self.select(r.message)
+                try:
+                    self.select(r.message)
+                except Rejected as exc:  # a newer one came on the key meanwhile: that one stands
+                    self.ctx.bus.reject(self.ctx.bus.key(SELECTION.suffix), exc.code, exc.detail)
                 return True
         return False
 
@@ -252,6 +255,9 @@ class Cycles:
         ``start_selection`` allows. What was chosen, and why, is an event."""
         if await self.ask_selection():
             assert self.selection is not None
+            self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
+            return
+        if self.selection is not None:  # not answered, but published meanwhile: the decision maker's
             self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
             return
         policy = self.settings.start_selection or ("wait" if self.settings.backend == "ur_rtde" else "last")

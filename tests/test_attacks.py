@@ -1,0 +1,147 @@
+"""Issue 52's attacks on a cell, each at the executor's (or the bus's) own code: a flood on one source, a
+replayed selection, a stack of operator signals, a payload nested to break the decoder. Each is refused,
+counted, and never frees the arm or lets it through a wait."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from common.runtime.bus import Bus
+from common.runtime.mock_bus import MockBus, serving
+from common.runtime.node import Rejected
+from common.safety.separation import Sources
+from schemas import OperatorSignal, Selection, Separation
+from schemas.topology import OPERATOR_SEPARATION, encode
+from services.executor.__main__ import Executor
+from services.executor.cycles import Signals
+from tests.support.cell import now_ns
+from tests.support.executor import TASK, sim_settings, tracked
+
+pytestmark = pytest.mark.asyncio
+S = 1_000_000_000
+
+
+@pytest.fixture
+def task_file(tmp_path: Path) -> Path:
+    f = tmp_path / "shuttle.toml"
+    f.write_text(TASK)
+    return f
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_a_source_over_its_rate_holds_the_arm_and_never_displaces_another() -> None:
+    """A second source floods 100 m at 34,000 a second beside an honest 0.6 m at 20 Hz: the nearest is the
+    honest reading or a hold, never the flood's; once the flood stops, a second later, the honest one."""
+    table = Sources(0.3, 0.05, ("scanner:front",), max_rate_hz=1000)
+    seen = set()
+    for i in range(34_000):  # one second
+        now = i / 34_000
+        if i % 1700 == 0:
+            assert table.admit("scanner:front", 0.6, 0.0, 0.0, now) == ""
+        table.admit("scanner:back", 100.0, 0.0, 0.0, now)
+        if i % 100 == 0:
+            seen.add(table.nearest(now).distance_m)
+    assert seen <= {0.6, None}
+    assert None in seen  # the flood held the arm
+    assert table.nearest(1.0).why.startswith("'scanner:back' sends over 1000 readings a second")
+    table.admit("scanner:front", 0.6, 0.0, 0.0, 2.01)
+    assert table.nearest(2.01).distance_m == 0.6  # a second after the flood: the honest reading
+
+
+async def test_a_flood_on_one_source_never_pushes_anothers_reading_out_of_the_executors_input(
+    tmp_path: Path, task_file: Path
+) -> None:
+    """Through the executor's own input (decoded and taken on arrival): 3,000 far readings of one source
+    between two near ones of another leave the near ones, where a queue of 256 once dropped them."""
+    # readings live 5 s here: the point is the queue, not how fast this host delivers 3,000 messages
+    settings = sim_settings(task_file, separation=True, separation_sources=tracked("scanner:front"),
+                            separation_max_rate_hz=100_000, separation_max_age_s=5.0)  # fmt: skip
+    async with serving(Executor, settings, tmp_path) as run:
+        key = run.test.key(OPERATOR_SEPARATION.suffix)
+        await run.test.until_subscribed(key, 10)
+
+        def reading(source: str, d: float) -> bytes:
+            return encode(Separation(t_ns=now_ns(), seq=0, distance_m=d, source=source, to_robot=True))
+
+        run.test.put_raw(key, reading("scanner:front", 0.6))
+        for _ in range(3000):
+            run.test.put_raw(key, reading("scanner:back", 100.0))
+        run.test.put_raw(key, reading("scanner:front", 0.7))
+        await run.network.settle()
+        near = run.node.reactions.look_distance()
+        assert near.source == "scanner:front"
+        assert run.node.reactions.shown_m() == pytest.approx(0.6)
+        assert run.node.ctx.bus.rejected.get((key, "queue_full"), 0) == 0
+
+
+async def test_a_replayed_selection_is_refused_and_counted_and_a_republished_one_is_no_new_decision(
+    tmp_path: Path, task_file: Path
+) -> None:
+    settings = sim_settings(task_file)
+    async with serving(Executor, settings, tmp_path) as run:
+        ex = run.node
+        t = now_ns()
+        captured = Selection(t_ns=t - 600 * S, seq=40, k=15, n=15, delta=1, reason="rest")
+        current = Selection(t_ns=t - 10 * S, seq=52, k=8, n=15, delta=-1, reason="stress")
+        ex.on_selection(captured)
+        ex.on_selection(current)
+        for _ in range(80):  # 8 s of a replay at 10 Hz
+            with pytest.raises(Rejected) as r:
+                ex.on_selection(captured)
+            assert r.value.code == "stale"
+        ex.on_selection(current)  # the decision maker's republishing: nothing new, nothing refused
+        with pytest.raises(Rejected):  # its seq and stamp with another k: not the decision maker's
+            ex.on_selection(msgspec.structs.replace(current, k=15))
+        assert ex.cycles.selection == current
+        fixed = Selection(t_ns=t - 5 * S, seq=52, k=1, n=15, delta=0, reason="fixed")  # the same seq, later
+        ex.on_selection(fixed)
+        assert ex.cycles.selection == fixed
+        calibrated = Selection(
+            t_ns=t - S, seq=53, k=8, n=15, delta=0, reason="initial"
+        )  # older stamp, new seq
+        ex.on_selection(calibrated)
+        assert ex.cycles.selection == calibrated
+
+
+async def test_twenty_signals_at_once_while_nothing_waits_bank_nothing_and_a_wait_takes_one() -> None:
+    signals, stop = Signals({"part_a2", "part_c2"}, early={"part_c2": 2.0}), asyncio.Event()
+    for i in range(20):
+        with pytest.raises(Rejected) as r:
+            signals.admit(OperatorSignal(t_ns=i, seq=i, name="part_a2", source="hmi"))
+        assert r.value.code == "not_waiting"
+    waiting = asyncio.create_task(signals.wait("part_a2", stop, timeout_s=0.05))
+    assert await waiting == "late"  # none of the twenty counts for the wait that opened after them
+    waiting = asyncio.create_task(signals.wait("part_a2", stop))
+    await asyncio.sleep(0)
+    signals.admit(OperatorSignal(t_ns=100, seq=0, name="part_a2", source="hmi"))
+    with pytest.raises(Rejected, match="its wait has its signal already"):
+        signals.admit(OperatorSignal(t_ns=101, seq=1, name="part_a2", source="hmi"))
+    assert await waiting == "arrived"
+    # declared early: the latest signal before the wait counts for it, once
+    for i in range(5):
+        signals.admit(OperatorSignal(t_ns=200 + i, seq=i, name="part_c2", source="twin"))
+    assert await signals.wait("part_c2", stop, timeout_s=0.05) == "arrived"
+    assert await signals.wait("part_c2", stop, timeout_s=0.05) == "late"
+    assert signals.received == {"part_a2": 1, "part_c2": 1}
+
+
+async def test_a_payload_nested_50000_maps_deep_is_a_counted_decode_error_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    nested = b"\x81\xa1a" * 50_000 + b"\xc0"
+    bus: Bus = MockBus(role="executor")
+    decoder = msgspec.msgpack.Decoder(OperatorSignal)
+    key = bus.key("operator/signal")
+    with caplog.at_level(logging.WARNING):
+        for _ in range(2000):
+            assert bus.decode(key, nested, decoder) is None
+    assert bus.decode_errors[key] == 2000
+    lines = [r for r in caplog.records if "malformed" in r.getMessage()]
+    assert len(lines) == 1
+    assert "RecursionError" in lines[0].getMessage()
+    await bus.close()

@@ -1,0 +1,192 @@
+"""The cell's geometry for speed and separation monitoring (issue 52): the person's distance to the arm and
+its tool, against a brute-force reference; a range read on the safe side; the tool's points in the top
+speed; ISO 13855's C, and the settings that refuse a smaller one or a cell with no source."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import msgspec
+import numpy as np
+import pytest
+
+from common.robot.ur16e import N_JOINTS
+from common.runtime.errors import ConfigError
+from common.safety.geometry import (
+    LINK_RADII_M,
+    NO_TOOL,
+    Arm,
+    Body,
+    Pose,
+    Sensor,
+    Tool,
+    intrusion_iso13855,
+    separation,
+)
+from services.executor.settings import Settings, SourceSettings
+
+RNG_SEED = 52
+TOOL = Tool.of([[0.0, 0.0, 0.15, 0.12], [0.1, 0.0, 0.2, 0.05]])
+
+
+def brute_distance(body: Body, p: np.ndarray, n: int = 2001) -> float:
+    """The least distance from ``p`` to the body, each capsule's axis sampled every ~0.5 mm."""
+    u = np.linspace(0.0, 1.0, n)[:, None]
+    best = math.inf
+    for a, b, r in zip(body.a, body.b, body.r, strict=True):
+        axis = a + u * (b - a)
+        best = min(best, float(np.linalg.norm(axis - p, axis=1).min()) - r)
+    return max(0.0, best)
+
+
+def test_the_distance_to_arm_and_tool_is_the_brute_force_one_at_random_poses_and_places() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    print(f"seed {RNG_SEED}")
+    for _ in range(40):
+        q = rng.uniform(-math.pi, math.pi, N_JOINTS)
+        arm = Arm(Pose(*rng.uniform(-2, 2, 3), rng.uniform(-180, 180)), TOOL)
+        body = arm.body(q)
+        centre = arm.base.place(np.zeros((1, 3)))[0]
+        points = centre + rng.normal(0.0, 1.0, (5, 3))
+        expected = min(brute_distance(body, p) for p in points)
+        assert body.distance(points) == pytest.approx(expected, abs=1e-3)
+
+
+def test_the_tool_is_part_of_the_body_and_the_base_pose_moves_it() -> None:
+    q = np.zeros(N_JOINTS)
+    bare, tooled = Arm().body(q), Arm(tool=TOOL).body(q)
+    assert len(tooled.r) == len(bare.r) + 2
+    moved = Arm(Pose(5.0, 0.0, 0.0, 90.0)).body(q)
+    # the stretched arm points along -x of its base; turned 90°, along -y, 5 m away
+    assert moved.a[0] == pytest.approx([5.0, 0.0, 0.0])
+    assert moved.b[-1][1] < -0.8 and moved.b[-1][0] == pytest.approx(5.0 + 0.2907, abs=1e-3)
+
+
+def test_a_range_is_read_on_the_safe_side_wherever_the_person_stands_at_that_range() -> None:
+    """A plain range says the person is that far from the sensor, in no direction: S is never more than
+    the distance of any point at that range (sampled on the sphere), for sensors anywhere in the cell."""
+    rng = np.random.default_rng(RNG_SEED + 1)
+    arm = Arm(tool=TOOL)
+    for _ in range(30):
+        body = arm.body(rng.uniform(-math.pi, math.pi, N_JOINTS))
+        sensor = Sensor("s", Pose(*rng.uniform(-3, 3, 2), 0.0, rng.uniform(-180, 180)), 0.85)
+        d = rng.uniform(0.0, 6.0)
+        s = separation(body, sensor, d, None, to_robot=False, placed=False)
+        directions = rng.normal(size=(2000, 3))
+        sphere = (
+            sensor.pose.place(np.zeros((1, 3)))[0]
+            + d * directions / np.linalg.norm(directions, axis=1)[:, None]
+        )
+        assert s <= min(body.distance(p[None]) for p in sphere[:200]) + 1e-9
+        assert s <= body.distance(sphere) + 1e-9
+
+
+def test_a_scanner_at_the_base_takes_the_arms_extent_off_its_range_and_to_robot_takes_it_as_it_is() -> None:
+    body = Arm(tool=TOOL).body(np.zeros(N_JOINTS))
+    at_base = Sensor("scanner", Pose(), 1.2)
+    reach = body.reach(np.zeros(3))
+    assert 1.0 < reach < 1.3  # the UR16e stretched (0.9 m and its links' radii) and its tool
+    assert separation(body, at_base, 2.0, None, False, False) == pytest.approx(2.0 - reach)
+    assert separation(body, at_base, 0.6, None, False, False) == 0.0
+    assert separation(body, at_base, 2.0, None, True, False) == 2.0
+    assert separation(body, Sensor("t", Pose(), 0.85, to_robot=True), 2.0, None, False, False) == 2.0
+
+
+def test_points_are_placed_by_the_sensors_pose_unless_already_placed() -> None:
+    body = Arm().body(np.zeros(N_JOINTS))
+    sensor = Sensor("cam", Pose(3.0, 0.0, 0.0, 180.0), 0.85)
+    seen = np.array([[1.5, 0.0, 0.5]])  # 1.5 m in front of a camera at x = 3 facing the base: x = 1.5
+    assert separation(body, sensor, 1.5, seen, False, False) == pytest.approx(
+        body.distance(np.array([[1.5, 0, 0.5]]))
+    )
+    assert separation(body, sensor, 1.5, seen, False, True) == pytest.approx(body.distance(seen))
+    assert np.allclose(sensor.pose.local(sensor.pose.place(seen)), seen)
+
+
+def test_a_wrist_3_spin_moves_the_tool_and_a_wrist_1_turn_moves_its_tip_faster_than_the_flange() -> None:
+    """Issue 52's figures: a wrist-3 spin read 0 m/s at the flange, a gripper tip 0.1 m off its axis
+    moves at ω r; a wrist-1 turn moves a 0.2 m tool's tip faster than the flange."""
+    dt, omega = 0.002, math.radians(180.0)
+    spin = np.zeros((2, N_JOINTS))
+    spin[1, 5] = omega * dt
+    assert Arm().top_speed(spin, dt) == pytest.approx(0.0, abs=1e-9)
+    tip = Arm(tool=Tool.of([[0.1, 0.0, 0.0, 0.0]]))
+    assert tip.top_speed(spin, dt) == pytest.approx(omega * 0.1, rel=1e-3)
+    turn = np.radians([[0, -90, 90, -90, -90, 0]] * 2)  # the example tasks' working pose
+    turn[1, 3] += omega * dt
+    flange, tool = Arm().top_speed(turn, dt), Arm(tool=Tool.of([[0.0, 0.0, 0.2, 0.0]])).top_speed(turn, dt)
+    print(f"wrist 1 at 180°/s: flange {flange:.2f} m/s, tip of a 0.2 m tool {tool:.2f} m/s")
+    assert (round(flange, 2), round(tool, 2)) == (0.53, 1.06)
+    assert NO_TOOL.speed_points().shape == (0, 3)
+    assert len(LINK_RADII_M) == 6
+
+
+@pytest.mark.parametrize(
+    ("detects", "resolution", "height", "c"),
+    [
+        ("legs", None, 0.0, 1.2),  # a scanner's plane at the floor: 1200 mm
+        ("legs", None, 0.3, 1.08),  # 1200 − 0.4·300
+        ("legs", None, 0.875, 0.85),  # 850 mm from H = 875 mm up
+        ("legs", 70, 0.3, 1.08),  # 15 (d − 50) = 300 mm: just high enough for an ankle
+        ("body", None, 0.0, 0.85),
+        ("arm", 55, 0.0, 0.85),
+        ("hand", 14, 0.0, 0.0),  # 8 (d − 14)
+        ("hand", 30, 0.0, 0.128),
+        ("hand", 40, 0.0, 0.208),
+    ],
+)
+def test_iso_13855_intrusion_distances(
+    detects: str, resolution: float | None, height: float, c: float
+) -> None:
+    assert intrusion_iso13855(detects, resolution, height) == pytest.approx(c)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("source", "says"),
+    [
+        ({"name": "scanner:front", "detects": "legs", "height_m": 0.3, "intrusion_m": 0.2},
+         "'scanner:front': intrusion_m = 0.2 m is below ISO 13855's C = 1.080 m"),
+        ({"name": "cam", "detects": "hand", "resolution_mm": 60}, "'cam': a sensor that detects hands"),
+        ({"name": "low", "detects": "legs", "resolution_mm": 90, "height_m": 0.2},
+         "needs the plane at 0.60 m"),
+        ({"name": "high", "detects": "legs", "height_m": 1.4}, "does not see legs"),
+    ],
+)  # fmt: skip
+def test_a_source_whose_c_is_below_iso_13855s_is_refused_naming_it(source: dict, says: str) -> None:
+    s = msgspec.convert({"separation": True, "separation_sources": [source]}, Settings)
+    with pytest.raises(ConfigError, match=r"\[executor\] separation_sources") as e:
+        s.sensors()
+    assert says in str(e.value)
+    assert "\n" not in str(e.value)
+
+
+def test_a_bare_name_is_a_scanner_at_the_base_seeing_legs_at_the_floor_and_a_larger_c_is_kept() -> None:
+    s = msgspec.convert(
+        {"separation": True, "separation_sources": ["scanner:front", {"name": "cam", "detects": "body",
+                                                                     "intrusion_m": 1.0}]},
+        Settings,
+    )  # fmt: skip
+    sensors = s.sensors()
+    assert sensors["scanner:front"] == Sensor("scanner:front", Pose(), 1.2, False)
+    assert sensors["cam"].intrusion_m == 1.0
+    assert SourceSettings.parse("scanner:front:1.5,0,180:legs@0.3") == SourceSettings(
+        "scanner:front", (1.5, 0.0, 0.0, 180.0), "legs", height_m=0.3
+    )
+    with pytest.raises(ValueError, match="NAME:X,Y,YAW:KIND"):
+        SourceSettings.parse("scanner")
+
+
+def test_monitoring_on_with_no_declared_source_is_refused_at_start_in_one_line() -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "services.executor"],
+        env={**os.environ, "CADENCE_EXECUTOR_SEPARATION": "true"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr
+    assert "separation = true needs separation_sources" in r.stderr
