@@ -250,6 +250,33 @@ def test_the_dry_run_prints_every_file_and_no_secret() -> None:
     assert "[ecg_gateway]" not in twin
 
 
+def test_scanners_given_to_the_install_turn_monitoring_on_and_the_config_says_so_when_none_is() -> None:
+    """`cadence install --scanner NAME:X,Y,YAW:KIND`: the executor's section declares each source, with
+    its pose and what it detects, and turns monitoring on; the config decodes as the executor reads it.
+    Without one, the section says that monitoring is off and how to turn it on."""
+    import tomllib
+
+    import msgspec
+
+    from cadence.deploy.install import config_toml
+    from services.executor.settings import Settings as ExecutorSettings
+    from services.executor.settings import SourceSettings
+
+    scanners = (
+        SourceSettings.parse("scanner:front:1.5,0,180:legs@0.3"),
+        SourceSettings.parse("cam:0,2,270:body"),
+    )
+    opts = Options(robot="sim", strap="twin", scanners=scanners)
+    text = config_toml(opts, new_bundle(opts))
+    executor = msgspec.convert(tomllib.loads(text)["executor"], ExecutorSettings)
+    assert executor.separation
+    sensors = executor.sensors()
+    assert (sensors["scanner:front"].intrusion_m, sensors["cam"].intrusion_m) == (pytest.approx(1.08), 0.85)
+    assert sensors["scanner:front"].pose.x == 1.5
+    bare = Options(robot="sim", strap="twin")
+    assert "# separation monitoring is off: no --scanner was given" in config_toml(bare, new_bundle(bare))
+
+
 def test_a_joining_host_gets_its_own_certificates_from_the_same_ca(tmp_path: Path) -> None:
     first = new_bundle(Options(robot="sim", router_host="cellpc"))
     (tmp_path / "cell.json").write_text(first.to_json())
@@ -311,6 +338,8 @@ def test_a_child_dies_with_its_parent_even_on_sigkill() -> None:
         (["--cell", "cell 1/x"], "--cell 'cell 1/x': letters, digits"),
         (["--robot", "ur16 e"], "--robot 'ur16 e': a host name"),
         (["--strap", "twin", "--services", "ecg_gateway"], "--services ecg_gateway: with --strap twin"),
+        (["--scanner", "front:1.5,0:legs"], "--scanner 'front:1.5,0:legs'"),
+        (["--scanner", "front:1.5,0,0:feet"], "--scanner 'front:1.5,0,0:feet'"),
     ],
 )
 def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -187,6 +188,31 @@ async def test_the_sensor_adapter_skips_a_bad_byte_a_huge_line_and_an_underscore
     assert "stdin line 2:" in stderr
     assert "over 256 bytes" in stderr
     assert "stdin line 3: '1_0': not a decimal number" in stderr
+
+
+def test_a_sensors_points_lines_are_placed_by_its_pose_and_a_bad_one_is_named() -> None:
+    """`cadence separation --points`: 'X Y [Z]' in the sensor's frame, placed in the cell frame by --pose
+    (the message says so), or left for the executor to place by the source's configured pose."""
+    from cadence.tools.say import Form, parse_pose, separation_line
+    from common.runtime.errors import InputError
+
+    behind = Form(points=True, pose=parse_pose("3,0,180"))  # at x = 3 m, facing the robot's base
+    m = separation_line("1.5 0 0.5", "cam", 7, 11, behind)
+    assert m.points == ((pytest.approx(1.5), pytest.approx(0.0, abs=1e-12), 0.5),)
+    assert (m.placed, m.to_robot, m.seq, m.t_ns) == (True, False, 7, 11)
+    assert m.distance_m == pytest.approx(math.hypot(1.5, 0.5))  # the sensor's own range to it
+    own = separation_line("1.5 0", "cam", 0, 0, Form(points=True))
+    assert (own.points, own.placed) == (((1.5, 0.0, 0.0),), False)
+    plain = separation_line("2.0", "scanner", 0, 0, Form(to_robot=True))
+    assert (plain.distance_m, plain.to_robot, plain.points) == (2.0, True, ())
+    with pytest.raises(InputError, match=r"expected X Y \[Z\]"):
+        separation_line("1.5", "cam", 0, 0, Form(points=True))
+    with pytest.raises(ValueError, match="X,Y,YAW"):
+        parse_pose("3,0")
+    r = subprocess.run([sys.executable, "-m", "cadence", "separation", "1", "--pose", "1,2,3"],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 2
+    assert r.stderr.strip() == "cadence: error: --pose places points: it goes with --points"
 
 
 def test_a_misspelled_bus_variable_stops_a_tool_as_it_stops_every_service() -> None:
