@@ -26,7 +26,7 @@ from common.safety.geometry import Arm
 from common.safety.separation import BARE, Figures
 from common.trajectory.scaling import LIMIT_RTOL, Curve, Ramp, plan_ramp, ramp_ratio, switch_curve
 from common.trajectory.task import PathPlan
-from services.executor.playback import SIGMA_EPS, InForce, Playback, Switch
+from services.executor.playback import SIGMA_EPS, InForce, Offer, Playback, Switch
 from services.executor.servo import MotionResult, Servo
 from services.executor.settings import RAMP_LEAD_S
 
@@ -116,6 +116,26 @@ class PathRun:
             took = await self.post(now, ramp=ramp)
             self.ramps += took
             return ramp if took else None
+
+    async def keep_fallback(self, lead_s: float, keep_s: float) -> None:
+        """A stop planned ``lead_s`` (wall) ahead for the loop to take should the lease run out, planned
+        again once the state changed or its start is under ``keep_s`` ahead (Playback, the lease)."""
+        pb = self.playback
+        now, fb = pb.now, pb.fallback
+        if now.pending_ramp is not None or now.ramp.target <= 0.0:  # a change in flight, or held already
+            return
+        if (
+            fb is not None
+            and fb.base is now
+            and fb.ramp is not None
+            and fb.ramp.t0 >= pb.t + keep_s * self.speed
+        ):
+            return
+        also = [now.pending_switch.curve] if now.pending_switch is not None else []
+        args = (now.curve, now.ramp, pb.t + lead_s * self.speed, 0.0, self.limits, also)
+        stop = await asyncio.to_thread(plan_ramp, *args)
+        if stop is not None and pb.now is now:
+            pb.fallback = Offer(now, ramp=stop)
 
     # --- a new k within the path ----------------------------------------------------------------------
 

@@ -18,6 +18,14 @@ The loop says what it did with each offer, and when a pending change took effect
 be taken at (``max_sigma``: the scale the person's distance allows on the switched curve); at a higher one
 it is dropped, so the arm never runs a faster curve at a scale chosen for a slower one.
 
+The scale in force is leased (DESIGN §8, T_r): the owner renews ``lease`` (a deadline on the loop's
+clock) at every look at the person's distance, and keeps a stop planned ahead (``fallback``, a ramp to
+σ = 0 checked like any other, from the state in force). Should the looks stop coming (the owner's thread
+starved, a stall of the host), the loop itself takes that stop when the lease runs out, from its own
+thread: the arm never runs on a scale nobody has confirmed for longer than the adoption budget. With no
+valid stop planned (the state changed since), it ramps σ down over ``stop_s`` unchecked: a stop that
+skipped the check, said and counted (``lapses``), not an arm that ran on.
+
 Inside ``next`` there is no lock, no logging and no container that grows: a few floats, one Horner
 evaluation of the current span, and a new ``InForce`` only when something changes.
 """
@@ -119,6 +127,13 @@ class Playback:
         # the last ramp that began to play and when (the loop's clock: the wall's, or a lockstep cell's data
         # time), one tuple written whole: the owner measures how soon a reading's scale was in force by it
         self.began: tuple[Ramp, float] | None = None
+        # the lease on the scale in force (the owner's, renewed at each look; None: none, the scale holds)
+        self.lease: float | None = None
+        self.fallback: Offer | None = None  # the stop to take when the lease runs out (the owner's)
+        self.stop_s = 1.0  # an unchecked stop's length, when no fallback fits the state (the path's T_s)
+        self.lapsed = False  # the lease ran out and the loop took its stop; a renewal clears it
+        self.lapses = 0  # how often
+        self.unchecked = 0  # of which with no fallback that fitted
         self.adopted = 0  # offers taken into the state
         self.missed = 0  # offers or pending changes dropped: too late, or planned from another state
         self.span = 0
@@ -153,6 +168,10 @@ class Playback:
         self.mailbox = Offer(base, ramp, switch)
         return True
 
+    def renew(self, until: float) -> None:
+        """The owner has looked: the scale in force holds until ``until`` (the loop's clock)."""
+        self.lease, self.lapsed = until, False
+
     def settled(self, offer: Offer | None = None) -> bool:
         """Whether the loop has seen the last offer posted (adopted or dropped it), or has ended."""
         return self.finished or self._seen is (offer or self.mailbox)
@@ -175,8 +194,29 @@ class Playback:
             self.missed += 1
         self.notify()
 
+    def _lapse(self) -> None:
+        """The lease ran out: the planned stop, or one over ``stop_s`` from the σ-state now."""
+        self.lapsed = True
+        now = self.now
+        if now.target <= 0.0 and (now.pending_ramp is None or now.pending_ramp.target <= 0.0):
+            return  # stopping or stopped already
+        self.lapses += 1
+        fb, t = self.fallback, self.tick * DT
+        if fb is not None and fb.ramp is not None and fb.base is now and self._in_time(fb.ramp, None):
+            stop = fb.ramp
+        else:
+            self.unchecked += 1
+            t0 = t + DT
+            s0, sig, sd, sdd = (float(x[0]) for x in now.ramp.state(np.array([t0])))
+            stop = Ramp.between(t0, s0, (sig, sd, sdd), 0.0, max(self.stop_s, DT))
+        self.now = replace(now, pending_ramp=stop, pending_switch=None)
+        self.notify()
+
     def next(self) -> object | None:
         self._read_mailbox()
+        lease = self.lease
+        if lease is not None and not self.lapsed and monotonic() > lease:
+            self._lapse()
         t = self.tick * DT
         now = self.now
         pending = now.pending_ramp

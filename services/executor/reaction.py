@@ -212,6 +212,12 @@ class Reactions:
             a.answered(arrival, monotonic())
             return
         self.last_figures = r.figures
+        # the scale in force holds until the next look is due, with room for one late: past it the loop
+        # takes the stop kept ready for it (services/executor/playback.py, the lease)
+        budget = self.adoption.budget_s
+        r.playback.stop_s = max(r.guard.stop_time_s, self.ssm.stop_time_s)
+        r.playback.renew(monotonic() + budget / 2)
+        await r.keep_fallback(0.75 * budget, 0.5 * budget)
         current = r.playback.now.target
         if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
             a.answered(arrival, monotonic())  # the scale in force answers them
