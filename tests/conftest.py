@@ -20,7 +20,7 @@ from tests.support.paths import (
 # that run a demo cell at 16x (the demo, the lab, the wheel's demo) share one worker, one at a time: two
 # such cells on a 2-core machine, with other work running, starved each other's simulated operator. (The
 # systemd cells run at real time, beside them.)
-CELL_FILES = frozenset({"test_demo.py", "test_lab.py", "test_packaging.py"})
+CELL_FILES = frozenset({"test_demo.py", "test_lab.py", "test_packaging.py", "test_walk_in.py"})
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
