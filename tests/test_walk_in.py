@@ -41,7 +41,7 @@ from common.safety.separation import Figures, Ssm
 from common.trajectory.planner import content_hash
 from common.trajectory.scaling import Curve
 from common.trajectory.task import load_task
-from schemas import RobotState, Separation
+from schemas import RobotState, Separation, ServiceStatus
 from schemas.topology import encode
 from services.executor.settings import Settings as ExecutorSettings
 from services.pareto_store.store import SetStore
@@ -113,12 +113,14 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         "CADENCE_EXECUTOR_FIFO_PRIORITY": "80" if os.geteuid() == 0 else "0",  # as its unit grants
         "CADENCE_EXECUTOR_LOCK_DIR": str(tmp_path / "locks"),
     }
-    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    busy = int(os.environ.get("CADENCE_WALK_BUSY_LOOPS", "2"))  # 0: the same walks on an idle host
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
     procs: list[subprocess.Popen[bytes]] = []
     states: list[tuple[float, RobotState]] = []
     try:
         async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), CELL) as bus:
             sub = bus.subscribe(bus.key("robot/state"), RobotState, maxsize=100_000)
+            health = bus.subscribe(bus.key("health/executor"), ServiceStatus, maxsize=10_000)
             key = bus.key("operator/separation")
             for name, e in (("pareto_store", env), ("executor", executor_env)):
                 log = (tmp_path / f"{name}.log").open("wb")
@@ -150,6 +152,9 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
                     _, s = await sub.receive(30)
                     states.append((s.t_ns / 1e9 - start, s))
             tracker.cancel()
+            counters = {}
+            while health.pending:
+                counters = (await health.receive(1))[1].counters
     finally:
         for p in procs:
             p.terminate()
@@ -192,6 +197,8 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
           f"S - S_p at the sample: least {min(literal):+.3f} m, negative in {sum(m < 0 for m in literal)} "
           f"(the arm answering a reading up to T_r = {tr:.2f} s old); still with the person at {NEAR} m: "
           f"{held_near} samples")  # fmt: skip
+    adoption = {k: v for k, v in counters.items() if k.startswith("adoption")}
+    print(f"the executor's adoption with {busy} busy loops (ms): {adoption}")
     assert held_near > 0  # the person stood inside the arm's reach: the arm held
     assert min(reach) > 0.0  # the moving arm never within the person's reach
     assert least >= 0.0

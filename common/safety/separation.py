@@ -27,14 +27,20 @@ ahead nor a late relay makes a reading live longer. A stamp ahead of the receive
 cell's skew bound is refused, not clamped. A source declared in the settings that has no fresh reading
 holds the arm even while others speak: a scanner that died is not a scanner that sees nobody.
 
+S, C and the arm's speed are the cell's (common/safety/geometry.py): S the person's distance to the arm
+and its tool, C the source's own by ISO 13855, v_r the fastest point of arm and tool. ``Sources`` keeps
+each reading as its room, S − C, so that a source that sees legs (C 1.2 m) and one that sees hands are
+weighed alike; ``Ssm`` then takes C = 0.
+
 T_r, the reaction time, is the sum of what lies between a person's move and the arm's answer to it (the
 executor's settings, README "Separation"): the sensor's own latency where its messages do not carry it
-(``age_s``), the oldest reading accepted (``max_age_s``: the adapter, the bus and the wait for the next
-look are inside it, for a reading older than that is not used), the clock skew between hosts (a stamp may
-say a reading is younger than it is by that much), the lead of a ramp (it starts a little ahead of the
-loop), and the robot's own command delay (servoJ's lookahead: the arm follows its target that much later).
+(``age_s``), the oldest reading accepted (``max_age_s``: the adapter and the bus are inside it, for a
+reading older than that is not used), the clock skew between hosts (a stamp may say a reading is younger
+than it is by that much), the executor's adoption (from a reading's arrival to the step that plays the
+scale it led to, measured on the wall clock by ``Adoption``, with a budget past which the arm holds), and
+the robot's own command delay (servoJ's lookahead: the arm follows its target that much later).
 T_s is the longest stop of the path actually played (``common/trajectory/scaling.stop_time``, from every
-controller step), and v_r its top link speed; a switch to another solution within a path is taken only at
+controller step), and v_r its top speed; a switch to another solution within a path is taken only at
 the σ the distance allows on the joined curve, with the joined curve's T_s and v_r.
 """
 
