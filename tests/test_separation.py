@@ -244,3 +244,34 @@ def test_after_a_switch_to_a_faster_k_a_person_walking_in_never_reaches_a_moving
     least_before, _, inside_before = walk_in(path, result, follow_switch=False)
     print(f"with the first curve's figures: {least_before:.3f} m, {inside_before} samples inside the zone")
     assert inside_before > 0  # the rule this replaces lets the arm move inside the protective zone
+
+
+def test_the_adoption_holds_the_arm_when_a_reading_was_answered_late_and_frees_it_when_one_is_in_time() -> (
+    None
+):
+    """Adoption (T_r's executor part): a reading answered within the budget leaves the arm as it is; one
+    answered late, or a ramp still waited for past it, holds it until a reading is answered in time."""
+    from common.safety.separation import Adoption
+
+    a, ramp = Adoption(0.1), object()
+    a.arrived(0.0)
+    a.arrived(0.01)  # the oldest counts
+    a.answered(a.take(), 0.05)
+    assert not a.late and list(a.delays) == [0.05]
+    a.arrived(1.0)
+    a.offered(ramp, a.take())
+    a.began(None, None, 1.05)  # not yet played, within the budget
+    assert not a.late
+    a.began(None, None, 1.2)  # still waited for past it: a hold before the ramp comes
+    assert a.late and a.times_late == 1
+    a.began(ramp, 1.21, 1.22)  # it played at last, 0.21 s after its reading
+    assert a.late and a.delays[-1] == pytest.approx(0.21)
+    a.arrived(2.0)
+    a.answered(a.take(), 2.02)
+    assert not a.late
+    a.arrived(3.0)
+    a.offered(ramp, a.take())
+    a.dropped()  # its path ended: the next look answers that reading
+    assert a.take() == 3.0
+    q = a.quantiles()
+    assert q["max"] == pytest.approx(0.21) and q["p50"] == pytest.approx(0.05)
