@@ -164,13 +164,6 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
             p.kill()
             p.wait()
     margins, literal, reach, held_near = [], [], [], 0
-    if os.environ.get("WALK_DEBUG"):
-        for t, s in states:
-            print(
-                f"all {t:7.3f} x {person_x(t):5.2f} scale {s.scale:4.2f} said {s.separation_m} {s.state} "
-                f"{s.path_id} qd {max(map(abs, s.qd)):.3f}"
-            )
-        print((tmp_path / "executor.log").read_text()[-20000:])
     for t, s in states:
         q, qd = np.array(s.q), np.array(s.qd)
         dt = 1e-3
@@ -184,11 +177,6 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         left = math.sqrt(min(1.0, v / f.speed_m_s))  # the stop from the speed left (scaling.ramp_duration)
         margins.append(sep - (V_H * f.stop_time_s * left + v * f.stop_travel_s * left + c + z))
         reach.append(sep - (c + z))
-        if os.environ.get("WALK_DEBUG") and margins[-1] < 0:
-            print(
-                f"t {t:7.3f} x {person_x(t):5.2f} S {sep:5.2f} v {v:5.2f} scale {s.scale:4.2f} "
-                f"said {s.separation_m} path {s.path_id} margin {margins[-1]:+.2f}"
-            )
         ssm = f.ssm(Ssm(V_H, tr, 0.0, c, z))
         literal.append(sep - ssm.protective_distance(v))
     least = min(margins)
