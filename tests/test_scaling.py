@@ -292,34 +292,28 @@ def test_a_lease_that_runs_out_makes_the_loop_take_the_planned_stop_itself_insid
     takes the checked stop planned ahead for it, from its own thread, and the arm comes to rest inside the
     limits; with no stop that fits the state, an unchecked one over the path's T_s, counted. A renewal
     clears the lapse."""
-    import services.executor.playback as playback_module
     from services.executor.playback import Offer
 
     path, result = planned
     curve = Curve.of(result.solutions[-1].h, path)
-    clock = [0.0]
-    real = playback_module.monotonic
-    playback_module.monotonic = lambda: clock[0]  # the loop's clock, stepped with the samples
-    try:
-        for planned_stop in (True, False):
-            pb = Playback(curve, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy())
-            pb.stop_s = stop_time(curve, LIMITS).time_s
-            pb.renew(0.05)
-            sent = []
-            for i in range(1500):  # 3 s: T_s of this path at k = N is 1.26 s
-                clock[0] = i * DT
-                if i == 10 and planned_stop:  # the owner's last look: a stop planned 75 ms ahead
-                    stop = plan_ramp(pb.curve, pb.ramp, pb.t + 0.075, 0.0, LIMITS)
-                    assert stop is not None
-                    pb.fallback = Offer(pb.now, ramp=stop)
-                if (q := pb.next()) is not None:
-                    sent.append(q)
-            assert pb.lapsed and pb.lapses == 1 and pb.unchecked == (0 if planned_stop else 1)
-            assert pb.sigma == pytest.approx(0.0, abs=1e-9)  # at rest on its path
-            assert pb.ramp.t0 <= 0.05 + 0.075 + DT  # the stop began within the lease and its lead
-            if planned_stop:
-                assert (finite_difference_ratios(np.array(sent)) <= 1.0 + 1e-6).all()
-            pb.renew(clock[0] + 1.0)
-            assert not pb.lapsed
-    finally:
-        playback_module.monotonic = real
+    clock = [0.0]  # the loop's clock, stepped with the samples
+    for planned_stop in (True, False):
+        pb = Playback(curve, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy(), clock=lambda: clock[0])
+        pb.stop_s = stop_time(curve, LIMITS).time_s
+        pb.renew(0.05)
+        sent = []
+        for i in range(1500):  # 3 s: T_s of this path at k = N is 1.26 s
+            clock[0] = i * DT
+            if i == 10 and planned_stop:  # the owner's last look: a stop planned 75 ms ahead
+                stop = plan_ramp(pb.curve, pb.ramp, pb.t + 0.075, 0.0, LIMITS)
+                assert stop is not None
+                pb.fallback = Offer(pb.now, ramp=stop)
+            if (q := pb.next()) is not None:
+                sent.append(q)
+        assert pb.lapsed and pb.lapses == 1 and pb.unchecked == (0 if planned_stop else 1)
+        assert pb.sigma == pytest.approx(0.0, abs=1e-9)  # at rest on its path
+        assert pb.ramp.t0 <= 0.05 + 0.075 + DT  # the stop began within the lease and its lead
+        if planned_stop:
+            assert (finite_difference_ratios(np.array(sent)) <= 1.0 + 1e-6).all()
+        pb.renew(clock[0] + 1.0)
+        assert not pb.lapsed

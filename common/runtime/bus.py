@@ -140,7 +140,7 @@ class Subscription(Generic[M]):
         key_expr: str,
         msg_type: type[M],
         maxsize: int,
-        arrival: Callable[[str, M], None] | None = None,
+        arrival: Callable[[str, M], object] | None = None,
         screen: Callable[[str, M], bool] | None = None,
     ) -> None:
         self._bus = bus
@@ -464,20 +464,27 @@ class Bus:
     ) -> Subscription[M]:
         """The messages of a topic of the graph (``HEALTH.at("executor")`` for one key of a family); or of
         a key expression, decoded as ``msg_type``, for a tool or a test."""
+        return self._subscription(what, msg_type, maxsize)
+
+    def _subscription(
+        self,
+        what: Topic[Any] | str,
+        msg_type: Any,
+        maxsize: int,
+        arrival: Callable[[str, Any], object] | None = None,
+        screen: Callable[[str, Any], bool] | None = None,
+    ) -> Subscription[Any]:
         key_expr, msg_type = self._resolve("subscribe", what, msg_type)
-        sub = Subscription(self, key_expr, msg_type, maxsize)
+        sub = Subscription(self, key_expr, msg_type, maxsize, arrival, screen)
         self._declared.append(sub)
         return sub
 
-    def take(self, what: Topic[M], callback: Callable[[str, M], None]) -> Subscription[M]:
+    def take(self, what: Topic[M], callback: Callable[[str, M], object]) -> Subscription[M]:
         """Each message of a topic of the graph handed to ``callback`` on the loop thread as it arrives,
         decoded, with no queue between: for input that must be judged on arrival and kept per sender
         (DESIGN §8: one source's flood cannot displace another's reading). The callback must be quick;
         one that raises is counted like a handler."""
-        key_expr, msg_type = self._resolve("subscribe", what, None)
-        sub = Subscription(self, key_expr, msg_type, 1, arrival=callback)
-        self._declared.append(sub)
-        return sub
+        return self._subscription(what, None, 1, arrival=callback)
 
     @overload
     def handle(
@@ -513,14 +520,8 @@ class Bus:
         """Subscribe with a handler coroutine, run for each message in order in a task the bus owns.
         A handler that raises is counted and logged (rate-limited) and the next message is handled: bad
         input never stops a service. ``screen``: whether a message may be queued (``Subscription``)."""
-        if isinstance(what, str):
-            msg_type, handler = args
-            key_expr, msg_type = self._resolve("subscribe", what, msg_type)
-        else:
-            (handler,) = args
-            key_expr, msg_type = self._resolve("subscribe", what, None)
-        sub = Subscription(self, key_expr, msg_type, maxsize, screen=screen)
-        self._declared.append(sub)
+        msg_type, handler = args if isinstance(what, str) else (None, *args)
+        sub = self._subscription(what, msg_type, maxsize, screen=screen)
 
         async def pump() -> None:
             async for key, msg in sub:

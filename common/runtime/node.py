@@ -233,17 +233,10 @@ async def serve_node(node: Node) -> None:
 
         return handle
 
-    def taker(fn: Callable[[Any], None]) -> Callable[[str, Any], None]:
-        def take(key: str, msg: Any) -> None:
-            try:
-                fn(msg)
-            except Rejected as r:
-                bus.reject(key, r.code, r.detail)
+    def judged(fn: Callable[[Any], None]) -> Callable[[str, Any], bool]:
+        """A plain method run on arrival (an arrival handler, a screen): False, counted, when it refused."""
 
-        return take
-
-    def screener(fn: Callable[[Any], None]) -> Callable[[str, Any], bool]:
-        def screen(key: str, msg: Any) -> bool:
+        def judge(key: str, msg: Any) -> bool:
             try:
                 fn(msg)
             except Rejected as r:
@@ -251,17 +244,17 @@ async def serve_node(node: Node) -> None:
                 return False
             return True
 
-        return screen
+        return judge
 
     for topic, name in handlers(type(node), _INPUT).values():
         if node.reads(topic):
             fn = getattr(node, name)
             if getattr(fn, _ARRIVAL):
-                bus.take(topic, taker(fn))
+                bus.take(topic, judged(fn))
             else:
                 screen = getattr(fn, _SCREEN)
                 bus.handle(topic, reader(fn), maxsize=getattr(fn, _MAXSIZE),
-                           screen=screener(getattr(node, screen)) if screen else None)  # fmt: skip
+                           screen=judged(getattr(node, screen)) if screen else None)  # fmt: skip
 
     def replier(fn: Callable[[Request], Awaitable[Any]]) -> Callable[[Request], Awaitable[Any]]:
         async def reply(req: Request) -> Any:

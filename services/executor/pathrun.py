@@ -59,7 +59,7 @@ class PathRun:
             with contextlib.suppress(RuntimeError):  # a loop already closed: nobody waits
                 loop.call_soon_threadsafe(self.changed.set)
 
-        self.playback = Playback(curve, start, convert, notify)
+        self.playback = Playback(curve, start, convert, notify, loop.time)
         self.lock = asyncio.Lock()
         self.ramps = self.ramps_refused = 0
         self.switched_at = 0.0  # the path time of the last switch taken

@@ -32,13 +32,13 @@ evaluation of the current span, and a new ``InForce`` only when something change
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from common.runtime.clock import monotonic
 from common.trajectory.scaling import DT, Curve, Ramp
 
 Array = NDArray[np.float64]
@@ -114,9 +114,12 @@ class Playback:
         ramp: Ramp,
         convert: Callable[[Array], object],
         notify: Callable[[], None] = _nothing,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """``clock``: the owner's loop's (``loop.time``: the wall's monotonic clock, or a lockstep cell's
+        data time), read from the loop's thread once a step while a lease is held."""
         self.now = InForce(ramp, curve)
-        self.convert, self.notify = convert, notify
+        self.convert, self.notify, self.clock = convert, notify, clock
         self.tick = 0
         self.s = 0.0
         self.sigma = float(ramp.c[0])
@@ -215,14 +218,14 @@ class Playback:
     def next(self) -> object | None:
         self._read_mailbox()
         lease = self.lease
-        if lease is not None and not self.lapsed and monotonic() > lease:
+        if lease is not None and not self.lapsed and self.clock() > lease:
             self._lapse()
         t = self.tick * DT
         now = self.now
         pending = now.pending_ramp
         if pending is not None and t >= pending.t0 - DT / 2:
             now = self.now = replace(now, ramp=pending, pending_ramp=None)
-            self.began = (pending, monotonic())
+            self.began = (pending, self.clock())
             self.notify()
         s, sigma = now.ramp.at(t)
         switch = now.pending_switch

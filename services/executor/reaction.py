@@ -126,11 +126,7 @@ class Reactions:
     def shown_m(self) -> float | None:
         """S of the nearest reading, as a person reads it (the distance, not the room past C)."""
         n = self.nearest
-        if n.distance_m is None:
-            return None
-        return n.distance_m + (
-            self.sensors[n.source].intrusion_m if n.source in self.sensors else UNDECLARED_C
-        )
+        return None if n.distance_m is None else n.distance_m + self.sensor(n.source).intrusion_m
 
     def look_distance(self) -> Nearest:
         self.nearest = self.sources.nearest(monotonic())
