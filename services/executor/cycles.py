@@ -253,11 +253,9 @@ class Cycles:
     async def start_selection(self) -> None:
         """No motion without a current selection: the decision maker's, or, when it cannot be reached, what
         ``start_selection`` allows. What was chosen, and why, is an event."""
-        if await self.ask_selection():
+        # answered, or published meanwhile (the fallbacks below must not override the decision maker's)
+        if await self.ask_selection() or self.selection is not None:
             assert self.selection is not None
-            self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
-            return
-        if self.selection is not None:  # not answered, but published meanwhile: the decision maker's
             self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
             return
         policy = self.settings.start_selection or ("wait" if self.settings.backend == "ur_rtde" else "last")
@@ -465,6 +463,8 @@ class Cycles:
                 self.reactions.run = None
                 self.ctx.counters["ramps"] += run.ramps
                 self.ctx.counters["ramps_refused"] += run.ramps_refused
+                self.ctx.counters["lease_lapses"] += run.playback.lapses
+                self.ctx.counters["unchecked_stops"] += run.playback.unchecked
                 self.carried = run.playback.state()
                 self.reactions.idle_scale = run.playback.sigma  # what the arm ended at, until the next look
             k = self.k = run.k  # a switch within the path may have changed it
@@ -475,6 +475,13 @@ class Cycles:
                 self.safety.event(
                     "overrun", f"{result.overruns} servo overruns during '{pid}'", pid, repeat=True
                 )
+            if lapses := run.playback.lapses:  # the looks at the distance stopped coming: the loop stopped
+                unchecked = run.playback.unchecked
+                why = f" ({unchecked} unchecked: no planned stop fitted)" if unchecked else ""
+                said = (
+                    f"the scale's lease ran out {lapses} times during '{pid}': the servo took its stop{why}"
+                )
+                self.safety.event("scale", said, pid, repeat=True)
             if result.outcome == "done":
                 self.safety.fire(Event.DONE)
                 return k
