@@ -38,10 +38,12 @@ from common.runtime.bus import Bus, BusConfig, Request
 from common.runtime.clock import Clock
 from common.runtime.errors import CadenceError
 from common.runtime.lifetime import PARENT_ENV
+from common.runtime.numeric import numeric_build
 from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.storage import write_readable
 from common.safety.states import routine_change
 from common.sim.twin import TwinParams
+from common.trajectory.shipped import digest_of
 from common.trajectory.task import load_task
 from schemas import (
     CellClock,
@@ -487,6 +489,10 @@ def summarise(
         "scale": obs.scale,
         # by key, messages the cell sent that the observer did not see (their figures above are missing)
         "unseen": {k.split("/", 2)[-1]: n for k, n in obs.gaps.missed.items() if n},
+        # what the run computed on: the planned sets (the same bytes on every machine when shipped,
+        # common/trajectory/shipped.py) and numpy's kernels and BLAS here (common/runtime/numeric.py)
+        "sets_sha256": digest_of(sets.values()) if sets else "",
+        "build": numeric_build(),
     }
     keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
     try:

@@ -66,6 +66,12 @@ class SessionInfo(msgspec.Struct, frozen=True, kw_only=True):
     break_s: Seconds | None = None
     training_start_ns: TimeNs | None = None
     yoked_k: Annotated[int, msgspec.Meta(ge=1, le=100)] | None = None  # condition y: the k it held
+    # the planned sets the robot ran on (common/trajectory/shipped.py: sets_digest; "" where not known)
+    # and what numpy computed with in the process that wrote the file (common/runtime/numeric.py): the
+    # first things to compare when two runs
+    # that should agree do not
+    sets_sha256: Annotated[str, msgspec.Meta(pattern="^([0-9a-f]{64})?$")] = ""
+    build: Text = ""
 
 
 class SessionEnd(msgspec.Struct, frozen=True, kw_only=True):

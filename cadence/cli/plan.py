@@ -26,13 +26,18 @@ cli = Commands()
 @arg("task", metavar="TASK.toml", help="task program (see deploy/tasks/box_filling.toml)")
 @arg("--out", required=True, metavar="DIR", help="output folder (created if missing)")
 @arg("--no-plots", action="store_true", help="write the JSON files only")
+@arg("--ship", metavar="FILE.json", default=None,
+     help="also write the sets as one file to ship (deploy/sets/): the store serves them and the simulated "
+     "study runs on them instead of planning, the same bytes on every machine")  # fmt: skip
 @arg("--workers", type=int, default=None, metavar="N",
      help="paths planned at once, one process each (default: the cores this process may use)")  # fmt: skip
 @flags_from(add_planner_flags)
 def cmd_plan(args: argparse.Namespace) -> int:
     from cadence.lab.plots import pareto_figure
     from common.runtime.storage import write_readable
+    from common.trajectory.planner import content_hash
     from common.trajectory.pool import plan_paths
+    from common.trajectory.shipped import as_message, write_shipped
 
     task = task_with_overrides(args)
     for gap in continuity_gaps(task):
@@ -62,6 +67,10 @@ def cmd_plan(args: argparse.Namespace) -> int:
         write_readable(outdir / f"{result.path.id}.json", json.dumps(result.to_json(), indent=1).encode())
         if not args.no_plots:
             write_readable(outdir / f"{result.path.id}.png", pareto_figure(result))
+    if args.ship:
+        msgs = [as_message(r, content_hash(r.path, task.limits, s)) for r in results.values()]
+        digest = write_shipped(Path(args.ship), task, msgs)
+        out.print(f"shipped sets {digest[:12]} → {args.ship}")
 
     table = Table(
         title=f"{task.name}: Pareto sets ({s.constraints} limits) → {outdir}",

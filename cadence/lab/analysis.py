@@ -16,7 +16,7 @@ condition their mean ± sd over subjects (Table I). Then (cadence/lab/stats.py):
 
 Sessions cut short are left out unless asked (``include_incomplete``), and listed with their reason; a
 task file that differs between sessions is refused (the sessions did not run the same task), and
-differing software versions are said.
+differing software versions and planned sets are said.
 """
 
 from __future__ import annotations
@@ -140,15 +140,22 @@ def select(sessions: list[Session], include_incomplete: bool) -> tuple[list[Sess
 
 
 def agreement(sessions: list[Session]) -> list[str]:
-    """The sessions ran one task (else InputError); the software versions they ran, if more than one."""
+    """The sessions ran one task (else InputError); the software versions and planned sets they ran on,
+    if more than one."""
     tasks: dict[str, list[str]] = {}
     for s in sessions:
         tasks.setdefault(s.info.task_sha256, []).append(s.path.name)
     if len(tasks) > 1:
         which = "; ".join(f"{h[:12]}: {', '.join(files)}" for h, files in tasks.items())
         raise InputError(f"the sessions ran different task files (by SHA-256): {which}")
+    notes = []
     versions = sorted({s.info.software for s in sessions})
-    return [f"sessions ran different software: {', '.join(versions)}"] if len(versions) > 1 else []
+    if len(versions) > 1:
+        notes.append(f"sessions ran different software: {', '.join(versions)}")
+    sets = sorted({s.info.sets_sha256[:12] for s in sessions if s.info.sets_sha256})
+    if len(sets) > 1:  # planned again between sessions (an edited task, another machine's planner)
+        notes.append(f"sessions ran on different planned sets: {', '.join(sets)}")
+    return notes
 
 
 def analyse(
@@ -249,6 +256,8 @@ def to_json(study: Study) -> dict:
         "simulated": study.simulated,
         "subjects": len({s.info.subject for s in study.sessions}),
         "conditions": {c: CONDITION_NAMES[c] for c in study.conditions},
+        "sets_sha256": sorted({s.info.sets_sha256 for s in study.sessions if s.info.sets_sha256}),
+        "builds": sorted({s.info.build for s in study.sessions if s.info.build}),
         "table": {
             c: {m: {"mean": v[0], "sd": v[1], "n": v[2]} for m, v in ms.items()}
             for c, ms in study.table.items()

@@ -33,6 +33,7 @@ from cadence.tools.recording import Recorder, read
 from common.hrv.calibration import SETTLED_WINDOWS, settled
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
+from common.runtime.numeric import numeric_build
 from common.trajectory.task import load_task
 from schemas import (
     Calibration,
@@ -455,6 +456,21 @@ async def ask_condition(
         await asyncio.sleep(0.2)  # the calibration is on its way; ask again
 
 
+async def sets_in_use(bus: Bus, task: Path, timeout: float = 2.0) -> str:
+    """The digest of the sets the cell's store serves for ``task``'s paths (common/trajectory/shipped.py),
+    recorded in the session file; "" when a path's set is not served (yet): the file then says nothing."""
+    from common.trajectory.shipped import digest_of
+    from schemas.topology import PARETO_SET
+
+    found = []
+    for pid in load_task(task).paths:
+        replies = await bus.get(PARETO_SET.at(pid), timeout=timeout)
+        if not replies or replies[0].message is None:
+            return ""
+        found.append(replies[0].message)
+    return digest_of(found)
+
+
 def stored_calibration(opts: SessionOptions) -> Calibration:
     from common.hrv.calibration import calibration_path, load_calibration
 
@@ -593,6 +609,8 @@ async def run_session(
                     task=opts.task.name,
                     task_sha256=task_digest(opts.task),
                     software=software(),
+                    sets_sha256=await sets_in_use(bus, opts.task),
+                    build=numeric_build(),
                     notes=opts.notes,
                     study=opts.study,
                     period=opts.period,

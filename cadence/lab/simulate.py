@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from cadence.lab.study import Model, calibrate_twin, motions, simulate_session, subjects
 from schemas.session import Condition
 
@@ -40,7 +42,8 @@ def simulate_study(
     from cadence.lab.fit import cohort_for, fit
     from cadence.lab.session import load_session
     from cadence.lab.tables import err, out, print_study
-    from common.trajectory.planner import plan_path
+    from common.trajectory.planner import content_hash, plan_path
+    from common.trajectory.shipped import sets_digest, shipped
     from common.trajectory.task import load_task
 
     conditions: tuple[Condition, ...] = ("a", "b", "c")
@@ -57,8 +60,13 @@ def simulate_study(
         plan = progress.add_task("planning the Pareto sets", total=len(task.paths))
         sols = {}
         for pid, path in task.paths.items():
-            sols[pid] = [s.h for s in plan_path(path, task.limits, task.planner).solutions]
+            if (ready := shipped(pid, content_hash(path, task.limits, task.planner))) is not None:
+                sols[pid] = [np.array(s.h) for s in ready.solutions]  # the same on every machine
+            else:
+                sols[pid] = [s.h for s in plan_path(path, task.limits, task.planner).solutions]
             progress.advance(plan)
+        digest = sets_digest(sols)
+        progress.update(plan, description=f"Pareto sets {digest[:12]}")
         moves = motions(task, sols)
         n_per_path = {pid: len(v) for pid, v in sols.items()}
         if fit_subjects:
@@ -73,7 +81,8 @@ def simulate_study(
             cal = calibrate_twin(sub, args.calibrate, model)
             for c in conditions:
                 f = folder / f"{sub.name}_{c}.mcap"
-                simulate_session(task, task_path, moves, n_per_path, sub, cal, c, args.minutes, f, model)
+                simulate_session(task, task_path, moves, n_per_path, sub, cal, c, args.minutes, f, model,
+                                 digest)  # fmt: skip
                 files.append(f)
                 progress.advance(runs)
     study = analyse([load_session(f) for f in files])

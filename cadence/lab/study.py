@@ -20,6 +20,7 @@ from cadence.lab.session import SessionWriter, software, task_digest
 from common.decision import Params, State, k_for_path, step
 from common.hrv.calibration import calibration
 from common.hrv.stream import intervals, window_message, window_stats, windows
+from common.runtime.numeric import numeric_build
 from common.sim.twin import Operator, TwinParams
 from common.trajectory import bspline as bs
 from common.trajectory.task import Task
@@ -241,7 +242,13 @@ def simulate(
 
 
 def session_info(
-    subject: Subject, condition: Condition, cal: Calibration, minutes: float, task_path: Path, model: Model
+    subject: Subject,
+    condition: Condition,
+    cal: Calibration,
+    minutes: float,
+    task_path: Path,
+    model: Model,
+    sets: str = "",
 ) -> SessionInfo:
     return SessionInfo(
         subject=subject.name,
@@ -254,6 +261,8 @@ def session_info(
         task_sha256=task_digest(task_path),
         software=software(),
         simulated=True,
+        sets_sha256=sets,
+        build=numeric_build(),
         notes=f"operator twin: seed {subject.seed}, resting RR {subject.rr_rest_s:.3f} s, "
         f"tolerance {subject.tolerance:.2f}" + "".join(f", {k} {v:.4g}" for k, v in model.items()),
     )
@@ -270,9 +279,11 @@ def simulate_session(
     minutes: float,
     path: Path,
     model: Model | None = None,
+    sets: str = "",
 ) -> Outcome:
-    """One session file, as a live `cadence session` writes it, for a twin subject."""
-    info = session_info(subject, condition, cal, minutes, task_path, model or {})
+    """One session file, as a live `cadence session` writes it, for a twin subject; ``sets``: the digest
+    of the planned sets ``moves`` come from."""
+    info = session_info(subject, condition, cal, minutes, task_path, model or {}, sets)
     writer = SessionWriter(path, info.cell)
     writer.begin(info)
     try:

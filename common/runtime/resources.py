@@ -1,6 +1,7 @@
-"""Where the files that ship with Cadence are: the example task and the deploy templates. In a checkout
-they are ``deploy/``; in an installed wheel, ``cadence/deploy/files/`` (pyproject's force-include). Nothing
-else may build a path from the checkout's layout, or an installed ``cadence`` breaks."""
+"""Where the files that ship with Cadence are: the example task, its planned sets and the deploy
+templates. In a checkout they are ``deploy/``; in an installed wheel, ``cadence/deploy/files/``
+(pyproject's force-include). Nothing else may build a path from the checkout's layout, or an installed
+``cadence`` breaks."""
 
 from __future__ import annotations
 
@@ -12,3 +13,4 @@ DEPLOY = next(
 )
 EXAMPLE_TASK = DEPLOY / "tasks" / "box_filling.toml"
 FOXGLOVE_LAYOUT = DEPLOY / "foxglove" / "cadence.layout.json"
+SHIPPED_SETS = DEPLOY / "sets"  # planned sets as data, by content hash (common/trajectory/shipped.py)

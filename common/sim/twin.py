@@ -16,7 +16,12 @@ A simulation model for demos and tests, not a claim about real people. Every par
   clip((M − movement_base_mg) / exertion_span_mg, 0, 1) with ``tau_exert_up_s`` / ``tau_exert_down_s``:
   the heart answers effort within tens of seconds and recovers in about a minute.
 - Mean RR = rr_rest − rr_range · S − fatigue_rr · F − exertion_rr · E. Each interval adds respiratory
-  sinus arrhythmia (a sine at the breathing rate) and AR(1) noise.
+  sinus arrhythmia (a sine at the breathing rate) and AR(1) noise, and comes in the strap's unit, 1/1024 s.
+- What the twin gives out is quantised as a device's output is, RR to 1/1024 s and handling times to 1 ms:
+  that is also what makes its story the same on every machine (issue 53). Its state follows the robot's
+  joint velocities, whose last bits depend on numpy's kernels and the BLAS (the B-spline solve and powers);
+  a difference in the 16th digit of the state moves no quantised output, except in the rare case that it
+  straddles a step, about 1e-13 per beat.
 - The strap's accelerometer (``accelerometer``): gravity (the H10's orientation on a chest) plus noise
   whose mean magnitude is M, at 25 Hz, from a generator of its own, so that the heart's draws are the same
   with or without it.
@@ -51,6 +56,8 @@ WAVES = np.array(
     ]
 )
 REACH_S = 0.6  # a beat's waves are negligible further than this from its R peak
+RR_STEP_S = 1.0 / 1024.0  # the Polar H10's RR unit; a sum of such steps is exact in binary
+HANDLING_STEP_S = 1e-3
 ACC_FS_HZ = 25.0
 GRAVITY_MG = np.array([-993.0, 30.0, -237.0])  # an H10 on a chest (the shared Polar export's first row)
 
@@ -173,7 +180,7 @@ class Operator:
         self._obs = _Held()  # the robot's speed and acceleration as the operator saw them
         self._last_qd: tuple[float, NDArray[np.float64]] | None = None
         self._noise = 0.0
-        self.beats: list[float] = [0.3]  # R-peak times, s
+        self.beats: list[float] = [300 * RR_STEP_S]  # R-peak times, s: on the strap's grid
         self._resp_phase = self.rng.uniform(0, 2 * math.pi)
         self._wander_phase = self.rng.uniform(0, 2 * math.pi)
 
@@ -285,7 +292,8 @@ class Operator:
         return bool(self.rng.random() < self.error_probability())
 
     def handling_time(self) -> float:
-        return self.p.handling_s * (1.0 + 0.5 * self.stress) * float(self.rng.lognormal(0.0, 0.2))
+        s = self.p.handling_s * (1.0 + 0.5 * self.stress) * float(self.rng.lognormal(0.0, 0.2))
+        return round(s / HANDLING_STEP_S) * HANDLING_STEP_S
 
     # --- the heart ----------------------------------------------------------------------------------
 
@@ -295,7 +303,7 @@ class Operator:
             self.rng.normal(0.0, p.rr_noise_s)
         )
         rsa = p.rsa_s * math.sin(2 * math.pi * p.resp_hz * t + self._resp_phase)
-        return min(1.6, max(0.35, self.mean_rr() + rsa + self._noise))
+        return round(min(1.6, max(0.35, self.mean_rr() + rsa + self._noise)) / RR_STEP_S) * RR_STEP_S
 
     def beats_until(self, t: float) -> list[float]:
         """Lay down the R peaks up to data time t, each as the state is at the beat before; returns the

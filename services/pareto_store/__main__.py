@@ -4,6 +4,7 @@ the sets in SQLite, and answers ``pareto/<path_id>`` and ``pareto/<path_id>/<k>`
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import sqlite3
@@ -20,6 +21,7 @@ from common.runtime.lockstep import Inline
 from common.runtime.node import Node, Out, answers, node_main
 from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.service import service_main
+from common.trajectory.shipped import shipped
 from common.trajectory.task import Task, load_task
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
 from schemas.topology import PARETO_SET, PARETO_SOLUTION, key, validated
@@ -81,9 +83,22 @@ class ParetoStore(Node):
             log.error("%s", problem)
             self.ctx.detail = problem
         self.digests, self.sets = await asyncio.to_thread(self.store.current, self.task)
+        self.shipped = await asyncio.to_thread(self.take_shipped)
         self.reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
         # a lockstep cell's planning is done in its loop's thread: its time waits for it (lockstep.py)
         self.pool = Inline() if self.ctx.common.clock.driven else worker_pool(self.ctx.settings.workers)
+
+    def take_shipped(self) -> list[str]:
+        """The paths whose sets ship with Cadence for exactly these inputs: served as shipped, the same
+        bytes on every machine (common/trajectory/shipped.py), and kept in SQLite for a later warm start."""
+        taken = []
+        for pid, digest in self.digests.items():
+            if pid not in self.sets and (s := shipped(pid, digest)) is not None:
+                self.sets[pid] = s
+                taken.append(pid)
+                with contextlib.suppress(sqlite3.OperationalError):  # a full disk: served all the same
+                    self.store.save(s)
+        return taken
 
     def progress(self, pid: str, state: PlanState, message: str = "") -> PlanProgress:
         done = sum(1 for p in self.task.paths if p in self.sets)
@@ -106,7 +121,8 @@ class ParetoStore(Node):
         path whose waypoints were edited starts from its last set (a warm start)."""
         yield [self.progress(pid, "stored") for pid in self.sets]
         missing = [pid for pid in self.task.paths if pid not in self.sets]
-        log.info("task '%s': %d sets stored%s", self.task.name, len(self.sets),
+        log.info("task '%s': %d sets stored%s%s", self.task.name, len(self.sets),
+                 f" ({len(self.shipped)} shipped with Cadence)" if self.shipped else "",
                  f", planning {', '.join(missing)}" if missing else "")  # fmt: skip
         if not missing:
             self.ctx.state = "serving"

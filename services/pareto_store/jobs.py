@@ -6,15 +6,15 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
-import time
 from concurrent.futures import Executor, ProcessPoolExecutor
 
 import numpy as np
 
 from common.runtime.lifetime import die_with_parent
 from common.trajectory.planner import plan_path
+from common.trajectory.shipped import as_message
 from common.trajectory.task import PathPlan, PlannerSettings, Task
-from schemas.pareto import Limits, ParetoSet, ParetoSolution
+from schemas.pareto import ParetoSet
 
 _NICE = 10
 
@@ -24,24 +24,7 @@ def plan_job(
 ) -> ParetoSet:
     """Runs in a worker process: plan one path (seeded by ``warm``, the interval vectors of its last set
     before an edit) and return it as the wire message."""
-    r = plan_path(path, task.limits, settings, warm=[np.array(h) for h in warm or []])
-    start, end = path.boundary.ends()
-    return ParetoSet(
-        t_ns=time.time_ns(),
-        seq=0,
-        path_id=path.id,
-        content_hash=digest,
-        constraints=settings.constraints,
-        waypoints=path.waypoints.tolist(),
-        limits=Limits(**task.limits.as_dict()),
-        start=start,
-        end=end,
-        front=r.front.tolist(),
-        solutions=[
-            ParetoSolution(k=s.k, h=s.h.tolist(), t_f=s.t_f, f_time=s.f_time, f_jerk=s.f_jerk)
-            for s in r.solutions
-        ],
-    )
+    return as_message(plan_path(path, task.limits, settings, warm=[np.array(h) for h in warm or []]), digest)
 
 
 def lower_priority(pool: Executor) -> None:
