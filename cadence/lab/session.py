@@ -390,6 +390,13 @@ class Watch:
     def errors(self) -> int:
         return len(counted(self.marked))
 
+    def moving_at(self, selection: Selection) -> int | None:
+        """The data time of a robot state after ``selection`` that moves at its k; None while none has."""
+        r = self.robot
+        if r is None or r.t_ns < selection.t_ns or r.k != selection.k or r.mode != "moving":
+            return None
+        return r.t_ns
+
     async def next_change(self, timeout_s: float) -> None:
         """Until the next message, or ``timeout_s``: the live view's pace when nothing comes."""
         self.changed.clear()
@@ -592,9 +599,22 @@ async def run_session(
                     )
                 await watch.next_change(0.5)
         # 4. the condition, set afresh ((c) starts Alg. 1 again), and from then on the session counts
+        #    (counted from when the robot moves at the condition's k, not from the decision maker's answer:
+        #    a path in flight ends at the old k, and on a slow or held cell that is seconds of data time)
+        began_ns: int | None = None
         if not stop.is_set() and cal is not None:
             first = await ask_condition(bus, opts, timeout=10.0, calibrated_ns=fresh)
-            watch.start_ns = first.t_ns
+            deadline = time.monotonic() + opts.ready_timeout_s
+            while not stop.is_set() and (began_ns := watch.moving_at(first)) is None:
+                show(f"waiting for the robot to move at k = {first.k}", watch, opts)
+                if time.monotonic() > deadline:
+                    raise CadenceError(
+                        f"the robot has not moved at k = {first.k} within {opts.ready_timeout_s:g} s of the "
+                        f"condition: {watch.readiness()['robot'] or 'it is held or waiting'}"
+                    )
+                await watch.next_change(0.5)
+        if began_ns is not None:
+            watch.start_ns = began_ns
             rest = (
                 None if opts.previous_end_ns is None else max(0.0, (first.t_ns - opts.previous_end_ns) / 1e9)
             )
@@ -604,7 +624,7 @@ async def run_session(
                     condition=opts.condition,
                     cell=opts.cell,
                     calibration=cal,
-                    start_ns=first.t_ns,
+                    start_ns=began_ns,
                     minutes=opts.minutes,
                     task=opts.task.name,
                     task_sha256=task_digest(opts.task),
@@ -620,14 +640,14 @@ async def run_session(
                 )
             )
             began = True
-            planned = first.t_ns + round(opts.minutes * 60e9)
+            planned = began_ns + round(opts.minutes * 60e9)
             while watch.data_ns < planned and not stop.is_set():
                 while keys is not None and not keys.empty():
                     act(keys.get_nowait())
                 show("running", watch, opts)
                 await watch.next_change(0.25)
             if stop.is_set():
-                end = SessionEnd(end_ns=max(watch.data_ns, first.t_ns + 1), complete=False,
+                end = SessionEnd(end_ns=max(watch.data_ns, began_ns + 1), complete=False,
                                  reason="interrupted (Ctrl-C or a stop signal)")  # fmt: skip
             else:
                 end = SessionEnd(end_ns=planned, complete=True, reason="on time")
