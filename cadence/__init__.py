@@ -1,20 +1,13 @@
 """Cadence's command line and the lab's tools (README "Layout")."""
 
 import os
-import signal
 import sys
-from types import FrameType
 
-
-def _not_started(signum: int, frame: FrameType | None) -> None:
-    raise SystemExit(0)
-
-
-# A service's unit runs `cadence run NAME`: a stop that comes while it is still importing (a restart the
-# cell is stopped during, on a loaded host) finds nothing begun, and is a clean exit, not death by
-# SIGTERM (ExecMainStatus 15). The service puts its own handler in place once it runs (service.py).
+# A service's unit runs `cadence run NAME`: a stop before it runs is a clean exit (common/runtime/early.py)
 if os.path.basename(sys.argv[0]) == "cadence" and sys.argv[1:2] == ["run"]:
-    signal.signal(signal.SIGTERM, _not_started)
+    from common.runtime.early import exit_cleanly_until_started
+
+    exit_cleanly_until_started()
 
 from importlib.metadata import PackageNotFoundError  # noqa: E402
 from importlib.metadata import version as _version  # noqa: E402

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import signal
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -98,3 +101,24 @@ def test_cadence_get_alone_on_the_bus_says_why_no_reply_came() -> None:
     )
     assert r.returncode == 1, r.stderr
     assert "connected to no router and no peer" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["-m"], ["/opt/cadence/.venv/bin/cadence", "run", "hrv_analyser"]],
+    ids=["python -m services.NAME", "cadence run NAME"],
+)
+def test_a_sigterm_while_a_service_is_still_importing_is_a_clean_exit(argv: list[str]) -> None:
+    """A supervisor's stop that comes during a service's imports (a restart the cell is stopped during, on
+    a loaded host): exit 0, not death by the signal (systemd's ExecMainStatus 15, issue 53). The process
+    takes its first package as a service start would, then is stopped before anything else it imports;
+    a plain script that imports the same package is not touched."""
+    code = (
+        "import os, signal, sys; sys.argv = {argv!r}; import {pkg}; "
+        "os.kill(os.getpid(), signal.SIGTERM); import numpy; sys.exit(3)"
+    )
+    pkg = "services" if argv == ["-m"] else "cadence"
+    r = subprocess.run([sys.executable, "-c", code.format(argv=argv, pkg=pkg)], timeout=60)
+    assert r.returncode == 0
+    r = subprocess.run([sys.executable, "-c", code.format(argv=["tool.py"], pkg=pkg)], timeout=60)
+    assert r.returncode == -signal.SIGTERM
