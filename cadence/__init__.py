@@ -9,8 +9,8 @@ if os.path.basename(sys.argv[0]) == "cadence" and sys.argv[1:2] == ["run"]:
 
     exit_cleanly_until_started()
 
-from importlib.metadata import PackageNotFoundError  # noqa: E402
-from importlib.metadata import version as _version  # noqa: E402
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _version
 
 
 def version() -> str:

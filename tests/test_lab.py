@@ -69,7 +69,9 @@ def counted(path: Path) -> dict:
     errors = [m for m in msgs if m.get("type") == "operator.error.v1" and inside(m)]
     good = [m["mean_rr_s"] for m in msgs if m.get("type") == "hrv.window.v1" and m["quality"] == "good"
             and start < m["end_ns"] <= end]  # fmt: skip
-    selections = [m for m in msgs if m.get("type") == "decision.selection.v1" and m["t_ns"] >= start]
+    # the selection in force when the session began (the robot already moving at its k), and those after
+    sels = sorted((m for m in msgs if m.get("type") == "decision.selection.v1"), key=lambda m: m["t_ns"])
+    selections = [m for m in sels if m["t_ns"] <= start][-1:] + [m for m in sels if m["t_ns"] > start]
     minutes = (end - start) / 60e9
     return {
         "meta": meta,

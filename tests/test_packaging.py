@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from common.runtime.resources import EXAMPLE_TASK
 from tests.support.paths import REPO
 
 needs_uv = pytest.mark.skipif(shutil.which("uv") is None, reason="uv is not on PATH (.ci/run installs it)")
@@ -114,6 +115,8 @@ def _planning(demo: int, not_store: int | None = None) -> tuple[int, int]:
 
 @pytest.mark.skipif(shutil.which("pgrep") is None, reason="needs pgrep")
 def test_a_killed_store_or_demo_leaves_no_process_behind(tmp_path: Path) -> None:
+    task = tmp_path / "reseeded.toml"  # the example task's shipped sets are served without planning
+    task.write_text(EXAMPLE_TASK.read_text().replace("seed = 1", "seed = 2"))
     demo = subprocess.Popen(
         [
             sys.executable,
@@ -124,6 +127,8 @@ def test_a_killed_store_or_demo_leaves_no_process_behind(tmp_path: Path) -> None
             "--duration",
             "600",
             "--no-live",
+            "--task",
+            str(task),
             "--out",
             str(tmp_path / "o"),
         ],

@@ -1,8 +1,8 @@
 """What numpy computes with on this machine: its version, the SIMD extensions its kernels dispatch to, and
 its BLAS with the core type that BLAS chose. Recorded beside every summary, study and session file, since
 the last bits of exp, power, cbrt (numpy's AVX-512 kernels) and of a solve or matmul (OpenBLAS's kernel per
-core) depend on them (issue 53): a figure that differs between two files with different builds may differ
-for that reason alone; one that differs between equal builds does not."""
+core) depend on them (issue 53). A simulated story does not (README, "The same story on every machine");
+a plan, a benchmark's figure or a live cell's numbers may, and this says where to look first."""
 
 from __future__ import annotations
 
