@@ -20,6 +20,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from common.runtime.resources import SHIPPED_SETS
+from common.trajectory.shipped import read_shipped
 from tests.support.cell import CELL, free_port
 
 SPEED = "16"
@@ -158,6 +160,7 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
     assert len(study["sessions"]) == 3
     by = {row["condition"]: row for row in study["sessions"]}
     mine = {c: counted(sessions / f"twin-1_{c}.mcap") for c in "abc"}
+    shipped = read_shipped(SHIPPED_SETS / "box_filling.json").sets_sha256
     for c in "abc":
         row, raw = by[c], mine[c]
         assert row["complete"] is True, (c, row)
@@ -171,6 +174,7 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
         assert cal["subject"] == "twin-1"
         assert row["mean_rr_norm"] == pytest.approx(raw["mean_rr_s"] / cal["rr_rest_s"])
         assert raw["meta"]["cadence.session"]["condition"] == c
+        assert raw["meta"]["cadence.session"]["sets_sha256"] == shipped  # the store's, as served to the cell
     # each condition was in force: its selections, and the k the robot moved with
     assert {(s["k"], s["reason"]) for s in mine["a"]["selections"]} == {(15, "fixed")}
     assert {(s["k"], s["reason"]) for s in mine["b"]["selections"]} == {(1, "fixed")}

@@ -15,7 +15,10 @@ import pytest
 from cadence.lab.analysis import analyse, to_json
 from cadence.lab.session import load_session
 from cadence.lab.study import Subject, motions, simulate
+from common.runtime.numeric import numeric_build
+from common.runtime.resources import SHIPPED_SETS
 from common.trajectory.planner import boundary_stretch, interval_bounds
+from common.trajectory.shipped import read_shipped
 from common.trajectory.task import load_task
 from tests.support.paths import EXAMPLE_TASK
 
@@ -58,10 +61,14 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
 
     # the files alone give the same study (`cadence study analyse` on them is in tests/test_lab.py)
     redo = json.loads(json.dumps(to_json(analyse([load_session(f) for f in files]))))
-    for f in files:  # each file's calibration is its own subject's
+    shipped = read_shipped(SHIPPED_SETS / "box_filling.json").sets_sha256
+    assert doc["sets_sha256"] == [shipped]  # the example task's sets ship: no machine plans its own
+    assert doc["builds"] == [numeric_build()]
+    for f in files:  # each file's calibration is its own subject's, and it says what it ran on
         info = load_session(f).info
         assert info.calibration is not None
         assert info.calibration.subject == info.subject
+        assert (info.sets_sha256, info.build) == (shipped, numeric_build())
     assert redo["table"] == doc["table"]
     assert redo["wilcoxon"] == doc["wilcoxon"]
     the_statistics_are_scipys_and_statsmodels(doc)
@@ -107,6 +114,11 @@ def the_policies_hold(sessions: list) -> None:
         analyse([placed[0], other, *placed[2:]])
     newer = dataclasses.replace(placed[1], info=msgspec.structs.replace(placed[1].info, software="cadence 9"))
     assert "different software" in to_json(analyse([placed[0], newer, *placed[2:]]))["notes"][0]
+    other_sets = msgspec.structs.replace(placed[1].info, sets_sha256="e" * 64)
+    replanned = dataclasses.replace(placed[1], info=other_sets)
+    ran = sorted({placed[0].info.sets_sha256[:12], "e" * 12})
+    notes = to_json(analyse([placed[0], replanned, *placed[2:]]))["notes"]
+    assert notes == [f"sessions ran on different planned sets: {', '.join(ran)}"]
 
 
 def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
