@@ -97,9 +97,10 @@ async def test_the_store_serves_the_shipped_sets_without_planning_and_plans_a_pa
 
     async with cell.session() as client:
 
-        async def served(task_file: Path) -> ServiceStatus:
+        async def served(task_file: Path, data: str = "data", shipped: bool = True) -> ServiceStatus:
             sub = aiter(client.subscribe(client.key("health/pareto_store"), ServiceStatus, maxsize=1))
-            svc = cell.service("pareto_store", main, Settings(task=str(task_file)), tmp_path / "data")
+            settings = Settings(task=str(task_file), shipped_sets=shipped)
+            svc = cell.service("pareto_store", main, settings, tmp_path / data)
             try:
                 return await serving(sub)
             finally:
@@ -120,3 +121,5 @@ async def test_the_store_serves_the_shipped_sets_without_planning_and_plans_a_pa
 
         status = await served(edited)
         assert status.counters.get("computed") == 1  # the edited path alone is planned
+        status = await served(EXAMPLE_TASK, "own", shipped=False)  # `shipped_sets = false`: all planned here
+        assert status.counters.get("computed") == len(task.paths)

@@ -293,7 +293,7 @@ async def bench_store(task_path: str, queries: int = 200) -> StoreBench:
         cfg = Path(tmp) / "c.toml"
         cfg.write_text(
             f"[cadence]\ndata_dir = '{tmp}'\nstatus_period_s = 0.05\n[bus]\nconnect = ['{endpoint}']\n"
-            f"[pareto_store]\ntask = '{Path(task_path).resolve()}'\n"
+            f"[pareto_store]\ntask = '{Path(task_path).resolve()}'\nshipped_sets = false\n"  # it plans
         )
         client = await Bus.open(BusConfig(listen=[endpoint]), DEFAULT_CELL)
         async with client:

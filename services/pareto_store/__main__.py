@@ -35,6 +35,9 @@ NAME = "pareto_store"
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     task: str = str(EXAMPLE_TASK)
     workers: Annotated[int, msgspec.Meta(ge=1, le=64)] = 2
+    # serve the sets that ship with Cadence for a path planned from the same inputs (deploy/sets/): the
+    # same trajectories on every machine; false: plan every path here
+    shipped_sets: bool = True
 
 
 def _chunks(cell: str, req: Request) -> list[str]:
@@ -83,7 +86,7 @@ class ParetoStore(Node):
             log.error("%s", problem)
             self.ctx.detail = problem
         self.digests, self.sets = await asyncio.to_thread(self.store.current, self.task)
-        self.shipped = await asyncio.to_thread(self.take_shipped)
+        self.shipped = await asyncio.to_thread(self.take_shipped) if self.ctx.settings.shipped_sets else []
         self.reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
         # a lockstep cell's planning is done in its loop's thread: its time waits for it (lockstep.py)
         self.pool = Inline() if self.ctx.common.clock.driven else worker_pool(self.ctx.settings.workers)
