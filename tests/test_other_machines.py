@@ -34,42 +34,61 @@ def _cpu_flags() -> set[str]:
     }
 
 
-def machines() -> tuple[dict[str, dict[str, str]], list[str]]:
-    """The settings that make this machine compute as another would, by name, and those it cannot play
-    (with why)."""
+def _build(env: dict[str, str]) -> str:
+    """What numpy and the BLAS compute with under ``env`` (common/runtime/numeric.py), in a fresh process."""
+    import os
+
+    code = "from common.runtime.numeric import numeric_build; print(numeric_build())"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env=os.environ | env)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    return r.stdout.strip()
+
+
+def machines() -> dict[str, dict[str, str]]:
+    """The settings that make this machine compute as another would, by name; each is kept only when it
+    changes the build (a setting this process already runs under, or kernels the CPU lacks, would play
+    this machine again), and those it cannot play are said in a warning."""
     from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
 
-    on = [f for f in __cpu_dispatch__ if __cpu_features__.get(f)]
+    on = [f for f in __cpu_dispatch__ if __cpu_features__.get(f)]  # what numpy uses here and now
     flags = _cpu_flags()
+    wanted: dict[str, dict[str, str]] = {}
+    blas: list[tuple[str, str, bool]]  # (name, core type, the CPU can run it)
+    if platform.machine() in ("x86_64", "AMD64"):
+        # every such name numpy dispatches to, in use or not: the setting replaces one this process runs under
+        avx512 = [f for f in __cpu_dispatch__ if "AVX512" in f or f == "X86_V4"]
+        avx2 = avx512 + [f for f in __cpu_dispatch__ if f in ("X86_V3", "AVX2", "FMA3", "F16C")]
+        wanted["numpy without AVX-512"] = {"NPY_DISABLE_CPU_FEATURES": " ".join(avx512)}
+        wanted["numpy without AVX2"] = {"NPY_DISABLE_CPU_FEATURES": " ".join(avx2)}
+        blas = [
+            ("Prescott", "Prescott", True),
+            ("SkylakeX", "SkylakeX", "avx512f" in flags),
+            ("Haswell", "Haswell", "avx2" in flags),
+            ("Sandybridge", "Sandybridge", "avx" in flags),
+        ]
+    else:  # aarch64: numpy's dispatched extensions off, and OpenBLAS's generic and Neoverse kernels
+        wanted["numpy baseline only"] = {"NPY_DISABLE_CPU_FEATURES": " ".join(on)}
+        blas = [("ARMV8", "ARMV8", True), ("NeoverseN1", "NEOVERSEN1", "asimddp" in flags)]
+    base = _build({})
     plays: dict[str, dict[str, str]] = {"as it is": {}}
     cannot = []
-    if platform.machine() in ("x86_64", "AMD64"):
-        avx512 = [f for f in on if "AVX512" in f or f == "X86_V4"]
-        avx2 = avx512 + [f for f in on if f in ("X86_V3", "AVX2", "FMA3", "F16C")]
-        for name, off in (("numpy without AVX-512", avx512), ("numpy without AVX2", avx2)):
-            if off:
-                plays[name] = {"NPY_DISABLE_CPU_FEATURES": " ".join(off)}
-            else:
-                cannot.append(f"{name}: this CPU gives numpy none of those kernels ('as it is' plays it)")
-        plays["OpenBLAS Prescott, one thread"] = {
-            "OPENBLAS_CORETYPE": "Prescott",
-            "OPENBLAS_NUM_THREADS": "1",
-        }
-        if "avx512f" in flags:
-            plays["OpenBLAS SkylakeX"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
-        elif "avx2" in flags:
-            plays["OpenBLAS Haswell"] = {"OPENBLAS_CORETYPE": "Haswell"}
+    for name, env in wanted.items():
+        if any(f in on for f in env["NPY_DISABLE_CPU_FEATURES"].split()) and _build(env) != base:
+            plays[name] = env
         else:
-            cannot.append("OpenBLAS SkylakeX or Haswell: this CPU has neither AVX-512 nor AVX2")
-    else:  # aarch64: numpy's dispatched extensions off, and OpenBLAS's generic and Neoverse kernels
-        if on:
-            plays["numpy baseline only"] = {"NPY_DISABLE_CPU_FEATURES": " ".join(on)}
-        plays["OpenBLAS ARMV8, one thread"] = {"OPENBLAS_CORETYPE": "ARMV8", "OPENBLAS_NUM_THREADS": "1"}
-        plays["OpenBLAS NeoverseN1"] = {"OPENBLAS_CORETYPE": "NEOVERSEN1"}
-        cannot.append("x86-64's AVX-512 and AVX2 kernels: not on this processor")
+            cannot.append(f"{name}: numpy here has none of those kernels in use ('as it is' plays it)")
+    families = 0
+    for name, core, runs in blas:  # two families of OpenBLAS kernels other than this machine's
+        env = {"OPENBLAS_CORETYPE": core} | ({"OPENBLAS_NUM_THREADS": "1"} if families == 0 else {})
+        if families < 2 and runs and _build(env) != base:
+            plays[f"OpenBLAS {name}" + (", one thread" if families == 0 else "")] = env
+            families += 1
+    if families < 2:
+        cannot.append(f"OpenBLAS: {families} family of kernels other than this machine's, not 2")
     if cannot:
         warnings.warn("could not play: " + "; ".join(cannot), stacklevel=2)
-    return plays, cannot
+    return plays
 
 
 def _run(args: list[str], env: dict[str, str]) -> None:
@@ -114,7 +133,7 @@ def _demo_story(out: Path) -> tuple[str, str, list[str]]:
 def test_the_same_story_whatever_kernels_numpy_and_the_blas_pick(
     tmp_path: Path, what: str, args: list[str], story: object
 ) -> None:
-    plays, _ = machines()
+    plays = machines()
     shipped = read_shipped(SHIPPED_SETS / "box_filling.json").sets_sha256
     told = {}
     for name, env in plays.items():
