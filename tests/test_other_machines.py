@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import platform
 import subprocess
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -36,8 +38,6 @@ def _cpu_flags() -> set[str]:
 
 def _build(env: dict[str, str]) -> str:
     """What numpy and the BLAS compute with under ``env`` (common/runtime/numeric.py), in a fresh process."""
-    import os
-
     code = "from common.runtime.numeric import numeric_build; print(numeric_build())"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        env=os.environ | env)  # fmt: skip
@@ -92,8 +92,6 @@ def machines() -> dict[str, dict[str, str]]:
 
 
 def _run(args: list[str], env: dict[str, str]) -> None:
-    import os
-
     r = subprocess.run([sys.executable, "-m", "cadence", *args], capture_output=True, text=True, timeout=600,
                        env=os.environ | env)  # fmt: skip
     assert r.returncode == 0, r.stdout + r.stderr
@@ -131,7 +129,7 @@ def _demo_story(out: Path) -> tuple[str, str, list[str]]:
     ],
 )
 def test_the_same_story_whatever_kernels_numpy_and_the_blas_pick(
-    tmp_path: Path, what: str, args: list[str], story: object
+    tmp_path: Path, what: str, args: list[str], story: Callable[[Path], tuple[str, str, list[str]]]
 ) -> None:
     plays = machines()
     shipped = read_shipped(SHIPPED_SETS / "box_filling.json").sets_sha256
@@ -139,7 +137,7 @@ def test_the_same_story_whatever_kernels_numpy_and_the_blas_pick(
     for name, env in plays.items():
         out = tmp_path / name.replace(" ", "_").replace(",", "")
         _run([*args, "--out", str(out)], env)
-        told[name] = story(out)  # type: ignore[operator]
+        told[name] = story(out)
     base_story, base_build, _ = told["as it is"]
     for name, (digest, build, sets) in told.items():
         assert sets == [shipped], f"{what}, {name}: ran on sets {sets}, not the shipped {shipped[:12]}"
