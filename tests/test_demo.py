@@ -38,6 +38,8 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
             f"hrv_analyser@{KILL_HRV}",
             "--kill",
             f"decision_maker@{KILL_DECISION}",
+            "--twin",
+            "separation=false",
         ],
         capture_output=True,
         text=True,
@@ -74,24 +76,19 @@ def test_closed_loop_with_kills(tmp_path: Path) -> None:
     assert set(fired) == {"SIGKILL hrv_analyser", "SIGKILL decision_maker"}, fired
     assert fired["SIGKILL hrv_analyser"] >= KILL_HRV
     assert fired["SIGKILL decision_maker"] >= KILL_DECISION
-    # the robot went on after the kills: a cycle ended after the last one, or else the arm was held for
-    # the separation's timing, and said so. Not between the kills, nor how soon, nor how many: in the
-    # process cell each service's data time is its wall clock at 16x, so the executor must take a reading
-    # within 100 ms of data time, 6 ms of wall; a loaded host misses that and the arm holds, as it should
-    # (S_p was computed for the budget), until one is taken in time again. Beside two busy loops, a storm
-    # and OpenBLAS's slowest kernels it held from 60 s to the end of a 420 s run, never waiting for a
-    # selection. A cycle's length is the host's as much as the cell's (20 to 100 s; once a first cycle of
-    # 232 s that spanned both kills, 1265 servo overruns in one path). Never waiting for a selection
-    # (above) is what says the robot did not wait on the killed services; that the executor moves with
-    # neither of them is held in lockstep (tests/test_executor*.py: selections from the test, a restart
-    # with the decision maker unreachable), where the host's speed changes nothing.
-    last_kill = max(fired.values())
-    held = [r for r in s["scale"] if r["t_s"] > last_kill and r["scale"] == 0.0]
-    holds = [e["message"] for e in s["events"] if e["kind"] == "scale" and "holding" in e["message"]]
-    assert any(t > last_kill for t in ends) or (held and holds), (
+    # the robot went on cycling after the kills: a cycle ended after the last one, before the run's end.
+    # Not between the kills, nor how soon, nor how many: in the process cell each service's data time is
+    # its wall clock at 16x, so a cycle's length is the host's as much as the cell's (20 to 100 s; once a
+    # first cycle of 232 s that spanned both kills, 1265 servo overruns in one path). The twin publishes
+    # no distance here (separation monitoring off): at 16x the executor must take a reading within 100 ms
+    # of data time, 6 ms of wall, and a loaded host that misses it holds the arm, as S_p requires (beside
+    # two busy loops, a storm and OpenBLAS's slowest kernels it held from 60 s to the end); that timing is
+    # the walk-in test's, on the wall clock at 1x. Never waiting for a selection (above) is what says the
+    # robot did not wait on the killed services; that the executor moves with neither of them is held in
+    # lockstep (tests/test_executor*.py), where the host's speed changes nothing.
+    assert any(t > max(fired.values()) for t in ends), (
         fired,
         list(zip(ends, s["cycle_times_s"], strict=True)),
-        sorted(set(holds)),
     )
     # the restarted analyser windows again
     assert any(w["end_s"] > fired["SIGKILL hrv_analyser"] + 40 for w in s["windows"])
