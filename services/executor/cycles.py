@@ -444,6 +444,8 @@ class Cycles:
                 return None
             if self.safety.motion.state is not State.READY:  # held for the disk meanwhile: look again
                 continue
+            if self.ctx.stop.is_set():  # the stop came while the path was prepared: no motion begins after it
+                return None
             try:
                 self.safety.fire(Event.MOVE, f"'{pid}' at k = {k}")
             except IllegalTransition as exc:  # a stop came in between: no motion
