@@ -32,6 +32,7 @@ from rich.table import Table
 
 from cadence.lab.marks import counted
 from cadence.lab.report import event_row, from_demo, scale_row, window_row, write_report
+from cadence.lab.session import served_sets
 from cadence.tools.gaps import Gaps
 from common.hrv.calibration import CALIBRATION_FILE
 from common.runtime.bus import Bus, BusConfig, Request
@@ -61,7 +62,6 @@ from schemas.topology import (
     HEALTH,
     HRV_WINDOW,
     OPERATOR_ERROR,
-    PARETO_SET,
     PLAN_PROGRESS,
     ROBOT_CYCLE,
     ROBOT_EVENT,
@@ -418,11 +418,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             if live is not None:
                 live.stop()
         # 3. the sets the executor used, for the figures, while the store still answers
-        sets = {}
-        for pid in task.paths:
-            replies = await bus.get(PARETO_SET.at(pid), timeout=5.0)
-            if replies and replies[0].message is not None:
-                sets[pid] = replies[0].message
+        sets = await served_sets(bus, task.paths, timeout=5.0)
         # 4. stop; exit codes are checked
         await stop_all()
 
@@ -489,9 +485,10 @@ def summarise(
         "scale": obs.scale,
         # by key, messages the cell sent that the observer did not see (their figures above are missing)
         "unseen": {k.split("/", 2)[-1]: n for k, n in obs.gaps.missed.items() if n},
-        # what the run computed on: the planned sets (the same bytes on every machine when shipped,
-        # common/trajectory/shipped.py) and numpy's kernels and BLAS here (common/runtime/numeric.py)
-        "sets_sha256": digest_of(sets.values()) if sets else "",
+        # what the run computed on: the planned sets, all of them or no digest (the same bytes on every
+        # machine when shipped, common/trajectory/shipped.py), and numpy's kernels and BLAS here
+        # (common/runtime/numeric.py)
+        "sets_sha256": digest_of(sets.values()) if set(sets) == set(load_task(opts.task).paths) else "",
         "build": numeric_build(),
     }
     keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)

@@ -18,7 +18,7 @@ import contextlib
 import hashlib
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -34,6 +34,7 @@ from common.hrv.calibration import SETTLED_WINDOWS, settled
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
 from common.runtime.numeric import numeric_build
+from common.trajectory.shipped import digest_of
 from common.trajectory.task import load_task
 from schemas import (
     Calibration,
@@ -46,12 +47,14 @@ from schemas import (
     ServiceStatus,
 )
 from schemas.operator import ErrorKind, OperatorSignal, Posture
+from schemas.pareto import ParetoSet
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo, Tlx
 from schemas.topology import (
     DEFAULT_CELL,
     ECG_SOURCES,
     OPERATOR_ERROR,
     OPERATOR_SIGNAL,
+    PARETO_SET,
     ROOT,
     SERVICES,
     decode_any,
@@ -463,19 +466,22 @@ async def ask_condition(
         await asyncio.sleep(0.2)  # the calibration is on its way; ask again
 
 
+async def served_sets(bus: Bus, paths: Iterable[str], timeout: float = 2.0) -> dict[str, ParetoSet]:
+    """The sets the cell's store serves now, of those of ``paths`` it answers for."""
+    found = {}
+    for pid in paths:
+        replies = await bus.get(PARETO_SET.at(pid), timeout=timeout)
+        if replies and replies[0].message is not None:
+            found[pid] = replies[0].message
+    return found
+
+
 async def sets_in_use(bus: Bus, task: Path, timeout: float = 2.0) -> str:
     """The digest of the sets the cell's store serves for ``task``'s paths (common/trajectory/shipped.py),
     recorded in the session file; "" when a path's set is not served (yet): the file then says nothing."""
-    from common.trajectory.shipped import digest_of
-    from schemas.topology import PARETO_SET
-
-    found = []
-    for pid in load_task(task).paths:
-        replies = await bus.get(PARETO_SET.at(pid), timeout=timeout)
-        if not replies or replies[0].message is None:
-            return ""
-        found.append(replies[0].message)
-    return digest_of(found)
+    paths = list(load_task(task).paths)
+    found = await served_sets(bus, paths, timeout)
+    return digest_of(found.values()) if len(found) == len(paths) else ""
 
 
 def stored_calibration(opts: SessionOptions) -> Calibration:

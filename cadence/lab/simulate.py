@@ -42,8 +42,7 @@ def simulate_study(
     from cadence.lab.fit import cohort_for, fit
     from cadence.lab.session import load_session
     from cadence.lab.tables import err, out, print_study
-    from common.trajectory.planner import content_hash, plan_path
-    from common.trajectory.shipped import sets_digest, shipped
+    from common.trajectory.shipped import sets_digest, shipped_or_planned
     from common.trajectory.task import load_task
 
     conditions: tuple[Condition, ...] = ("a", "b", "c")
@@ -60,10 +59,7 @@ def simulate_study(
         plan = progress.add_task("planning the Pareto sets", total=len(task.paths))
         sols = {}
         for pid, path in task.paths.items():
-            if (ready := shipped(pid, content_hash(path, task.limits, task.planner))) is not None:
-                sols[pid] = [np.array(s.h) for s in ready.solutions]  # the same on every machine
-            else:
-                sols[pid] = [s.h for s in plan_path(path, task.limits, task.planner).solutions]
+            sols[pid] = [np.array(s.h) for s in shipped_or_planned(path, task).solutions]
             progress.advance(plan)
         digest = sets_digest(sols)
         progress.update(plan, description=f"Pareto sets {digest[:12]}")

@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 
 from common.runtime.errors import InputError
 from common.runtime.resources import SHIPPED_SETS
-from common.trajectory.planner import ParetoResult
-from common.trajectory.task import Task
+from common.trajectory.planner import ParetoResult, content_hash, plan_path
+from common.trajectory.task import PathPlan, Task
 from schemas.pareto import Limits, ParetoSet, ParetoSolution
 
 log = logging.getLogger("cadence.sets")
@@ -122,3 +122,10 @@ def _shipped(folder: Path) -> dict[tuple[str, str], ParetoSet]:
 def shipped(path_id: str, content_hash: str, folder: Path = SHIPPED_SETS) -> ParetoSet | None:
     """The shipped set planned from exactly these inputs, if there is one."""
     return _shipped(folder).get((path_id, content_hash))
+
+
+def shipped_or_planned(path: PathPlan, task: Task) -> ParetoSet:
+    """The set a cell would serve for ``path`` on a first start: the shipped one planned from exactly
+    these inputs, else one planned here, now."""
+    digest = content_hash(path, task.limits, task.planner)
+    return shipped(path.id, digest) or as_message(plan_path(path, task.limits, task.planner), digest)

@@ -47,17 +47,14 @@ def random_path(seed: int, n_waypoints: int = 6, boundary: bool = False) -> Path
 def plan_sets(task_file: Path, db: Path) -> Path:
     """Every path of ``task_file`` planned, in this process, into a store's SQLite file ``db``: the
     shipped set where one was planned from the same inputs (as the store serves it)."""
-    from common.trajectory.planner import content_hash
-    from common.trajectory.shipped import shipped
+    from common.trajectory.shipped import shipped_or_planned
     from common.trajectory.task import load_task
-    from services.pareto_store.jobs import plan_job
     from services.pareto_store.store import SetStore
 
     task = load_task(task_file)
     store, _ = SetStore.open(db)
     for path in task.paths.values():
-        digest = content_hash(path, task.limits, task.planner)
-        store.save(shipped(path.id, digest) or plan_job(path, task, task.planner, digest))
+        store.save(shipped_or_planned(path, task))
     store.close()
     return db
 
