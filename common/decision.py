@@ -143,21 +143,36 @@ def k_for_path(k: int, n_path: int) -> int:
 
 @dataclass(frozen=True, slots=True)
 class Personal:
-    """The personal mode's settings, each chosen by leave-one-subject-out cross-validation on the people
-    under a Stroop test and an interview (``cadence bench decide --cv``; README, "Decisions on real
-    people"): k follows the distance of this person's recent mean RR from their own reference, in steps of
-    ``step_s``, from the paper's k0 at the reference.
+    """The personal mode's settings (DESIGN §7; README, "Decisions on real people"). k is a position: how
+    far this person's recent mean RR lies from their own reference, in steps of ``step_s``, counted from
+    the paper's k0 at the reference.
 
     Why not Alg. 1's thresholds: they are the spread between people (σ ≈ 0.1 s), wide against one person's
     stress drop (about 50 ms), and after a stressed baseline a relaxed heart sits above RR_r where Alg. 1
-    saturates at N. The reference starts at RR_r and follows a lower RR slowly (``follow_down`` of the
-    gap a window), never a higher one: a person who calms down is read as calm, and a long stress does
-    not become the norm at once. The recent mean RR weighs each window by its beats, the past by ``keep``
-    a window: a wrist or a strap that read few beats counts for few."""
+    saturates at N.
+
+    Chosen by leave-one-subject-out cross-validation on the order-balanced score (``cadence bench decide
+    --cv``), among the settings that keep a steady person steady (``steady``): ``step_s``; ``keep``, how much
+    the past weighs in the recent mean RR, a window (each window weighed by its beats: a wrist or a strap
+    that read few counts for few); ``hysteresis``, how far past the middle between two k, in steps, the
+    recent mean must go before k moves, and then k moves only that far behind it (a play: noise that
+    pushed k over does not push it back at once).
+
+    Set from the behaviour they must give (DESIGN §7 states it; tests/test_personal.py plays it), not from
+    the data, whose sessions last an hour: ``ref_tau_s``, how slowly the reference follows the person's
+    recent mean, either way (two hours: a day's slow drift is followed, a stress of minutes is not);
+    ``freeze_s``, how far below the reference the recent mean must be for the person to read as stressed,
+    when the reference does not follow at all (a drift slower than ``freeze_s / ref_tau_s``, 22 ms an
+    hour, is followed; a faster fall is load, held for as long as it lasts); ``effort_tau_s``, how long
+    after a movement hold that timed out the remaining drop is taken for the effort's recovery rather than
+    for load (``reanchored``)."""
 
     step_s: float = 0.015
     keep: float = 0.7
-    follow_down: float = 0.1
+    hysteresis: float = 0.5
+    ref_tau_s: float = 7200.0
+    freeze_s: float = 0.045
+    effort_tau_s: float = 600.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,6 +181,7 @@ class PersonalState:
     ref: float  # the person's reference mean RR
     sum_rr: float = 0.0  # Σ beats × mean RR, the past weighed down by ``keep`` a window
     sum_n: float = 0.0  # Σ beats, likewise
+    effort: float = 0.0  # ≤ 0: the part of the drop below the reference still put down to an effort
 
     @classmethod
     def initial(cls, p: Params) -> PersonalState:
@@ -173,17 +189,45 @@ class PersonalState:
 
 
 def personal_step(
-    p: Params, q: Personal, s: PersonalState, rr: float | None, n_beats: int, usable: bool
+    p: Params,
+    q: Personal,
+    s: PersonalState,
+    rr: float | None,
+    n_beats: int,
+    usable: bool,
+    dt_s: float = 30.0,
 ) -> tuple[PersonalState, int, Reason]:
     """One window of the personal mode: (state, δ, reason). ``usable``: a good window, or one held only
     for how few beats it has, each clean (a wrist's); any other (noise, a gap, no clean beat) holds k and
-    the state, as Alg. 1 holds. Bounds as Alg. 1: 1 ≤ k ≤ N."""
+    the state, as Alg. 1 holds. ``dt_s``: the window's length, for the time constants. Bounds as Alg. 1:
+    1 ≤ k ≤ N."""
     if rr is None or not usable or n_beats < 1 or not math.isfinite(rr):
         return s, 0, "low-quality"
     sum_rr, sum_n = q.keep * s.sum_rr + n_beats * rr, q.keep * s.sum_n + n_beats
     recent = sum_rr / sum_n
-    target = clamp(p.k0 + round((recent - s.ref) / q.step_s), 1, p.n)
-    ref = s.ref + q.follow_down * (recent - s.ref) if recent < s.ref else s.ref
-    delta = target - s.k
+    # an effort's recovery: forgiven while the heart comes back, and less so with time
+    effort = min(0.0, max(s.effort * math.exp(-dt_s / q.effort_tau_s), recent - s.ref)) if s.effort else 0.0
+    level = recent - effort
+    x = (level - s.ref) / q.step_s  # where the person is, in steps from the reference
+    # a play (backlash): k moves only when x is more than half a step and the hysteresis from it, and then
+    # only as far as brings it back within that, so noise that pushed it over does not push it back at once
+    band, at = 0.5 + q.hysteresis, s.k - p.k0
+    if x > at + band:
+        at = math.ceil(x - band)
+    elif x < at - band:
+        at = math.floor(x + band)
+    k = clamp(p.k0 + at, 1, p.n)
+    ref = s.ref
+    if level >= s.ref - q.freeze_s:  # not reading as stressed: the reference follows, slowly
+        ref += (level - s.ref) * -math.expm1(-dt_s / q.ref_tau_s)
+    delta = k - s.k
     reason: Reason = "stress" if delta < 0 else "rest" if delta > 0 else "hold"
-    return PersonalState(target, ref, sum_rr, sum_n), delta, reason
+    return PersonalState(k, ref, sum_rr, sum_n, effort), delta, reason
+
+
+def reanchored(s: PersonalState, rr: float, n_beats: int) -> PersonalState:
+    """After a movement hold that timed out with the heart still below where it was (Alg. 1 re-anchors
+    RR_{i-1} there): the recent mean starts from this window, and the drop below the reference is put
+    down to the effort, forgiven as the heart recovers and fading over ``effort_tau_s``, so a slow
+    recovery is not read as load and never lowers the reference. k stays."""
+    return PersonalState(s.k, s.ref, n_beats * rr, float(n_beats), min(0.0, rr - s.ref))

@@ -231,13 +231,13 @@ def test_a_router_that_is_not_there_is_one_line_without_zenohs_source_file() -> 
     assert proc.stderr.count("\n") == 1
 
 
-# --- the personal mode (issue 41) ------------------------------------------------------------------------
+# --- the personal mode (issues 41, 54) --------------------------------------------------------------------
 
 
 def test_the_personal_mode_follows_the_persons_recent_rr_within_bounds_and_holds_on_bad_windows() -> None:
     from common.decision import Personal, PersonalState, personal_step
 
-    p, q = Params.of(0.85), Personal(step_s=0.02, keep=0.0, follow_down=0.0)
+    p, q = Params.of(0.85), Personal(step_s=0.02, keep=0.0, hysteresis=0.0)
     s = PersonalState.initial(p)
     assert (s.k, s.ref) == (8, 0.85)
     s, d, why = personal_step(p, q, s, 0.81, 30, True)  # 40 ms below its reference: two steps slower
@@ -250,16 +250,29 @@ def test_the_personal_mode_follows_the_persons_recent_rr_within_bounds_and_holds
         assert personal_step(p, q, s, rr, n, usable) == (s, 0, "low-quality")
 
 
-def test_the_personal_reference_follows_a_lower_rr_slowly_and_a_higher_one_never() -> None:
+def test_the_play_moves_k_only_past_the_hysteresis_and_only_that_far() -> None:
     from common.decision import Personal, PersonalState, personal_step
 
-    p, q = Params.of(0.85), Personal(step_s=0.02, keep=0.0, follow_down=0.1)
+    p, q = Params.of(0.85), Personal(step_s=0.01, keep=0.0, hysteresis=0.5)
     s = PersonalState.initial(p)
-    for _ in range(20):
-        s = personal_step(p, q, s, 0.95, 30, True)[0]
+    seq = ((0.841, 8), (0.839, 7), (0.845, 7), (0.851, 8), (0.82, 6), (0.829, 6), (0.808, 4), (0.82, 5))
+    for rr, k in seq:
+        s = personal_step(p, q, s, rr, 30, True)[0]
+        assert s.k == k, (rr, s.k)
+
+
+def test_the_personal_reference_follows_slowly_both_ways_and_not_at_all_under_stress() -> None:
+    from common.decision import Personal, PersonalState, personal_step
+
+    p, q = Params.of(0.85), Personal(keep=0.0)
+    s = PersonalState.initial(p)
+    for _ in range(120):  # an hour 60 ms below: stress, the reference stays
+        s = personal_step(p, q, s, 0.79, 30, True)[0]
     assert s.ref == 0.85
-    assert s.k == 13  # calmer than its reference: read as calm, the reference stays
-    for _ in range(20):
-        s = personal_step(p, q, s, 0.75, 30, True)[0]
-    assert 0.75 < s.ref < 0.80
-    assert s.k > 3  # a long stress is followed, slowly
+    assert s.k <= p.k0 - 3
+    for _ in range(120):  # an hour 30 ms below: within the freeze, followed with a time constant of 2 h
+        s = personal_step(p, q, s, 0.82, 30, True)[0]
+    assert s.ref == pytest.approx(0.82 + 0.03 * math.exp(-0.5), abs=1e-9)
+    for _ in range(120):  # and up again, as slowly
+        s = personal_step(p, q, s, 0.88, 30, True)[0]
+    assert 0.83 < s.ref < 0.86

@@ -4,6 +4,7 @@ on whole sessions the personal mode slows the robot under stress where Alg. 1 ba
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from cadence.bench import decide as bd
-from common.decision import Personal
+from common.decision import Params, Personal
 from common.hrv.e4 import MG_PER_UNIT, read_e4
 from common.runtime.errors import InputError
 from tests.support.cell import CELL
@@ -104,7 +105,7 @@ SESSION = [("baseline", 0, 300, 0.80), ("stroop", 300, 600, 0.76), ("relax1", 60
            ("interview", 900, 1200, 0.75), ("relax2", 1200, 1500, 0.80)]  # fmt: skip
 
 
-def test_a_stress_drop_of_one_person_moves_the_personal_mode_and_barely_alg_1(tmp_path: Path) -> None:
+def test_a_stress_drop_of_one_person_slows_the_personal_mode_where_alg_1_runs_fast(tmp_path: Path) -> None:
     """A 40–50 ms drop under stress: within one person clear, against the spread between people (σ_r
     0.14 s) small."""
     write_study(tmp_path, SESSION)
@@ -114,38 +115,65 @@ def test_a_stress_drop_of_one_person_moves_the_personal_mode_and_barely_alg_1(tm
     assert abs(s.calibration.rr_rest_s - 0.80) < 0.01
     paper, personal = (bd.score(s, bd.run(s, q)) for q in (None, Personal()))
     assert personal.lower_in_stress
-    assert personal.auc > 0.9
-    assert personal.k_calm - personal.k_stress >= 2
-    assert paper.k_calm - paper.k_stress < personal.k_calm - personal.k_stress
+    assert personal.order.balanced is not None and personal.order.balanced > 0.75
+    k = personal.k_by_block
+    assert k["stroop"] < k["relax1"] > k["interview"] < k["relax2"]
+    # the play leaves k a step behind: back at the reference exactly, k stays one below k0, no further
+    assert round(min(k["relax1"], k["relax2"])) >= Params.of(0.80).k0 - 1
+    # Alg. 1 steps up on any rise (eq. 7) and saturates: the stressed person works near top speed
+    assert paper.k_stress > Params.of(0.80).k0 + 3 > personal.k_stress + 3
     assert personal.held == 0  # a still wrist: nothing held for movement
 
 
-def test_bench_decide_writes_its_figures_and_a_json_line(
+def test_bench_decide_writes_its_figures_decisions_and_a_json_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from cadence.cli import main
 
     write_study(tmp_path / "data", SESSION)
-    assert (
-        main(
-            [
-                "bench",
-                "decide",
-                "--data",
-                str(tmp_path / "data"),
-                "--gudb",
-                "",
-                "--out",
-                str(tmp_path / "figs"),
-            ]
-        )
-        == 0
-    )
+    out = tmp_path / "figs"
+    assert main(["bench", "decide", "--data", str(tmp_path / "data"), "--gudb", "", "--out", str(out)]) == 0
     figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert set(figures) == {"paper", "personal"}
+    assert set(figures) == {"paper", "personal", "controls"}
     assert figures["personal"]["subjects"] == 1
     assert figures["personal"]["lower_in_stress"] == 1.0
-    assert (tmp_path / "figs" / "data_S01.png").read_bytes()[:4] == b"\x89PNG"
+    assert figures["personal"]["balanced_median"] > 0.75
+    assert figures["controls"]["time"]["balanced_median"] == 0.5  # time alone, exactly
+    assert figures["controls"]["mean RR"]["balanced_median"] > 0.9
+    assert (out / "data_S01.png").read_bytes()[:4] == b"\x89PNG"
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    assert {r["mode"] for r in rows} == {"paper", "personal"}
+    assert len(rows) == 2 * 50  # 1,500 s of 30 s windows, two modes
+    first = rows[0]
+    assert (first["dataset"], first["subject"], first["window_start_s"], first["window_end_s"]) == (
+        "data", "S01", "0.000", "30.000")  # fmt: skip
+    assert {(r["block"], r["label"]) for r in rows} == {("baseline", "other"), ("stroop", "stress"),
+        ("relax1", "calm"), ("interview", "stress"), ("relax2", "calm")}  # fmt: skip
+    assert {r["held"] for r in rows} == {"0"}
+
+
+def test_the_order_balanced_score_pairs_each_stressor_with_the_calm_blocks_around_it(tmp_path: Path) -> None:
+    """Block order alone scores 0.5; a heart that answers the stressor scores 1 whichever way the session
+    runs; a heart that only drifts down over the session scores 0.5, where the old AUC credited it."""
+    write_study(tmp_path, SESSION)
+    (s,) = bd.stress_predict(tmp_path, movement=False)
+    assert bd.pairs(s) == [("after", "stroop", "relax1"), ("before", "interview", "relax1"),
+                           ("after", "interview", "relax2")]  # fmt: skip
+    t = bd.order(s, bd.CONTROLS["time"](s))
+    assert (t.before, t.after, t.balanced) == (0.0, 1.0, 0.5)
+    rr = bd.order(s, bd.CONTROLS["mean RR"](s))
+    assert rr.balanced == 1.0
+    rising = bd.order(s, [-float(i) for i in range(len(s.windows))])  # a heart that only speeds up
+    assert rising.balanced == 0.5
+    # a label column says what a block is where its name does not
+    rows = (tmp_path / "blocks.csv").read_text().replace("end_unix_s", "end_unix_s,label").splitlines()
+    rows = [rows[0]] + [r + (",calm" if ",baseline," in r else ",") for r in rows[1:]]
+    (tmp_path / "blocks.csv").write_text("\n".join(rows) + "\n")
+    (s,) = bd.stress_predict(tmp_path, movement=False)
+    assert ("before", "stroop", "baseline") in bd.pairs(s)
+    (tmp_path / "blocks.csv").write_text(rows[0] + "\n" + rows[1].rsplit(",", 1)[0] + ",tense\n")
+    with pytest.raises(InputError, match=r"blocks.csv:2: the label 'tense' is none of calm, stress, other"):
+        bd.stress_predict(tmp_path)
 
 
 def test_a_bad_blocks_file_is_named_by_its_line(tmp_path: Path) -> None:
@@ -158,21 +186,30 @@ def test_a_bad_blocks_file_is_named_by_its_line(tmp_path: Path) -> None:
 @pytest.mark.skipif(
     not (STRESS_PREDICT.is_dir() and GUDB.is_dir()), reason="../shared/data/stress_predict or gudb absent"
 )
-def test_on_real_people_held_out_the_personal_mode_slows_under_stress() -> None:
-    """The issue's bar, held out (each subject scored with the settings chosen on the others): ≥ 90 % of
-    people slower under stress, a median AUC of k ≥ 0.80; and the settings shipped are the ones chosen."""
+def test_on_real_people_held_out_the_personal_mode_slows_under_stress_whichever_way_the_session_runs() -> (
+    None
+):
+    """The issue's bar, held out (each subject scored with the settings chosen on the others, among those
+    that keep a steady person steady): the order-balanced score's median ≥ 0.75 and above 0.5 for ≥ 85 %
+    of subjects, the before-pairs alone a median ≥ 0.65, while time alone scores 0.5; the settings
+    shipped are the ones chosen, and Alg. 1 scores below."""
     sessions = [
         s for s in bd.stress_predict(STRESS_PREDICT, movement=False) + bd.gudb(GUDB) if s.problem is None
     ]
     assert len(sessions) >= 25
     cv = bd.cross_validate(sessions)
     held = bd.summary(cv.held_out)
-    assert held["lower_in_stress"] >= 0.9
-    assert held["auc_median"] >= 0.80  # type: ignore[operator]
+    assert held["balanced_median"] >= 0.75  # type: ignore[operator]
+    assert held["balanced_above_half"] >= 0.85  # type: ignore[operator]
+    assert held["before_median"] >= 0.65  # type: ignore[operator]
+    time = bd.order_summary([bd.order(s, bd.CONTROLS["time"](s)) for s in sessions])
+    assert time["balanced_median"] == 0.5
+    assert time["balanced_above_half"] == 0.0
     assert cv.on_all == Personal()
+    assert all(bd.steady(q) for q in cv.chosen)
     paper = bd.summary([bd.score(s, bd.run(s, None)) for s in sessions])
-    assert paper["auc_median"] < held["auc_median"]  # type: ignore[operator]
-    assert all(math.isfinite(x.auc) for x in cv.held_out)
+    assert paper["balanced_median"] < held["balanced_median"]  # type: ignore[operator]
+    assert all(math.isfinite(x.order.score) for x in cv.held_out)
 
 
 @pytest.mark.asyncio

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -203,9 +202,28 @@ def cmd_bench_hrv(args: argparse.Namespace) -> int:
     help="feed the wristband's accelerometer to the movement hold (off: the hold is built for a chest "
     "strap's trunk acceleration; a wrist's is the hands typing and gesturing)",
 )
+@arg(
+    "--scenarios",
+    action="store_true",
+    help="instead: the personal mode on made-up people over hours (stress, rest, noise, drift, effort), "
+    "each scenario's stated behaviour beside what the mode does (cadence/bench/scenarios.py)",
+)
 def cmd_bench_decide(args: argparse.Namespace) -> int:
     from cadence.bench import decide as bd
     from common.decision import Personal
+
+    if args.scenarios:
+        from cadence.bench.scenarios import table as scenario_table
+
+        shown = Table(
+            title=f"The personal mode as shipped {dataclasses.astuple(Personal())}, through the Decider"
+        )
+        for col in ("scenario", "stated (DESIGN §7)", "does"):
+            shown.add_column(col)
+        for row in scenario_table():
+            shown.add_row(*row)
+        out.print(shown)
+        return 0
 
     data, gudb_dir = Path(args.data), Path(args.gudb) if args.gudb else None
     if not data.is_dir():
@@ -229,67 +247,87 @@ def cmd_bench_decide(args: argparse.Namespace) -> int:
         runs = {m: [bd.run(s, q) for s in scored] for m, q in modes.items()}
         scores = {m: [bd.score(s, d) for s, d in zip(scored, runs[m], strict=True)] for m in modes}
         cv = bd.cross_validate(scored, progress=said) if args.cv else None
+        if cv is not None:
+            runs["personal, held out"], scores["personal, held out"] = cv.decisions, cv.held_out
         folder = Path(args.out)
         folder.mkdir(parents=True, exist_ok=True)
         for i, s in enumerate(scored):
             said(f"figure {i + 1} of {len(scored)}")
             png = bd.figure(s, {m: runs[m][i] for m in modes})
             (folder / f"{s.name.replace('/', '_')}.png").write_bytes(png)
-    table = Table(title="Per subject: mean k in stress / calm, AUC of k (calm above stress)")
-    for col in ("subject", "RR_r s", "windows", *(f"{m} k s/c" for m in modes), *(f"{m} AUC" for m in modes)):
+        bd.write_decisions(folder / "decisions.csv", scored, {m.replace(", ", "_").replace(" ", "_"): r
+                                                               for m, r in runs.items()})  # fmt: skip
+    controls = {c: [bd.order(s, f(s)) for s in scored] for c, f in bd.CONTROLS.items()}
+    table = Table(title="Per subject: order-balanced score (before / after pairs), Δk = k calm − k stress")
+    cols = ("subject", "RR_r s", "windows", *(f"{m} b/a" for m in scores), *(f"{m} Δk" for m in scores),
+            "mean RR b/a")  # fmt: skip
+    for col in cols:
         table.add_column(col, justify="left" if col == "subject" else "right", no_wrap=col == "subject")
+
+    def sides(o: bd.Order) -> str:
+        return " / ".join("–" if x is None else f"{x:.2f}" for x in (o.before, o.after))
+
     for i, s in enumerate(scored):
         assert s.calibration is not None
         table.add_row(
             s.name + (" *" if s.note else ""),
             f"{s.calibration.rr_rest_s:.3f}",
             str(len(s.windows)),
-            *(f"{scores[m][i].k_stress:.1f} / {scores[m][i].k_calm:.1f}" for m in modes),
-            *(f"{scores[m][i].auc:.2f}" for m in modes),
+            *(sides(scores[m][i].order) for m in scores),
+            *(f"{scores[m][i].dk:+.1f}" for m in scores),
+            sides(controls["mean RR"][i]),
         )
     out.print(table)
     if any(s.note for s in scored):
         out.print("* RR_r from the baseline's good windows, where " + "; ".join(
             f"{s.name}: {s.note}" for s in scored if s.note))  # fmt: skip
-    figures: dict[str, object] = {m: bd.summary(scores[m]) for m in modes}
-    groups = sorted({s.name.split("/")[0] for s in scored})
-    summary = Table(title="Per mode (medians over subjects)")
-    for col in (
-        "mode",
-        "data",
-        "subjects",
-        "AUC",
-        "lower in stress",
-        "k stress",
-        "k calm",
-        "k hypervent.",
-        "held",
-    ):
+    figures: dict[str, object] = {m: bd.summary(v) for m, v in scores.items()}
+    figures["controls"] = {c: bd.order_summary(v) for c, v in controls.items()}
+    groups = sorted({s.dataset for s in scored})
+    short = {"stress_predict": "SP", "gudb": "GUDB"}
+    summary = Table(
+        title="Order-balanced scores, medians over subjects (balanced: of those with calm blocks before and "
+        "after a stressor), and in brackets controls from the same windows; old AUC: over all windows"
+    )
+    for col in ("mode", "data", "balanced", "> 0.5", "before", "> 0.5 ", "after", "Δk (95 % CI)", "old AUC"):
         summary.add_column(col, justify="left" if col in ("mode", "data") else "right")
-    sets = [(m, scores[m]) for m in modes] + ([("personal, held out", cv.held_out)] if cv else [])
-    for (m, every), g in itertools.product(sets, [*groups, "all"]):
-        f = bd.summary(every if g == "all" else [x for x in every if x.name.startswith(g + "/")])
-        if not f["subjects"]:
-            continue
-        summary.add_row(
-            m, g, str(f["subjects"]), f"{f['auc_median']:.3f}",
-            f"{f['lower_in_stress_n']} ({f['lower_in_stress']:.0%})",
-            f"{f['k_stress_median']:.1f}", f"{f['k_relax_median']:.1f}",
-            "" if f["k_hyperventilation_median"] is None else f"{f['k_hyperventilation_median']:.1f}",
-            f"{f['held_share']:.0%}",
-        )  # fmt: skip
+
+    def cell(x: object, fmt: str = ".3f") -> str:
+        return "–" if x is None else format(x, fmt)
+
+    for g in [*groups, "all"]:
+        for m, every in scores.items():
+            f = bd.summary(every if g == "all" else [x for x in every if x.name.startswith(g + "/")])
+            summary.add_row(
+                m, short.get(g, g), cell(f["balanced_median"]), cell(f["balanced_above_half"], ".0%"),
+                cell(f["before_median"]), cell(f["before_above_half"], ".0%"), cell(f["after_median"]),
+                "{:+.1f} ({:.1f}–{:.1f})".format(f["dk_median"], *f["dk_ci95"]),  # type: ignore[str-format,misc]
+                cell(f["auc_median"]),
+            )  # fmt: skip
+        for c, orders in controls.items():
+            o = bd.order_summary(
+                orders if g == "all" else [x for x, s in zip(orders, scored, strict=True) if s.dataset == g]
+            )
+            summary.add_row(
+                f"({c})", short.get(g, g), cell(o["balanced_median"]), cell(o["balanced_above_half"], ".0%"),
+                cell(o["before_median"]), cell(o["before_above_half"], ".0%"), cell(o["after_median"]),
+                "", "", style="dim",
+            )  # fmt: skip
+        summary.add_section()
     out.print(summary)
     if cv is not None:
         shipped = Personal()
         out.print(
-            f"Personal mode, chosen leaving each subject out (grid {len(bd.grid())} settings): "
-            + ", ".join(f"{dataclasses.astuple(q)} in {cv.chosen.count(q)}" for q in dict.fromkeys(cv.chosen))
-            + f"; on all: {dataclasses.astuple(cv.on_all)}; shipped: {dataclasses.astuple(shipped)}"
+            f"Personal mode, chosen leaving each subject out (of {len(bd.grid())} settings that keep a "
+            "steady person steady): "
+            + ", ".join(
+                f"{dataclasses.astuple(q)[:3]} in {cv.chosen.count(q)}" for q in dict.fromkeys(cv.chosen)
+            )
+            + f"; on all: {dataclasses.astuple(cv.on_all)[:3]}; shipped: {dataclasses.astuple(shipped)[:3]}"
         )
         if cv.on_all != shipped:
             out.print("[yellow]the shipped settings are not the ones chosen on all subjects[/yellow]")
-        figures["personal_held_out"] = bd.summary(cv.held_out)
         figures["chosen"] = dataclasses.asdict(cv.on_all)
-    out.print(f"figures: {folder}/ (one per subject)")
+    out.print(f"figures: {folder}/ (one per subject), decisions: {folder}/decisions.csv")
     print(json.dumps(figures))
     return 0

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 from rich.progress import BarColumn, Progress, TextColumn
 
 from cadence.cli._common import Commands, arg, bus_config, err, flags_from, out, positive_float, positive_int
+from common.decision import Personal
 from common.runtime.errors import InputError
 
 if TYPE_CHECKING:
@@ -119,19 +120,49 @@ def cmd_hrv_windows(args: argparse.Namespace) -> int:
 DECIDE_MIN_S, DECIDE_MAX_S = 0.2, 3  # a window's mean RR that a heart can have (300 to 20 beats per minute)
 
 
+_MODE = Personal()
+
+
 @cli.command(
     "decide",
-    help="the decision rule (paper Alg. 1) on mean RR values read from standard input",
+    help="the decision rule (paper Alg. 1, or the personal mode) on mean RR values read from standard input",
     description="Reads one mean RR per line (seconds) from standard input and prints the selected k "
-    "after each window, one per line. RR_s = RR_r - offset. Exact on decimal values.",
+    "after each window, one per line. --mode paper (default): Alg. 1, RR_s = RR_r - offset, exact on "
+    "decimal values. --mode personal: the decision maker's personal mode (DESIGN §7), each line a 30 s "
+    "window weighed alike.",
 )
 @arg("--rr-rest", required=True, type=str, metavar="S", help="RR_r: the resting mean RR [s]")
+@arg("--mode", choices=("paper", "personal"), default="paper", help="the decision rule (default paper)")
 @arg("--n", type=positive_int(1), default=15, help="number of solutions N (default 15)")
 @arg("--sigma-r", type=str, default="0.14", metavar="S", help="σ_r [s] (default 0.14)")
 @arg("--rr-s-offset", type=str, default="0.08", metavar="S", help="RR_r − RR_s [s] (0.08)")
 @arg("--sigma-s", type=str, default="0.08", metavar="S", help="σ_s [s] (default 0.08)")
+@arg(
+    "--step",
+    type=float,
+    default=_MODE.step_s,
+    metavar="S",
+    help=f"personal: mean RR per step of k ({_MODE.step_s})",
+)
+@arg(
+    "--keep",
+    type=float,
+    default=_MODE.keep,
+    help=f"personal: weight of the past a window, 0–0.95 ({_MODE.keep})",
+)
+@arg("--hysteresis", type=float, default=_MODE.hysteresis, metavar="STEPS",
+     help=f"personal: how far past the middle between two k before k moves ({_MODE.hysteresis})")  # fmt: skip
+@arg("--ref-tau", type=float, default=_MODE.ref_tau_s, metavar="S",
+     help=f"personal: time constant of the reference, either way ({_MODE.ref_tau_s:g})")  # fmt: skip
+@arg(
+    "--freeze",
+    type=float,
+    default=_MODE.freeze_s,
+    metavar="S",
+    help=f"personal: this far below the reference is stress: the reference stays ({_MODE.freeze_s})",
+)
 def cmd_decide(args: argparse.Namespace) -> int:
-    from common.decision import Params, State, dec, step
+    from common.decision import Params, PersonalState, State, dec, personal_step, step
 
     def seconds(text: str, where: str) -> Decimal:
         """A mean RR as a heart can have it; the flag and the lines of stdin are checked alike (850 was
@@ -155,11 +186,21 @@ def cmd_decide(args: argparse.Namespace) -> int:
     except (ValueError, ArithmeticError) as exc:
         raise InputError(f"decide: {exc}") from exc
     values = [seconds(line.strip(), f"<stdin>:{lineno}") for lineno, line in enumerate(sys.stdin, start=1)]
-    state = State.initial(params)
     lines = []
-    for value in values:
-        state = step(params, state, value).state
-        lines.append(str(state.k))
+    if args.mode == "personal":
+        mode = Personal(args.step, args.keep, args.hysteresis, args.ref_tau, args.freeze, _MODE.effort_tau_s)
+        if not (mode.step_s > 0 and 0 <= mode.keep <= 0.95 and mode.hysteresis >= 0 and mode.ref_tau_s > 0
+                and mode.freeze_s >= 0):  # fmt: skip
+            raise InputError(f"decide: personal mode settings out of range: {mode}")
+        now = PersonalState.initial(params)
+        for value in values:
+            now = personal_step(params, mode, now, float(value), 1, True)[0]
+            lines.append(str(now.k))
+    else:
+        state = State.initial(params)
+        for value in values:
+            state = step(params, state, value).state
+            lines.append(str(state.k))
     sys.stdout.write("".join(f"{x}\n" for x in lines))
     return 0
 

@@ -24,10 +24,12 @@ from numpy.typing import NDArray
 
 from common.hrv.stream import Window
 from common.runtime.errors import InputError
+from schemas.base import RR_MAX_S
 from schemas.hrv import HoldReason, Quality
 
 Array = NDArray[np.float64]
 MG_PER_UNIT = 1000.0 / 64.0  # ACC.csv counts 1/64 g
+CONTIGUOUS_S = 0.01  # an interval follows the one before when its beat closed that one, within this
 MIN_INTERVALS = 10  # a window of wrist intervals with fewer is held: too few beats to say what the heart did
 
 
@@ -137,8 +139,14 @@ def e4_windows(rec: E4, length_s: float = 30.0, start_ns: int | None = None, end
         mean = float(rr.mean()) if n else None
         good = n >= min_intervals
         sd = float(rr.std(ddof=1)) if n > 1 else None
+        # RMSSD over intervals that follow one another (the wristband drops the beats it cannot read:
+        # an interval whose beat does not close the one before is the start of another run)
+        t = rec.beat_ns[sel]
+        joined = np.abs(np.diff(t) / 1e9 - rr[1:]) < CONTIGUOUS_S
+        diffs = np.diff(rr)[joined]
+        rmssd = min(float(np.sqrt(np.mean(diffs**2))), RR_MAX_S) if diffs.size >= 2 else None
         quality: Quality = "good" if good else "low" if n else "none"
         reason: HoldReason | None = None if good else "coverage" if n else "no_clean_beats"
-        w = Window((a - t0) / 1e9, (a - t0 + step) / 1e9, mean, n, 0.0, quality, None, sd, reason)
+        w = Window((a - t0) / 1e9, (a - t0 + step) / 1e9, mean, n, 0.0, quality, rmssd, sd, reason)
         out.append((a, w))
     return out

@@ -34,6 +34,7 @@ log = logging.getLogger("cadence.decision_maker")
 NAME = "decision_maker"
 MISSED_GAP_NS = 1_000_000_000  # a window starting this long after the last answered one: some were missed
 MAX_MISSED = 64  # what the analyser keeps
+_MODE = Personal()  # the personal mode's settings as shipped (common/decision.py)
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -60,9 +61,12 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # "paper": Alg. 1 exactly, study condition (c). "personal": beyond the paper, k follows this person's
     # recent mean RR against their own reference (common/decision.py, DESIGN §7), its settings below
     decide: Literal["paper", "personal"] = "paper"
-    personal_step_s: Annotated[float, msgspec.Meta(ge=0.002, le=0.2)] = 0.015
-    personal_keep: Annotated[float, msgspec.Meta(ge=0.0, le=0.95)] = 0.7
-    personal_follow_down: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.1
+    personal_step_s: Annotated[float, msgspec.Meta(ge=0.002, le=0.2)] = _MODE.step_s
+    personal_keep: Annotated[float, msgspec.Meta(ge=0.0, le=0.95)] = _MODE.keep
+    personal_hysteresis: Annotated[float, msgspec.Meta(ge=0.0, le=5.0)] = _MODE.hysteresis
+    personal_ref_tau_s: Annotated[float, msgspec.Meta(ge=60.0, le=7 * 86400.0)] = _MODE.ref_tau_s
+    personal_freeze_s: Annotated[float, msgspec.Meta(ge=0.0, le=0.5)] = _MODE.freeze_s
+    personal_effort_tau_s: Annotated[float, msgspec.Meta(ge=1.0, le=86400.0)] = _MODE.effort_tau_s
 
     def __post_init__(self) -> None:
         fixed_k(self.fixed_k, self.n)  # a k above n is a mistake in the config, said at start
@@ -76,7 +80,14 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     def personal(self) -> Personal | None:
         if self.decide == "paper":
             return None
-        return Personal(self.personal_step_s, self.personal_keep, self.personal_follow_down)
+        return Personal(
+            self.personal_step_s,
+            self.personal_keep,
+            self.personal_hysteresis,
+            self.personal_ref_tau_s,
+            self.personal_freeze_s,
+            self.personal_effort_tau_s,
+        )
 
 
 class DecisionMaker(Node):

@@ -12,7 +12,7 @@ from typing import Annotated, NamedTuple
 
 import msgspec
 
-from common.decision import Params, Personal, PersonalState, State, Step, personal_step, step
+from common.decision import Params, Personal, PersonalState, State, Step, personal_step, reanchored, step
 from common.hrv.calibration import load_calibration
 from common.hrv.movement import Baseline, baseline_of, moved
 from common.runtime.admission import SKEW_S, TimeLine
@@ -39,6 +39,7 @@ class PersonalRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     ref: RrSeconds
     sum_rr: Annotated[float, msgspec.Meta(ge=0.0, le=1e9)] = 0.0
     sum_n: Annotated[float, msgspec.Meta(ge=0.0, le=1e9)] = 0.0
+    effort: Annotated[float, msgspec.Meta(ge=-RR_MAX_S, le=0.0)] = 0.0
 
 
 class DecisionRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -191,17 +192,21 @@ class Decider:
         personal = rec.personal
         if held and good:  # mean RR says nothing of mental load while the body works: k and RR_{i-1} stay
             r = Step(rec.state, 0, "movement")
-        elif reanchor and good:  # held its longest: read from here on, with no step for the effort
-            r = Step(State(rec.k, Decimal(str(w.mean_rr_s))), 0, "movement")
+        elif reanchor and rr is not None:  # held its longest: read from here on, with no step for the effort
+            r = Step(State(rec.k, Decimal(str(rr))), 0, "movement")
+            if self.personal is not None:  # the mode's own state too (common/decision.py ``reanchored``)
+                after = reanchored(self.personal_state(rec), rr, w.n_beats)
+                personal = PersonalRecord(after.ref, after.sum_rr, after.sum_n, after.effort)
         elif self.personal is not None:
             # a window held only for how few beats it has (a wrist's) still says something, at its weight
             usable = good or (w.quality == "low" and w.reason == "coverage")
             before = self.personal_state(rec)
+            length_s = (w.end_ns - w.start_ns) / 1e9
             after, delta, reason = personal_step(self.params, self.personal, before, w.mean_rr_s, w.n_beats,
-                                                 usable and not held)  # fmt: skip
+                                                 usable and not held, length_s)  # fmt: skip
             rr_prev = Decimal(str(w.mean_rr_s)) if good else rec.state.rr_prev
             r = Step(State(after.k, rr_prev), delta, reason)
-            personal = PersonalRecord(after.ref, after.sum_rr, after.sum_n)
+            personal = PersonalRecord(after.ref, after.sum_rr, after.sum_n, after.effort)
         else:
             r = step(self.params, rec.state, w.mean_rr_s, good_quality=good)
         return msgspec.structs.replace(
@@ -222,7 +227,8 @@ class Decider:
         assert self.params is not None
         if rec.personal is None:  # from the calibration: its RR_r, at the k in force
             return PersonalState(rec.k, float(self.params.rr_rest))
-        return PersonalState(rec.k, rec.personal.ref, rec.personal.sum_rr, rec.personal.sum_n)
+        r = rec.personal
+        return PersonalState(rec.k, r.ref, r.sum_rr, r.sum_n, r.effort)
 
     def commit(self, record: DecisionRecord, resumed: bool = False) -> None:
         fresh = self.record is None or not same_calibration(self.record.calibration, record.calibration)
