@@ -349,52 +349,59 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
             f"the demo cell's router: {endpoint}; join it with --connect {endpoint} "
             f"(`cadence record -o run.mcap --connect {endpoint}`, `cadence session --connect {endpoint} …`)"
         )
-        # 1. the store first: it plans what it lacks, before the operator's clock starts
-        health = aiter(bus.subscribe(HEALTH.at("pareto_store"), maxsize=1))
-        with console.status("planning the task's Pareto sets (once; they are stored) …") as status:
+        try:
+            # 1. the store first: it plans what it lacks, before the operator's clock starts
+            health = aiter(bus.subscribe(HEALTH.at("pareto_store"), maxsize=1))
+            with console.status("planning the task's Pareto sets (once; they are stored) …") as status:
 
-            def on_progress(pr: PlanProgress) -> None:
-                status.update(
-                    f"Pareto sets: {pr.done_paths}/{pr.total_paths} ready ('{pr.path_id}' {pr.state})"
-                )
+                def on_progress(pr: PlanProgress) -> None:
+                    status.update(
+                        f"Pareto sets: {pr.done_paths}/{pr.total_paths} ready ('{pr.path_id}' {pr.state})"
+                    )
 
-            bus.handle(PLAN_PROGRESS, _call(on_progress))
-            start("pareto_store", obs.epoch_ns)
-            async with asyncio.timeout(600):
-                while (await anext(health))[1].state != "serving":
-                    pass
-        # 2. the clock starts; everyone else joins
-        epoch_ns = obs.epoch_ns = time.time_ns()
-        clock = Clock(opts.speed, epoch_ns)
+                bus.handle(PLAN_PROGRESS, _call(on_progress))
+                start("pareto_store", obs.epoch_ns)
+                async with asyncio.timeout(600):
+                    while (await anext(health))[1].state != "serving":
+                        pass
+            # 2. the clock starts; everyone else joins
+            epoch_ns = obs.epoch_ns = time.time_ns()
+            clock = Clock(opts.speed, epoch_ns)
 
-        async def tell_clock(_: Request) -> CellClock:  # a tool joining the cell stamps on its time
-            return CellClock(t_ns=clock.now_ns(), seq=0, epoch_ns=epoch_ns, speed=opts.speed)
+            async def tell_clock(_: Request) -> CellClock:  # a tool joining the cell stamps on its time
+                return CellClock(t_ns=clock.now_ns(), seq=0, epoch_ns=epoch_ns, speed=opts.speed)
 
-        bus.serve(CELL_CLOCK, tell_clock)
-        watch(bus, obs)
-        running: set[str] = set()
-        all_up = asyncio.Event()
+            bus.serve(CELL_CLOCK, tell_clock)
+            watch(bus, obs)
+            running: set[str] = set()
+            all_up = asyncio.Event()
 
-        def on_status(st: ServiceStatus) -> None:
-            running.add(st.service)
-            if running >= set(ORDER):
-                all_up.set()
+            def on_status(st: ServiceStatus) -> None:
+                running.add(st.service)
+                if running >= set(ORDER):
+                    all_up.set()
 
-        bus.handle(HEALTH, _call(on_status))
-        for name in (n for n in ORDER if n != "pareto_store"):
-            start(name, epoch_ns)
-        # the run's duration counts from when every service is up: on a slow or loaded machine their start
-        # (imports, sessions) can take longer than a short run, which would then end before it began
-        with console.status("starting the services …"):
-            try:
-                async with asyncio.timeout(STARTUP_TIMEOUT_S):
-                    await all_up.wait()
-            except TimeoutError:
-                await stop_all()
-                missing = ", ".join(sorted(set(ORDER) - running))
-                raise CadenceError(
-                    f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
-                ) from None
+            bus.handle(HEALTH, _call(on_status))
+            for name in (n for n in ORDER if n != "pareto_store"):
+                start(name, epoch_ns)
+            # the run's duration counts from when every service is up: on a slow or loaded machine their start
+            # (imports, sessions) can take longer than a short run, which would then end before it began
+            with console.status("starting the services …"):
+                try:
+                    async with asyncio.timeout(STARTUP_TIMEOUT_S):
+                        await all_up.wait()
+                except TimeoutError:
+                    await stop_all()
+                    missing = ", ".join(sorted(set(ORDER) - running))
+                    raise CadenceError(
+                        f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
+                    ) from None
+        except asyncio.CancelledError:  # Ctrl-C while planning or starting: no data time ran
+            if (me := asyncio.current_task()) is not None:
+                me.uncancel()
+            stopping_already(console)
+            await stop_all()
+            raise interrupted_before_data_time(opts) from None
         kills = sorted(opts.kill, key=lambda k: k[1])
         began_ns = clock.now_ns()
         end_ns = began_ns + round(opts.duration_s * 1e9)
@@ -412,6 +419,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     live.update(live_view(obs, opts, now_s, procs))
                 await asyncio.sleep(0.1)
         except asyncio.CancelledError:  # Ctrl-C: what ran is still summarised and reported, as cut short
+            stopping_already(console)
             cut_short_s = (clock.now_ns() - began_ns) / 1e9
             console.print(f"interrupted after {cut_short_s:.0f} s of data time: stopping, then the summary")
         finally:
@@ -457,6 +465,8 @@ def summarise(
     console: Console,
 ) -> dict[str, Any]:
     """``summary.json`` and the report (index.html and its figures) of a run, in its folder."""
+    if ran_s < 1.0:
+        raise interrupted_before_data_time(opts)
     down, up = obs.k_steps()
     minutes = ran_s / 60.0
     cycles = obs.n_cycles
@@ -500,6 +510,25 @@ def summarise(
         console.print(f"{opts.out}: the report could not be written ({exc.strerror or exc}); the summary "
                       "holds the run's figures", style="red")  # fmt: skip
     return summary
+
+
+class NothingRan(CadenceError):
+    """Interrupted before the cell's data time ran: there is nothing to summarise or report."""
+
+
+def stopping_already(console: Console) -> None:
+    """After the first Ctrl-C (or SIGTERM) the demo is stopping and will write what ran: a second one
+    says so, rather than cutting the summary and the report off half-written."""
+
+    def again(*_: object) -> None:
+        console.print("already stopping: the summary and the report follow", style="yellow")
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, again)
+
+
+def interrupted_before_data_time(opts: DemoOptions) -> NothingRan:
+    return NothingRan(f"interrupted before the cell's data time ran: nothing to summarise in {opts.out}")
 
 
 def keep_summary(out: Path, data: bytes, console: Console) -> Path:

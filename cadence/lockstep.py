@@ -25,7 +25,17 @@ from typing import Any
 from rich.console import Console
 from rich.live import Live
 
-from cadence.demo import ORDER, DemoOptions, Observed, demo_settings, live_view, summarise, watch
+from cadence.demo import (
+    ORDER,
+    DemoOptions,
+    Observed,
+    demo_settings,
+    interrupted_before_data_time,
+    live_view,
+    stopping_already,
+    summarise,
+    watch,
+)
 from common.runtime.bus import BusConfig
 from common.runtime.config import CommonSettings, section
 from common.runtime.errors import CadenceError
@@ -82,11 +92,19 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
 
     async with MockBus(DEFAULT_CELL, "demo", network) as bus:  # no router: nobody joins a lockstep cell
         health = bus.subscribe(HEALTH.at("pareto_store"), maxsize=1)
-        with console.status("planning the task's Pareto sets (once; they are stored) …"):
-            start("pareto_store")  # it plans what it lacks before the others start, as in the demo
-            while (await health.receive(3600.0))[1].state != "serving":
-                if services["pareto_store"].done():
-                    services["pareto_store"].result()
+        try:
+            with console.status("planning the task's Pareto sets (once; they are stored) …"):
+                start("pareto_store")  # it plans what it lacks before the others start, as in the demo
+                while (await health.receive(3600.0))[1].state != "serving":
+                    if services["pareto_store"].done():
+                        services["pareto_store"].result()
+        except asyncio.CancelledError:  # Ctrl-C while planning: no data time ran
+            if (me := asyncio.current_task()) is not None:
+                me.uncancel()
+            stopping_already(console)
+            stop.set()
+            await asyncio.gather(*services.values(), return_exceptions=True)
+            raise interrupted_before_data_time(opts) from None
         watch(bus, obs)
         running: set[str] = set()
 
@@ -145,6 +163,7 @@ async def _until_done(
     except asyncio.CancelledError:  # Ctrl-C: what ran is still summarised and reported, as cut short
         if (me := asyncio.current_task()) is not None:
             me.uncancel()
+        stopping_already(console)
         ran_s = loop.time() - began
         console.print(f"interrupted after {ran_s:.0f} s of data time: stopping, then the summary")
         return ran_s

@@ -12,6 +12,9 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+from common.runtime.resources import EXAMPLE_TASK
 from tests.support.cell import CELL
 from tests.support.cli import as_in_a_terminal
 
@@ -313,11 +316,14 @@ def test_the_lockstep_cell_tells_one_story_idle_or_loaded_with_walks_movement_an
     assert min(held) >= 100
 
 
+@pytest.mark.parametrize("signals", [("SIGINT",), ("SIGTERM",), ("SIGINT", "SIGINT")])
 def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports_what_ran(
-    tmp_path: Path, example_sets: Path
+    tmp_path: Path, example_sets: Path, signals: tuple[str, ...]
 ) -> None:
     """`cadence demo`, the lockstep cell at its default ceiling: Ctrl-C reaches the one process, which
-    stops every service, then writes the summary and the report of what ran, as the process cell does."""
+    stops every service, then writes the summary and the report of what ran, as the process cell does.
+    SIGTERM (a process manager, a closed terminal) is taken as Ctrl-C; a second Ctrl-C while it stops
+    is said and does not cut the summary or the report off (once: a summary and no report)."""
     import shutil
 
     out = tmp_path / "demo"
@@ -339,7 +345,7 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
             assert proc.poll() is None, proc.communicate()[0]
             assert time.monotonic() < deadline, "no decided window in the cell's log within 240 s"
             time.sleep(0.2)
-        said, s = ctrl_c(proc, out)
+        said, s = ctrl_c(proc, out, signals)
     finally:
         proc.kill()
     assert s["cell"] == "lockstep"
@@ -349,16 +355,75 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
     assert set(s["exit_codes"].values()) == {0}
     assert (out / "index.html").exists()
     assert "interrupted after" in said
+    assert "summary.json and a report" in " ".join(said.split())  # and where (rich wraps the line)
+    assert ("already stopping" in said) == (len(signals) > 1)
+    assert "Traceback" not in said
 
 
-def ctrl_c(proc: subprocess.Popen[str], out: Path) -> tuple[str, dict]:
-    """Ctrl-C, as a terminal sends it to the demo's process group; what the demo said and its summary,
-    which says that the run was cut short (exit code 130, as a shell reports an interrupted command)."""
+def test_ctrl_c_before_the_demos_data_time_ran_is_one_line(tmp_path: Path) -> None:
+    """Interrupted while the store plans (a task whose sets ship with no one): one line, exit 130,
+    no traceback, no summary of nothing (once a ZeroDivisionError in the summary)."""
     import os
     import signal
 
-    os.killpg(proc.pid, signal.SIGINT)
+    task = tmp_path / "reseeded.toml"
+    task.write_text(EXAMPLE_TASK.read_text().replace("seed = 1", "seed = 2"))
+    out = tmp_path / "demo"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", "--task", str(task), "--out", str(out), "--no-live"],
+        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+    log = out / "logs" / "cell.log"
+    try:
+        deadline = time.monotonic() + 120
+        while not (log.exists() and "planning" in log.read_text()):
+            assert proc.poll() is None, proc.communicate()[0]
+            assert time.monotonic() < deadline, "the store did not start planning within 120 s"
+            time.sleep(0.1)
+        os.killpg(proc.pid, signal.SIGINT)
+        said, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, said
+    lines = [x for x in said.splitlines() if x.strip()]
+    assert lines[-1] == f"cadence: interrupted before the cell's data time ran: nothing to summarise in {out}"
+    assert "Traceback" not in said
+    assert not (out / "summary.json").exists()
+
+
+def test_a_bad_task_file_is_refused_before_any_cell_starts(tmp_path: Path) -> None:
+    """Once the lockstep demo waited an hour of data time (7.5 minutes) for a store that had refused it."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[task\nname = 'x'\n")
+    for cell in ([], ["--processes"]):
+        proc = subprocess.run([sys.executable, "-m", "cadence", "demo", "--task", str(bad), "--out",
+                               str(tmp_path / "demo"), "--no-live", *cell],
+                              capture_output=True, text=True, timeout=60)  # fmt: skip
+        assert proc.returncode == 2
+        (line,) = proc.stderr.strip().splitlines()
+        assert line.startswith(f"cadence: error: {bad}: (syntax): Expected ']'")
+
+
+def ctrl_c(
+    proc: subprocess.Popen[str], out: Path, signals: tuple[str, ...] = ("SIGINT",)
+) -> tuple[str, dict]:
+    """Ctrl-C (or ``signals``), as a terminal sends it to the demo's process group; what the demo said
+    and its summary, which says that the run was cut short (exit code 130, as a shell reports an
+    interrupted command)."""
+    import os
+    import signal
+
+    early = ""
+    for i, name in enumerate(signals):
+        while i and "interrupted after" not in early:  # the next once the demo says it is stopping
+            assert proc.stdout is not None
+            line = proc.stdout.readline()  # it says so at once, or exits (then "")
+            assert line, early
+            early += line
+        os.killpg(proc.pid, getattr(signal, name))
     said, _ = proc.communicate(timeout=120)
+    said = early + said
     assert proc.returncode == 130, said
     s = json.loads((out / "summary.json").read_text())
     assert s["cut_short"] is True

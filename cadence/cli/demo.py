@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
+import signal
 import time
 import tomllib
 from pathlib import Path
+from types import FrameType
 
 import msgspec
 
@@ -76,7 +78,7 @@ cli = Commands()
     "scale; README, Decisions on real people)",
 )
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cadence.demo import ORDER, DemoOptions, run_demo, summary_table, twin_table
+    from cadence.demo import ORDER, DemoOptions, NothingRan, run_demo, summary_table, twin_table
     from common.sim.twin import TwinParams
 
     if not args.processes:
@@ -119,15 +121,34 @@ def cmd_demo(args: argparse.Namespace) -> int:
         msgspec.convert(twin_table(opts), TwinParams)
     except msgspec.ValidationError as exc:
         raise InputError(f"--twin: {exc}") from None
-    t0 = time.monotonic()
-    if opts.processes:
-        summary = asyncio.run(run_demo(opts, out))
-    else:
-        from cadence.lockstep import run_lockstep
-        from common.runtime import lockstep
+    # a task file that does not load is said now, in one line: the lockstep cell would wait an hour of
+    # data time for a store that refused it
+    from common.trajectory.task import load_task
 
-        ceiling = opts.speed if math.isfinite(opts.speed) else None
-        summary = lockstep.run(run_lockstep(opts, out), ceiling)
+    load_task(opts.task)
+    t0 = time.monotonic()
+
+    def as_ctrl_c(_: int, frame: FrameType | None) -> None:
+        """SIGTERM (a process manager, a closed terminal) ends the demo as Ctrl-C does: what ran is kept."""
+        handler = signal.getsignal(signal.SIGINT)
+        if callable(handler):
+            handler(signal.SIGINT, frame)
+
+    before = signal.signal(signal.SIGTERM, as_ctrl_c)
+    try:
+        if opts.processes:
+            summary = asyncio.run(run_demo(opts, out))
+        else:
+            from cadence.lockstep import run_lockstep
+            from common.runtime import lockstep
+
+            ceiling = opts.speed if math.isfinite(opts.speed) else None
+            summary = lockstep.run(run_lockstep(opts, out), ceiling)
+    except NothingRan as exc:
+        err.print(f"cadence: {exc}", markup=False, highlight=False, soft_wrap=True)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, before)
     wall = time.monotonic() - t0
     out.print(summary_table(summary, wall))
     out.print(
