@@ -409,6 +409,9 @@ def build_venv(opts: Options, say: list[str]) -> None:
     venv = opts.prefix / ".venv"
     _run([uv, "venv", "--allow-existing", "--python", python, str(venv)], "creating the venv")
     py = str(venv / "bin" / "python")
+    # compiled now: the service accounts cannot write bytecode into the install, and every service start
+    # would compile numpy and scipy again
+    pip = [uv, "pip", "install", "--compile-bytecode", "--python", py]
     src = opts.source or (str(_checkout()) if _checkout() else None)
     if src and Path(src).is_dir() and (Path(src) / "uv.lock").exists():
         with tempfile.NamedTemporaryFile("w", suffix=".txt") as req:
@@ -427,16 +430,16 @@ def build_venv(opts: Options, say: list[str]) -> None:
                 ],
                 "reading the lock",
             )
-            _run([uv, "pip", "install", "--python", py, "-r", req.name], "installing the locked dependencies")
+            _run([*pip, "-r", req.name], "installing the locked dependencies")
         _run(
-            [uv, "pip", "install", "--python", py, "--no-deps", "--reinstall-package", "cadence", src],
+            [*pip, "--no-deps", "--reinstall-package", "cadence", src],
             "installing cadence",
         )
     else:
         from importlib.metadata import version
 
         _run(
-            [uv, "pip", "install", "--python", py, src or f"cadence=={version('cadence')}"],
+            [*pip, src or f"cadence=={version('cadence')}"],
             "installing cadence",
         )
     say.append(f"venv: {venv} on {python}")
