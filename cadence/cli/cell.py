@@ -116,6 +116,10 @@ def cmd_record(args: argparse.Namespace) -> int:
                 on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
             )
             alone = bus.isolation()
+        if rec.failed is not None:  # what a flush put in the file is readable; the rest was lost
+            err.print(f"{rec.failed}: the recording stopped; {rec.on_disk} messages are in {args.output}",
+                      markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+            return 1
         err.print(f"{rec.count} messages written to {args.output}")
         if rec.count == 0:
             why = alone or "nothing was published on these keys"

@@ -29,7 +29,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from common.runtime.bus import Bus
-from common.runtime.errors import InputError
+from common.runtime.errors import CadenceError, InputError
 from schemas.topology import AnyMessage, decode_any, encode, topic_of
 
 PROFILE = "cadence"
@@ -51,6 +51,7 @@ class Recorder:
         self._channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
         self.count = 0
+        self.on_disk = 0  # of ``count``, those in the file (after a refused write, counted by reading it)
         self.undecodable = 0
         self.closed = False
         self.failed: str | None = None
@@ -115,6 +116,13 @@ class Recorder:
         self.closed = True
         with contextlib.suppress(OSError):  # a full disk: what was flushed stays readable
             self._file.close()
+        if self.failed is None:
+            self.on_disk = self.count
+        else:  # the writer put whole chunks out as they filled, and a flush some: the file says which
+            try:
+                self.on_disk = sum(1 for _ in read(self.path, notes=[]))
+            except (CadenceError, OSError):  # not even its header reached the disk
+                self.on_disk = 0
 
 
 async def record(
