@@ -37,7 +37,7 @@ from cadence.tools.gaps import Gaps
 from common.hrv.calibration import CALIBRATION_FILE
 from common.runtime.bus import Bus, BusConfig, Request
 from common.runtime.clock import Clock
-from common.runtime.errors import CadenceError
+from common.runtime.errors import CadenceError, InputError
 from common.runtime.lifetime import PARENT_ENV
 from common.runtime.numeric import numeric_build
 from common.runtime.resources import EXAMPLE_TASK
@@ -501,15 +501,20 @@ def summarise(
         "sets_sha256": digest_of(sets.values()) if set(sets) == set(load_task(opts.task).paths) else "",
         "build": numeric_build(),
     }
-    keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
-    try:
-        run = from_demo(opts.out)  # the report of the run (cadence/lab/report.py) into the demo's own folder
-        run.sets.update(sets)
-        write_report(run, opts.out, TwinParams().rr_rest_s)
-    except OSError as exc:
-        console.print(f"{opts.out}: the report could not be written ({exc.strerror or exc}); the summary "
-                      "holds the run's figures", style="red")  # fmt: skip
-    return summary
+    kept = keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
+    reported = kept.parent == opts.out  # a folder that could not take the summary takes no report either
+    if reported:
+        try:
+            run = from_demo(opts.out)  # the report of the run (cadence/lab/report.py), into the run's folder
+            run.sets.update(sets)
+            write_report(run, opts.out, TwinParams().rr_rest_s)
+        except (OSError, InputError) as exc:
+            why = exc.strerror or exc if isinstance(exc, OSError) else exc
+            console.print(f"{opts.out}: the report could not be written ({why}); the summary holds the "
+                          "run's figures", style="red")  # fmt: skip
+            reported = False
+    # where it all went, for the last line the command prints (not in the file)
+    return {**summary, "written": {"summary": str(kept), "report": reported}}
 
 
 class NothingRan(CadenceError):

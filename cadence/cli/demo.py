@@ -151,11 +151,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, before)
     wall = time.monotonic() - t0
     out.print(summary_table(summary, wall))
-    out.print(
-        f"written: {args.out}/summary.json and a report (index.html, rr_k.png, pareto.png, cycles.png, "
-        "separation.png); "
-        f"service logs in {args.out}/logs"
-    )
+    written = summary["written"]
+    report = (" and a report (index.html and its figures)" if written["report"]
+              else "; no report (see above)")  # fmt: skip
+    out.print(f"written: {written['summary']}{report}; service logs in {args.out}/logs")
     bad = {n: c for n, c in summary["exit_codes"].items() if c != 0}
     if bad:
         err.print(f"services that did not exit cleanly: {bad}")
