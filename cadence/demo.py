@@ -24,7 +24,7 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -465,7 +465,7 @@ def summarise(
     console: Console,
 ) -> dict[str, Any]:
     """``summary.json`` and the report (index.html and its figures) of a run, in its folder."""
-    if ran_s < 1.0:
+    if ran_s <= 0 or (cut_short and ran_s < 1.0):  # a second of data time or less: nothing to say
         raise interrupted_before_data_time(opts)
     down, up = obs.k_steps()
     minutes = ran_s / 60.0
@@ -515,6 +515,36 @@ def summarise(
             reported = False
     # where it all went, for the last line the command prints (not in the file)
     return {**summary, "written": {"summary": str(kept), "report": reported}}
+
+
+LOCK_FILE = ".cadence-demo.lock"
+
+
+def claim(folder: Path, force: bool = False) -> IO[str] | None:
+    """The run's folder for this run alone: two demos into one folder both said "written", and one's log
+    was lost. Held (an advisory lock) for as long as the returned file is open; ``force``: not taken."""
+    import fcntl
+
+    if force:
+        return None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        f = (folder / LOCK_FILE).open("a+")
+    except OSError as exc:
+        raise InputError(f"{folder}: cannot be used for the run: {exc.strerror or exc}") from None
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        who = f.read().strip() or "another process"
+        f.close()
+        raise InputError(f"{folder}: another demo writes there ({who}): give another --out, or --force "
+                         "to share it") from None  # fmt: skip
+    f.seek(0)
+    f.truncate()
+    f.write(f"pid {os.getpid()}\n")
+    f.flush()
+    return f
 
 
 class NothingRan(CadenceError):

@@ -429,3 +429,37 @@ def ctrl_c(
     assert s["cut_short"] is True
     assert "(cut short)" in said
     return said, s
+
+
+def test_a_second_demo_into_the_same_folder_is_refused_unless_forced(tmp_path: Path) -> None:
+    """Two demos into one folder both said "written", and one's log was lost."""
+    from cadence.demo import LOCK_FILE
+
+    out = tmp_path / "demo"
+    first = subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", "--duration", "3600", "--speed", "1", "--out", str(out),
+         "--no-live"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not ((out / LOCK_FILE).exists() and f"pid {first.pid}" in (out / LOCK_FILE).read_text()):
+            assert first.poll() is None
+            assert time.monotonic() < deadline, "the first demo did not claim its folder within 120 s"
+            time.sleep(0.1)
+        cmd = [sys.executable, "-m", "cadence", "demo", "--duration", "1", "--out", str(out), "--no-live"]
+        second = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        assert second.returncode == 2
+        assert second.stderr.strip().splitlines() == [
+            f"cadence: error: {out}: another demo writes there (pid {first.pid}): give another --out, or "
+            "--force to share it"
+        ]
+        assert first.poll() is None  # the first runs on, untouched
+        forced = subprocess.run([*cmd, "--force"], capture_output=True, text=True, timeout=300)
+        assert forced.returncode == 0, forced.stderr  # said: --force shares the folder
+    finally:
+        first.kill()
+        first.wait()
+    # once the first has gone (killed, even), the folder is free again: the lock went with its process
+    cmd = [sys.executable, "-m", "cadence", "demo", "--duration", "0.5", "--out", str(out), "--no-live"]
+    assert subprocess.run(cmd, capture_output=True, text=True, timeout=300).returncode == 0

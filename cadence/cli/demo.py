@@ -46,6 +46,7 @@ cli = Commands()
     "--kill and --listen need): a busy host changes what such a run does",
 )
 @arg("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
+@arg("--force", action="store_true", help="write into --out even while another demo writes there")
 @arg("--seed", type=int, default=1, help="the operator twin's seed (default 1)")
 @arg("--task", default=str(EXAMPLE_TASK), metavar="TASK.toml", help="default: box_filling")
 @arg(
@@ -78,7 +79,7 @@ cli = Commands()
     "scale; README, Decisions on real people)",
 )
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cadence.demo import ORDER, DemoOptions, NothingRan, run_demo, summary_table, twin_table
+    from cadence.demo import ORDER, DemoOptions, NothingRan, claim, run_demo, summary_table, twin_table
     from common.sim.twin import TwinParams
 
     if not args.processes:
@@ -134,6 +135,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if callable(handler):
             handler(signal.SIGINT, frame)
 
+    lock = claim(opts.out, args.force)
     before = signal.signal(signal.SIGTERM, as_ctrl_c)
     try:
         if opts.processes:
@@ -149,6 +151,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return 130
     finally:
         signal.signal(signal.SIGTERM, before)
+        if lock is not None:
+            lock.close()
     wall = time.monotonic() - t0
     out.print(summary_table(summary, wall))
     written = summary["written"]
