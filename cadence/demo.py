@@ -31,7 +31,7 @@ from rich.live import Live
 from rich.table import Table
 
 from cadence.lab.marks import counted
-from cadence.lab.report import event_row, from_demo, scale_row, window_row, write_report
+from cadence.lab.report import event_row, from_demo, scale_row, thresholds, window_row, write_report
 from cadence.lab.session import served_sets
 from cadence.tools.gaps import Gaps
 from common.hrv.calibration import CALIBRATION_FILE
@@ -224,6 +224,7 @@ class Observed:
                 "delta": s.delta,
                 "reason": s.reason,
                 "window_end_s": key,
+                **thresholds(s),
             }
         )
 

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from cadence.tools.recording import Recorder
 from common.trajectory.planner import content_hash
 from common.trajectory.task import parse_task
@@ -121,3 +123,41 @@ def test_a_recording_joined_mid_run_spans_its_streams_not_a_republished_selectio
     run = from_mcap(path)
     assert run.duration_s == 240.0
     assert run.productivity_per_min == 0.5
+
+
+def test_the_rr_figure_of_a_recording_draws_the_thresholds_its_selections_carry(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without --rr-rest the figure took the highest window for RR_r, though every recorded selection
+    carries the thresholds it was decided against."""
+    import cadence.lab.plots as plots
+    from cadence.lab.report import from_mcap, write_report
+    from cadence.tools.recording import Recorder
+    from schemas import HrvWindow, Selection
+    from schemas.topology import encode
+
+    path = tmp_path / "run.mcap"
+    rec, key = Recorder(path), "cadence/cell1/"
+    for i, (rr, rest) in enumerate([(0.80, 0.95), (0.78, 0.90)]):  # a calibration changed mid-run: the last
+        end = T0 + (i + 1) * 30 * 10**9
+        rec.write(key + "hrv/window", encode(HrvWindow(t_ns=end, seq=i, start_ns=end - 30 * 10**9, end_ns=end,
+                  mean_rr_s=rr, n_beats=35, excluded_fraction=0.0, quality="good")))  # fmt: skip
+        sel = Selection(t_ns=end, seq=i, k=5, n=15, delta=0, reason="hold", window_end_ns=end, rr_rest_s=rest,
+                        rr_stress_s=rest - 0.1, rr_stress_max_s=rest - 0.2)  # fmt: skip
+        rec.write(key + "decision/selection", encode(sel))
+    rec.close()
+    drawn: dict[str, object] = {}
+
+    def figure(*args: object) -> bytes:
+        names = ("windows", "selections", "rest", "label", "ends", "errors", "idle", "s", "smax")
+        drawn.update(zip(names, args, strict=False))
+        return b"\x89PNG"
+
+    monkeypatch.setattr(plots, "rr_k_figure", figure)
+    write_report(from_mcap(path), tmp_path / "report")
+    assert drawn["rest"] == 0.90
+    assert drawn["s"] == pytest.approx(0.80)
+    assert drawn["smax"] == pytest.approx(0.70)
+    assert "recorded" in str(drawn["label"])
+    write_report(from_mcap(path), tmp_path / "report", rr_rest_s=0.85)  # a given RR_r wins, defaults about it
+    assert (drawn["rest"], drawn["s"], drawn["smax"]) == (0.85, None, None)

@@ -77,10 +77,12 @@ def rr_k_figure(
     cycle_ends_s: list[float] | None = None,
     error_times_s: list[float] | None = None,
     idle: list[tuple[float, float, str]] | None = None,
+    rr_stress_s: float | None = None,
+    rr_stress_max_s: float | None = None,
 ) -> bytes:
     """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
-    decision thresholds RR_s, RR_s^max (the paper's defaults about RR_r) as lines, k on integer ticks,
-    cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and shaded the
+    decision thresholds RR_s, RR_s^max (as recorded, else the paper's defaults about RR_r) as lines, k on
+    integer ticks, cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and shaded the
     spans in which the robot did not work (``motion.idle_spans``): a k chosen there moved nothing. With
     the strap's accelerometer, a panel below gives each window's movement, and the windows the decision
     held for it are shaded above."""
@@ -117,8 +119,19 @@ def rr_k_figure(
         ax.axvspan(a, b, color="0.85", lw=0, label="robot stopped or waiting" if i == 0 else None)
     p = Params.of(rr_rest_s)
     ax.axhline(rr_rest_s, ls="--", c="tab:red", lw=0.8, label=rest_label)
-    ax.axhline(float(p.rr_stress), ls="-.", c="0.4", lw=0.8, label="RR_s = RR_r − 0.08 s")
-    ax.axhline(float(p.rr_stress_max), ls=":", c="0.4", lw=0.8, label="RR_s^max = RR_s − σ_s")
+    recorded = rr_stress_s is not None
+    stress = rr_stress_s if rr_stress_s is not None else float(p.rr_stress)
+    stress_max = rr_stress_max_s if rr_stress_max_s is not None else float(p.rr_stress_max)
+    ax.axhline(
+        stress, ls="-.", c="0.4", lw=0.8, label="RR_s (recorded)" if recorded else "RR_s = RR_r − 0.08 s"
+    )
+    ax.axhline(
+        stress_max,
+        ls=":",
+        c="0.4",
+        lw=0.8,
+        label="RR_s^max" + (" (recorded)" if recorded else " = RR_s − σ_s"),
+    )
     for end in cycle_ends_s or []:
         ax.axvline(end, ymin=0.0, ymax=0.03, c="0.2", lw=0.8)
     for i, at in enumerate(error_times_s or []):

@@ -166,6 +166,7 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
                         "delta": m.delta,
                         "reason": m.reason,
                         "window_end_ns": m.window_end_ns,
+                        **thresholds(m),
                     }
                 )
         elif isinstance(m, CycleReport):
@@ -230,21 +231,37 @@ CAPTIONS = {
 }
 
 
+def thresholds(s: Selection) -> dict[str, float]:
+    """The thresholds a selection was decided against (RR_r, RR_s, RR_s^max), those it carries."""
+    got = {"rr_rest_s": s.rr_rest_s, "rr_stress_s": s.rr_stress_s, "rr_stress_max_s": s.rr_stress_max_s}
+    return {k: v for k, v in got.items() if v is not None}
+
+
+def in_force(selections: list[dict]) -> dict[str, float]:
+    """The thresholds of the last selection that carries RR_r: what the run was last decided against."""
+    return next((x for x in reversed(selections) if "rr_rest_s" in x), {})
+
+
 def write_report(run: Run, out: Path, rr_rest_s: float | None = None) -> list[str]:
-    """The figures and index.html; returns the names of the files written."""
+    """The figures and index.html; returns the names of the files written. RR_r: ``rr_rest_s``, else the
+    one the recorded selections were decided against, else a stand-in that the figure names as such."""
     from cadence.lab.plots import cycle_kinematics_figure, front_usage_figure, rr_k_figure, separation_figure
 
     out.mkdir(parents=True, exist_ok=True)
     written = []
     good = [w["mean_rr_s"] for w in run.windows if w["mean_rr_s"] is not None and w["quality"] == "good"]
+    lines = in_force(run.selections)
     if rr_rest_s is not None:
-        rest, label = rr_rest_s, "RR_r (the subject's calibration)"
-    else:  # no calibration given: a stand-in, and the figure says so rather than call it rest
+        rest, label, lines = rr_rest_s, "RR_r (the subject's calibration)", {}
+    elif lines:
+        rest, label = lines["rr_rest_s"], "RR_r in force (the recorded selections')"
+    else:  # no calibration given or recorded: a stand-in, and the figure says so rather than call it rest
         rest = float(np.max(good)) if good else 0.85
         label = "no RR_r given (--rr-rest): the highest good window's, in its place"
     ends = [c["end_s"] for c in run.cycles]
     idle = idle_spans(run.events, run.duration_s)
-    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_times_s, idle)
+    figure = rr_k_figure(run.windows, run.selections, rest, label, ends, run.error_times_s, idle,
+                         lines.get("rr_stress_s"), lines.get("rr_stress_max_s"))  # fmt: skip
     write_readable(out / "rr_k.png", figure)
     written.append("rr_k.png")
     if run.sets:
