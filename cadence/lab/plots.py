@@ -82,10 +82,10 @@ def rr_k_figure(
 ) -> bytes:
     """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
     decision thresholds RR_s, RR_s^max (as recorded, else the paper's defaults about RR_r) as lines, k on
-    integer ticks, cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and shaded the
-    spans in which the robot did not work (``motion.idle_spans``): a k chosen there moved nothing. With
-    the strap's accelerometer, a panel below gives each window's movement, and the windows the decision
-    held for it are shaded above."""
+    integer ticks, cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and
+    shaded the spans in which the robot did not work (``motion.idle_spans``): a k chosen there moved
+    nothing. With the strap's accelerometer, a panel below gives each window's movement, and the windows
+    the decision held for it are shaded above."""
     from common.decision import Params
 
     moving = [w for w in windows if w.get("movement_mg") is not None]

@@ -21,7 +21,7 @@ err = Console(stderr=True)
 
 
 def print_study(study: Study) -> None:
-    from cadence.lab.analysis import LABELS, stars
+    from cadence.lab.analysis import LABELS
     from schemas.session import CONDITION_NAMES
 
     what = "SIMULATED study (operator twins, not people)" if study.simulated else "study"
@@ -40,6 +40,17 @@ def print_study(study: Study) -> None:
         )
         table.add_row(f"({c}) {CONDITION_NAMES[c]}", *cells)
     out.print(table)
+    if subjects >= 2:  # with one, each "test" would print nan and p = 1: said above instead
+        print_tests(study)
+    for f, why in study.excluded:
+        out.print(f"left out: {f.name}: {why}")
+    for note in study.notes:
+        out.print(f"note: {note}")
+
+
+def print_tests(study: Study) -> None:
+    from cadence.lab.analysis import LABELS, stars
+
     tests = Table(
         title="Friedman, then Wilcoxon signed-rank paired by subject: p, Holm-adjusted p, r_rb [95 % CI]"
     )
@@ -55,10 +66,6 @@ def print_study(study: Study) -> None:
         tests.add_row("b ≈ c (TOST)", *(f"±{e.margin:g}: p {e.p:.2g}" + (" equivalent" if e.p < 0.05 else "")
                                         for e in study.equivalence.values()))  # fmt: skip
     out.print(tests)
-    for f, why in study.excluded:
-        out.print(f"left out: {f.name}: {why}")
-    for note in study.notes:
-        out.print(f"note: {note}")
 
 
 def fit_table(twin: dict[str, tuple[float, float]], rr_p: dict[str, float]) -> Table:
