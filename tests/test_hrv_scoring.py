@@ -64,3 +64,20 @@ def test_the_score_counts_good_and_held_windows_and_their_errors() -> None:
     assert f["worst_records"] == "r1"
     assert f["held_share_sinus"] == pytest.approx(0.25)
     assert sc.held_reasons == {"excluded": 1}
+
+
+def test_each_window_carries_its_annotated_rhythm_and_the_score_counts_what_passed_inside_each() -> None:
+    """Issue 55: a window of SVT read as good is read as if it were sinus rhythm; the score says how many."""
+    t = [i * 1.0 for i in range(100)]
+    marks = [(0.0, "+", "(N"), (25.0, "+", "(SVTA"), (28.0, "+", "(N"), (60.0, "+", "(AFIB")]
+    ann = beats(t, "N" * 100, marks)
+    w1, w2, w3 = truth(ann, [0.0, 30.0, 60.0], 30.0, 100.0)
+    assert (w1.rhythm, w2.rhythm, w3.rhythm) == ("(SVTA", "(N", "(AFIB")  # 3 s of SVT make it not sinus
+    sc = WindowScore("cadence")
+    sc.add("r", [w1, w2, w3], [1.0, 1.0, None], ["", "", "irregular"])
+    assert sc.by_rhythm == {"(SVTA": [1, 0, 1], "(N": [1, 0, 1], "(AFIB": [1, 1, 0]}
+    assert sc.figures()["passed_not_sinus"] == 1
+    other = WindowScore("cadence")
+    other.add("s", [w1], [None], ["irregular"])
+    sc.merge(other)
+    assert sc.by_rhythm["(SVTA"] == [2, 1, 1]

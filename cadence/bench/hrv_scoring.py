@@ -24,6 +24,7 @@ from common.hrv.records import BEAT_SYMBOLS, Annotations
 from common.hrv.stream import Window
 
 NN_SYMBOLS = frozenset("NLRej")  # normal beats of MIT-BIH's beat labels
+SINUS = "(N"  # MIT-BIH's rhythm annotation of normal sinus rhythm
 MIN_NN = 10
 
 
@@ -40,6 +41,30 @@ class Truth:
     start_s: float
     end_s: float
     mean_nn_s: float | None  # None: not scored
+    rhythm: str = SINUS  # the annotated rhythm: the non-sinus one that covers most of the window, if any
+
+
+def rhythm_spans(ann: Annotations, end_s: float) -> list[tuple[float, float, str]]:
+    """(from, to, rhythm) for each annotated rhythm (``(N``, ``(AFIB``, ``(SVTA``, ``(NOD``, ``(BII`` …),
+    from its ``+`` annotation to the next one."""
+    out: list[tuple[float, float, str]] = []
+    for t, sym, aux in zip(ann.t_s, ann.symbol, ann.aux, strict=True):
+        rhythm = aux.strip("\x00 ")
+        if sym == "+" and rhythm.startswith("("):
+            if out:
+                out[-1] = (out[-1][0], float(t), out[-1][2])
+            out.append((float(t), end_s, rhythm))
+    return out
+
+
+def rhythm_of(spans: Sequence[tuple[float, float, str]], start_s: float, end_s: float) -> str:
+    """The non-sinus rhythm that covers most of [start, end), else sinus: a window with a run of SVT in it
+    is not a window of sinus rhythm, however short the run."""
+    cover: dict[str, float] = {}
+    for a, b, r in spans:
+        if r != SINUS and (o := min(b, end_s) - max(a, start_s)) > 0:
+            cover[r] = cover.get(r, 0.0) + o
+    return max(cover, key=lambda r: cover[r]) if cover else SINUS
 
 
 def unreadable_spans(ann: Annotations, end_s: float) -> list[tuple[float, float]]:
@@ -92,6 +117,7 @@ def truth(ann: Annotations, starts_s: Sequence[float], length_s: float, end_s: f
     rr = np.diff([b[0] for b in beats]) if beats else np.empty(0)
     spans = flutter_spans(ann, end_s)
     hidden = unreadable_spans(ann, end_s)
+    rhythms = rhythm_spans(ann, end_s)
     t_start = np.array([b[0] for b in beats[:-1]])
     for a, b in hidden:
         nn &= ~((t_start < b) & (t_end > a))
@@ -100,7 +126,8 @@ def truth(ann: Annotations, starts_s: Sequence[float], length_s: float, end_s: f
         e = s + length_s
         sel = (t_end >= s) & (t_end < e) & nn
         touched = any(a < e and b > s for a, b in spans)
-        out.append(Truth(s, e, float(rr[sel].mean()) if sel.sum() >= MIN_NN and not touched else None))
+        mean = float(rr[sel].mean()) if sel.sum() >= MIN_NN and not touched else None
+        out.append(Truth(s, e, mean, rhythm_of(rhythms, s, e)))
     return out
 
 
@@ -123,6 +150,7 @@ class WindowScore:
     sinus_scored: int = 0  # scored windows of records without arrhythmia runs
     sinus_held: int = 0
     held_by_record: dict[str, int] = field(default_factory=dict)
+    by_rhythm: dict[str, list[int]] = field(default_factory=dict)  # rhythm → [scored windows, held, passed]
 
     def add(
         self,
@@ -137,6 +165,9 @@ class WindowScore:
         for t, m, why in zip(truths, means, reasons, strict=True):
             if t.mean_nn_s is None:
                 continue
+            counts = self.by_rhythm.setdefault(t.rhythm, [0, 0, 0])
+            counts[0] += 1
+            counts[1 if m is None else 2] += 1
             self.sinus_scored += sinus
             if m is None:
                 self.held += 1
@@ -161,6 +192,9 @@ class WindowScore:
         self.sinus_held += other.sinus_held
         for record, n in other.held_by_record.items():
             self.held_by_record[record] = self.held_by_record.get(record, 0) + n
+        for rhythm, counts in other.by_rhythm.items():
+            mine = self.by_rhythm.setdefault(rhythm, [0, 0, 0])
+            mine[:] = [a + b for a, b in zip(mine, counts, strict=True)]
 
     @property
     def errors_ms(self) -> NDArray[np.float64]:
@@ -185,6 +219,8 @@ class WindowScore:
             "worst_ms": round(float(e.max()), 1) if e.size else 0.0,
             # the records of the windows over 10 ms, worst first
             "worst_records": ", ".join(dict.fromkeys(w.record for w in worst if w.error_s > 0.01)),
+            # windows passed as good inside an annotated rhythm other than sinus: read as if they were
+            "passed_not_sinus": sum(c[2] for r, c in self.by_rhythm.items() if r != SINUS),
         }
 
 
@@ -215,4 +251,18 @@ def window_table(title: str, scores: dict[str, dict[str, WindowScore]], out: Con
     out.print("* the share held on the records without arrhythmia runs (GUDB: every window)")
     if notes:
         out.print("Cadence's windows over 10 ms, worst first: " + "; ".join(notes))
+    rhythms = Table(title="Scored windows per annotated rhythm: windows / held / passed as good")
+    pipelines = [(v, n, sc) for v, by_name in scores.items() for n, sc in by_name.items() if n != "neurokit2"]
+    names = sorted({r for _, _, sc in pipelines for r in sc.by_rhythm}, key=lambda r: (r != SINUS, r))
+    rhythms.add_column("variant")
+    rhythms.add_column("pipeline")
+    for r in names:
+        rhythms.add_column(r.lstrip("(") + (" (sinus)" if r == SINUS else ""), justify="right")
+    for v, n, sc in pipelines:
+        rhythms.add_row(
+            v, n, *("/".join(map(str, sc.by_rhythm[r])) if r in sc.by_rhythm else "" for r in names)
+        )
+        figures[v][n]["by_rhythm"] = {r: dict(zip(("windows", "held", "passed"), c, strict=True))
+                                      for r, c in sc.by_rhythm.items()}  # type: ignore[assignment]  # fmt: skip
+    out.print(rhythms)
     return dict(figures)
