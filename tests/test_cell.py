@@ -340,6 +340,8 @@ def test_a_child_dies_with_its_parent_even_on_sigkill() -> None:
         (["--strap", "twin", "--services", "ecg_gateway"], "--services ecg_gateway: with --strap twin"),
         (["--scanner", "front:1.5,0:legs"], "--scanner 'front:1.5,0:legs'"),
         (["--scanner", "front:1.5,0,0:feet"], "--scanner 'front:1.5,0,0:feet'"),
+        (["--prefix", "/root/cadence"], "--prefix /root/cadence: under a home folder, which the units"),
+        (["--prefix", "/home/ann/../ann/cadence"], "under a home folder"),
     ],
 )
 def test_a_bad_install_request_is_one_line_and_exit_2(args: list[str], said: str) -> None:

@@ -476,6 +476,9 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
         raise InstallError(f"--cell {opts.cell_name!r}: letters, digits, '_' and '-' only, at most 64")
     if not re.fullmatch(r"[A-Za-z0-9.:\-\[\]]{1,253}", opts.robot):
         raise InstallError(f"--robot {opts.robot!r}: a host name or address, or sim")
+    if _hidden(str(opts.prefix.resolve())):  # the units run with ProtectHome=yes: they would never start
+        raise InstallError(f"--prefix {opts.prefix}: under a home folder, which the units cannot see "
+                           "(ProtectHome=yes; /root is mode 700): give one like /opt/cadence")  # fmt: skip
     existing = CREDS / "cell.json"
     if opts.join:
         bundle = Bundle.load(opts.join)
