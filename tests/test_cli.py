@@ -247,3 +247,13 @@ def test_what_only_the_process_cell_has_is_refused_in_lockstep_with_the_flag_tha
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2
     assert "--speed max runs the cell in lockstep" in proc.stderr
+
+
+def test_a_misspelt_option_is_said_with_the_commands_own_usage() -> None:
+    """`cadence demo --duraton 10` showed the top-level usage, which names no option of the demo."""
+    r = subprocess.run([sys.executable, "-m", "cadence", "demo", "--duraton", "10"], capture_output=True,
+                       text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 2
+    assert r.stderr.startswith("usage: cadence demo")
+    assert "--duration" in r.stderr  # its usage names the option meant
+    assert r.stderr.strip().endswith("cadence demo: error: unrecognized arguments: --duraton 10")

@@ -84,7 +84,7 @@ class Commands:
             if d.steps is not None:
                 parents[d.path] = parser.add_subparsers(required=True, **d.steps)
             if d.run is not None:
-                parser.set_defaults(func=d.run)
+                parser.set_defaults(func=d.run, command_parser=parser)
 
 
 def positive_int(minimum: int):
