@@ -12,8 +12,6 @@ from typing import TYPE_CHECKING
 from rich.progress import Progress
 from rich.table import Table
 
-from cadence.bench.ecg_noise import variants_named
-from cadence.bench.hrv_scoring import window_table
 from cadence.cli._common import arg, err, out
 from cadence.cli.bench import SHARED_DATA, cli
 from common.runtime.errors import InputError
@@ -24,6 +22,8 @@ if TYPE_CHECKING:
 
 def _bench_hrv_windows(args: argparse.Namespace) -> int:
     from cadence.bench import bench_hrv_windows
+    from cadence.bench.ecg_noise import variants_named
+    from cadence.bench.hrv_scoring import window_table
 
     variants = variants_named(args.variants)
     records = tuple(r for r in (args.records or "").split(",") if r)
@@ -43,7 +43,9 @@ def _bench_hrv_windows(args: argparse.Namespace) -> int:
 
 
 def _bench_hrv_cv(args: argparse.Namespace) -> int:
+    from cadence.bench.ecg_noise import variants_named
     from cadence.bench.hrv_cv import GRID, cross_validate, describe
+    from cadence.bench.hrv_scoring import window_table
     from common.hrv.stream import RULES
 
     variants = variants_named(args.variants)
