@@ -329,22 +329,12 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
     out = tmp_path / "demo"
     (out / "data").mkdir(parents=True)
     shutil.copy(example_sets, out / "data" / "pareto.sqlite")  # planned once per test run
-    proc = subprocess.Popen(
-        # an hour of data time at most 8× (at least 450 s of wall): still going when the test, however
-        # loaded the host, has seen what it waits for
-        [sys.executable, "-m", "cadence", "demo", "--duration", "3600", "--speed", "8", "--out", str(out),
-         "--no-live"],
-        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True,
-    )  # fmt: skip
-    log = out / "logs" / "cell.log"
+    # an hour of data time at most 8× (at least 450 s of wall): still going when the test, however
+    # loaded the host, has seen what it waits for
+    proc = demo_in_a_terminal("--duration", "3600", "--speed", "8", "--out", str(out))
     try:
-        deadline = time.monotonic() + 240
         # a decided window (the second comes after the first cycle's end): each service has said something
-        while not (log.exists() and log.read_text().count("decision_maker: window to") >= 2):
-            assert proc.poll() is None, proc.communicate()[0]
-            assert time.monotonic() < deadline, "no decided window in the cell's log within 240 s"
-            time.sleep(0.2)
+        until_logged(proc, out, "decision_maker: window to", 2, "a decided window")
         said, s = ctrl_c(proc, out, signals)
     finally:
         proc.kill()
@@ -369,18 +359,9 @@ def test_ctrl_c_before_the_demos_data_time_ran_is_one_line(tmp_path: Path) -> No
     task = tmp_path / "reseeded.toml"
     task.write_text(EXAMPLE_TASK.read_text().replace("seed = 1", "seed = 2"))
     out = tmp_path / "demo"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cadence", "demo", "--task", str(task), "--out", str(out), "--no-live"],
-        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True,
-    )  # fmt: skip
-    log = out / "logs" / "cell.log"
+    proc = demo_in_a_terminal("--task", str(task), "--out", str(out))
     try:
-        deadline = time.monotonic() + 120
-        while not (log.exists() and "planning" in log.read_text()):
-            assert proc.poll() is None, proc.communicate()[0]
-            assert time.monotonic() < deadline, "the store did not start planning within 120 s"
-            time.sleep(0.1)
+        until_logged(proc, out, "planning", 1, "the store planning")
         os.killpg(proc.pid, signal.SIGINT)
         said, _ = proc.communicate(timeout=120)
     finally:
@@ -403,6 +384,24 @@ def test_a_bad_task_file_is_refused_before_any_cell_starts(tmp_path: Path) -> No
         assert proc.returncode == 2
         (line,) = proc.stderr.strip().splitlines()
         assert line.startswith(f"cadence: error: {bad}: (syntax): Expected ']'")
+
+
+def demo_in_a_terminal(*args: str) -> subprocess.Popen[str]:
+    """`cadence demo ARGS --no-live` as a terminal's foreground job runs it, what it says piped."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "cadence", "demo", *args, "--no-live"],
+        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+
+
+def until_logged(proc: subprocess.Popen[str], out: Path, text: str, times: int, what: str) -> None:
+    """Until the cell's log says ``text`` ``times`` times (240 s at most), the demo still running."""
+    log, deadline = out / "logs" / "cell.log", time.monotonic() + 240
+    while not (log.exists() and log.read_text().count(text) >= times):
+        assert proc.poll() is None, proc.communicate()[0]
+        assert time.monotonic() < deadline, f"no {what} in the cell's log within 240 s"
+        time.sleep(0.2)
 
 
 def ctrl_c(

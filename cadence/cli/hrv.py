@@ -137,30 +137,16 @@ _MODE = Personal()
 @arg("--sigma-r", type=str, default="0.14", metavar="S", help="σ_r [s] (default 0.14)")
 @arg("--rr-s-offset", type=str, default="0.08", metavar="S", help="RR_r − RR_s [s] (0.08)")
 @arg("--sigma-s", type=str, default="0.08", metavar="S", help="σ_s [s] (default 0.08)")
-@arg(
-    "--step",
-    type=float,
-    default=_MODE.step_s,
-    metavar="S",
-    help=f"personal: mean RR per step of k ({_MODE.step_s})",
-)
-@arg(
-    "--keep",
-    type=float,
-    default=_MODE.keep,
-    help=f"personal: weight of the past a window, 0–0.95 ({_MODE.keep})",
-)
+@arg("--step", type=float, default=_MODE.step_s, metavar="S",
+     help=f"personal: mean RR per step of k ({_MODE.step_s})")  # fmt: skip
+@arg("--keep", type=float, default=_MODE.keep,
+     help=f"personal: weight of the past a window, 0–0.95 ({_MODE.keep})")  # fmt: skip
 @arg("--hysteresis", type=float, default=_MODE.hysteresis, metavar="STEPS",
      help=f"personal: how far past the middle between two k before k moves ({_MODE.hysteresis})")  # fmt: skip
 @arg("--ref-tau", type=float, default=_MODE.ref_tau_s, metavar="S",
      help=f"personal: time constant of the reference, either way ({_MODE.ref_tau_s:g})")  # fmt: skip
-@arg(
-    "--freeze",
-    type=float,
-    default=_MODE.freeze_s,
-    metavar="S",
-    help=f"personal: this far below the reference is stress: the reference stays ({_MODE.freeze_s})",
-)
+@arg("--freeze", type=float, default=_MODE.freeze_s, metavar="S",
+     help=f"personal: this far below the reference is stress; it stays ({_MODE.freeze_s})")  # fmt: skip
 def cmd_decide(args: argparse.Namespace) -> int:
     from common.decision import Params, PersonalState, State, dec, personal_step, step
 
