@@ -19,8 +19,8 @@ from schemas.topology import encode
 from tests.support.cell import CELL
 
 
-def render(top: Top, now: float) -> str:
-    console = Console(width=250, record=True)
+def render(top: Top, now: float, width: int = 250) -> str:
+    console = Console(width=width, record=True)
     console.print(top.view(status_period_s=1.0, now=now))
     return console.export_text()
 
@@ -91,3 +91,14 @@ async def test_cadence_top_shows_a_running_services_keys(tmp_path: Path, endpoin
     assert "health/decision_maker" in text
     row = next(line for line in text.splitlines() if "decision_maker" in line and "yes" in line)
     assert "running" in row
+
+
+def test_every_key_is_shown_whole_on_a_terminal_of_80_columns() -> None:
+    """At 80 columns every key was cut ("operator/s…" for operator/separation and operator/signal)."""
+    top = Top(CELL)
+    sel = Selection(t_ns=1, seq=0, k=8, n=15, delta=0, reason="initial")
+    for key in ("operator/separation", "operator/signal", "decision/selection", "robot/state"):
+        top.on(f"cadence/{CELL}/{key}", encode(sel), now=100.0)
+    text = render(top, now=101.0, width=80)
+    for key in ("operator/separation", "operator/signal", "decision/selection", "robot/state"):
+        assert f"│ {key} " in text, text

@@ -84,11 +84,15 @@ class Top:
     def view(self, status_period_s: float = 5.0, now: float | None = None) -> Group:
         now = time.monotonic() if now is None else now
         keys = Table(title=f"cadence top — cell {self.cell}: keys (rates over the last {RATE_WINDOW_S:g} s)")
-        for col in ("key", "type", "publishers → readers"):
-            keys.add_column(col)
+        prefix = key_of(self.cell, "")
+        # the key whole, however narrow the terminal (at 80 columns two keys read "operator/s…"): the
+        # other columns fold instead
+        longest = max((len(k.removeprefix(prefix)) for k in self.keys), default=3)
+        keys.add_column("key", no_wrap=True, min_width=longest)
+        for col in ("type", "publishers → readers"):
+            keys.add_column(col, overflow="fold")
         for col in ("rate [Hz]", "last [s ago]", "messages", "bad"):
             keys.add_column(col, justify="right")
-        prefix = key_of(self.cell, "")
         for key in sorted(self.keys):
             k = self.keys[key]
             topic = topic_of(key)
