@@ -154,6 +154,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if lock is not None:
             lock.close()
     wall = time.monotonic() - t0
+    if opts.live:
+        out.print()  # the live view's last frame stays above: a line between it and the summary
     out.print(summary_table(summary, wall))
     written = summary["written"]
     report = (" and a report (index.html and its figures)" if written["report"]

@@ -162,23 +162,25 @@ def rr_k_figure(
 
 
 def separation_figure(rows: list[dict], idle: list[tuple[float, float, str]] | None = None) -> bytes:
-    """The nearest person's distance and the robot's time scale over data time (report/separation.png)."""
-    fig, ax = plt.subplots(figsize=(11, 3.5), constrained_layout=True)
+    """The nearest person's distance and the robot's time scale over data time (report/separation.png),
+    in two panels on one time axis: on twin axes the two lines crossed and hid each other."""
+    fig, (ax, scale) = plt.subplots(2, 1, figsize=(11, 4.5), sharex=True, height_ratios=[3, 2],
+                                    constrained_layout=True)  # fmt: skip
+    fig.suptitle("Speed and separation monitoring: the nearest person, and the pace the robot kept")
     t = [r["t_s"] for r in rows]
     ax.plot(t, [r["separation_m"] if r["separation_m"] is not None else np.nan for r in rows],
             color="tab:purple", lw=1.2, label="separation")  # fmt: skip
-    ax.set_xlabel("data time [s]")
     ax.set_ylabel("separation [m]", color="tab:purple")
     ax.set_ylim(bottom=0.0)
     for i, (a, b, _) in enumerate(idle or []):
         ax.axvspan(a, b, color="0.85", lw=0, label="robot not working" if i == 0 else None)
-    scale = ax.twinx()
+        scale.axvspan(a, b, color="0.85", lw=0)
     scale.step(t, [r["scale"] for r in rows], where="post", color="tab:blue", lw=1.2, label="time scale σ")
     scale.set_ylim(-0.05, 1.05)
     scale.set_ylabel("time scale σ", color="tab:blue")
-    lines = ax.get_legend_handles_labels()
-    more = scale.get_legend_handles_labels()
-    ax.legend(lines[0] + more[0], lines[1] + more[1], loc="lower left", fontsize=8)
+    scale.set_xlabel("data time [s]")
+    ax.legend(loc="lower left", fontsize=8)
+    scale.legend(loc="lower left", fontsize=8)
     return _png(fig)
 
 
