@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib import patheffects
 from matplotlib.ticker import MaxNLocator
 
 from common.robot.ur16e import JOINT_NAMES
@@ -357,7 +358,9 @@ def subject_figure(sessions: list) -> bytes:
         if sel:
             ts = [max(0.0, minutes(x.t_ns)) for x in sel] + [s.minutes]
             ks = [x.k for x in sel] + [sel[-1].k]
-            ax2.step(ts, ks, where="post", c="tab:blue", lw=1.4)
+            # outlined: where k runs along a threshold's line, it is still seen (it was hidden under RR_r)
+            outline = [patheffects.Stroke(linewidth=3.6, foreground="white"), patheffects.Normal()]
+            ax2.step(ts, ks, where="post", c="tab:blue", lw=1.6, path_effects=outline, zorder=3)
             top = max(x.n for x in sel)
             ax2.set_ylim(0.5, top + 0.5)
             ax2.yaxis.set_major_locator(MaxNLocator(integer=True))
