@@ -15,11 +15,11 @@ Stress-Predict every relax block follows a stressor, so a score over all calm an
 credits block order: k = the window's index, ignoring the heart, scored as well as the personal mode.
 So the score is order-balanced (``Order``): each stress block against the calm block just before it and
 the one just after it, each a within-subject AUC (calm above stress; a tie counts half); a subject's score
-is the mean of its before-pairs' mean and its after-pairs' mean, so time alone scores exactly 0.5. Two
-controls are scored from the same windows: the raw window mean RR (what the signal allows) and the
-window's index (time alone). ``cross_validate`` chooses the personal mode's settings leaving one subject
-out, among those that keep a steady person steady (``steady``), and scores each subject with the
-settings chosen on the others.
+is the mean of its before-pairs' mean and its after-pairs' mean, so time alone scores exactly 0.5.
+Controls are scored from the same windows (``CONTROLS``): the raw window mean RR (what the signal
+allows), the window's index (time alone) and the RMSSD. ``cross_validate`` chooses the personal mode's
+settings leaving one subject out, among those that keep a steady person steady (``steady``), and scores
+each subject with the settings chosen on the others.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ APART = frozenset({"hyperventilation"})
 CALM_PREFIX = ("relax", "sitting")
 _NS = 1_000_000_000
 # the personal mode's settings tried by the cross-validation: the size of a step of k in mean RR, how much
-# the past weighs in the recent mean RR, how fast the reference follows a lower RR
+# the past weighs in the recent mean RR, how far past the middle between two k the play lets it go
 GRID: dict[str, tuple[float, ...]] = {
     "step_s": (0.01, 0.015, 0.02, 0.03),
     "keep": (0.5, 0.7, 0.8, 0.9),
