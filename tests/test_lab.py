@@ -138,7 +138,7 @@ def test_a_lab_runs_the_study_on_the_demo_cell(tmp_path: Path) -> None:
                 assert "this ECG can be read" in r.stderr, r.stderr
         cut = asyncio.run(cut_short(endpoint, tmp_path))
     finally:
-        demo.terminate()
+        demo.kill()  # SIGTERM would end it as Ctrl-C does, with a report of the whole run: not wanted here
         demo.wait(timeout=60)
 
     r = subprocess.run(
@@ -277,7 +277,7 @@ def test_a_study_plan_runs_from_plan_to_csv_on_the_demo_cell(tmp_path: Path) -> 
         assert "subject 'S1' is not in study 'study' (S01 … S06)" in refused.stderr
         asyncio.run(marked_session(endpoint, tmp_path, plan, other.id))
     finally:
-        demo.terminate()
+        demo.kill()  # SIGTERM would end it as Ctrl-C does, with a report of the whole run: not wanted here
         demo.wait(timeout=60)
 
     r = subprocess.run(

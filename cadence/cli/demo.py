@@ -160,7 +160,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     written = summary["written"]
     report = (" and a report (index.html and its figures)" if written["report"]
               else "; no report (see above)")  # fmt: skip
-    out.print(f"written: {written['summary']}{report}; service logs in {args.out}/logs")
+    # one line, not wrapped: a path broken across lines cannot be copied
+    out.print(f"written: {written['summary']}{report}; service logs in {args.out}/logs", soft_wrap=True)
     bad = {n: c for n, c in summary["exit_codes"].items() if c != 0}
     if bad:
         err.print(f"services that did not exit cleanly: {bad}")
