@@ -44,7 +44,7 @@ from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.storage import write_readable
 from common.safety.states import routine_change
 from common.sim.twin import TwinParams
-from common.trajectory.shipped import digest_of
+from common.trajectory.shipped import digest_of_all
 from common.trajectory.task import load_task
 from schemas import (
     CellClock,
@@ -398,9 +398,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                         f"{missing} did not start within {STARTUP_TIMEOUT_S:.0f} s; their logs are in {logs}"
                     ) from None
         except asyncio.CancelledError:  # Ctrl-C while planning or starting: no data time ran
-            if (me := asyncio.current_task()) is not None:
-                me.uncancel()
-            stopping_already(console)
+            taking_the_interrupt(console)
             await stop_all()
             raise interrupted_before_data_time(opts) from None
         kills = sorted(opts.kill, key=lambda k: k[1])
@@ -420,7 +418,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     live.update(live_view(obs, opts, now_s, procs))
                 await asyncio.sleep(0.1)
         except asyncio.CancelledError:  # Ctrl-C: what ran is still summarised and reported, as cut short
-            stopping_already(console)
+            taking_the_interrupt(console)
             cut_short_s = (clock.now_ns() - began_ns) / 1e9
             console.print(f"interrupted after {cut_short_s:.0f} s of data time: stopping, then the summary")
         finally:
@@ -499,7 +497,7 @@ def summarise(
         # what the run computed on: the planned sets, all of them or no digest (the same bytes on every
         # machine when shipped, common/trajectory/shipped.py), and numpy's kernels and BLAS here
         # (common/runtime/numeric.py)
-        "sets_sha256": digest_of(sets.values()) if set(sets) == set(load_task(opts.task).paths) else "",
+        "sets_sha256": digest_of_all(sets, load_task(opts.task).paths),
         "build": numeric_build(),
     }
     kept = keep_summary(opts.out, json.dumps(summary, indent=1).encode(), console)
@@ -552,9 +550,12 @@ class NothingRan(CadenceError):
     """Interrupted before the cell's data time ran: there is nothing to summarise or report."""
 
 
-def stopping_already(console: Console) -> None:
-    """After the first Ctrl-C (or SIGTERM) the demo is stopping and will write what ran: a second one
-    says so, rather than cutting the summary and the report off half-written."""
+def taking_the_interrupt(console: Console) -> None:
+    """The first Ctrl-C (or SIGTERM), caught: the task goes on to stop the cell and write what ran (its
+    cancellation taken back, so the waits that follow keep their own timeouts), and a second one says so
+    rather than cutting the summary and the report off half-written."""
+    if (me := asyncio.current_task()) is not None:
+        me.uncancel()
 
     def again(*_: object) -> None:
         console.print("already stopping: the summary and the report follow", style="yellow")

@@ -32,18 +32,18 @@ from cadence.demo import (
     demo_settings,
     interrupted_before_data_time,
     live_view,
-    stopping_already,
     summarise,
+    taking_the_interrupt,
     watch,
 )
+from cadence.lab.session import served_sets
 from common.runtime.bus import BusConfig
 from common.runtime.config import CommonSettings, section
 from common.runtime.errors import CadenceError
 from common.runtime.mock_bus import MockBus, MockNetwork
 from common.runtime.service import serve
 from schemas.health import ServiceStatus
-from schemas.pareto import ParetoSet
-from schemas.topology import DEFAULT_CELL, HEALTH, PARETO_SET
+from schemas.topology import DEFAULT_CELL, HEALTH
 from services.decision_maker import STATE_FILE
 from services.registry import BY_NAME
 
@@ -99,9 +99,7 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
                     if services["pareto_store"].done():
                         services["pareto_store"].result()
         except asyncio.CancelledError:  # Ctrl-C while planning: no data time ran
-            if (me := asyncio.current_task()) is not None:
-                me.uncancel()
-            stopping_already(console)
+            taking_the_interrupt(console)
             stop.set()
             await asyncio.gather(*services.values(), return_exceptions=True)
             raise interrupted_before_data_time(opts) from None
@@ -118,11 +116,7 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
             if name != "pareto_store":
                 start(name)
         cut_short_s = await _until_done(opts, console, obs, services, began)
-        sets: dict[str, ParetoSet] = {}
-        for pid in {p for c in obs.cycles for p in c.k_per_path}:
-            replies = await bus.get(PARETO_SET.at(pid), timeout=5.0)
-            if replies and replies[0].message is not None:
-                sets[pid] = replies[0].message
+        sets = await served_sets(bus, {p for c in obs.cycles for p in c.k_per_path}, timeout=5.0)
         missing = set(ORDER) - running
         stop.set()
         results = await asyncio.gather(*services.values(), return_exceptions=True)
@@ -161,9 +155,7 @@ async def _until_done(
                 live.update(live_view(obs, opts, loop.time() - began, {}))
         return None
     except asyncio.CancelledError:  # Ctrl-C: what ran is still summarised and reported, as cut short
-        if (me := asyncio.current_task()) is not None:
-            me.uncancel()
-        stopping_already(console)
+        taking_the_interrupt(console)
         ran_s = loop.time() - began
         console.print(f"interrupted after {ran_s:.0f} s of data time: stopping, then the summary")
         return ran_s

@@ -34,7 +34,7 @@ from common.hrv.calibration import SETTLED_WINDOWS, settled
 from common.runtime.bus import Bus
 from common.runtime.errors import CadenceError, InputError
 from common.runtime.numeric import numeric_build
-from common.trajectory.shipped import digest_of
+from common.trajectory.shipped import digest_of_all
 from common.trajectory.task import load_task
 from schemas import (
     Calibration,
@@ -480,8 +480,7 @@ async def sets_in_use(bus: Bus, task: Path, timeout: float = 2.0) -> str:
     """The digest of the sets the cell's store serves for ``task``'s paths (common/trajectory/shipped.py),
     recorded in the session file; "" when a path's set is not served (yet): the file then says nothing."""
     paths = list(load_task(task).paths)
-    found = await served_sets(bus, paths, timeout)
-    return digest_of(found.values()) if len(found) == len(paths) else ""
+    return digest_of_all(await served_sets(bus, paths, timeout), paths)
 
 
 def stored_calibration(opts: SessionOptions) -> Calibration:

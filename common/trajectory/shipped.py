@@ -80,6 +80,12 @@ def digest_of(sets: Iterable[ParetoSet]) -> str:
     return sets_digest({s.path_id: [x.h for x in s.solutions] for s in sets})
 
 
+def digest_of_all(sets: Mapping[str, ParetoSet], paths: Iterable[str]) -> str:
+    """``digest_of`` the sets of every one of ``paths``; "" when one is missing: a digest of part of a
+    task's sets would name sets no run ran on."""
+    return digest_of(sets.values()) if set(sets) == set(paths) else ""
+
+
 def write_shipped(path: Path, task: Task, sets: Sequence[ParetoSet]) -> str:
     """The file ``path`` for ``task``'s sets (stamped t_ns 0: a shipped set has no planning time on the
     machine that serves it); returns its digest."""
