@@ -93,3 +93,82 @@ def test_a_baseline_taken_at_work_matches_the_work_where_one_taken_seated_does_n
     assert settled(walking, work.rr_rest_s) is None
     other = Calibration(t_ns=1, seq=0, subject="someone-else", rr_rest_s=0.9)
     assert calibration(walking, "s08", 2, False, "working", other)[0].rr_resting_s is None  # not theirs
+
+
+def _window(end_s: float, mean_rr_s: float) -> bytes:
+    import msgspec
+
+    from schemas.hrv import HrvWindow
+
+    end = round(end_s * 1e9)
+    w = HrvWindow(t_ns=end, seq=0, start_ns=end - 10**10, end_ns=end, mean_rr_s=mean_rr_s, n_beats=12,
+                  excluded_fraction=0.0, quality="good")  # fmt: skip
+    return msgspec.msgpack.encode(w)
+
+
+def _gate(settle_s: float, ready_s: float = 120.0):
+    from cadence.lab.session import SessionOptions, Watch
+    from common.runtime.resources import EXAMPLE_TASK
+
+    opts = SessionOptions(subject="s", condition="b", minutes=1.0, out=Path("unused.mcap"),
+                          data_dir=Path("."), task=EXAMPLE_TASK, settle_timeout_s=settle_s,
+                          ready_timeout_s=ready_s)  # fmt: skip
+    return Watch(), opts
+
+
+def test_the_settle_gate_counts_the_persons_time_not_the_hosts() -> None:
+    """A person who stays 100 ms above the baseline: the gate gives up after its timeout of *data* time,
+    however fast the cell runs (here hours of windows in well under a second of wall time: a sped-up
+    demo cell, where a wall-clock gate waited hours of heart and ran past a lab test's bound), and one
+    who comes back to the baseline is let through the moment they do."""
+    import asyncio
+
+    from cadence.lab.session import Watch, until_settled
+    from common.runtime.errors import CadenceError
+
+    async def run(rr: list[float], settle_s: float) -> str:
+        watch, opts = _gate(settle_s)
+        shown = asyncio.Event()  # the gate looked and waits: the next window comes (in lockstep)
+        looked: list[float] = []  # the data time at each look
+
+        def show(_: str, w: Watch, __: object) -> None:
+            looked.append(w.data_ns / 1e9)
+            shown.set()
+
+        async def feed() -> None:
+            for i, r in enumerate(rr, start=1):
+                await shown.wait()
+                shown.clear()
+                watch.on("cadence/c/hrv/window", _window(100.0 + 10 * i, r))
+
+        watch.on("cadence/c/hrv/window", _window(100.0, 0.9))  # the data time the gate starts at
+        feeder = asyncio.create_task(feed())
+        try:
+            await asyncio.wait_for(until_settled(watch, 0.8, opts, asyncio.Event(),
+                                                 show), 10)  # fmt: skip
+        except CadenceError as e:
+            return f"{e} @ {looked[-1]:.0f}"
+        finally:
+            feeder.cancel()
+        return f"through @ {watch.data_ns / 1e9:.0f}"
+
+    # 100 ms above RR_r, windows for 200 s: refused at the first window past 60 s of data time
+    why = asyncio.run(run([0.9] * 20, 60.0))
+    assert "has not settled" in why and "after 60 s" in why, why
+    assert why.endswith("@ 170"), why  # from 100 s: 60 s, and the window that passed it
+    # the same person, back at the baseline after four windows: through at the second settled one
+    assert asyncio.run(run([0.9] * 4 + [0.8] * 6, 60.0)) == "through @ 160"
+
+
+def test_the_settle_gate_says_when_the_cells_data_stops() -> None:
+    """No data time passes when nothing comes: the gate would wait for ever, so data that stops for the
+    session's ready timeout (wall time: nothing else is there to count) is an error that says so."""
+    import asyncio
+
+    from cadence.lab.session import until_settled
+    from common.runtime.errors import CadenceError
+
+    watch, opts = _gate(600.0, ready_s=0.3)
+    watch.on("cadence/c/hrv/window", _window(100.0, 0.9))
+    with pytest.raises(CadenceError, match=r"no data from the cell for 0\.3 s"):
+        asyncio.run(asyncio.wait_for(until_settled(watch, 0.8, opts, asyncio.Event(), lambda *_: None), 30))

@@ -77,8 +77,9 @@ cli = Commands()
     type=float,
     default=600.0,
     metavar="S",
-    help="before the condition starts, wait up to S wall seconds for two good windows within 40 ms of "
-    "RR_r (the person settled where the calibration put them); 0: no wait (default 600)",
+    help="before the condition starts, wait up to S seconds of the person's (data) time for two good "
+    "windows within 40 ms of RR_r (the person settled where the calibration put them); 0: no wait "
+    "(default 600)",
 )
 @arg("--measured-sigma", action="store_true", help="as `cadence calibrate`")
 @arg("--out", metavar="FILE.mcap", help="default: SUBJECT_CONDITION.mcap")

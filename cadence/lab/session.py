@@ -340,7 +340,7 @@ class SessionOptions:
     ready_timeout_s: float = 120.0
     notes: str = ""
     posture: Posture = "rest"  # of a calibration this session takes (--calibrate)
-    settle_timeout_s: float | None = 600.0  # wall time the settle gate waits; None: no gate
+    settle_timeout_s: float | None = 600.0  # data time the settle gate waits; None: no gate
     training_minutes: float = 0.0  # data time in the condition before it counts (recorded, not analysed)
     yoked_k: int | None = None  # condition y: the k it holds
     study: str = ""  # with a study plan: its name, the session's place, the last session's end (data time)
@@ -426,6 +426,35 @@ class Watch:
             if w.quality == "good"
             else f"the last window is of {w.quality} quality ({w.reason or 'no beats'}): check the strap",
         }
+
+
+async def until_settled(
+    watch: Watch,
+    rr_rest_s: float,
+    opts: SessionOptions,
+    stop: asyncio.Event,
+    show: Callable[[str, Watch, SessionOptions], None],
+) -> None:
+    """Wait until the person's recent windows are settled near ``rr_rest_s``; counted in the person's
+    (data) time, not the host's: on a sped-up cell (the demo's 16x) 600 s of wall time is hours of
+    heart, on a loaded host minutes of it. Data that stops coming is the cell's fault, said as such."""
+    assert opts.settle_timeout_s is not None
+    watch.recent.clear()  # windows from now on
+    deadline_ns = watch.data_ns + round(opts.settle_timeout_s * 1e9)
+    while not stop.is_set() and (why := settled(watch.recent, rr_rest_s)) is not None:
+        show(f"waiting for the person to settle: {why}", watch, opts)
+        if watch.data_ns > deadline_ns:
+            raise CadenceError(
+                f"the person has not settled near the baseline RR_r = {rr_rest_s:.3f} s after "
+                f"{opts.settle_timeout_s:g} s: {why} (let them rest or work at the slowest pace, or "
+                "calibrate again)"
+            )
+        if time.monotonic() - watch.data_wall > opts.ready_timeout_s:
+            raise CadenceError(
+                f"no data from the cell for {opts.ready_timeout_s:g} s while waiting for the person to "
+                f"settle: {watch.readiness()['robot'] or 'the cell stopped sending'}"
+            )
+        await watch.next_change(0.5)
 
 
 def check_ready(readiness: dict[str, str | None]) -> str | None:
@@ -592,17 +621,7 @@ async def run_session(
         # 3b. right before the condition: the person has settled near the baseline, as Alg. 1 starts from
         # RR_{-1} = RR_r (after the training, not before it: the training moves the heart too)
         if cal is not None and opts.settle_timeout_s is not None and not stop.is_set():
-            watch.recent.clear()  # windows from now on
-            deadline = time.monotonic() + opts.settle_timeout_s
-            while not stop.is_set() and (why := settled(watch.recent, cal.rr_rest_s)) is not None:
-                show(f"waiting for the person to settle: {why}", watch, opts)
-                if time.monotonic() > deadline:
-                    raise CadenceError(
-                        f"the person has not settled near the baseline RR_r = {cal.rr_rest_s:.3f} s after "
-                        f"{opts.settle_timeout_s:g} s: {why} (let them rest or work at the slowest pace, or "
-                        "calibrate again)"
-                    )
-                await watch.next_change(0.5)
+            await until_settled(watch, cal.rr_rest_s, opts, stop, show)
         # 4. the condition, set afresh ((c) starts Alg. 1 again), and from then on the session counts
         #    (counted from when the robot moves at the condition's k, not from the decision maker's answer:
         #    a path in flight ends at the old k, and on a slow or held cell that is seconds of data time)

@@ -6,7 +6,9 @@ SIGUSR1 is a bump against the arm: a protective stop, as the real arm's force li
 dashboard's ``unlock protective stop`` clears (and not within 5 s of it). A line ``di N 1`` (``0``) on its
 standard input sets (clears) standard digital input N, as a button wired to the controller would: what the
 executor reads as an operator's signal (a task step's ``input = N``). A line ``estop`` presses and releases
-the emergency stop: the program ends, the RTDE clients are dropped and none is taken for ``--restart-s``.
+the emergency stop: the program ends, the RTDE clients are dropped and none is taken for ``--restart-s``;
+a line ``restarted`` ends that wait now (a test that must see the refusal sets a long one and ends it when
+it has: the controller's restart then does not race the host's load).
 An RTDE client that stops reading for ``--stall-s`` (10 s, as a real controller) is dropped.
 """
 
@@ -25,12 +27,17 @@ from services.ur_emulator.server import Emulator
 
 
 def read_inputs(controller: Controller, emulator: Emulator) -> None:
-    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs; ``estop``."""
+    """``di N 0|1`` lines from standard input: the buttons on the controller's digital inputs; ``estop``,
+    ``restarted``."""
     for line in sys.stdin:
         parts = line.split()
         if parts == ["estop"]:
             emulator.emergency_stop()
             print("emergency stop: RTDE restarting", flush=True)
+            continue
+        if parts == ["restarted"]:
+            emulator.refuse_until = 0.0
+            print("RTDE restarted", flush=True)
             continue
         if len(parts) == 3 and parts[0] == "di" and parts[1].isdecimal() and parts[2] in ("0", "1"):
             n = int(parts[1])
@@ -40,7 +47,7 @@ def read_inputs(controller: Controller, emulator: Emulator) -> None:
                     controller.digital_in = bits | (int(parts[2]) << n)
                 print(f"digital input {n} {'on' if parts[2] == '1' else 'off'}", flush=True)
                 continue
-        print(f"ignored {line.strip()!r}: expected 'di N 0|1' with N 0–7", flush=True)
+        print(f"ignored {line.strip()!r}: expected 'di N 0|1' with N 0–7, 'estop' or 'restarted'", flush=True)
 
 
 def run(argv: list[str] | None = None) -> int:
