@@ -1,4 +1,4 @@
-"""Cadence's command line and the lab's tools (README "Layout")."""
+"""Cadence's command line and the lab's tools (docs/design.md, "Layout")."""
 
 import os
 import sys

@@ -143,7 +143,7 @@ def k_for_path(k: int, n_path: int) -> int:
 
 @dataclass(frozen=True, slots=True)
 class Personal:
-    """The personal mode's settings (DESIGN §7; README, "Decisions on real people"). k is a position: how
+    """The personal mode's settings (DESIGN §7; docs/decision.md). k is a position: how
     far this person's recent mean RR lies from their own reference, in steps of ``step_s``, counted from
     the paper's k0 at the reference.
 

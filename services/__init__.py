@@ -1,4 +1,4 @@
-"""The cell's services, one folder each (README "Layout")."""
+"""The cell's services, one folder each (docs/design.md, "Layout")."""
 
 import sys
 

@@ -1,5 +1,6 @@
 """Every numeric setting has a range, checked at start: a bad value is exit 2 and one line naming the
-file and the key, never a traceback, a hang or a flood (README "Bad input"). Task programs likewise."""
+file and the key, never a traceback, a hang or a flood (docs/operations.md). Task programs
+likewise."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Property-based fuzzing of a whole cell over real Zenoh (README "Bad input").
+"""Property-based fuzzing of a whole cell over real Zenoh (docs/operations.md, "Bad input").
 
 Hypothesis draws hostile but well-typed messages for every topic of the topology: an honest message with
 one to three fields replaced by values a broken or hostile sender could put there (NaN, ±inf, 1e300,

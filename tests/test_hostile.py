@@ -1,5 +1,5 @@
 """Each hostile message and damaged file found by hand, as a test: none takes a service down, freezes it
-or moves the robot, and each is counted with its reason (README "Bad input")."""
+or moves the robot, and each is counted with its reason (docs/operations.md, "Bad input")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The README's shell examples, as written (issue 20).
+"""The README's and the guides' shell examples, as written (issues 20, 56), and the site they make.
 
 Every command of every ``sh`` block is checked against what it names: a ``cadence`` command line is
 parsed by the CLI's own parser (a renamed flag or command fails here), a ``CADENCE_<SECTION>_<KEY>``
@@ -31,7 +31,7 @@ import pytest
 from cadence.cli import SERVICES, build_parser
 from common.runtime.config import CONFIG_SECTIONS, CommonSettings, ConfigError, section
 from tests.support.cell import CELL, free_port
-from tests.support.paths import README, SHARED_DATA
+from tests.support.paths import PAGES, SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 PORT = "7447"  # the examples' router port; a free one is used in its place when they run
@@ -39,20 +39,24 @@ PORT = "7447"  # the examples' router port; a free one is used in its place when
 
 @dataclass(frozen=True)
 class Block:
+    page: str  # README.md, docs/….md
     line: int  # of the opening fence
     text: str
 
 
 def sh_blocks() -> list[Block]:
-    blocks, current, start = [], None, 0
-    for n, line in enumerate(README.read_text().splitlines(), 1):
-        if current is None and line.strip() == "```sh":
-            current, start = [], n
-        elif current is not None and line.strip() == "```":
-            blocks.append(Block(start, "\n".join(current)))
-            current = None
-        elif current is not None:
-            current.append(line)
+    blocks: list[Block] = []
+    for page in PAGES:
+        current: list[str] | None = None
+        start = 0
+        for n, line in enumerate(page.read_text().splitlines(), 1):
+            if current is None and line.strip() == "```sh":
+                current, start = [], n
+            elif current is not None and line.strip() == "```":
+                blocks.append(Block(str(page.relative_to(ROOT)), start, "\n".join(current)))
+                current = None
+            elif current is not None:
+                current.append(line)
     return blocks
 
 
@@ -139,6 +143,7 @@ def check_command(tokens: list[str], variables: dict[str, str]) -> None:
             ["uv", "run", "pytest"],
             ["uv", "run", "ruff"],
             ["uv", "sync", "--compile-bytecode"],
+            ["uv", "run", "mkdocs"],
         ):
             pass  # what CI runs
         else:
@@ -150,7 +155,8 @@ def test_every_command_of_every_example_is_one_the_cli_and_the_settings_accept(
 ) -> None:
     monkeypatch.chdir(ROOT)
     blocks = sh_blocks()
-    assert len(blocks) >= 15, "the README's examples were not found"
+    assert len(blocks) >= 15, "the README's and the guides' examples were not found"
+    assert {b.page for b in blocks} >= {"README.md", "docs/study.md", "docs/operations.md"}
     checked = 0
     for block in blocks:
         variables: dict[str, str] = {}
@@ -158,7 +164,7 @@ def test_every_command_of_every_example_is_one_the_cli_and_the_settings_accept(
             try:
                 check_command(tokens, variables)
             except (AssertionError, pytest.fail.Exception) as exc:
-                pytest.fail(f"README.md:{block.line}: {shlex.join(tokens)}\n{exc}")
+                pytest.fail(f"{block.page}:{block.line}: {shlex.join(tokens)}\n{exc}")
             checked += 1
     print(f"{checked} commands in {len(blocks)} blocks")
 
@@ -174,12 +180,40 @@ def test_the_checks_catch_a_renamed_flag_and_an_unknown_setting() -> None:
         )
 
 
+def test_the_readme_is_short_and_the_guides_build_into_a_site_with_no_broken_link(tmp_path: Path) -> None:
+    """A newcomer reads the README to the end (issue 56: it had grown to 1,526 lines of design log); the
+    rest is in the guides, which `mkdocs build --strict` builds as CI does: a link to a page or an
+    anchor that is not there, or a page left out of the nav, fails it."""
+    from tests.support.paths import README
+
+    assert len(README.read_text().splitlines()) <= 300
+    r = subprocess.run(["mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    for page in ("index", "study", "operations", "robot", "decision", "design", "development"):
+        assert (tmp_path / "site" / ("" if page == "index" else page) / "index.html").is_file(), page
+
+
+def test_a_broken_link_in_a_guide_fails_the_build(tmp_path: Path) -> None:
+    """The check above can fail: a copy of the guides with one link to a heading that is not there."""
+    import shutil
+
+    shutil.copytree(ROOT / "docs", tmp_path / "docs")
+    shutil.copy(ROOT / "mkdocs.yml", tmp_path / "mkdocs.yml")
+    page = tmp_path / "docs" / "index.md"
+    page.write_text(page.read_text() + "\nSee [the missing part](study.md#no-such-heading).\n")
+    r = subprocess.run(["mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode != 0
+    assert "no-such-heading" in r.stdout + r.stderr
+
+
 # --- run as written ---------------------------------------------------------------------------------
 
 
 def block_with(needle: str) -> Block:
     found = [b for b in sh_blocks() if needle in b.text]
-    assert len(found) == 1, f"the README has {len(found)} examples with {needle!r}"
+    assert len(found) == 1, f"the README and the guides have {len(found)} examples with {needle!r}"
     return found[0]
 
 

@@ -24,7 +24,7 @@ from tests.support.paths import EXAMPLE_TASK
 
 
 def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_would(tmp_path: Path) -> None:
-    """The README's command, as written; its tables are what the run gives (issue 28)."""
+    """The guide's command, as written; its tables are what the run gives (issue 28)."""
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "study", "simulate", "--subjects", "12", "--minutes", "10",
          "--out", str(tmp_path)],
@@ -158,17 +158,17 @@ def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
 def readme_tables_are(doc: dict) -> None:
     from cadence.lab.analysis import METRICS
     from schemas.session import CONDITION_NAMES
-    from tests.support.paths import README
+    from tests.support.paths import DOCS
 
-    shown = [m for m in METRICS if m != "mean_rr_s"]  # the README's columns: φ, ε, mean RR / RR_r
-    text = README.read_text()
+    shown = [m for m in METRICS if m != "mean_rr_s"]  # the guide's columns: φ, ε, mean RR / RR_r
+    text = (DOCS / "study.md").read_text()
     for c, row in doc["table"].items():
         cells = " | ".join(f"{row[m]['mean']:.3f} ± {row[m]['sd']:.3f}" for m in shown)
         line = f"| ({c}) {CONDITION_NAMES[c]} | {cells} |"
-        assert line in text, f"README, the simulated study's table: expected the row\n{line}"
+        assert line in text, f"docs/study.md, the simulated study's table: expected the row\n{line}"
     for pair, row in doc["wilcoxon"].items():
         line = f"| {pair} | " + " | ".join(f"{row[m]['p']:.2g} ({row[m]['method']})" for m in shown) + " |"
-        assert line in text, f"README, the simulated study's Wilcoxon table: expected the row\n{line}"
+        assert line in text, f"docs/study.md, the simulated study's Wilcoxon table: expected the row\n{line}"
 
 
 def test_online_tuning_lowers_k_for_an_intolerant_subject_and_keeps_it_high_for_a_tolerant_one() -> None:
@@ -212,9 +212,9 @@ def test_the_twin_fit_moves_the_error_model_toward_table_i_and_predicts_c(tmp_pa
 
 
 def test_the_readmes_fit_table_is_what_study_fit_gives(tmp_path: Path) -> None:
-    """The README's command as written, its table read back (issue 43: it said φ_c/φ_a 0.596 and ε_c 0.266
-    where this version gives other figures): a change that moves the fit moves the README with it."""
-    from tests.support.paths import README
+    """The guide's command as written, its table read back (issue 43: it said φ_c/φ_a 0.596 and ε_c 0.266
+    where this version gives other figures): a change that moves the fit moves the guide with it."""
+    from tests.support.paths import DOCS
 
     r = subprocess.run([sys.executable, "-m", "cadence", "study", "fit", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=600)  # fmt: skip
@@ -228,7 +228,7 @@ def test_the_readmes_fit_table_is_what_study_fit_gives(tmp_path: Path) -> None:
         "φ_c / φ_a": pred["c"]["phi"] / pred["a"]["phi"],
         "ε_c": pred["c"]["eps"],
     }
-    text = README.read_text()
+    text = (DOCS / "study.md").read_text()
     for name, value in rows.items():
         assert re.search(rf"\| {re.escape(name)} \| [0-9.]+ \| {value:.3f} \|", text), (name, f"{value:.3f}")
     f = doc["fitted"]

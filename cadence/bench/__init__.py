@@ -241,7 +241,7 @@ def convergence(
     reference_generations: int,
     checkpoints: list[int],
 ) -> Convergence:
-    """How the default number of generations was chosen (README, "Planner")."""
+    """How the default number of generations was chosen (docs/design.md, "The planner")."""
     path = longest_path(task)
     ref = plan_path(
         path, task.limits, structs.replace(settings, generations=reference_generations, seed=10_000)

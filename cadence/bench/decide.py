@@ -1,4 +1,4 @@
-"""Decisions on real people (`cadence bench decide`; README, "Decisions on real people"): whole sessions of
+"""Decisions on real people (`cadence bench decide`; docs/decision.md): whole sessions of
 people under stress, run window by window through the decision maker's own code (its ``Decider``:
 movement hold, holds, bounds, the mode in force), and scored per decision mode.
 

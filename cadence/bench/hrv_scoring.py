@@ -141,7 +141,7 @@ class WindowError:
 
 @dataclass
 class WindowScore:
-    """The figures of the windows table (README, HRV windows) for one pipeline over a set of records."""
+    """The figures of the windows table (docs/decision.md) for one pipeline over a set of records."""
 
     name: str
     good: list[WindowError] = field(default_factory=list)

@@ -115,7 +115,7 @@ def minutes(x: float | None) -> str:
 
 
 def table() -> list[tuple[str, str, str]]:
-    """(scenario, what is stated, what the shipped mode does), one row a scenario, as the README shows."""
+    """(scenario, what is stated, what the shipped mode does), a row a scenario (docs/decision.md)."""
     rows = []
     h = PER_HOUR
     p = play(stress_then_rest())

@@ -146,7 +146,7 @@ def add_planner_flags(p: argparse.ArgumentParser, task_option: bool = False) -> 
     p.add_argument("--n", type=positive_int(2), help="number of solutions N (default 15)")
     p.add_argument("--pop", type=positive_int(8), help="NSGA-II population (default 90)")
     p.add_argument(
-        "--generations", type=positive_int(1), help="NSGA-II generations (default: tuned, see README)"
+        "--generations", type=positive_int(1), help="NSGA-II generations (default: tuned, see docs/design.md)"
     )
     p.add_argument(
         "--constraints",

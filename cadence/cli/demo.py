@@ -76,7 +76,7 @@ cli = Commands()
     choices=("paper", "personal"),
     default="paper",
     help="the decision maker's mode: paper (Alg. 1, default) or personal (k from this person's own "
-    "scale; README, Decisions on real people)",
+    "scale; docs/decision.md, Decisions on real people)",
 )
 def cmd_demo(args: argparse.Namespace) -> int:
     from cadence.demo import ORDER, DemoOptions, NothingRan, claim, run_demo, summary_table, twin_table

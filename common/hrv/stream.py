@@ -40,7 +40,7 @@ SPREAD_N, SPREAD_MIN = 60, 5  # the person's own spread and step: medians of the
 @dataclass(frozen=True, slots=True)
 class Rules:
     """The cleaning's thresholds. The defaults were chosen by leave-one-out cross-validation across the
-    annotated records and the GUDB subjects (``cadence bench hrv --windows --cv``; README, "HRV
+    annotated records and the GUDB subjects (``cadence bench hrv --windows --cv``; docs/decision.md, "HRV
     windows"), never on the record they are scored on; a bench passes other values to compare.
 
     What a healthy heart does differs from person to person: a breathing rhythm swings RR by

@@ -1,4 +1,4 @@
-"""What a receiver does with a message that decodes but does not fit its state (DESIGN §9; README
+"""What a receiver does with a message that decodes but does not fit its state (DESIGN §9; docs/operations.md,
 "Bad input"). The rules are decided here once, and every service applies them the same way:
 
 1. Impossible on its face (an RR no heart makes, a window that ends before it starts, k above n, an empty

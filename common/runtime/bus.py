@@ -4,7 +4,7 @@ Zenoh has no asyncio API. Its callbacks run on Zenoh's own threads and only hand
 loop (``call_soon_threadsafe``, tolerant of a closed loop); decoding and handling happen in the loop.
 ``get`` runs in a worker thread with a timeout; queryable handlers always drop the query (``with query``),
 or the querier would wait for its timeout; everything declared is undeclared before the session closes.
-What is dropped is counted and logged at most once per key and kind every 10 s (README "Bad input"):
+What is dropped is counted and logged at most once per key and kind every 10 s (docs/operations.md):
 a payload that does not decode (``decode_errors``), a message its receiver rejects (``reject``, the rules
 of ``common/runtime/admission.py``), a handler that raises (``handler_errors``). None of them stops a service.
 """

@@ -1,7 +1,7 @@
 """What numpy computes with on this machine: its version, the SIMD extensions its kernels dispatch to, and
 its BLAS with the core type that BLAS chose. Recorded beside every summary, study and session file, since
 the last bits of exp, power, cbrt (numpy's AVX-512 kernels) and of a solve or matmul (OpenBLAS's kernel per
-core) depend on them (issue 53). A simulated story does not (README, "The same story on every machine");
+core) depend on them (issue 53). A simulated story does not (docs/development.md);
 a plan, a benchmark's figure or a live cell's numbers may, and this says where to look first."""
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ each reading as its room, S − C, so that a source that sees legs (C 1.2 m) and
 weighed alike; ``Ssm`` then takes C = 0.
 
 T_r, the reaction time, is the sum of what lies between a person's move and the arm's answer to it (the
-executor's settings, README "Separation"): the sensor's own latency where its messages do not carry it
+executor's settings, docs/robot.md): the sensor's own latency where its messages do not carry it
 (``age_s``), the oldest reading accepted (``max_age_s``: the adapter and the bus are inside it, for a
 reading older than that is not used), the clock skew between hosts (a stamp may say a reading is younger
 than it is by that much), the executor's adoption (from a reading's arrival to the step that plays the

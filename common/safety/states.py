@@ -1,4 +1,4 @@
-"""The executor's safety states as a pure transition function (DESIGN §9; README "The executor").
+"""The executor's safety states as a pure transition function (DESIGN §9; docs/robot.md, "The executor").
 
 Why explicit: the executor is the only service that moves the robot, and the question "may it move now,
 and if not, why not" must have one answer that an operator can read off the bus. Every state change is

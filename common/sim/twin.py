@@ -109,7 +109,7 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     accelerometer: bool = True  # the strap sends its accelerometer
     separation: bool = True  # publish the distance to the robot (operator/separation)
     # the operator's own station: beyond S_p of the example task's fastest paths at full speed, with the
-    # default tool and a sensor that sees the body (C = 0.85 m): 5.0 m (README "Separation")
+    # default tool and a sensor that sees the body (C = 0.85 m): 5.0 m (docs/robot.md)
     far_m: Annotated[float, _in(0.0, 100.0)] = 5.5
     walk_near_m: Annotated[float, _in(0.0, 100.0)] = 1.5
     walk_m_s: Annotated[float, msgspec.Meta(gt=0.0, le=5.0)] = 1.0

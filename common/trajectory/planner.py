@@ -32,7 +32,7 @@ from common.trajectory.task import Constraints, PathPlan, PlannerSettings
 
 Array = NDArray[np.float64]
 
-# Default number of generations, chosen with `cadence bench convergence` (README, "Planner"): on the
+# Default number of generations, chosen with `cadence bench convergence` (docs/design.md): on the
 # example task's longest path, 80 generations with both polishing steps reach 99.60-99.70 % (exact) and
 # 99.45-99.65 % (hull) of a 1500-generation run's hypervolume over seeds 1-5; NSGA-II without the
 # polishing reaches only 97.3-98.7 % (hull) after 80 generations and 98.2-99.4 % after 120.

@@ -117,7 +117,7 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     tool: list[Sphere] = msgspec.field(default_factory=lambda: [DEFAULT_TOOL])
     separation_max_age_s: Annotated[float, _range(0.01, 10.0)] = 0.3  # the oldest reading used (T_r)
     # T_r, the reaction time, is the sum of sensor_latency_s, separation_max_age_s, the cell's
-    # clock_skew_s, adoption_budget_s and, on ur_rtde, lookahead_s (README "Separation")
+    # clock_skew_s, adoption_budget_s and, on ur_rtde, lookahead_s (docs/robot.md, "Reacting within a path")
     sensor_latency_s: Annotated[float, _range(0.0, 2.0)] = 0.1  # what the sensor's age_s leaves out
     # from a reading's arrival to the controller step that plays the scale it led to (look, planning,
     # mailbox, servo), measured on the loop's clock for every look: past it the arm holds until it is met
