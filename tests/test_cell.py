@@ -250,6 +250,41 @@ def test_the_dry_run_prints_every_file_and_no_secret() -> None:
     assert "[ecg_gateway]" not in twin
 
 
+def test_the_install_stages_into_a_folder_as_destdir_does(tmp_path: Path) -> None:
+    """`cadence install --root DIR` (issue 56: only --dry-run let one look): every file under DIR at its
+    path, naming the real paths inside, the units as the host gets them, each path's mode and owner in
+    the manifest for a packager, the cell's CA kept when staged again; nothing outside DIR, and the
+    home-folder prefix the units could never see is refused as in a real install."""
+    import stat
+
+    def staged(*more: str) -> subprocess.CompletedProcess[str]:
+        cmd = ["install", "--robot", "sim", "--strap", "twin", "--root", str(tmp_path / "stage"), *more]
+        return subprocess.run([sys.executable, "-m", "cadence", *cmd], capture_output=True, text=True,
+                              timeout=120)  # fmt: skip
+
+    etc_before = Path("/etc/cadence").exists()
+    r = staged()
+    assert r.returncode == 0, r.stderr
+    root = tmp_path / "stage"
+    unit = (root / "etc/systemd/system/cadence-executor.service").read_text()
+    assert "ExecStart=/opt/cadence/.venv/bin/cadence run executor --config /etc/cadence/cadence.toml" in unit
+    assert str(root) not in unit
+    router = (root / "etc/cadence/credentials/router.json5").read_text()
+    assert '"/etc/cadence/credentials/users.txt"' in router  # the real path, not the staged one
+    assert stat.S_IMODE((root / "etc/cadence/credentials/cell.json").stat().st_mode) == 0o600
+    manifest = json.loads((root / "etc/cadence/installed.json").read_text())
+    assert manifest["owners"]["/var/lib/cadence"] == "0750 cadence:cadence"
+    assert manifest["owners"]["/etc/cadence/credentials/executor.json5"] == "0640 root:cadence"
+    assert "cadence-operator_twin.service" in manifest["units"]
+    assert Path("/etc/cadence").exists() == etc_before
+    assert "no venv" in r.stdout and "nothing enabled" in r.stdout
+    ca = (root / "etc/cadence/credentials/ca.pem").read_text()
+    assert staged().returncode == 0
+    assert (root / "etc/cadence/credentials/ca.pem").read_text() == ca  # staged again: the same cell
+    home = staged("--prefix", "/home/ann/cadence")
+    assert home.returncode == 2 and "under a home folder" in home.stderr, home.stderr
+
+
 def test_scanners_given_to_the_install_turn_monitoring_on_and_the_config_says_so_when_none_is() -> None:
     """`cadence install --scanner NAME:X,Y,YAW:KIND`: the executor's section declares each source, with
     its pose and what it detects, and turns monitoring on; the config decodes as the executor reads it.

@@ -46,6 +46,12 @@ cli = Commands()
 @arg("--no-systemctl", action="store_true", help="no daemon-reload or enable")
 @arg("--dry-run", action="store_true", help="print every file it would write, and stop")
 @arg(
+    "--root",
+    metavar="DIR",
+    help="stage the install into DIR (as DESTDIR does: DIR/etc/cadence/…, DIR/etc/systemd/system/…, naming "
+    "the real paths inside) to inspect or package it; no user, venv or systemctl, no root needed",
+)
+@arg(
     "--scanner",
     action="append",
     default=[],
@@ -78,6 +84,7 @@ def cmd_install(args: argparse.Namespace) -> int:
         venv=not args.no_venv,
         systemctl=not args.no_systemctl,
         scanners=scanners,
+        root=Path(args.root).absolute() if args.root else None,
     )
     for line in install(opts, dry_run=args.dry_run):
         print(line)

@@ -86,6 +86,9 @@ class Options:
     # the cell's separation sources (`--scanner`): given, the executor's monitoring is on and requires them
     scanners: tuple[SourceSettings, ...] = ()
     systemctl: bool = True  # False: no daemon-reload / enable (an image being built)
+    # staged into this folder, as DESTDIR does (`--root`): every file at root/<its path>, naming the real
+    # paths inside; no user, no ownership, no venv, no systemctl (a packager's or an inspector's copy)
+    root: Path | None = None
 
 
 @dataclass
@@ -313,7 +316,7 @@ def _run(cmd: list[str], what: str, timeout: float = 900.0) -> subprocess.Comple
     return r
 
 
-def _write(f: File, written: list[str]) -> str:
+def _write(f: File, written: list[str], own: bool = True) -> str:
     if f.keep and f.path.exists():
         return f"kept {f.path} (exists)"
     f.path.parent.mkdir(parents=True, exist_ok=True)
@@ -322,7 +325,8 @@ def _write(f: File, written: list[str]) -> str:
         with os.fdopen(fd, "w") as out:
             out.write(f.text)
         os.chmod(tmp, f.mode)
-        os.chown(tmp, 0, grp.getgrnam(f.group).gr_gid if f.group else 0)
+        if own:
+            os.chown(tmp, 0, grp.getgrnam(f.group).gr_gid if f.group else 0)
         os.replace(tmp, f.path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -479,7 +483,9 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
     if _hidden(str(opts.prefix.resolve())):  # the units run with ProtectHome=yes: they would never start
         raise InstallError(f"--prefix {opts.prefix}: under a home folder, which the units cannot see "
                            "(ProtectHome=yes; /root is mode 700): give one like /opt/cadence")  # fmt: skip
-    existing = CREDS / "cell.json"
+    if opts.root is not None and opts.root.resolve() == Path("/"):
+        raise InstallError("--root /: that is the install itself (run it without --root, as root)")
+    existing = CREDS / "cell.json" if opts.root is None else under(opts.root, CREDS / "cell.json")
     if opts.join:
         bundle = Bundle.load(opts.join)
     elif existing.exists():
@@ -499,6 +505,8 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
         say.append(f"venv: {opts.prefix}/.venv" if opts.venv else "venv: skipped")
         say += p.notes
         return say
+    if opts.root is not None:
+        return stage(opts, p, opts.root)
     if os.geteuid() != 0:
         raise InstallError("cadence install writes /etc, /opt and systemd units: run it as root (sudo)")
     if opts.systemctl and (why := no_systemd()):  # before anything is written, not after 626 MB of venv
@@ -544,6 +552,41 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
             f"a second host joins with: cadence install --join {existing} --services … "
             "(copy that file over a secure channel, then delete the copy)"
         )
+    return say
+
+
+def under(root: Path, path: Path) -> Path:
+    return root / path.relative_to("/")
+
+
+def stage(opts: Options, p: Plan, root: Path) -> list[str]:
+    """The install's files under ``root``, each naming the real paths (as DESTDIR staging does), with
+    what the host must still do beside them in the manifest: each path's mode and owner, the units to
+    enable. A venv is not relocatable (its scripts name their interpreter by path): it is built on the
+    host (`cadence install --no-systemctl` there, or the package's own step)."""
+    say: list[str] = []
+    written: list[str] = []
+    for d, mode, _, _ in p.dirs:
+        under(root, d).mkdir(parents=True, exist_ok=True)
+        os.chmod(under(root, d), mode)
+    for f in p.files:
+        say.append(_write(replace(f, path=under(root, f.path)), written, own=False))
+    owners = {str(d): f"{mode:04o} {user or 'root'}:{group or 'root'}" for d, mode, user, group in p.dirs}
+    owners |= {str(f.path): f"{f.mode:04o} root:{f.group or 'root'}" for f in p.files}
+    manifest = {
+        "files": sorted(str(f.path) for f in p.files),
+        "dirs": sorted(str(d) for d, *_ in p.dirs),
+        "units": sorted(f"cadence-{s}.service" for s in opts.services),
+        "prefix": str(opts.prefix),
+        "owners": owners,
+        "staged": str(root),
+    }
+    under(root, MANIFEST).write_text(json.dumps(manifest, indent=2))
+    say.append(f"wrote {under(root, MANIFEST)} (every path's mode and owner, the units to enable)")
+    say.append(
+        f"staged into {root}: no user created, nothing owned by {USER}, no venv (build it on the host under "
+        f"{opts.prefix}/.venv), nothing enabled; {under(root, CREDS)} holds this cell's keys and passwords"
+    )
     return say
 
 
