@@ -161,3 +161,31 @@ def test_the_rr_figure_of_a_recording_draws_the_thresholds_its_selections_carry(
     assert "recorded" in str(drawn["label"])
     write_report(from_mcap(path), tmp_path / "report", rr_rest_s=0.85)  # a given RR_r wins, defaults about it
     assert (drawn["rest"], drawn["s"], drawn["smax"]) == (0.85, None, None)
+
+
+def test_the_legends_name_only_what_is_drawn() -> None:
+    """A legend entry for a span that is not there (issue 56: rr_k.png and separation.png named "robot
+    stopped or waiting" for spans of no length) tells the reader to look for what they cannot find."""
+    import matplotlib.pyplot as plt
+
+    from cadence.lab.plots import rr_k_axes, separation_axes
+
+    def labels(fig: plt.Figure) -> set[str]:
+        out = {t.get_text() for ax in fig.axes if (leg := ax.get_legend()) for t in leg.get_texts()}
+        plt.close(fig)
+        return out
+
+    windows = [{"end_s": 30.0 * i, "mean_rr_s": 0.8, "quality": "good"} for i in range(1, 6)]
+    selections = [{"t_s": 30.0, "k": 5, "reason": "initial", "n": 15}]
+    rows = [{"t_s": float(t), "separation_m": 3.0, "scale": 1.0} for t in range(0, 150, 10)]
+    empty = [(60.0, 60.0, "waiting")]  # a wait that took no time
+    spans = [(60.0, 75.0, "waiting")]
+    assert "robot stopped or waiting" not in labels(rr_k_axes(windows, selections, 0.85, idle=empty))
+    assert "robot stopped or waiting" in labels(rr_k_axes(windows, selections, 0.85, idle=spans))
+    assert "robot not working" not in labels(separation_axes(rows, empty))
+    assert "robot not working" in labels(separation_axes(rows, spans))
+    held = labels(
+        rr_k_axes(windows, [*selections, {"t_s": 90.0, "k": 5, "reason": "movement", "n": 15}], 0.85)
+    )
+    assert "held: moving (not read as stress)" in held
+    assert "held: moving (not read as stress)" not in labels(rr_k_axes(windows, selections, 0.85))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from typing import Any
 
 import matplotlib
 
@@ -70,7 +71,11 @@ def _png(fig: plt.Figure) -> bytes:
     return buf.getvalue()
 
 
-def rr_k_figure(
+def rr_k_figure(*args: Any, **kwargs: Any) -> bytes:
+    return _png(rr_k_axes(*args, **kwargs))
+
+
+def rr_k_axes(
     windows: list[dict],
     selections: list[dict],
     rr_rest_s: float,
@@ -80,7 +85,7 @@ def rr_k_figure(
     idle: list[tuple[float, float, str]] | None = None,
     rr_stress_s: float | None = None,
     rr_stress_max_s: float | None = None,
-) -> bytes:
+) -> plt.Figure:
     """Mean RR per window and the selected k over data time, like the paper's Fig. 6: RR_r and the
     decision thresholds RR_s, RR_s^max (as recorded, else the paper's defaults about RR_r) as lines, k on
     integer ticks, cycle ends as ticks along the bottom, the operator's errors as ticks along the top, and
@@ -116,7 +121,7 @@ def rr_k_figure(
             c="0.5",
             label="mean RR (low quality)",
         )
-    for i, (a, b, _) in enumerate(idle or []):
+    for i, (a, b) in enumerate(drawn_spans(idle)):
         ax.axvspan(a, b, color="0.85", lw=0, label="robot stopped or waiting" if i == 0 else None)
     p = Params.of(rr_rest_s)
     ax.axhline(rr_rest_s, ls="--", c="tab:red", lw=0.8, label=rest_label)
@@ -159,10 +164,19 @@ def rr_k_figure(
     lines2 = ax2.get_legend_handles_labels()
     ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="lower left", fontsize=8)
     ax.set_title("Operator's mean RR and the robot's selected solution")
-    return _png(fig)
+    return fig
+
+
+def drawn_spans(idle: list[tuple[float, float, str]] | None) -> list[tuple[float, float]]:
+    """The spans that are seen: one of no length draws nothing, and its legend entry would name it."""
+    return [(a, b) for a, b, _ in idle or [] if b > a]
 
 
 def separation_figure(rows: list[dict], idle: list[tuple[float, float, str]] | None = None) -> bytes:
+    return _png(separation_axes(rows, idle))
+
+
+def separation_axes(rows: list[dict], idle: list[tuple[float, float, str]] | None = None) -> plt.Figure:
     """The nearest person's distance and the robot's time scale over data time (report/separation.png),
     in two panels on one time axis: on twin axes the two lines crossed and hid each other."""
     fig, (ax, scale) = plt.subplots(2, 1, figsize=(11, 4.5), sharex=True, height_ratios=[3, 2],
@@ -173,7 +187,7 @@ def separation_figure(rows: list[dict], idle: list[tuple[float, float, str]] | N
             color="tab:purple", lw=1.2, label="separation")  # fmt: skip
     ax.set_ylabel("separation [m]", color="tab:purple")
     ax.set_ylim(bottom=0.0)
-    for i, (a, b, _) in enumerate(idle or []):
+    for i, (a, b) in enumerate(drawn_spans(idle)):
         ax.axvspan(a, b, color="0.85", lw=0, label="robot not working" if i == 0 else None)
         scale.axvspan(a, b, color="0.85", lw=0)
     scale.step(t, [r["scale"] for r in rows], where="post", color="tab:blue", lw=1.2, label="time scale σ")
@@ -182,7 +196,7 @@ def separation_figure(rows: list[dict], idle: list[tuple[float, float, str]] | N
     scale.set_xlabel("data time [s]")
     ax.legend(loc="lower left", fontsize=8)
     scale.legend(loc="lower left", fontsize=8)
-    return _png(fig)
+    return fig
 
 
 def cycle_kinematics_figure(sets: dict, cycles: list[dict]) -> bytes:
