@@ -298,3 +298,24 @@ def test_a_study_plan_on_a_full_disk_leaves_no_empty_sheet_and_a_rerun_writes_it
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert (disk.path / "demographics.csv").read_text().count("\n") == 7  # a header and 6 subjects
+
+
+def test_a_study_plan_on_an_almost_full_disk_names_the_file_that_failed_leaving_neither(disk: Disk) -> None:
+    """Room for one small file and not two (issue 56): the plan was written, the sheet failed under the
+    plan's name, and a rerun was refused because the plan existed, so the sheet was never written. Now the
+    error names the file that failed, neither is left, and a rerun once there is room writes both."""
+    plan = disk.path / "plan.toml"
+    disk.fill()
+    disk.filler.write_bytes(disk.filler.read_bytes()[:-4096])  # one page back: one small file's room
+    cmd = [sys.executable, "-m", "cadence", "study", "plan", "--subjects", "6", "--out", str(plan)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr
+    assert "cannot be written (No space left on device)" in r.stderr
+    assert not plan.exists() and not (disk.path / "demographics.csv").exists()
+    failed = r.stderr.split(": cannot be written")[0].split()[-1]
+    assert failed == str(plan), r.stderr  # the sheet took the page; the plan, written second, failed
+    disk.free()
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert plan.exists() and (disk.path / "demographics.csv").read_text().count("\n") == 7

@@ -130,10 +130,7 @@ def cmd_study_plan(args: argparse.Namespace) -> int:
     if path.exists():
         raise InputError(f"{path}: exists; a study's plan is never overwritten (subjects may have run)")
     plan = make_plan(args.name or path.stem, args.subjects, conditions, args.seed)
-    try:
-        written = write_plan(plan, path)
-    except OSError as exc:  # each file whole or not at all: run it again once there is room
-        raise InputError(f"{exc.filename or path}: cannot be written ({exc.strerror or exc})") from None
+    written = write_plan(plan, path)  # both or neither: run it again once there is room
     table = Table(title=f"study {plan.name}: {len(plan.subjects)} subjects")
     for col in ("subject", *(f"period {i + 1}" for i in range(len(conditions)))):
         table.add_column(col)

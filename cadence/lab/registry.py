@@ -97,24 +97,39 @@ def make_plan(name: str, n: int, conditions: list[Condition], seed: int = 1) -> 
 
 
 def write_plan(plan: StudyPlan, path: Path) -> list[Path]:
-    """The plan as TOML, and beside it the demographics sheet, never overwritten (it holds people's data)."""
+    """The plan as TOML, and beside it the demographics sheet, never overwritten (it holds people's data).
+    Both or neither: the sheet first, and taken back if the plan then cannot be written (a plan written
+    without its sheet was refused on a rerun, for the plan existed, and the sheet was never written)."""
     lines = [f"name = {json.dumps(plan.name)}", f"minutes = {plan.minutes:g}",
              f"training_minutes = {plan.training_minutes:g}", f"break_minutes = {plan.break_minutes:g}",
              f"sessions = {json.dumps(plan.sessions)}", ""]  # fmt: skip
     for s in plan.subjects:
         lines += ["[[subjects]]", f"id = {json.dumps(s.id)}", f"order = {json.dumps(s.order)}", ""]
-    write_readable(path, "\n".join(lines).encode())
     sheet = path.with_name("demographics.csv")
-    written = [path]
-    if not sheet.exists():  # whole or not at all: a full disk once left it at 0 bytes, never written again
+    written: list[Path] = []
+    if not sheet.exists():
         rows = io.StringIO(newline="")
         w = csv.writer(rows)
         w.writerow(DEMOGRAPHICS)
         for s in plan.subjects:
             w.writerow([s.id, *[""] * (len(DEMOGRAPHICS) - 1)])
-        write_readable(sheet, rows.getvalue().encode())
+        _write_or_say(sheet, rows.getvalue().encode())
         written.append(sheet)
-    return written
+    try:
+        _write_or_say(path, "\n".join(lines).encode())
+    except InputError:
+        for f in written:  # just written, nobody's data yet
+            f.unlink(missing_ok=True)
+        raise
+    return [path, *written]
+
+
+def _write_or_say(path: Path, data: bytes) -> None:
+    """Whole or not at all (a full disk once left a sheet at 0 bytes); the error names this file."""
+    try:
+        write_readable(path, data)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be written ({exc.strerror or exc})") from None
 
 
 def load_plan(path: Path) -> StudyPlan:
