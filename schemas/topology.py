@@ -175,7 +175,7 @@ ROLES: tuple[Role, ...] = (
     Role(
         "operator_twin",
         "service",
-        inputs=(ROBOT_STATE, ROBOT_CYCLE),
+        inputs=(ROBOT_STATE, ROBOT_CYCLE, CALIBRATION),
         outputs=(ECG_SAMPLES, ECG_ACC, OPERATOR_SIGNAL, OPERATOR_ERROR, OPERATOR_SEPARATION),
         timers=(Timer("separation", "separation_period_s"),),
     ),

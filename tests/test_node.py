@@ -413,6 +413,41 @@ async def test_a_part_put_down_is_said_again_while_the_robot_waits_and_counted_o
 
 
 @pytest.mark.asyncio
+async def test_a_twin_away_until_calibrated_fetches_no_part_until_a_calibration_at_rest(
+    tmp_path: Path,
+) -> None:
+    """The demo cell's at-rest calibration (issue 56): the robot waits for a part the twin, away, does not
+    fetch; a calibration at work does not bring it; one at rest does, and it fetches the part the robot
+    waits for from then."""
+    from common.sim.twin import TwinParams
+    from schemas import RobotState
+    from schemas.operator import Calibration
+    from services.operator_twin.__main__ import OperatorTwin
+    from services.operator_twin.__main__ import Settings as TwinSettings
+
+    settings = TwinSettings(TwinParams(seed=3, away_until_calibrated=True))
+    common = CommonSettings(data_dir=str(tmp_path))
+    ctx = ServiceContext("operator_twin", MockBus(role="operator_twin"), common, settings, asyncio.Event())
+    twin = OperatorTwin(ctx)
+    await twin.setup()
+    twin.origin_ns -= 60 * S
+    t0 = twin.origin_ns
+    twin.line.anchor(t0 - S)
+    waiting = RobotState(t_ns=t0 + 5 * S, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6, path_id=None, k=8,
+                         mode="waiting", waiting_for="part_a2", state="waiting_for_operator")  # fmt: skip
+    assert await twin.on_state(waiting) == []
+    assert twin.pending == [] and twin.operator.away
+    at_work = Calibration(t_ns=t0 + 20 * S, seq=0, subject="twin-1", rr_rest_s=0.76, posture="working")
+    assert await twin.on_calibration(at_work) == []
+    assert twin.pending == [] and twin.operator.away
+    at_rest = Calibration(t_ns=t0 + 30 * S, seq=0, subject="twin-1", rr_rest_s=0.85)
+    assert await twin.on_calibration(at_rest) == []
+    assert twin.operator.arrived_s == pytest.approx(30.0)
+    assert [part for _, part in twin.pending] == ["part_a2"]
+    assert twin.pending[0][0] > 30.0  # put down after its handling time, from the arrival
+
+
+@pytest.mark.asyncio
 async def test_the_analyser_answers_for_its_last_windows_one_at_a_time(tmp_path: Path) -> None:
     from common.runtime.bus import Request
     from services.hrv_analyser.__main__ import KEPT_WINDOWS

@@ -113,3 +113,26 @@ def test_exposure_is_the_held_states_time_weighted_mean_over_the_window_however_
     for t in (5.0, 37.3, float(ts[300]), float(ts[300]) + 0.01, float(ts[-1]) - 3.0, float(ts[-1]) + 1.0):
         assert one.exposure(t) == pytest.approx(direct(t), rel=1e-9, abs=1e-12)
         assert many.exposure(t) == pytest.approx(direct(t), rel=1e-9, abs=1e-12)
+
+
+def test_a_twin_away_until_calibrated_rests_beside_a_working_robot_and_works_once_it_arrives() -> None:
+    """The demo cell's lab walk-through calibrates at rest (issue 56: the twin worked from the start, and
+    its "at rest" baseline was its RR at work, 0.755 s against 0.85 s): away, the fast arm is no exposure,
+    the heart stays at rest and the distance at the operator's own place; from its arrival the same arm
+    stresses it as it does a twin that was there all along, counted from the arrival on."""
+    fast = 1.6  # rad/s: the example task's minimum time
+    away, there = Operator(TwinParams(seed=2, away_until_calibrated=True)), Operator(TwinParams(seed=2))
+    _, rest = run(away, 240.0, fast)
+    _, work = run(there, 240.0, fast)
+    rr = lambda ws: np.mean([w.mean_rr_s for w in ws[-3:]])  # noqa: E731
+    assert away.exposure(240.0) == 0.0 and there.exposure(240.0) > 1.0
+    assert rr(rest) == pytest.approx(0.85, abs=0.02), rr(rest)
+    assert rr(work) < rr(rest) - 0.08, (rr(work), rr(rest))
+    assert away.separation(100.0) == away.p.far_m  # a walk would have come at 90 s
+    away.arrive(240.0)
+    away.arrive(300.0)  # a second calibration does not move the arrival
+    assert away.arrived_s == 240.0
+    away.observe(245.0, np.full(6, fast / np.sqrt(6)))
+    assert 0.0 < away.exposure(245.0) < there.exposure(240.0)  # 5 s of it, not the 20 s window's
+    _, later = run(away, 240.0, fast, t_start=245.0)
+    assert rr(later) < rr(rest) - 0.08, rr(later)

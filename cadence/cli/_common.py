@@ -187,6 +187,28 @@ def joining(args: argparse.Namespace) -> BusConfig:
     return bus_config(args, "peer" if not args.connect else "client")
 
 
+async def reaching(cfg: BusConfig, cell: str, role: str, timeout_s: float, command: str) -> Bus:
+    """The bus, once the router a client connects to answers, within ``timeout_s``: a lab that starts
+    the cell and its first session together would otherwise get "unable to connect" before the router
+    listens. Said once while it waits; any other error at once."""
+    import time
+
+    from common.runtime.errors import BusError
+
+    give_up, said = time.monotonic() + timeout_s, False
+    while True:
+        try:
+            return await Bus.open(cfg, cell, role=role)
+        except BusError as exc:
+            if cfg.mode != "client" or "Unable to connect" not in str(exc) or time.monotonic() > give_up:
+                raise
+            if not said:
+                err.print(f"cadence {command}: waiting up to {timeout_s:g} s for the router at "
+                          f"{', '.join(cfg.connect)}", markup=False, soft_wrap=True)  # fmt: skip
+                said = True
+        await asyncio.sleep(1.0)
+
+
 def say_when_alone(bus: Bus, command: str) -> None:
     """After a session's first moments, say on stderr if it reaches no router and no peer: Zenoh would
     leave the command waiting in silence."""

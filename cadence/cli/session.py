@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cadence.cli._common import Commands, add_bus_flags, arg, err, flags_from, out
+from cadence.cli._common import Commands, add_bus_flags, arg, err, flags_from, out, reaching
 from cadence.cli.hrv import add_posture
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
@@ -104,7 +104,6 @@ def cmd_session(args: argparse.Namespace) -> int:
     )
     from cadence.lab.session import SessionOptions, load_session, run_session, task_digest
     from cadence.lab.tables import session_table
-    from common.runtime.bus import Bus
     from common.runtime.config import CommonSettings
 
     plan = planned(args)
@@ -140,11 +139,15 @@ def cmd_session(args: argparse.Namespace) -> int:
 
     async def go() -> SessionEnd:
         stop = stop_on_signals()
-        cfg = joining(args)
-        async with await Bus.open(cfg, args.cell, role="operator") as bus:
+        async with await reaching(joining(args), args.cell, "operator", args.timeout, "session") as bus:
             with Live(console=err, refresh_per_second=4, transient=False) as live:
+                began = False
 
                 def show(phase: str, w: Watch, o: SessionOptions) -> None:
+                    nonlocal began
+                    if phase == "running" and not began:  # a line that stays, above the live view
+                        began = True
+                        live.console.print(f"condition ({o.condition}) in force: recording {o.minutes:g} min")
                     live.update(session_view(phase, w, o))
 
                 async def calib() -> Calibration:

@@ -35,7 +35,11 @@ def print_study(study: Study) -> None:
         table.add_column(LABELS[m], justify="right")
     for c in study.conditions:
         cells = (
-            f"{mean:.3f} ± {sd:.3f}" if math.isfinite(sd) else f"{mean:.3f} ± —"
+            "—"  # no session of the condition has the measure (a TLX not taken): nothing, not nan
+            if not math.isfinite(mean)
+            else f"{mean:.3f} ± {sd:.3f}"
+            if math.isfinite(sd)
+            else f"{mean:.3f} ± —"
             for mean, sd, _ in study.table[c].values()
         )
         table.add_row(f"({c}) {CONDITION_NAMES[c]}", *cells)

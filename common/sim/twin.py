@@ -32,6 +32,9 @@ A simulation model for demos and tests, not a claim about real people. Every par
 - Separation (the distance to the arm a person tracker would measure, ``operator/separation``): ``far_m``
   at the operator's own place; every ``walk_every_s`` (data time, from ``walk_every_s`` on) the operator walks
   into the shared area at ``walk_m_s``, down to ``walk_near_m``, stays ``walk_stay_s`` and walks back out.
+- Away until calibrated (``away_until_calibrated``): the operator rests away from the cell, as a lab's
+  subject does for the paper's calibration at rest, until ``arrive``: the arm's motion is no exposure
+  (u = 0, and u counts only what was seen since), no part is handled, the distance is ``far_m``.
 """
 
 from __future__ import annotations
@@ -115,6 +118,8 @@ class TwinParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     walk_m_s: Annotated[float, msgspec.Meta(gt=0.0, le=5.0)] = 1.0
     walk_every_s: Annotated[float, _in(0.0, 1e6)] = 45.0  # 0: the operator never comes near
     walk_stay_s: Annotated[float, _in(0.0, 1e6)] = 4.0
+    # at rest away from the cell until a calibration at rest is published (the demo cell's lab walk-through)
+    away_until_calibrated: bool = False
 
 
 class _Held:
@@ -181,6 +186,7 @@ class Operator:
         self._last_qd: tuple[float, NDArray[np.float64]] | None = None
         self._noise = 0.0
         self.beats: list[float] = [300 * RR_STEP_S]  # R-peak times, s: on the strap's grid
+        self.arrived_s: float | None = None if p.away_until_calibrated else 0.0  # at the cell from then
         self._resp_phase = self.rng.uniform(0, 2 * math.pi)
         self._wander_phase = self.rng.uniform(0, 2 * math.pi)
 
@@ -203,10 +209,24 @@ class Operator:
         self._last_qd = (float(t[-1]), qd[-1])
         self._obs.extend(t, np.linalg.norm(qd, axis=1), accel)
 
+    def arrive(self, t: float) -> None:
+        """At the cell from data time t (once: a second calibration does not send them away again)."""
+        if self.arrived_s is None:
+            self.arrived_s = t
+
+    @property
+    def away(self) -> bool:
+        return self.arrived_s is None
+
     def exposure(self, t: float) -> float:
         """u at time t: time-weighted means over the last window (a zero-order hold between states)."""
         p = self.p
-        speed, accel = self._obs.integrals(t - p.window_s, t)
+        lo = t - p.window_s
+        if p.away_until_calibrated:  # what the arm did before they came is not theirs
+            if self.arrived_s is None or t <= self.arrived_s:
+                return 0.0
+            lo = max(lo, self.arrived_s)
+        speed, accel = self._obs.integrals(lo, t)
         return (speed / p.pace_ref_rad_s + p.accel_weight * accel / p.accel_ref_rad_s2) / p.window_s
 
     def handle(self, t: float, duration_s: float) -> None:
@@ -274,7 +294,7 @@ class Operator:
         """The distance to the robot at data time t: a trapezoid from far_m down to walk_near_m and back,
         once every walk_every_s."""
         p = self.p
-        if p.walk_every_s <= 0 or t < p.walk_every_s:
+        if p.walk_every_s <= 0 or t < p.walk_every_s or self.away:
             return p.far_m
         walk_s = max(0.0, p.far_m - p.walk_near_m) / p.walk_m_s
         into = (t - p.walk_every_s) % p.walk_every_s  # since this walk in began

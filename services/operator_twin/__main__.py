@@ -4,9 +4,10 @@ It watches the robot (``robot/state``: joint velocities, what the robot waits fo
 produces what a real worker with a strap would: an ECG at 130 Hz on ``ecg/samples`` in the ECG gateway's
 place, the strap's accelerometer on ``ecg/acc`` (unless ``accelerometer = false``: a strap without one), the
 parts the task waits for (``operator/signal``, after a handling time, moving while handling them), and
-errors (``operator/error``). Data time comes from the shared clock, so the twin runs at the demo's speed
-with every other service. A robot state far from the states before it is dropped
-(common/runtime/admission.py).
+errors (``operator/error``). With ``away_until_calibrated`` it rests away from the cell until a
+calibration at rest is published (``operator/calibration``): the robot waits for its first part meanwhile.
+Data time comes from the shared clock, so the twin runs at the demo's speed with every other service. A
+robot state far from the states before it is dropped (common/runtime/admission.py).
 """
 
 from __future__ import annotations
@@ -28,9 +29,10 @@ from schemas.base import Message
 from schemas.ecg import H10_CHUNK as CHUNK
 from schemas.ecg import H10_FS_HZ as FS_HZ
 from schemas.ecg import AccChunk, EcgChunk
-from schemas.operator import OperatorError, OperatorSignal, Separation
+from schemas.operator import Calibration, OperatorError, OperatorSignal, Separation
 from schemas.robot import CycleReport, RobotState
 from schemas.topology import (
+    CALIBRATION,
     ROBOT_CYCLE,
     ROBOT_STATE,
 )
@@ -66,12 +68,27 @@ class OperatorTwin(Node):
         admitted(self.line.admit(state.t_ns, state.t_ns, clock_ns=self.clock.now_ns()))
         t = (state.t_ns - self.origin_ns) / 1e9
         self.operator.observe(t, np.array(state.qd))
-        if state.waiting_for is not None and state.waiting_for != self.waiting_for:
-            handling = self.operator.handling_time()
-            self.operator.handle(t, handling)
-            self.pending.append((t + handling, state.waiting_for))
+        if state.waiting_for is not None and state.waiting_for != self.waiting_for and not self.operator.away:
+            self.start_handling(t, state.waiting_for)
         self.waiting_for = state.waiting_for
         return self.still_there(t, state.waiting_for)
+
+    def start_handling(self, t: float, part: str) -> None:
+        handling = self.operator.handling_time()
+        self.operator.handle(t, handling)
+        self.pending.append((t + handling, part))
+
+    @on(CALIBRATION)
+    async def on_calibration(self, cal: Calibration) -> Out:
+        """A calibration at rest taken: the operator comes to the cell (``away_until_calibrated``), and puts
+        the part the robot waits for."""
+        if self.operator.away and cal.posture == "rest":
+            t = max((cal.t_ns - self.origin_ns) / 1e9, self.operator.t)
+            self.operator.arrive(t)
+            log.info("at the cell from %.0f s (calibrated at rest: RR_r = %.3f s)", t, cal.rr_rest_s)
+            if self.waiting_for is not None:
+                self.start_handling(t, self.waiting_for)
+        return []
 
     def still_there(self, t: float, waiting_for: str | None) -> Out:
         """A signal is state, not an event (DESIGN §9): a part the robot still waits for is said again,
