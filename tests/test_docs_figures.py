@@ -1,0 +1,116 @@
+"""The figures the guides quote are what the commands give (issue 56: a guide's table drifts from the
+code that made it unless a test holds it). The simulated study's and the fit's tables are held by
+tests/test_study.py, `cadence decide`'s example by tests/test_readme.py; here the decisions on real
+people (docs/decision.md): the order-balanced table, the counts quoted beside it, and the scenarios."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.support.paths import DOCS, SHARED_DATA
+
+DECISION = DOCS / "decision.md"
+
+
+def row_of(text: str, name: str) -> list[str]:
+    """A markdown table row's cells after its first, by the first cell; bold dropped."""
+    (line,) = [ln for ln in text.splitlines() if ln.startswith(f"| {name} |")]
+    return [c.strip().replace("**", "") for c in line.strip().strip("|").split("|")][1:]
+
+
+def cells(d: dict, with_dk: bool) -> list[str]:
+    """One mode's row as docs/decision.md writes it, from `cadence bench decide`'s JSON."""
+    n = d["balanced_subjects"]
+    out = [f"{d['balanced_median']:.3f}", f"{round(d['balanced_above_half'] * n)} of {n}",
+           f"{d['before_median']:.3f}", f"{d['after_median']:.3f}"]  # fmt: skip
+    if with_dk:
+        lo, hi = d["dk_ci95"]
+        out += [f"{d['dk_median']:+.1f} ({lo:.1f}–{hi:.1f})", f"{d['auc_median']:.3f}"]
+    else:
+        out += ["", ""]
+    return out
+
+
+def changes_and_reversals(ks: list[int]) -> tuple[int, int]:
+    """Windows where k changed, and changes followed at once by one the other way."""
+    d = [b - a for a, b in itertools.pairwise(ks)]
+    return sum(1 for x in d if x), sum(1 for x, y in itertools.pairwise(d) if x * y < 0)
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "stress_predict").is_dir(), reason=f"{SHARED_DATA} is absent")
+def test_the_decision_guides_table_and_counts_are_what_bench_decide_gives(tmp_path: Path) -> None:
+    r = subprocess.run([sys.executable, "-m", "cadence", "bench", "decide", "--cv", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout.strip().splitlines()[-1])
+    text = DECISION.read_text()
+    rows = {
+        "paper (Alg. 1, condition (c))": cells(doc["paper"], True),
+        "personal, held out (leave one subject out)": cells(doc["personal, held out"], True),
+        "(control: the window's mean RR)": cells(doc["controls"]["mean RR"], False),
+        "(control: time alone)": cells(doc["controls"]["time"], False),
+        "(control: RMSSD)": cells(doc["controls"]["RMSSD"], False),
+    }
+    for name, want in rows.items():
+        assert row_of(text, name) == want, name
+
+    by_mode: dict[str, list[dict]] = {}
+    for row in csv.DictReader((tmp_path / "decisions.csv").open()):
+        by_mode.setdefault(row["mode"], []).append(row)
+
+    def counts(mode: str) -> tuple[int, int, int, int]:
+        rows = by_mode[mode]
+        changed = reversed_ = 0
+        for _, g in itertools.groupby(rows, key=lambda w: (w["dataset"], w["subject"])):
+            c, r = changes_and_reversals([int(w["k"]) for w in g])
+            changed, reversed_ = changed + c, reversed_ + r
+        return len(rows), sum(1 for w in rows if w["k"] == "15"), changed, reversed_
+
+    n, top, changed, reversed_ = counts("paper")
+    said = " ".join(text.split())
+    assert f"k = 15 in {round(100 * top / n)} % of the {n:,} windows ({top:,}), changes k in {changed} and " \
+           f"reverses a change at once in {reversed_}" in said  # fmt: skip
+    assert f"on the real sessions {counts('personal')[3]} immediate reversals in {n:,} windows" in said
+    # the balanced score of the chosen settings: what the prose and the table say
+    assert re.search(rf"\*\*{doc['personal, held out']['balanced_median']:.3f}\*\*", text)
+
+
+def test_the_scenarios_table_is_what_bench_decide_scenarios_gives() -> None:
+    """The same rows as `cadence bench decide --scenarios` prints, one a scenario, as written."""
+    from cadence.bench.scenarios import table
+
+    text = DECISION.read_text()
+    for row in table():
+        line = "| " + " | ".join(row) + " |"
+        assert line in text, f"docs/decision.md, the scenarios: expected the row\n{line}"
+
+
+def test_the_personal_modes_examples_are_what_cadence_decide_gives() -> None:
+    """docs/decision.md: "120 windows at 0.79 s give k 4–5 in every window; 960 of 0.85 s with 20 ms
+    Gaussian noise (numpy seed 54, to 0.1 ms) change k in 83 (8.6 %), median 8", as `cadence decide`
+    prints them."""
+    import numpy as np
+
+    def decide(values: list[float]) -> list[int]:
+        cmd = ["decide", "--mode", "personal", "--rr-rest", "0.85"]
+        r = subprocess.run([sys.executable, "-m", "cadence", *cmd],
+                           input="\n".join(f"{v:.4f}" for v in values), capture_output=True, text=True,
+                           timeout=120)  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        return [int(x) for x in r.stdout.split()]
+
+    low = decide([0.79] * 120)
+    noisy = decide(list(0.85 + np.random.default_rng(54).normal(0.0, 0.020, 960)))
+    changed, _ = changes_and_reversals(noisy)
+    said = " ".join(DECISION.read_text().split())
+    assert f"120 windows at 0.79 s give k {min(low)}–{max(low)} in every window" in said
+    share = f"{100 * changed / len(noisy):.1f} %"
+    assert f"change k in {changed} ({share}), median {int(np.median(noisy))}" in said
