@@ -10,6 +10,14 @@ from tests.support.data import ECG, needs_data
 from tests.support.paths import BENCH_QUICK
 
 pytestmark = pytest.mark.bench
+# the detection table's rows in docs/decision.md, by the detector's name in `bench_hrv`'s scores
+SHOWN = {
+    "Cadence (streaming, 0.1 s chunks)": "cadence",
+    "NeuroKit2 `neurokit` (batch)": "neurokit2:neurokit",
+    "NeuroKit2 `pantompkins1985`": "neurokit2:pantompkins1985",
+    "py-ecg-detectors `swt`": "py-ecg-detectors:swt",
+    "py-ecg-detectors `pan_tompkins`": "py-ecg-detectors:pan_tompkins",
+}
 
 
 @needs_data
@@ -24,6 +32,15 @@ def test_bench_hrv_against_established_detectors() -> None:
         pytest.skip("no established detector installed (uv sync --extra bench)")
     assert ours.f1 >= 0.99
     assert extra["window_err_median_ms"] <= 2.0
+    if not BENCH_QUICK:  # every record: the detection table of docs/decision.md, but its speeds (a host's)
+        from tests.support.paths import DOCS
+
+        text = (DOCS / "decision.md").read_text()
+        by = {s.name: s for s in scores}
+        for shown, name in SHOWN.items():
+            s = by[name]
+            row = f"| {shown} | {100 * s.se:.2f} | {100 * s.ppv:.2f} | {100 * s.f1:.2f} |"
+            assert row in text, f"docs/decision.md, the detection table: expected the row to begin\n{row}"
 
 
 @needs_data
