@@ -21,6 +21,8 @@ from cadence.deploy.cell import (
     access_control,
     askers,
     client_config,
+    identity,
+    merged,
     publishers,
     router_config,
     users_file,
@@ -47,7 +49,7 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
         return {
             a
             for a in ACCOUNTS
-            if any(_includes(k, key) for k in rules.get(f"{rule} {a}", {}).get("key_exprs", []))
+            if any(_includes(k, key) for k in rules.get(f"c1: {rule} {a}", {}).get("key_exprs", []))
         }
 
     for t in TOPICS:
@@ -74,10 +76,10 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
 def test_a_cell_with_a_strap_gives_the_twin_no_account_at_all() -> None:
     strap = access_control("c1", cell_accounts("Polar H10"))
     named = {a for p in strap["policies"] for a in p["subjects"]}
-    assert "operator_twin" not in named
-    assert {"ecg_gateway", "separation_sensor", "executor"} <= named
+    assert "c1-operator_twin" not in named
+    assert {"c1-ecg_gateway", "c1-separation_sensor", "c1-executor"} <= named
     twin = access_control("c1", cell_accounts("twin"))
-    assert "operator_twin" in {a for p in twin["policies"] for a in p["subjects"]}
+    assert "c1-operator_twin" in {a for p in twin["policies"] for a in p["subjects"]}
 
 
 def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
@@ -90,24 +92,24 @@ def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
 async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_keys(tmp_path: Path) -> None:
     ca = make_ca(CELL)
     passwords = {a: f"pw-{a}" for a in ACCOUNTS}
-    (tmp_path / "users.txt").write_text(users_file(passwords))
+    (tmp_path / "users.txt").write_text(users_file(CELL, passwords))
     port = free_port()
     endpoint = [f"tls/127.0.0.1:{port}"]
-    leaf = issue(ca, "router", CELL, ["127.0.0.1"])
+    leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
     router = _write(
         tmp_path,
         "router",
         router_config(CELL, endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt")),
     )
-    certs = {a: issue(ca, a, CELL, [a]) for a in ACCOUNTS}
-    assert common_name(certs["executor"].cert) == "executor"
+    certs = {a: issue(ca, identity(CELL, a), CELL, [a]) for a in ACCOUNTS}
+    assert common_name(certs["executor"].cert) == f"{CELL}-executor"
 
     def account(cert: str, user: str) -> BusConfig:
         c = certs[cert]
         return _write(
             tmp_path,
             f"{cert}-{user}",
-            client_config(user, passwords[user], endpoint, Tls(ca.cert, c.cert, c.key)),
+            client_config(CELL, user, passwords[user], endpoint, Tls(ca.cert, c.cert, c.key)),
         )
 
     sel = Selection(t_ns=1, seq=7, k=3, n=15, delta=-1, reason="stress", window_end_ns=1)
@@ -175,13 +177,80 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
         assert dm_health.pending == 0
     # no certificate of the cell: the router refuses the link
     stranger = {"mode": "client", "connect": {"endpoints": endpoint, "timeout_ms": 2000}}
-    stranger["transport"] = {"auth": {"usrpwd": {"user": "monitor", "password": passwords["monitor"]}}}
+    stranger["transport"] = {
+        "auth": {"usrpwd": {"user": identity(CELL, "monitor"), "password": passwords["monitor"]}}
+    }
     with pytest.raises(Exception):  # noqa: B017 (Zenoh's own error type)
         async with (
             await Bus.open(router, CELL),
             await Bus.open(_write(tmp_path, "stranger", stranger), CELL),
         ):
             pass
+
+
+def test_many_cells_rules_on_one_router_grant_each_identity_only_its_own_cells_keys() -> None:
+    """A line's or a plant's router holds several cells' rules (issue 58): with bare role names, cell1's
+    separation sensor could say where people are in cell2. Every rule names keys of one cell, and every
+    policy applies its cell's rules to that cell's identities only, so under default deny no role of one
+    cell may publish, answer, query or even read under another's keys."""
+    cells = ("c1", "c2", "line-3")
+    acl = merged(*(access_control(c) for c in cells))
+    assert acl["default_permission"] == "deny"
+    rules = {r["id"]: r for r in acl["rules"]}
+    assert len(rules) == len(acl["rules"])  # no id of one cell's rules shadows another's
+    assert len({s["id"] for s in acl["subjects"]}) == len(acl["subjects"]) == len(cells) * len(ACCOUNTS)
+    for policy in acl["policies"]:
+        (cell,) = {rules[r]["id"].split(": ")[0] for r in policy["rules"]}
+        for r in policy["rules"]:
+            assert all(k.startswith(f"cadence/{cell}/") for k in rules[r]["key_exprs"]), r
+        assert all(s.rsplit("-", 1)[0] == cell for s in policy["subjects"]), policy
+    subjects = {s["id"]: s for s in acl["subjects"]}
+    assert subjects["line-3-separation_sensor"]["cert_common_names"] == ["line-3-separation_sensor"]
+    assert subjects["line-3-separation_sensor"]["usernames"] == ["line-3-separation_sensor"]
+
+
+@pytest.mark.asyncio
+async def test_one_cells_sensor_cannot_say_where_people_are_in_another_on_a_shared_router(
+    tmp_path: Path,
+) -> None:
+    """Two cells behind one router with their merged rules, over mTLS (one plant CA): cell c1's separation
+    sensor puts a distance on c2's key, then on its own; c1's monitor gets its own, and c2's monitor's
+    first message is c2's own sensor's, put after that: the router dropped the other cell's."""
+    ca = make_ca("plant")
+    cells = ("c1", "c2")
+    passwords = {c: {a: f"pw-{c}-{a}" for a in ACCOUNTS} for c in cells}
+    (tmp_path / "users.txt").write_text("".join(users_file(c, passwords[c]) for c in cells))
+    endpoint = [f"tls/127.0.0.1:{free_port()}"]
+    leaf = issue(ca, "plant-router", "plant", ["127.0.0.1"])
+    cfg = router_config("c1", endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt"))
+    cfg["access_control"] = merged(*(access_control(c) for c in cells))
+    router = _write(tmp_path, "router", cfg)
+
+    def account(cell: str, name: str) -> BusConfig:
+        c = issue(ca, identity(cell, name), cell, [name])
+        conf = client_config(cell, name, passwords[cell][name], endpoint, Tls(ca.cert, c.cert, c.key))
+        return _write(tmp_path, identity(cell, name), conf)
+
+    theirs = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
+    own = Separation(t_ns=3, seq=1, distance_m=0.6, source="scanner:front")
+    later = Separation(t_ns=4, seq=2, distance_m=2.0, source="scanner:back")
+    async with (
+        await Bus.open(router, "c1"),
+        await Bus.open(account("c1", "monitor"), "c1") as m1,
+        await Bus.open(account("c2", "monitor"), "c2") as m2,
+        await Bus.open(account("c1", "separation_sensor"), "c1") as s1,
+        await Bus.open(account("c2", "separation_sensor"), "c2") as s2,
+    ):
+        seen1 = m1.subscribe(m1.key("operator/separation"), Separation)
+        seen2 = m2.subscribe(m2.key("operator/separation"), Separation)
+        await s1.until_subscribed(s1.key("operator/separation"), 10)
+        await s2.until_subscribed(s2.key("operator/separation"), 10)
+        put(s1, "cadence/c2/operator/separation", theirs, block=True)  # another cell's key: forbidden
+        put(s1, s1.key("operator/separation"), own, block=True)
+        assert (await seen1.receive(10))[1] == own
+        put(s2, s2.key("operator/separation"), later, block=True)
+        assert (await seen2.receive(10))[1] == later  # not `theirs`, which would have come first
+        assert seen2.pending == 0 and seen1.pending == 0
 
 
 def _listening_ports(pid: int) -> list[str]:

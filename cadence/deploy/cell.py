@@ -6,11 +6,14 @@ The rules (DESIGN §11):
 - One account per service, plus ``operator`` (``cadence calibrate``, ``cadence robot resume``, an HMI),
   ``separation_sensor`` (``cadence separation``: the scanners' adapters) and ``monitor`` (``zenoh
   subscribe``, ``cadence record``). Each has its own random password and its own certificate whose common
-  name is the account: the router requires both (mTLS and user-password), and its ACL names each subject
-  by both, so one stolen secret opens nothing.
-- Everyone may read the cell. Each account may publish, and answer queries for, only the keys the topology
-  names it the publisher of, and its own ``health/<account>`` (never another's). Only the operator may ask
-  ``robot/resume``. An account the cell does not run (the operator twin on a cell with a strap, the
+  name is the account's identity: the router requires both (mTLS and user-password), and its ACL names
+  each subject by both, so one stolen secret opens nothing.
+- An identity is the cell's and the role's, ``<cell>-<role>`` (``identity``): the rules of many cells on one
+  router (a line's, a plant's: ``merged``) grant each only its own cell's keys, where bare role names let
+  cell1's separation sensor say where people are in cell2.
+- Everyone may read their own cell. Each account may publish, and answer queries for, only the keys the
+  topology names it the publisher of, and its own ``health/<account>`` (never another's). Only the operator
+  may ask ``robot/resume``. An account the cell does not run (the operator twin on a cell with a strap, the
   gateway on a twin's) is not in the router's ACL at all: it may do nothing, not even read.
 - The router is the only listener on the network; every service is its client.
 """
@@ -34,6 +37,12 @@ from schemas.topology import HEALTH, ROLES, ROOT, TOPICS, Topic
 # One account per process that joins the bus: a service's or a tool's, one per role of the graph.
 ACCOUNTS = tuple(r.name for r in ROLES if r.kind != "sim")
 ROUTER_PORT = 7447
+
+
+def identity(cell: str, account: str) -> str:
+    """An account's name on the bus (certificate CN and username). Roles have no '-', so the last one
+    splits it back."""
+    return f"{cell}-{account}"
 
 
 def publishers(topic: Topic[Any]) -> set[str]:
@@ -60,28 +69,31 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
     everything = f"{ROOT}/{cell}/**"
     rules: list[dict[str, Any]] = [
         {
-            "id": "read",
+            "id": f"{cell}: read",
             "permission": "allow",
             "flows": ["ingress", "egress"],
             "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
             "key_exprs": [everything],
         },
         {
-            "id": "receive",
+            "id": f"{cell}: receive",
             "permission": "allow",
             "flows": ["egress"],
             "messages": ["put", "delete", "reply", "query", "declare_queryable", "liveliness_token"],
             "key_exprs": [everything],
         },
     ]
-    policies: list[dict[str, Any]] = [{"rules": ["read", "receive"], "subjects": list(accounts)}]
+    who = {a: identity(cell, a) for a in accounts}
+    policies: list[dict[str, Any]] = [
+        {"rules": [f"{cell}: read", f"{cell}: receive"], "subjects": [who[a] for a in accounts]}
+    ]
     for name in accounts:
         health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
         keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in publishers(t) and t is not HEALTH})
         asks = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in askers(t)})
         rules.append(
             {
-                "id": f"publish {name}",
+                "id": f"{cell}: publish {name}",
                 "permission": "allow",
                 "flows": ["ingress"],
                 "messages": ["put", "delete", "declare_queryable", "reply"],
@@ -90,34 +102,46 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
         )
         rules.append(
             {
-                "id": f"presence {name}",
+                "id": f"{cell}: presence {name}",
                 "permission": "allow",
                 "flows": ["ingress"],
                 "messages": ["liveliness_token"],
                 "key_exprs": [health],
             }
         )
-        own = [f"publish {name}", f"presence {name}"]
+        own = [f"{cell}: publish {name}", f"{cell}: presence {name}"]
         if asks:  # a query changes what an answerer does (robot/resume): only those the graph names ask
             rules.append(
                 {
-                    "id": f"ask {name}",
+                    "id": f"{cell}: ask {name}",
                     "permission": "allow",
                     "flows": ["ingress"],
                     "messages": ["query"],
                     "key_exprs": asks,
                 }
             )
-            own.append(f"ask {name}")
-        policies.append({"rules": own, "subjects": [name]})
+            own.append(f"{cell}: ask {name}")
+        policies.append({"rules": own, "subjects": [who[name]]})
     # both properties: a subject matches only a session with this certificate AND this username
-    subjects = [{"id": a, "cert_common_names": [a], "usernames": [a]} for a in accounts]
+    subjects = [{"id": i, "cert_common_names": [i], "usernames": [i]} for i in who.values()]
     return {
         "enabled": True,
         "default_permission": "deny",
         "rules": rules,
         "subjects": subjects,
         "policies": policies,
+    }
+
+
+def merged(*acls: dict[str, Any]) -> dict[str, Any]:
+    """Several cells' ``access_control`` on one router (a line's or a plant's): their rules, subjects and
+    policies side by side. No rule of one names another's keys or subjects, so none widens another."""
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [r for a in acls for r in a["rules"]],
+        "subjects": [s for a in acls for s in a["subjects"]],
+        "policies": [p for a in acls for p in a["policies"]],
     }
 
 
@@ -163,7 +187,7 @@ def router_config(
     }
 
 
-def client_config(account: str, password: str, connect: Iterable[str], tls: Tls) -> dict[str, Any]:
+def client_config(cell: str, account: str, password: str, connect: Iterable[str], tls: Tls) -> dict[str, Any]:
     return {
         "mode": "client",
         "connect": {"endpoints": list(connect)},
@@ -171,13 +195,13 @@ def client_config(account: str, password: str, connect: Iterable[str], tls: Tls)
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {
             "link": _link(tls, "connect"),
-            "auth": {"usrpwd": {"user": account, "password": password}},
+            "auth": {"usrpwd": {"user": identity(cell, account), "password": password}},
         },
     }
 
 
-def users_file(passwords: dict[str, str]) -> str:
-    return "".join(f"{a}:{p}\n" for a, p in sorted(passwords.items()))
+def users_file(cell: str, passwords: dict[str, str]) -> str:
+    return "".join(f"{identity(cell, a)}:{p}\n" for a, p in sorted(passwords.items()))
 
 
 def to_json5(cfg: dict[str, Any], comment: str) -> str:

@@ -248,9 +248,9 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
     p.files.append(ca_file)
     hosts = sorted({bundle.router_host, "localhost", "127.0.0.1"})
     if "router" in opts.services:
-        leaf = issue(bundle.ca, "router", bundle.cell, hosts)
+        leaf = issue(bundle.ca, cell.identity(bundle.cell, "router"), bundle.cell, hosts)
         users = CREDS / "users.txt"
-        p.files.append(File(users, cell.users_file(bundle.passwords), secret=True))
+        p.files.append(File(users, cell.users_file(bundle.cell, bundle.passwords), secret=True))
         router = cell.router_config(
             bundle.cell,
             [f"tls/0.0.0.0:{bundle.port}"],
@@ -270,8 +270,9 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
     # this host's accounts: its services, and the tools' (root reads those)
     accounts = [s for s in opts.services if s in SERVICES]
     for account in [*accounts, *TOOLS]:
-        leaf = issue(bundle.ca, account, bundle.cell, [account])
+        leaf = issue(bundle.ca, cell.identity(bundle.cell, account), bundle.cell, [account])
         cfg = cell.client_config(
+            bundle.cell,
             account,
             bundle.passwords[account],
             _connect(opts, bundle),
