@@ -269,3 +269,54 @@ def test_a_recording_cut_without_its_footer_is_read_up_to_its_last_chunk(tmp_pat
     assert len(notes) == 1
     assert "ends without its footer" in notes[0]
     assert "2500 messages" in notes[0]
+
+
+@pytest.mark.asyncio
+async def test_a_plant_recording_keeps_every_cells_derived_keys_and_no_raw_signal(
+    tmp_path: Path, endpoint: str
+) -> None:
+    """`cadence record --plant` (issue 58): windows, selections, statuses of two cells, not the raw ECG or
+    the arm's state (health data, and most of a cell's bytes); a service's status once a minute unless it
+    changes."""
+    from cadence.tools.recording import HealthEvery, plant_keys
+    from schemas import EcgChunk, RobotState, ServiceStatus
+
+    def status(state: str, seq: int) -> ServiceStatus:
+        return ServiceStatus(t_ns=5, seq=seq, service="executor", state=state, uptime_s=1.0, counters={})
+
+    window = HrvWindow(t_ns=2, seq=0, start_ns=0, end_ns=2, mean_rr_s=0.8, n_beats=3, excluded_fraction=0.0,
+                       quality="good")  # fmt: skip
+    sel = Selection(t_ns=3, seq=0, k=8, n=15, delta=0, reason="initial", window_end_ns=2)
+    sent = [
+        ("pc1/ecg/samples", EcgChunk(t_ns=1, seq=0, fs_hz=130.0, samples_uv=[1, 2, 3])),
+        ("pc1/robot/state", RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)),
+        ("pc1/hrv/window", window),
+        ("pc2/hrv/window", window),
+        ("pc1/health/executor", status("serving", 1)),
+        ("pc1/health/executor", status("serving", 2)),  # the same, within the minute: left out
+        ("pc1/health/executor", status("stopped", 3)),  # changed: kept
+        ("pc2/decision/selection", sel),  # the last: once it is in, everything before it came
+    ]
+    stop = asyncio.Event()
+    async with (
+        await Bus.open(BusConfig(listen=[endpoint]), "pc1") as recorder,
+        await Bus.open(BusConfig(mode="client", connect=[endpoint]), "pc1") as cell,
+    ):
+        seen = asyncio.Event()
+        recorder.subscribe_raw("cadence/pc2/decision/selection", lambda *_: seen.set())
+        recording = asyncio.ensure_future(record(recorder, tmp_path / "plant.mcap", plant_keys(), stop,
+                                                 keep=HealthEvery()))  # fmt: skip
+        for key in ("pc1/hrv/window", "pc2/hrv/window", "pc1/health/executor", "pc2/decision/selection"):
+            await cell.until_subscribed(f"cadence/{key}", 30)
+        for key, msg in sent:
+            put(cell, f"cadence/{key}", msg, block=True)
+        await asyncio.wait_for(seen.wait(), 30)
+        stop.set()
+        rec = await recording
+    got = [(m.key.removeprefix("cadence/"), msgspec.msgpack.decode(m.data).get("state"))
+           for m in read(tmp_path / "plant.mcap")]  # fmt: skip
+    want = [("pc1/hrv/window", None), ("pc2/hrv/window", None), ("pc1/health/executor", "serving"),
+            ("pc1/health/executor", "stopped"), ("pc2/decision/selection", None)]  # fmt: skip
+    assert sorted(got, key=str) == sorted(want, key=str)
+    assert [s for k, s in got if k == "pc1/health/executor"] == ["serving", "stopped"]
+    assert rec.count == 5

@@ -87,6 +87,13 @@ def cmd_router(args: argparse.Namespace) -> int:
     "after --duration; the file is complete in every case.",
 )
 @arg("keys", nargs="*", metavar="KEYEXPR", help="key expressions (default cadence/<cell>/**)")
+@arg(
+    "--plant",
+    action="store_true",
+    help="what a plant keeps of every cell: windows, calibrations, selections, cycles, events, errors, "
+    "signals, and each service's status once a minute or when it changes; no raw ECG, accelerometer, "
+    "beats or RR (health data), no arm state or separation readings",
+)
 @arg("-o", "--output", required=True, metavar="FILE.mcap")
 @arg("--duration", type=float, help="stop after this many seconds")
 @arg("--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack")
@@ -96,16 +103,20 @@ def cmd_router(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     import asyncio
 
-    from cadence.tools.recording import record
+    from cadence.tools.recording import HealthEvery, plant_keys, record
     from common.runtime.bus import Bus
+
+    if args.plant and args.keys:
+        raise InputError("--plant records its own keys (every cell's derived ones): give no KEYEXPR with it")
 
     async def go() -> int:
         stop = stop_on_signals()
         if args.duration is not None:
             asyncio.get_running_loop().call_later(args.duration, stop.set)
         async with await Bus.open(bus_config(args, "peer"), args.cell, role="monitor") as bus:
-            keys = args.keys or [bus.key("**")]
-            err.print(f"recording {', '.join(keys)} to {args.output} (Ctrl-C to stop)")
+            keys = plant_keys() if args.plant else args.keys or [bus.key("**")]
+            shown = "every cell's derived keys (--plant)" if args.plant else ", ".join(keys)
+            err.print(f"recording {shown} to {args.output} (Ctrl-C to stop)")
             say_when_alone(bus, "record")
             rec = await record(
                 bus,
@@ -114,6 +125,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 stop,
                 json=args.json,
                 on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
+                keep=HealthEvery() if args.plant else None,
             )
             alone = bus.isolation()
         if rec.failed is not None:  # what a flush put in the file is readable; the rest was lost

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -34,6 +35,50 @@ from schemas.topology import AnyMessage, decode_any, encode, topic_of
 
 PROFILE = "cadence"
 FLUSH_S = 1.0  # what a recorder holds reaches the disk this often (wall s): a kill loses at most this
+# What a plant keeps of every cell (`cadence record --plant`): what each cell decided and did, and how its
+# services are. Not the worker's raw signals (ECG, accelerometer, beats, device RR: health data, a third
+# of a cell's bytes), nor the arm's state at its servo's rate or each separation reading (the rest: the
+# events say when the arm held).
+PLANT_SUFFIXES = (
+    "hrv/window",
+    "operator/calibration",
+    "decision/selection",
+    "robot/cycle",
+    "robot/event",
+    "operator/error",
+    "operator/signal",
+    "health/*",
+)
+HEALTH_EVERY_S = 60.0  # a service's status kept once a minute (wall s), and whenever its state changes
+
+
+def plant_keys(root: str = "cadence") -> list[str]:
+    return [f"{root}/*/{suffix}" for suffix in PLANT_SUFFIXES]
+
+
+class HealthEvery:
+    """A filter for a recording: every message but a service's status, kept when its state (or detail)
+    changed or ``every_s`` after the last kept (wall time, as statuses come): five services' statuses every
+    5 s would be most of a plant recording's bytes and say nothing new."""
+
+    def __init__(self, every_s: float = HEALTH_EVERY_S) -> None:
+        self.every_s = every_s
+        self.last: dict[str, tuple[float, str]] = {}  # key: (when kept, state and detail)
+
+    def __call__(self, key: str, payload: bytes) -> bool:
+        if "/health/" not in key:
+            return True
+        try:
+            msg = decode_any(payload)
+        except msgspec.DecodeError:
+            return True  # kept as it came: a recording is evidence
+        said = f"{getattr(msg, 'state', '')}\n{getattr(msg, 'detail', '')}"
+        now = time.monotonic()
+        when, before = self.last.get(key, (-math.inf, ""))
+        if said == before and now - when < self.every_s:
+            return False
+        self.last[key] = (now, said)
+        return True
 
 
 @dataclass
@@ -132,12 +177,16 @@ async def record(
     stop: asyncio.Event,
     json: bool = False,
     on_first: Callable[[str], None] | None = None,
+    keep: Callable[[str, bytes], bool] | None = None,
 ) -> Recorder:
     """Record until ``stop``; the file is complete even when the stop is a signal. ``on_first(key)`` is
-    called once, when the first message is written (a person wants to know that anything comes)."""
+    called once, when the first message is written (a person wants to know that anything comes);
+    ``keep(key, payload)`` False leaves a message out (``HealthEvery``)."""
     rec = Recorder(path, json)
 
     def write(key: str, payload: bytes) -> None:
+        if keep is not None and not keep(key, payload):
+            return
         rec.write(key, payload)
         if rec.failed is not None:
             stop.set()
