@@ -212,6 +212,47 @@ def cmd_get(args: argparse.Namespace) -> int:
 
 
 @cli.command(
+    "plant",
+    help="every cell on the mesh in one table: services, robot, k, the operator's window, their ages",
+    description="Watches cadence/*/ (statuses, the arm's state, selections and windows; never the raw "
+    "ECG): per cell how many services still send their status and any that is not serving, the robot's "
+    "safety state and why, the selection in force, the operator's last window, and the age of each. "
+    "Ctrl-C ends it.",
+)
+@flags_from(add_bus_flags, 5.0)
+@arg("--once", type=float, metavar="S", help="print one view after S seconds and exit")
+@arg("--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)")
+def cmd_plant(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from rich.live import Live
+
+    from cadence.tools.plant import Plant, plant_watch
+    from common.runtime.bus import Bus
+    from common.runtime.service import first_of
+
+    plant = Plant()
+
+    async def go() -> int:
+        stop = stop_on_signals()
+        async with await Bus.open(joining(args), args.cell, role="monitor") as bus:
+            for key in plant_watch():
+                bus.subscribe_raw(key, plant.on)
+            say_when_alone(bus, "plant")
+            if args.once is not None:
+                await first_of(stop.wait(), asyncio.sleep(args.once))
+                out.print(plant.view(args.status_period))
+                return 0
+            with Live(plant.view(args.status_period), console=out, refresh_per_second=2) as live:
+                while not stop.is_set():
+                    await first_of(stop.wait(), asyncio.sleep(0.5))
+                    live.update(plant.view(args.status_period))
+        return 0
+
+    return asyncio.run(go())
+
+
+@cli.command(
     "top",
     help="the cell's keys (type, publishers, rate, last message) and services (alive, state, drops)",
     description="Watches every key under cadence/<cell>/: per key its message type, its publishers and "
