@@ -277,8 +277,8 @@ async def test_a_plant_recording_keeps_every_cells_derived_keys_and_no_raw_signa
 ) -> None:
     """`cadence record --plant` (issue 58): windows, selections, statuses of two cells, not the raw ECG or
     the arm's state (health data, and most of a cell's bytes); a service's status once a minute unless it
-    changes."""
-    from cadence.tools.recording import HealthEvery, plant_keys
+    changes, a selection only when it is a new one."""
+    from cadence.tools.recording import PlantThinning, plant_keys
     from schemas import EcgChunk, RobotState, ServiceStatus
 
     def status(state: str, seq: int) -> ServiceStatus:
@@ -295,28 +295,37 @@ async def test_a_plant_recording_keeps_every_cells_derived_keys_and_no_raw_signa
         ("pc1/health/executor", status("serving", 1)),
         ("pc1/health/executor", status("serving", 2)),  # the same, within the minute: left out
         ("pc1/health/executor", status("stopped", 3)),  # changed: kept
-        ("pc2/decision/selection", sel),  # the last: once it is in, everything before it came
+        ("pc2/decision/selection", sel),
+        ("pc2/decision/selection", sel),  # republished, no new decision: left out
+        ("pc2/decision/selection", msgspec.structs.replace(sel, seq=1, k=7)),
     ]
-    stop = asyncio.Event()
+    stop, arrived = asyncio.Event(), []
+    thin = PlantThinning()
+
+    def keep(key: str, payload: bytes) -> bool:  # what reached the recorder: all of it, then stop
+        arrived.append(key)
+        if len(arrived) == sum(1 for k, _ in sent if "/ecg/" not in k and "/robot/state" not in k):
+            stop.set()
+        return thin(key, payload)
+
     async with (
         await Bus.open(BusConfig(listen=[endpoint]), "pc1") as recorder,
         await Bus.open(BusConfig(mode="client", connect=[endpoint]), "pc1") as cell,
     ):
-        seen = asyncio.Event()
-        recorder.subscribe_raw("cadence/pc2/decision/selection", lambda *_: seen.set())
-        recording = asyncio.ensure_future(record(recorder, tmp_path / "plant.mcap", plant_keys(), stop,
-                                                 keep=HealthEvery()))  # fmt: skip
+        recording = asyncio.ensure_future(
+            record(recorder, tmp_path / "plant.mcap", plant_keys(), stop, keep=keep)
+        )
         for key in ("pc1/hrv/window", "pc2/hrv/window", "pc1/health/executor", "pc2/decision/selection"):
             await cell.until_subscribed(f"cadence/{key}", 30)
         for key, msg in sent:
             put(cell, f"cadence/{key}", msg, block=True)
-        await asyncio.wait_for(seen.wait(), 30)
-        stop.set()
+        await asyncio.wait_for(stop.wait(), 30)
         rec = await recording
     got = [(m.key.removeprefix("cadence/"), msgspec.msgpack.decode(m.data).get("state"))
            for m in read(tmp_path / "plant.mcap")]  # fmt: skip
     want = [("pc1/hrv/window", None), ("pc2/hrv/window", None), ("pc1/health/executor", "serving"),
-            ("pc1/health/executor", "stopped"), ("pc2/decision/selection", None)]  # fmt: skip
+            ("pc1/health/executor", "stopped"), ("pc2/decision/selection", None),
+            ("pc2/decision/selection", None)]  # fmt: skip
     assert sorted(got, key=str) == sorted(want, key=str)
     assert [s for k, s in got if k == "pc1/health/executor"] == ["serving", "stopped"]
-    assert rec.count == 5
+    assert rec.count == 6

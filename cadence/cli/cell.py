@@ -90,9 +90,9 @@ def cmd_router(args: argparse.Namespace) -> int:
 @arg(
     "--plant",
     action="store_true",
-    help="what a plant keeps of every cell: windows, calibrations, selections, cycles, events, errors, "
-    "signals, and each service's status once a minute or when it changes; no raw ECG, accelerometer, "
-    "beats or RR (health data), no arm state or separation readings",
+    help="what a plant keeps of every cell: windows, calibrations, new selections, cycles, events, errors, "
+    "signals, and each service's status once a minute or when its state changes; no raw ECG, "
+    "accelerometer, beats or RR (health data), no arm state or separation readings",
 )
 @arg("-o", "--output", required=True, metavar="FILE.mcap")
 @arg("--duration", type=float, help="stop after this many seconds")
@@ -103,7 +103,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     import asyncio
 
-    from cadence.tools.recording import HealthEvery, plant_keys, record
+    from cadence.tools.recording import PlantThinning, plant_keys, record
     from common.runtime.bus import Bus
 
     if args.plant and args.keys:
@@ -125,7 +125,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 stop,
                 json=args.json,
                 on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
-                keep=HealthEvery() if args.plant else None,
+                keep=PlantThinning() if args.plant else None,
             )
             alone = bus.isolation()
         if rec.failed is not None:  # what a flush put in the file is readable; the rest was lost

@@ -173,8 +173,16 @@ def _link(tls: Tls, side: str) -> dict[str, Any]:
 
 
 def router_config(
-    cell: str, listen: Iterable[str], tls: Tls, users_file: str, accounts: tuple[str, ...] = ACCOUNTS
+    cell: str,
+    listen: Iterable[str],
+    tls: Tls,
+    users_file: str,
+    accounts: tuple[str, ...] = ACCOUNTS,
+    plant: bool = False,
 ) -> dict[str, Any]:
+    """A cell's router; ``plant``: a plant's router may connect to it (``PLANT``'s identity in the users
+    file): it may read the cell, and nothing else (``with_plant``)."""
+    acl = access_control(cell, accounts)
     return {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
@@ -183,7 +191,104 @@ def router_config(
             "link": _link(tls, "listen"),
             "auth": {"usrpwd": {"dictionary_file": users_file}},
         },
-        "access_control": access_control(cell, accounts),
+        "access_control": with_plant(acl, cell) if plant else acl,
+        # where a person is goes first, past whatever else is queued on a link (the arm's state, the ECG)
+        "qos": {
+            "network": [
+                {
+                    "id": "separation first",
+                    "messages": ["put"],
+                    "flows": ["ingress", "egress"],
+                    "key_exprs": [f"{ROOT}/{cell}/operator/separation"],
+                    "overwrite": {"priority": "interactive_high", "express": True},
+                }
+            ]
+        },
+    }
+
+
+# --- a plant: a router that connects to many cells' routers ------------------------------------------
+
+PLANT = "plant"  # the plant router's identity on every cell's router (certificate CN and username)
+PLANT_MONITOR = "plant-monitor"  # who reads the plant (`cadence plant`, `cadence record --plant`)
+UPLINK_STATE_HZ = 5.0  # the arm's state per cell as the plant gets it (the cell's own is 50 Hz or more)
+
+
+def _allow(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": keys}
+
+
+READING = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+RECEIVING = ["put", "delete", "reply", "liveliness_token"]
+
+
+def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
+    """A cell's rules and the plant's link into it: the plant may declare what it reads (any key: its
+    monitor reads every cell at once, ``cadence/*/…``) and receive the cell's keys; nothing it sends is
+    let in (no put, no reply, no query: it can say nothing about where people are, select no k, resume
+    no robot), whatever the plant router itself allows."""
+    reads, receives, who = f"{cell}: plant reads", f"{cell}: plant receives", f"{cell}: {PLANT}"
+    return {
+        **acl,
+        "rules": [
+            *acl["rules"],
+            _allow(reads, "ingress", READING, [f"{ROOT}/**"]),
+            _allow(receives, "egress", RECEIVING, [f"{ROOT}/{cell}/**"]),
+        ],
+        "subjects": [*acl["subjects"], {"id": who, "cert_common_names": [PLANT], "usernames": [PLANT]}],
+        "policies": [*acl["policies"], {"rules": [reads, receives], "subjects": [who]}],
+    }
+
+
+def plant_router_config(
+    cells: dict[str, str], listen: Iterable[str], tls: Tls, users_file: str, password: str
+) -> dict[str, Any]:
+    """The plant's router: it connects to each cell's router (``cells``: name to endpoint) as ``PLANT``
+    and takes its monitors' sessions on ``listen``. The arm's state of each cell is downsampled to
+    ``UPLINK_STATE_HZ`` as it comes in, a rule per cell (one rule over ``cadence/*/robot/state`` would be
+    one budget for all of them together). Its monitors may read every cell and say nothing; a cell's link
+    may bring that cell's keys and nothing of another's."""
+    rules = [
+        _allow("monitor reads", "ingress", READING, [f"{ROOT}/**"]),
+        _allow("monitor receives", "egress", RECEIVING, [f"{ROOT}/**"]),
+    ]
+    subjects = [{"id": PLANT_MONITOR, "cert_common_names": [PLANT_MONITOR], "usernames": [PLANT_MONITOR]}]
+    policies = [{"rules": ["monitor reads", "monitor receives"], "subjects": [PLANT_MONITOR]}]
+    for cell in cells:  # a cell's link, known by its router's certificate (the plant connects to it)
+        up, interest = f"{cell}: up", f"{cell}: interest"
+        rules += [
+            _allow(up, "ingress", [*RECEIVING, "declare_queryable"], [f"{ROOT}/{cell}/**"]),
+            _allow(interest, "egress", READING, [f"{ROOT}/**"]),
+        ]
+        subjects.append({"id": cell, "cert_common_names": [identity(cell, "router")]})
+        policies.append({"rules": [up, interest], "subjects": [cell]})
+    link = _link(tls, "listen")
+    link["tls"] |= {"connect_certificate_base64": _b64(tls.cert), "connect_private_key_base64": _b64(tls.key)}
+    return {
+        "mode": "router",
+        "connect": {"endpoints": list(cells.values())},
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": link,
+            "auth": {"usrpwd": {"dictionary_file": users_file, "user": PLANT, "password": password}},
+        },
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": subjects,
+            "policies": policies,
+        },
+        "downsampling": [
+            {
+                "id": f"{cell}: state",
+                "flows": ["ingress"],
+                "messages": ["put"],
+                "rules": [{"key_expr": f"{ROOT}/{cell}/robot/state", "freq": UPLINK_STATE_HZ}],
+            }
+            for cell in cells
+        ],
     }
 
 

@@ -49,33 +49,35 @@ PLANT_SUFFIXES = (
     "operator/signal",
     "health/*",
 )
-HEALTH_EVERY_S = 60.0  # a service's status kept once a minute (wall s), and whenever its state changes
+HEALTH_EVERY_S = 60.0  # a plant keeps a service's status once a minute (wall s), and when its state changes
 
 
 def plant_keys(root: str = "cadence") -> list[str]:
     return [f"{root}/*/{suffix}" for suffix in PLANT_SUFFIXES]
 
 
-class HealthEvery:
-    """A filter for a recording: every message but a service's status, kept when its state (or detail)
-    changed or ``every_s`` after the last kept (wall time, as statuses come): five services' statuses every
-    5 s would be most of a plant recording's bytes and say nothing new."""
+class PlantThinning:
+    """A filter for a plant recording: every message but the repeats. A service's status is kept when its
+    state changes or ``every_s`` after the last kept (wall time, as statuses come: five services' statuses
+    every few seconds were a third of a plant recording, saying nothing new); a selection only when it
+    is a new one (the decision maker republishes the one in force every few seconds)."""
 
     def __init__(self, every_s: float = HEALTH_EVERY_S) -> None:
         self.every_s = every_s
-        self.last: dict[str, tuple[float, str]] = {}  # key: (when kept, state and detail)
+        self.last: dict[str, tuple[float, object]] = {}  # key: (when kept, what it said)
 
     def __call__(self, key: str, payload: bytes) -> bool:
-        if "/health/" not in key:
+        health, selection = "/health/" in key, key.endswith("/decision/selection")
+        if not (health or selection):
             return True
         try:
             msg = decode_any(payload)
         except msgspec.DecodeError:
             return True  # kept as it came: a recording is evidence
-        said = f"{getattr(msg, 'state', '')}\n{getattr(msg, 'detail', '')}"
+        said = getattr(msg, "state", None) if health else getattr(msg, "seq", None)
         now = time.monotonic()
-        when, before = self.last.get(key, (-math.inf, ""))
-        if said == before and now - when < self.every_s:
+        when, before = self.last.get(key, (-math.inf, None))
+        if said == before and (selection or now - when < self.every_s):
             return False
         self.last[key] = (now, said)
         return True
@@ -181,7 +183,7 @@ async def record(
 ) -> Recorder:
     """Record until ``stop``; the file is complete even when the stop is a signal. ``on_first(key)`` is
     called once, when the first message is written (a person wants to know that anything comes);
-    ``keep(key, payload)`` False leaves a message out (``HealthEvery``)."""
+    ``keep(key, payload)`` False leaves a message out (``PlantThinning``)."""
     rec = Recorder(path, json)
 
     def write(key: str, payload: bytes) -> None:
