@@ -5,9 +5,11 @@ the command reads two cells on one bus."""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from rich.console import Console
@@ -62,7 +64,7 @@ async def test_cadence_plant_shows_two_cells_on_one_bus() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     async with await Bus.open(BusConfig(listen=[endpoint]), "pc1") as bus:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "cadence", "plant", "--connect", endpoint, "--once", "20",
+            sys.executable, "-m", "cadence", "plant", "--connect", endpoint, "--once", "10",
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "COLUMNS": "200"},
         )  # fmt: skip
         try:
@@ -80,3 +82,138 @@ async def test_cadence_plant_shows_two_cells_on_one_bus() -> None:
     assert proc.returncode == 0, err.decode()
     assert "2 cells" in text
     assert "4 of 15 (initial)" in text and "9 of 15 (initial)" in text
+
+
+def _config(tmp: Path, name: str, cfg: dict) -> BusConfig:
+    p = tmp / f"{name}.json5"
+    p.write_text(json.dumps(cfg))
+    return BusConfig(config_file=str(p))
+
+
+@pytest.mark.asyncio
+async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(tmp_path: Path) -> None:
+    """Two cells, each behind its own router over mTLS, and a plant router that connects to both (issue
+    58; one plant CA here): the plant's monitor reads both cells at once, the arm's state of each at no
+    more than 5 Hz though the cells send 50; it may say nothing. And a plant router that allows anything
+    (compromised, or misconfigured) still cannot put a distance or a selection into a cell, nor ask it to
+    resume: the cell's own router lets in nothing from the plant's link."""
+    from cadence.deploy.cell import (
+        ACCOUNTS,
+        PLANT,
+        PLANT_MONITOR,
+        UPLINK_STATE_HZ,
+        Tls,
+        client_config,
+        identity,
+        plant_router_config,
+        router_config,
+        users_file,
+    )
+    from cadence.deploy.pki import issue, make_ca
+    from schemas import Separation
+
+    ca = make_ca("plant")
+    cells = {c: f"tls/127.0.0.1:{free_port()}" for c in ("c1", "c2")}
+    routers: list[BusConfig] = []
+    for c, endpoint in cells.items():
+        passwords = users_file(c, {a: f"pw-{a}" for a in ACCOUNTS})
+        (tmp_path / f"{c}.users").write_text(passwords + f"{PLANT}:pw-plant\n")
+        leaf = issue(ca, identity(c, "router"), c, ["127.0.0.1"])
+        cfg = router_config(c, [endpoint], Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / f"{c}.users"),
+                            plant=True)  # fmt: skip
+        routers.append(_config(tmp_path, f"{c}-router", cfg))
+    (tmp_path / "plant.users").write_text(f"{PLANT_MONITOR}:pw-monitor\n")
+    plant_leaf = issue(ca, PLANT, "plant", ["127.0.0.1"])
+    plant_at = f"tls/127.0.0.1:{free_port()}"
+    plant_cfg = plant_router_config(cells, [plant_at], Tls(ca.cert, plant_leaf.cert, plant_leaf.key),
+                                    str(tmp_path / "plant.users"), "pw-plant")  # fmt: skip
+    plant = _config(tmp_path, "plant", plant_cfg)
+    rogue_cfg = {**plant_cfg, "access_control": {"enabled": False}, "downsampling": [],
+                 "listen": {"endpoints": [f"tls/127.0.0.1:{free_port()}"]}}  # fmt: skip
+    rogue = _config(tmp_path, "rogue", rogue_cfg)
+    # the plant's monitor may read and receive, and do nothing else: no rule of its lets it put or ask
+    acl = plant_cfg["access_control"]
+    mine = {r for p in acl["policies"] if PLANT_MONITOR in p["subjects"] for r in p["rules"]}
+    assert {m for r in acl["rules"] if r["id"] in mine for m in r["messages"]} <= {
+        "declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "put", "delete", "reply",
+        "liveliness_token"}  # fmt: skip
+    assert all(r["flows"] == ["egress"] for r in acl["rules"] if r["id"] in mine and "put" in r["messages"])
+
+    def account(cell: str, name: str, at: str) -> BusConfig:
+        leaf = issue(ca, identity(cell, name), cell, [name])
+        cfg = client_config(cell, name, f"pw-{name}", [at], Tls(ca.cert, leaf.cert, leaf.key))
+        return _config(tmp_path, identity(cell, name), cfg)
+
+    monitor_leaf = issue(ca, PLANT_MONITOR, "plant", [PLANT_MONITOR])
+    monitor_tls = Tls(ca.cert, monitor_leaf.cert, monitor_leaf.key)
+    monitor_cfg = client_config("plant", "monitor", "pw-monitor", [plant_at], monitor_tls)
+    monitor_cfg["transport"]["auth"]["usrpwd"]["user"] = PLANT_MONITOR
+    state = RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
+    async with (
+        await Bus.open(routers[0], "c1"),
+        await Bus.open(routers[1], "c2"),
+        await Bus.open(account("c1", "executor", cells["c1"]), "c1") as ex1,
+        await Bus.open(account("c2", "executor", cells["c2"]), "c2") as ex2,
+        await Bus.open(plant, "plant"),
+        await Bus.open(_config(tmp_path, "monitor", monitor_cfg), "plant") as watcher,
+    ):
+        got: dict[str, int] = {"c1": 0, "c2": 0}
+
+        def came(key: str, _: bytes) -> None:
+            got[key.split("/")[1]] += 1
+
+        watcher.subscribe_raw("cadence/*/robot/state", came)
+        # the plant's reading reaches the cells (a cell's clients are not told of a plant's wildcard
+        # subscription, so a publisher cannot wait for it): each cell sends until the plant has one of it
+        async with asyncio.timeout(60):
+            while not (got["c1"] and got["c2"]):
+                put(ex1, ex1.key("robot/state"), state)
+                put(ex2, ex2.key("robot/state"), state)
+                await asyncio.sleep(0.02)
+        got = {"c1": 0, "c2": 0}
+        t0 = asyncio.get_running_loop().time()
+        for _ in range(150):  # 3 s at 50 Hz from each cell
+            put(ex1, ex1.key("robot/state"), state)
+            put(ex2, ex2.key("robot/state"), state)
+            await asyncio.sleep(0.02)
+        span = asyncio.get_running_loop().time() - t0
+        async with asyncio.timeout(10):
+            while not (got["c1"] and got["c2"]):
+                await asyncio.sleep(0.05)
+        for c in cells:  # each cell its own budget: both come, neither above the rate
+            assert 1 <= got[c] <= UPLINK_STATE_HZ * span + 2, (c, got[c], span)
+    # a plant router that lets anything through: the cells' routers still let nothing in from it
+    async with (
+        await Bus.open(routers[0], "c1"),
+        await Bus.open(account("c1", "monitor", cells["c1"]), "c1") as m1,
+        await Bus.open(account("c1", "separation_sensor", cells["c1"]), "c1") as s1,
+        await Bus.open(rogue, "plant") as plant_side,
+    ):
+        seps = m1.subscribe(m1.key("operator/separation"), Separation)
+        sels = m1.subscribe(m1.key("decision/selection"), Selection)
+        await s1.until_subscribed(s1.key("operator/separation"), 30)
+        token = s1.session.liveliness().declare_token("cadence/c1/health/separation_sensor")
+
+        async def round_trip() -> bool:
+            """A liveliness query over the plant's link and its reply: what the plant sent before it on
+            that link, the cell's router has handled."""
+            get = plant_side.session.liveliness().get
+            return bool(await asyncio.to_thread(lambda: list(get("cadence/c1/health/**", timeout=2.0))))
+
+        async with asyncio.timeout(60):  # the plant's link is up (or the puts below would prove nothing)
+            while not await round_trip():
+                pass
+        far = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
+        put(plant_side, "cadence/c1/operator/separation", far, block=True)
+        put(plant_side, "cadence/c1/decision/selection",
+            Selection(t_ns=3, seq=9, k=15, n=15, delta=0, reason="initial"), block=True)  # fmt: skip
+        resumed = await asyncio.to_thread(
+            lambda: list(plant_side.session.get("cadence/c1/robot/resume", timeout=2.0))
+        )
+        assert await round_trip()
+        near = Separation(t_ns=4, seq=1, distance_m=0.6, source="scanner:front")
+        put(s1, s1.key("operator/separation"), near, block=True)
+        assert (await seps.receive(10))[1] == near  # the first: the plant's 100 m never came
+        assert sels.pending == 0
+        assert all(r.err is not None for r in resumed)  # no answer, or a refusal
+        token.undeclare()

@@ -224,16 +224,16 @@ RECEIVING = ["put", "delete", "reply", "liveliness_token"]
 
 def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
     """A cell's rules and the plant's link into it: the plant may declare what it reads (any key: its
-    monitor reads every cell at once, ``cadence/*/…``) and receive the cell's keys; nothing it sends is
-    let in (no put, no reply, no query: it can say nothing about where people are, select no k, resume
-    no robot), whatever the plant router itself allows."""
+    monitor reads every cell at once, ``cadence/*/…``) and receive the cell's keys and what the cell
+    listens to; nothing it sends is let in (no put, no reply, no query: it can say nothing about where
+    people are, select no k, resume no robot), whatever the plant router itself allows."""
     reads, receives, who = f"{cell}: plant reads", f"{cell}: plant receives", f"{cell}: {PLANT}"
     return {
         **acl,
         "rules": [
             *acl["rules"],
             _allow(reads, "ingress", READING, [f"{ROOT}/**"]),
-            _allow(receives, "egress", RECEIVING, [f"{ROOT}/{cell}/**"]),
+            _allow(receives, "egress", [*RECEIVING, "declare_subscriber"], [f"{ROOT}/{cell}/**"]),
         ],
         "subjects": [*acl["subjects"], {"id": who, "cert_common_names": [PLANT], "usernames": [PLANT]}],
         "policies": [*acl["policies"], {"rules": [reads, receives], "subjects": [who]}],
