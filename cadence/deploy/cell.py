@@ -63,64 +63,37 @@ def _acl_key(cell: str, suffix: str) -> str:
     return f"{ROOT}/{cell}/{suffix}"
 
 
+def _allow(rule_id: str, flows: list[str], messages: list[str], keys: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": flows, "messages": messages, "key_exprs": keys}
+
+
+READING = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+RECEIVING = ["put", "delete", "reply", "liveliness_token"]
+
+
 def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str, Any]:
     """The router's ``access_control`` section: default deny, every rule derived from the graph, for the
     ``accounts`` this cell runs."""
-    everything = f"{ROOT}/{cell}/**"
-    rules: list[dict[str, Any]] = [
-        {
-            "id": f"{cell}: read",
-            "permission": "allow",
-            "flows": ["ingress", "egress"],
-            "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-            "key_exprs": [everything],
-        },
-        {
-            "id": f"{cell}: receive",
-            "permission": "allow",
-            "flows": ["egress"],
-            "messages": ["put", "delete", "reply", "query", "declare_queryable", "liveliness_token"],
-            "key_exprs": [everything],
-        },
+    everything = [f"{ROOT}/{cell}/**"]
+    read, receive = f"{cell}: read", f"{cell}: receive"
+    rules = [
+        _allow(read, ["ingress", "egress"], READING, everything),
+        _allow(receive, ["egress"], [*RECEIVING, "query", "declare_queryable"], everything),
     ]
     who = {a: identity(cell, a) for a in accounts}
-    policies: list[dict[str, Any]] = [
-        {"rules": [f"{cell}: read", f"{cell}: receive"], "subjects": [who[a] for a in accounts]}
-    ]
+    policies: list[dict[str, Any]] = [{"rules": [read, receive], "subjects": [who[a] for a in accounts]}]
     for name in accounts:
         health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
         keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in publishers(t) and t is not HEALTH})
         asks = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in askers(t)})
-        rules.append(
-            {
-                "id": f"{cell}: publish {name}",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["put", "delete", "declare_queryable", "reply"],
-                "key_exprs": [*keys, health],
-            }
-        )
-        rules.append(
-            {
-                "id": f"{cell}: presence {name}",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["liveliness_token"],
-                "key_exprs": [health],
-            }
-        )
         own = [f"{cell}: publish {name}", f"{cell}: presence {name}"]
+        rules.append(
+            _allow(own[0], ["ingress"], ["put", "delete", "declare_queryable", "reply"], [*keys, health])
+        )
+        rules.append(_allow(own[1], ["ingress"], ["liveliness_token"], [health]))
         if asks:  # a query changes what an answerer does (robot/resume): only those the graph names ask
-            rules.append(
-                {
-                    "id": f"{cell}: ask {name}",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["query"],
-                    "key_exprs": asks,
-                }
-            )
             own.append(f"{cell}: ask {name}")
+            rules.append(_allow(own[-1], ["ingress"], ["query"], asks))
         policies.append({"rules": own, "subjects": [who[name]]})
     # both properties: a subject matches only a session with this certificate AND this username
     subjects = [{"id": i, "cert_common_names": [i], "usernames": [i]} for i in who.values()]
@@ -214,14 +187,6 @@ PLANT_MONITOR = "plant-monitor"  # who reads the plant (`cadence plant`, `cadenc
 UPLINK_STATE_HZ = 5.0  # the arm's state per cell as the plant gets it (the cell's own is 50 Hz or more)
 
 
-def _allow(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
-    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": keys}
-
-
-READING = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
-RECEIVING = ["put", "delete", "reply", "liveliness_token"]
-
-
 def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
     """A cell's rules and the plant's link into it: the plant may declare what it reads (any key: its
     monitor reads every cell at once, ``cadence/*/…``) and receive the cell's keys and what the cell
@@ -232,8 +197,8 @@ def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
         **acl,
         "rules": [
             *acl["rules"],
-            _allow(reads, "ingress", READING, [f"{ROOT}/**"]),
-            _allow(receives, "egress", [*RECEIVING, "declare_subscriber"], [f"{ROOT}/{cell}/**"]),
+            _allow(reads, ["ingress"], READING, [f"{ROOT}/**"]),
+            _allow(receives, ["egress"], [*RECEIVING, "declare_subscriber"], [f"{ROOT}/{cell}/**"]),
         ],
         "subjects": [*acl["subjects"], {"id": who, "cert_common_names": [PLANT], "usernames": [PLANT]}],
         "policies": [*acl["policies"], {"rules": [reads, receives], "subjects": [who]}],
@@ -249,16 +214,16 @@ def plant_router_config(
     one budget for all of them together). Its monitors may read every cell and say nothing; a cell's link
     may bring that cell's keys and nothing of another's."""
     rules = [
-        _allow("monitor reads", "ingress", READING, [f"{ROOT}/**"]),
-        _allow("monitor receives", "egress", RECEIVING, [f"{ROOT}/**"]),
+        _allow("monitor reads", ["ingress"], READING, [f"{ROOT}/**"]),
+        _allow("monitor receives", ["egress"], RECEIVING, [f"{ROOT}/**"]),
     ]
     subjects = [{"id": PLANT_MONITOR, "cert_common_names": [PLANT_MONITOR], "usernames": [PLANT_MONITOR]}]
     policies = [{"rules": ["monitor reads", "monitor receives"], "subjects": [PLANT_MONITOR]}]
     for cell in cells:  # a cell's link, known by its router's certificate (the plant connects to it)
         up, interest = f"{cell}: up", f"{cell}: interest"
         rules += [
-            _allow(up, "ingress", [*RECEIVING, "declare_queryable"], [f"{ROOT}/{cell}/**"]),
-            _allow(interest, "egress", READING, [f"{ROOT}/**"]),
+            _allow(up, ["ingress"], [*RECEIVING, "declare_queryable"], [f"{ROOT}/{cell}/**"]),
+            _allow(interest, ["egress"], READING, [f"{ROOT}/**"]),
         ]
         subjects.append({"id": cell, "cert_common_names": [identity(cell, "router")]})
         policies.append({"rules": [up, interest], "subjects": [cell]})
