@@ -32,7 +32,7 @@ from cadence.deploy.pki import common_name, issue, make_ca
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
 from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS
-from tests.support.cell import CELL, free_port, put
+from tests.support.cell import CELL, config_file, free_port, put
 from tests.support.paths import REPO
 
 
@@ -82,12 +82,6 @@ def test_a_cell_with_a_strap_gives_the_twin_no_account_at_all() -> None:
     assert "c1-operator_twin" in {a for p in twin["policies"] for a in p["subjects"]}
 
 
-def _write(tmp: Path, name: str, cfg: dict) -> BusConfig:
-    p = tmp / f"{name}.json5"
-    p.write_text(json.dumps(cfg))
-    return BusConfig(config_file=str(p))
-
-
 @pytest.mark.asyncio
 async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_keys(tmp_path: Path) -> None:
     ca = make_ca(CELL)
@@ -96,7 +90,7 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
     port = free_port()
     endpoint = [f"tls/127.0.0.1:{port}"]
     leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
-    router = _write(
+    router = config_file(
         tmp_path,
         "router",
         router_config(CELL, endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt")),
@@ -106,7 +100,7 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
 
     def account(cert: str, user: str) -> BusConfig:
         c = certs[cert]
-        return _write(
+        return config_file(
             tmp_path,
             f"{cert}-{user}",
             client_config(CELL, user, passwords[user], endpoint, Tls(ca.cert, c.cert, c.key)),
@@ -183,7 +177,7 @@ async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_ke
     with pytest.raises(Exception):  # noqa: B017 (Zenoh's own error type)
         async with (
             await Bus.open(router, CELL),
-            await Bus.open(_write(tmp_path, "stranger", stranger), CELL),
+            await Bus.open(config_file(tmp_path, "stranger", stranger), CELL),
         ):
             pass
 
@@ -224,12 +218,12 @@ async def test_one_cells_sensor_cannot_say_where_people_are_in_another_on_a_shar
     leaf = issue(ca, "plant-router", "plant", ["127.0.0.1"])
     cfg = router_config("c1", endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt"))
     cfg["access_control"] = merged(*(access_control(c) for c in cells))
-    router = _write(tmp_path, "router", cfg)
+    router = config_file(tmp_path, "router", cfg)
 
     def account(cell: str, name: str) -> BusConfig:
         c = issue(ca, identity(cell, name), cell, [name])
         conf = client_config(cell, name, passwords[cell][name], endpoint, Tls(ca.cert, c.cert, c.key))
-        return _write(tmp_path, identity(cell, name), conf)
+        return config_file(tmp_path, identity(cell, name), conf)
 
     theirs = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
     own = Separation(t_ns=3, seq=1, distance_m=0.6, source="scanner:front")

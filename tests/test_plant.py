@@ -5,7 +5,6 @@ the command reads two cells on one bus."""
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import subprocess
 import sys
@@ -18,7 +17,7 @@ from cadence.tools.plant import Plant, plant_watch
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, RobotState, Selection, ServiceStatus
 from schemas.topology import SERVICES, encode
-from tests.support.cell import free_port, put
+from tests.support.cell import config_file, free_port, put
 
 
 def render(plant: Plant, now: float) -> str:
@@ -84,12 +83,6 @@ async def test_cadence_plant_shows_two_cells_on_one_bus() -> None:
     assert "4 of 15 (initial)" in text and "9 of 15 (initial)" in text
 
 
-def _config(tmp: Path, name: str, cfg: dict) -> BusConfig:
-    p = tmp / f"{name}.json5"
-    p.write_text(json.dumps(cfg))
-    return BusConfig(config_file=str(p))
-
-
 @pytest.mark.asyncio
 async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(tmp_path: Path) -> None:
     """Two cells, each behind its own router over mTLS, and a plant router that connects to both (issue
@@ -121,16 +114,16 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         leaf = issue(ca, identity(c, "router"), c, ["127.0.0.1"])
         cfg = router_config(c, [endpoint], Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / f"{c}.users"),
                             plant=True)  # fmt: skip
-        routers.append(_config(tmp_path, f"{c}-router", cfg))
+        routers.append(config_file(tmp_path, f"{c}-router", cfg))
     (tmp_path / "plant.users").write_text(f"{PLANT_MONITOR}:pw-monitor\n")
     plant_leaf = issue(ca, PLANT, "plant", ["127.0.0.1"])
     plant_at = f"tls/127.0.0.1:{free_port()}"
     plant_cfg = plant_router_config(cells, [plant_at], Tls(ca.cert, plant_leaf.cert, plant_leaf.key),
                                     str(tmp_path / "plant.users"), "pw-plant")  # fmt: skip
-    plant = _config(tmp_path, "plant", plant_cfg)
+    plant = config_file(tmp_path, "plant", plant_cfg)
     rogue_cfg = {**plant_cfg, "access_control": {"enabled": False}, "downsampling": [],
                  "listen": {"endpoints": [f"tls/127.0.0.1:{free_port()}"]}}  # fmt: skip
-    rogue = _config(tmp_path, "rogue", rogue_cfg)
+    rogue = config_file(tmp_path, "rogue", rogue_cfg)
     # the plant's monitor may read and receive, and do nothing else: no rule of its lets it put or ask
     acl = plant_cfg["access_control"]
     mine = {r for p in acl["policies"] if PLANT_MONITOR in p["subjects"] for r in p["rules"]}
@@ -142,7 +135,7 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
     def account(cell: str, name: str, at: str) -> BusConfig:
         leaf = issue(ca, identity(cell, name), cell, [name])
         cfg = client_config(cell, name, f"pw-{name}", [at], Tls(ca.cert, leaf.cert, leaf.key))
-        return _config(tmp_path, identity(cell, name), cfg)
+        return config_file(tmp_path, identity(cell, name), cfg)
 
     monitor_leaf = issue(ca, PLANT_MONITOR, "plant", [PLANT_MONITOR])
     monitor_tls = Tls(ca.cert, monitor_leaf.cert, monitor_leaf.key)
@@ -155,7 +148,7 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         await Bus.open(account("c1", "executor", cells["c1"]), "c1") as ex1,
         await Bus.open(account("c2", "executor", cells["c2"]), "c2") as ex2,
         await Bus.open(plant, "plant"),
-        await Bus.open(_config(tmp_path, "monitor", monitor_cfg), "plant") as watcher,
+        await Bus.open(config_file(tmp_path, "monitor", monitor_cfg), "plant") as watcher,
     ):
         got: dict[str, int] = {"c1": 0, "c2": 0}
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -28,9 +29,10 @@ from schemas.base import Message
 from schemas.topology import (
     DEFAULT_CELL,
 )
+from schemas.topology import key as key_of
 
 if TYPE_CHECKING:
-    pass
+    from rich.console import RenderableType
 
 cli = Commands()
 
@@ -211,6 +213,15 @@ def cmd_get(args: argparse.Namespace) -> int:
     return asyncio.run(go())
 
 
+def add_watch_flags(p: argparse.ArgumentParser) -> None:
+    """A live view's options: the bus's, and one view after S seconds for scripts."""
+    add_bus_flags(p, 5.0)
+    p.add_argument("--once", type=float, metavar="S", help="print one view after S seconds and exit")
+    p.add_argument(
+        "--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)"
+    )
+
+
 @cli.command(
     "plant",
     help="every cell on the mesh in one table: services, robot, k, the operator's window, their ages",
@@ -219,37 +230,12 @@ def cmd_get(args: argparse.Namespace) -> int:
     "safety state and why, the selection in force, the operator's last window, and the age of each. "
     "Ctrl-C ends it.",
 )
-@flags_from(add_bus_flags, 5.0)
-@arg("--once", type=float, metavar="S", help="print one view after S seconds and exit")
-@arg("--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)")
+@flags_from(add_watch_flags)
 def cmd_plant(args: argparse.Namespace) -> int:
-    import asyncio
-
-    from rich.live import Live
-
     from cadence.tools.plant import Plant, plant_watch
-    from common.runtime.bus import Bus
-    from common.runtime.service import first_of
 
     plant = Plant()
-
-    async def go() -> int:
-        stop = stop_on_signals()
-        async with await Bus.open(joining(args), args.cell, role="monitor") as bus:
-            for key in plant_watch():
-                bus.subscribe_raw(key, plant.on)
-            say_when_alone(bus, "plant")
-            if args.once is not None:
-                await first_of(stop.wait(), asyncio.sleep(args.once))
-                out.print(plant.view(args.status_period))
-                return 0
-            with Live(plant.view(args.status_period), console=out, refresh_per_second=2) as live:
-                while not stop.is_set():
-                    await first_of(stop.wait(), asyncio.sleep(0.5))
-                    live.update(plant.view(args.status_period))
-        return 0
-
-    return asyncio.run(go())
+    return watching(args, "plant", plant_watch(), plant.on, plant.view)
 
 
 @cli.command(
@@ -260,35 +246,45 @@ def cmd_plant(args: argparse.Namespace) -> int:
     "decode; per service whether its status still comes, its state, uptime, dropped messages "
     "(decode errors, rejections) and handler errors. Ctrl-C ends it.",
 )
-@flags_from(add_bus_flags, 5.0)
-@arg("--once", type=float, metavar="S", help="print one view after S seconds and exit")
-@arg("--status-period", type=float, default=5.0, metavar="S", help="services' status period (default 5)")
+@flags_from(add_watch_flags)
 def cmd_top(args: argparse.Namespace) -> int:
     """The cell's keys and services, live; with --once S, one table after S seconds (for scripts)."""
+    from cadence.tools.top import Top
+
+    top = Top(args.cell)
+    return watching(args, "top", [key_of(args.cell, "**")], top.on, top.view)
+
+
+def watching(
+    args: argparse.Namespace,
+    command: str,
+    keys: list[str],
+    on: Callable[[str, bytes], None],
+    view: Callable[[float], RenderableType],
+) -> int:
+    """A live view of what ``keys`` carry, as the monitor account; with --once S, one view after S
+    seconds (for scripts)."""
     import asyncio
 
     from rich.live import Live
 
-    from cadence.tools.top import Top
     from common.runtime.bus import Bus
     from common.runtime.service import first_of
 
-    top = Top(args.cell)
-
     async def go() -> int:
         stop = stop_on_signals()
-        cfg = joining(args)
-        async with await Bus.open(cfg, args.cell, role="monitor") as bus:
-            bus.subscribe_raw(bus.key("**"), top.on)
-            say_when_alone(bus, "top")
+        async with await Bus.open(joining(args), args.cell, role="monitor") as bus:
+            for key in keys:
+                bus.subscribe_raw(key, on)
+            say_when_alone(bus, command)
             if args.once is not None:
                 await first_of(stop.wait(), asyncio.sleep(args.once))
-                out.print(top.view(args.status_period))
+                out.print(view(args.status_period))
                 return 0
-            with Live(top.view(args.status_period), console=out, refresh_per_second=2) as live:
+            with Live(view(args.status_period), console=out, refresh_per_second=2) as live:
                 while not stop.is_set():
                     await first_of(stop.wait(), asyncio.sleep(0.5))
-                    live.update(top.view(args.status_period))
+                    live.update(view(args.status_period))
         return 0
 
     return asyncio.run(go())

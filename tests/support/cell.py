@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -178,3 +179,10 @@ class Cell:
 
     def key(self, suffix: str) -> str:
         return f"cadence/{self.name}/{suffix}"
+
+
+def config_file(tmp: Path, name: str, cfg: dict) -> BusConfig:
+    """A Zenoh config (a router's, an account's) as the file a deployed process reads."""
+    p = tmp / f"{name}.json5"
+    p.write_text(json.dumps(cfg))
+    return BusConfig(config_file=str(p))
