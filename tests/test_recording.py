@@ -276,8 +276,8 @@ async def test_a_plant_recording_keeps_every_cells_derived_keys_and_no_raw_signa
     tmp_path: Path, endpoint: str
 ) -> None:
     """`cadence record --plant` (issue 58): windows, selections, statuses of two cells, not the raw ECG or
-    the arm's state (health data, and most of a cell's bytes); a service's status once a minute unless it
-    changes, a selection only when it is a new one."""
+    the arm's state (health data, and most of a cell's bytes); a service's status once a minute, a
+    selection only when it is a new one."""
     from cadence.tools.recording import PlantThinning, plant_keys
     from schemas import EcgChunk, RobotState, ServiceStatus
 
@@ -293,8 +293,8 @@ async def test_a_plant_recording_keeps_every_cells_derived_keys_and_no_raw_signa
         ("pc1/hrv/window", window),
         ("pc2/hrv/window", window),
         ("pc1/health/executor", status("serving", 1)),
-        ("pc1/health/executor", status("serving", 2)),  # the same, within the minute: left out
-        ("pc1/health/executor", status("stopped", 3)),  # changed: kept
+        ("pc1/health/executor", status("serving", 2)),  # within the minute: left out
+        ("pc1/health/executor", status("stopped", 3)),  # so is this (its events say what changed)
         ("pc2/decision/selection", sel),
         ("pc2/decision/selection", sel),  # republished, no new decision: left out
         ("pc2/decision/selection", msgspec.structs.replace(sel, seq=1, k=7)),
@@ -324,8 +324,30 @@ async def test_a_plant_recording_keeps_every_cells_derived_keys_and_no_raw_signa
     got = [(m.key.removeprefix("cadence/"), msgspec.msgpack.decode(m.data).get("state"))
            for m in read(tmp_path / "plant.mcap")]  # fmt: skip
     want = [("pc1/hrv/window", None), ("pc2/hrv/window", None), ("pc1/health/executor", "serving"),
-            ("pc1/health/executor", "stopped"), ("pc2/decision/selection", None),
-            ("pc2/decision/selection", None)]  # fmt: skip
+            ("pc2/decision/selection", None), ("pc2/decision/selection", None)]  # fmt: skip
     assert sorted(got, key=str) == sorted(want, key=str)
-    assert [s for k, s in got if k == "pc1/health/executor"] == ["serving", "stopped"]
-    assert rec.count == 6
+    assert rec.count == 5
+
+
+def test_plant_thinning_keeps_a_status_a_minute_and_each_new_selection() -> None:
+    from cadence.tools.recording import PlantThinning
+    from schemas import ServiceStatus
+    from schemas.topology import encode
+
+    now = [0.0]
+    thin = PlantThinning(clock=lambda: now[0])
+    status = encode(
+        ServiceStatus(t_ns=1, seq=0, service="executor", state="moving", uptime_s=1.0, counters={})
+    )
+    kept = []
+    for t in (0.0, 30.0, 59.9, 60.0, 61.0, 125.0):
+        now[0] = t
+        kept += [t] if thin("cadence/c1/health/executor", status) else []
+    assert kept == [0.0, 60.0, 125.0]
+    assert thin("cadence/c2/health/executor", status)  # each key its own minute
+    sel = Selection(t_ns=3, seq=4, k=8, n=15, delta=0, reason="initial")
+    again = [
+        thin("cadence/c1/decision/selection", encode(msgspec.structs.replace(sel, seq=s))) for s in (4, 4, 5)
+    ]
+    assert again == [True, False, True]
+    assert thin("cadence/c1/hrv/window", b"anything")

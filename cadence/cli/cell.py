@@ -93,8 +93,8 @@ def cmd_router(args: argparse.Namespace) -> int:
     "--plant",
     action="store_true",
     help="what a plant keeps of every cell: windows, calibrations, new selections, cycles, events, errors, "
-    "signals, and each service's status once a minute or when its state changes; no raw ECG, "
-    "accelerometer, beats or RR (health data), no arm state or separation readings",
+    "signals, and each service's status once a minute; no raw ECG, accelerometer, beats or RR (health "
+    "data), no arm state or separation readings",
 )
 @arg("-o", "--output", required=True, metavar="FILE.mcap")
 @arg("--duration", type=float, help="stop after this many seconds")
