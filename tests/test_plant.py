@@ -5,6 +5,7 @@ the command reads two cells on one bus."""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import subprocess
 import sys
@@ -18,6 +19,13 @@ from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, RobotState, Selection, ServiceStatus
 from schemas.topology import SERVICES, encode
 from tests.support.cell import config_file, free_port, put
+
+
+def json5_of(path: Path) -> dict:
+    """A config as `cadence` writes it: comment lines, then JSON."""
+    return json.loads(
+        "".join(line for line in path.read_text().splitlines(True) if not line.startswith("//"))
+    )
 
 
 def render(plant: Plant, now: float) -> str:
@@ -98,28 +106,30 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         Tls,
         client_config,
         identity,
-        plant_router_config,
         router_config,
         users_file,
     )
     from cadence.deploy.pki import issue, make_ca
+    from cadence.deploy.plant import new_secret, plant_files
     from schemas import Separation
 
-    ca = make_ca("plant")
+    # each cell its own CA, the plant its own; the plant's files as `cadence plant-router` writes them
     cells = {c: f"tls/127.0.0.1:{free_port()}" for c in ("c1", "c2")}
+    cas = {c: make_ca(c) for c in cells}
+    secret = new_secret()
+    plant_at = f"tls/127.0.0.1:{free_port()}"
+    for name, (text, _) in plant_files(secret, {c: (e, cas[c].cert) for c, e in cells.items()}, plant_at,
+                                       ["127.0.0.1"], tmp_path).items():  # fmt: skip
+        (tmp_path / name).write_text(text)
     routers: list[BusConfig] = []
     for c, endpoint in cells.items():
         passwords = users_file(c, {a: f"pw-{a}" for a in ACCOUNTS})
-        (tmp_path / f"{c}.users").write_text(passwords + f"{PLANT}:pw-plant\n")
-        leaf = issue(ca, identity(c, "router"), c, ["127.0.0.1"])
-        cfg = router_config(c, [endpoint], Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / f"{c}.users"),
-                            plant=True)  # fmt: skip
+        (tmp_path / f"{c}.users").write_text(passwords + f"{PLANT}:{secret.password}\n")
+        leaf = issue(cas[c], identity(c, "router"), c, ["127.0.0.1"])
+        tls = Tls(cas[c].cert + secret.ca.cert, leaf.cert, leaf.key)  # the plant's CA beside the cell's
+        cfg = router_config(c, [endpoint], tls, str(tmp_path / f"{c}.users"), plant=True)
         routers.append(config_file(tmp_path, f"{c}-router", cfg))
-    (tmp_path / "plant.users").write_text(f"{PLANT_MONITOR}:pw-monitor\n")
-    plant_leaf = issue(ca, PLANT, "plant", ["127.0.0.1"])
-    plant_at = f"tls/127.0.0.1:{free_port()}"
-    plant_cfg = plant_router_config(cells, [plant_at], Tls(ca.cert, plant_leaf.cert, plant_leaf.key),
-                                    str(tmp_path / "plant.users"), "pw-plant")  # fmt: skip
+    plant_cfg = json5_of(tmp_path / "router.json5")
     plant = config_file(tmp_path, "plant", plant_cfg)
     rogue_cfg = {**plant_cfg, "access_control": {"enabled": False}, "downsampling": [],
                  "listen": {"endpoints": [f"tls/127.0.0.1:{free_port()}"]}}  # fmt: skip
@@ -133,14 +143,11 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
     assert all(r["flows"] == ["egress"] for r in acl["rules"] if r["id"] in mine and "put" in r["messages"])
 
     def account(cell: str, name: str, at: str) -> BusConfig:
-        leaf = issue(ca, identity(cell, name), cell, [name])
-        cfg = client_config(cell, name, f"pw-{name}", [at], Tls(ca.cert, leaf.cert, leaf.key))
+        leaf = issue(cas[cell], identity(cell, name), cell, [name])
+        cfg = client_config(cell, name, f"pw-{name}", [at], Tls(cas[cell].cert, leaf.cert, leaf.key))
         return config_file(tmp_path, identity(cell, name), cfg)
 
-    monitor_leaf = issue(ca, PLANT_MONITOR, "plant", [PLANT_MONITOR])
-    monitor_tls = Tls(ca.cert, monitor_leaf.cert, monitor_leaf.key)
-    monitor_cfg = client_config("plant", "monitor", "pw-monitor", [plant_at], monitor_tls)
-    monitor_cfg["transport"]["auth"]["usrpwd"]["user"] = PLANT_MONITOR
+    monitor_cfg = json5_of(tmp_path / "plant-monitor.json5")
     state = RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
     async with (
         await Bus.open(routers[0], "c1"),
@@ -210,3 +217,54 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         assert sels.pending == 0
         assert all(r.err is not None for r in resumed)  # no answer, or a refusal
         token.undeclare()
+
+
+def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_json(tmp_path: Path) -> None:
+    """`cadence plant-router` and `cadence install --plant` (issue 58): the plant's router trusts the plant's
+    and every cell's CA, connects to each cell and downsamples each; plant.json holds no key; run again,
+    the plant's CA is kept. A cell staged with it lets the plant in as the rules above say, trusting the
+    plant's CA beside its own. A bad --cell and a plant secret given for plant.json are one line each."""
+    from cadence.deploy.pki import make_ca
+
+    def cadence(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "cadence", *args], capture_output=True, text=True,
+                              timeout=120)  # fmt: skip
+
+    cas = {}
+    for c in ("c1", "c2"):
+        cas[c] = make_ca(c).cert
+        (tmp_path / f"{c}.pem").write_bytes(cas[c])
+    out = tmp_path / "plant"
+    specs = [f"--cell={c}=tls/10.0.{i}.5:7447={tmp_path / f'{c}.pem'}" for i, c in enumerate(cas, 1)]
+    r = cadence("plant-router", *specs, "--out", str(out), "--host", "plant.local")
+    assert r.returncode == 0, r.stderr
+    router = json5_of(out / "router.json5")
+    assert router["connect"]["endpoints"] == ["tls/10.0.1.5:7447", "tls/10.0.2.5:7447"]
+    assert [d["rules"][0]["key_expr"] for d in router["downsampling"]] == [
+        "cadence/c1/robot/state", "cadence/c2/robot/state"]  # fmt: skip
+    import base64
+
+    trusted = base64.b64decode(router["transport"]["link"]["tls"]["root_ca_certificate_base64"])
+    assert cas["c1"] in trusted and cas["c2"] in trusted and trusted.count(b"BEGIN CERTIFICATE") == 3
+    given = json.loads((out / "plant.json").read_text())
+    assert set(given) == {"ca_cert", "password"}
+    assert (out / "plant-secret.json").stat().st_mode & 0o077 == 0
+    assert cadence("plant-router", *specs, "--out", str(out)).returncode == 0
+    assert json.loads((out / "plant.json").read_text()) == given  # run again: the same plant
+
+    stage = tmp_path / "stage"
+    r = cadence("install", "--robot", "sim", "--strap", "twin", "--cell", "c1", "--root", str(stage),
+                "--plant", str(out / "plant.json"))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    creds = stage / "etc/cadence/credentials"
+    assert f"plant:{given['password']}" in (creds / "users.txt").read_text().splitlines()
+    cell_router = json5_of(creds / "router.json5")
+    assert "c1: plant reads" in {rule["id"] for rule in cell_router["access_control"]["rules"]}
+    cell_trusts = base64.b64decode(cell_router["transport"]["link"]["tls"]["root_ca_certificate_base64"])
+    assert given["ca_cert"].encode() in cell_trusts
+
+    bad = cadence("plant-router", "--cell", "c1=tls/10.0.1.5:7447", "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "expected NAME=ENDPOINT=CA.pem" in bad.stderr, bad.stderr
+    wrong = cadence("install", "--robot", "sim", "--strap", "twin", "--root", str(tmp_path / "s2"),
+                    "--plant", str(out / "plant-secret.json"))  # fmt: skip
+    assert wrong.returncode == 2 and "not a plant.json" in wrong.stderr, wrong.stderr

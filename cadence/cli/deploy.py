@@ -46,6 +46,12 @@ cli = Commands()
 @arg("--no-systemctl", action="store_true", help="no daemon-reload or enable")
 @arg("--dry-run", action="store_true", help="print every file it would write, and stop")
 @arg(
+    "--plant",
+    metavar="plant.json",
+    help="let a plant's router read this cell (the file `cadence plant-router` writes): the router trusts "
+    "the plant's CA beside the cell's; nothing from the plant may publish, answer or ask",
+)
+@arg(
     "--root",
     metavar="DIR",
     help="stage the install into DIR (as DESTDIR does: DIR/etc/cadence/…, DIR/etc/systemd/system/…, naming "
@@ -85,6 +91,7 @@ def cmd_install(args: argparse.Namespace) -> int:
         systemctl=not args.no_systemctl,
         scanners=scanners,
         root=Path(args.root).absolute() if args.root else None,
+        plant=Path(args.plant) if args.plant else None,
     )
     for line in install(opts, dry_run=args.dry_run):
         print(line)
@@ -98,4 +105,56 @@ def cmd_uninstall(args: argparse.Namespace) -> int:
 
     for line in uninstall(keep_venv=args.keep_venv):
         print(line)
+    return 0
+
+
+@cli.command(
+    "plant-router",
+    help="write a plant router's files: its config, its monitor's account, and plant.json for the cells",
+    description="Writes into OUT: router.json5 (the plant's router: it connects to every cell's router as "
+    "'plant' over mTLS, takes each cell's arm state at 5 Hz, lets its monitor read every cell and say "
+    "nothing), users.txt, plant-monitor.json5 (`cadence plant --zenoh-config`), plant-secret.json (its "
+    "CA and password, kept when run again) and plant.json, which every cell's install takes with "
+    "`cadence install --plant plant.json`. Run `zenohd -c OUT/router.json5` (or `cadence router "
+    "--zenoh-config`) on the plant's host.",
+)
+@arg(
+    "--cell",
+    action="append",
+    required=True,
+    metavar="NAME=ENDPOINT=CA.pem",
+    help="a cell: its name, its router's endpoint, its CA certificate (the cell's "
+    "/etc/cadence/credentials/ca.pem)",
+)
+@arg(
+    "--listen",
+    default="tls/0.0.0.0:7448",
+    help="where the plant's monitors connect (default tls/0.0.0.0:7448)",
+)
+@arg("--host", action="append", default=[], help="the plant router's host names (default: this host's name)")
+@arg("--out", required=True, metavar="DIR")
+def cmd_plant_router(args: argparse.Namespace) -> int:
+    import os
+    import socket
+
+    from cadence.deploy.plant import load_secret, new_secret, parse_cell, plant_files
+    from common.runtime.errors import InputError
+    from common.runtime.storage import atomic_write
+
+    out = Path(args.out).absolute()
+    cells: dict[str, tuple[str, bytes]] = {}
+    for spec in args.cell:
+        name, endpoint, ca = parse_cell(spec)
+        try:
+            cells[name] = (endpoint, ca.read_bytes())
+        except OSError as exc:
+            raise InputError(f"--cell {spec}: {ca}: {exc.strerror or exc}") from None
+    secret_file = out / "plant-secret.json"
+    secret = load_secret(secret_file) if secret_file.exists() else new_secret()
+    files = plant_files(secret, cells, args.listen, args.host or [socket.gethostname()], out)
+    for name, (text, mode) in files.items():
+        atomic_write(out / name, text.encode(), mode)
+        os.chmod(out / name, mode)
+        print(f"wrote {out / name} ({mode:o})")
+    print(f"give {out / 'plant.json'} to each cell: cadence install … --plant plant.json")
     return 0

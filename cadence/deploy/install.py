@@ -34,6 +34,7 @@ from pathlib import Path
 
 from cadence.deploy import cell
 from cadence.deploy.pki import Pem, issue, load_ca, make_ca
+from cadence.deploy.plant import PlantForCell, load_for_cell
 from common.runtime.errors import InputError
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
 from schemas.topology import DEFAULT_CELL, ROLES, SERVICES
@@ -89,6 +90,9 @@ class Options:
     # staged into this folder, as DESTDIR does (`--root`): every file at root/<its path>, naming the real
     # paths inside; no user, no ownership, no venv, no systemctl (a packager's or an inspector's copy)
     root: Path | None = None
+    # a plant's router may read this cell (`--plant plant.json`, from `cadence plant-router`): the router
+    # trusts the plant's CA beside the cell's and takes its password; it lets nothing in from it
+    plant: Path | None = None
 
 
 @dataclass
@@ -231,7 +235,7 @@ def _connect(opts: Options, bundle: Bundle) -> list[str]:
     return [f"tls/{host}:{bundle.port}"]
 
 
-def plan(opts: Options, bundle: Bundle) -> Plan:
+def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Plan:
     p = Plan()
     p.dirs += [
         (ETC, 0o750, "root", USER),
@@ -250,13 +254,19 @@ def plan(opts: Options, bundle: Bundle) -> Plan:
     if "router" in opts.services:
         leaf = issue(bundle.ca, cell.identity(bundle.cell, "router"), bundle.cell, hosts)
         users = CREDS / "users.txt"
-        p.files.append(File(users, cell.users_file(bundle.cell, bundle.passwords), secret=True))
+        passwords = cell.users_file(bundle.cell, bundle.passwords)
+        trusted = bundle.ca.cert
+        if plant is not None:
+            passwords += f"{cell.PLANT}:{plant.password}\n"
+            trusted += plant.ca_cert
+        p.files.append(File(users, passwords, secret=True))
         router = cell.router_config(
             bundle.cell,
             [f"tls/0.0.0.0:{bundle.port}"],
-            cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
+            cell.Tls(trusted, leaf.cert, leaf.key),
             str(users),
             cell_accounts(opts.strap),
+            plant=plant is not None,
         )
         p.files.append(
             File(
@@ -493,7 +503,7 @@ def install(opts: Options, dry_run: bool = False) -> list[str]:
         bundle = Bundle.load(existing)  # a re-install keeps the cell's CA and passwords
     else:
         bundle = new_bundle(opts)
-    p = plan(opts, bundle)
+    p = plan(opts, bundle, load_for_cell(opts.plant) if opts.plant else None)
     say: list[str] = []
     if dry_run:
         for d, mode, user, group in p.dirs:

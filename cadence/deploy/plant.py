@@ -1,0 +1,106 @@
+"""A plant's router and what each cell needs to let it in (`cadence plant-router`, `cadence install
+--plant`): pure functions from the plant's secret and the cells' public CA certificates to files.
+
+Every cell keeps its own CA. The plant has one of its own: a cell's router trusts it beside the cell's
+(so the plant router's certificate opens the link), and the plant router trusts every cell's (so each
+cell router's certificate does). What a cell is given (``plant.json``) holds no key: the plant's CA
+certificate and the password the plant logs in with. The plant's own secret (``plant-secret.json``, mode
+0600) holds its CA's key and that password, so that running it again keeps them.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+
+from cadence.deploy import cell
+from cadence.deploy.pki import Pem, issue, load_ca, make_ca
+from common.runtime.errors import InputError
+
+
+@dataclass(frozen=True, slots=True)
+class PlantSecret:
+    ca: Pem
+    password: str
+
+    def to_json(self) -> str:
+        return json.dumps({"ca_cert": self.ca.cert.decode(), "ca_key": self.ca.key.decode(),
+                           "password": self.password}, indent=2)  # fmt: skip
+
+    def for_cells(self) -> str:
+        """``plant.json``: what every cell's install takes (`--plant`): no key."""
+        return json.dumps({"ca_cert": self.ca.cert.decode(), "password": self.password}, indent=2)
+
+
+@dataclass(frozen=True, slots=True)
+class PlantForCell:
+    """What a cell's router needs to let the plant's router read it: its CA certificate and its password."""
+
+    ca_cert: bytes
+    password: str
+
+
+def new_secret() -> PlantSecret:
+    return PlantSecret(make_ca("plant"), secrets.token_urlsafe(24))
+
+
+def load_secret(path: Path) -> PlantSecret:
+    try:
+        raw = json.loads(path.read_text())
+        secret = PlantSecret(Pem(raw["ca_cert"].encode(), raw["ca_key"].encode()), str(raw["password"]))
+        load_ca(secret.ca)
+        return secret
+    except OSError as exc:
+        raise InputError(f"{path}: (file): {exc.strerror or exc}") from exc
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"{path}: not a plant secret from `cadence plant-router` ({exc!r})") from exc
+
+
+def load_for_cell(path: Path) -> PlantForCell:
+    try:
+        raw = json.loads(path.read_text())
+        ca = str(raw["ca_cert"]).encode()
+        if b"BEGIN CERTIFICATE" not in ca or "ca_key" in raw:
+            raise ValueError("expected the plant's CA certificate and password only (plant.json)")
+        return PlantForCell(ca, str(raw["password"]))
+    except OSError as exc:
+        raise InputError(f"{path}: (file): {exc.strerror or exc}") from exc
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"{path}: not a plant.json from `cadence plant-router` ({exc})") from exc
+
+
+def parse_cell(spec: str) -> tuple[str, str, Path]:
+    """``NAME=ENDPOINT=CA.pem``: a cell, where its router listens, and its CA certificate (its
+    ``/etc/cadence/credentials/ca.pem``)."""
+    parts = spec.split("=")
+    if len(parts) != 3 or not all(parts):
+        raise InputError(f"--cell {spec!r}: expected NAME=ENDPOINT=CA.pem (e.g. c1=tls/10.0.1.5:7447=c1.pem)")
+    return parts[0], parts[1], Path(parts[2])
+
+
+def plant_files(
+    secret: PlantSecret, cells: dict[str, tuple[str, bytes]], listen: str, hosts: list[str], folder: Path
+) -> dict[str, tuple[str, int]]:
+    """The plant router's files in ``folder``, by name, with their modes: its config and its users file,
+    its monitor's credentials, ``plant.json`` for the cells and its own secret. ``cells``: name to
+    (endpoint, CA certificate)."""
+    leaf = issue(secret.ca, cell.PLANT, "plant", hosts)
+    trusted = secret.ca.cert + b"".join(ca for _, ca in cells.values())
+    endpoints = {c: endpoint for c, (endpoint, _) in cells.items()}
+    tls = cell.Tls(trusted, leaf.cert, leaf.key)
+    router = cell.plant_router_config(endpoints, [listen], tls, str(folder / "users.txt"), secret.password)
+    monitor_password = secrets.token_urlsafe(24)
+    monitor_leaf = issue(secret.ca, cell.PLANT_MONITOR, "plant", [cell.PLANT_MONITOR])
+    monitor_tls = cell.Tls(secret.ca.cert, monitor_leaf.cert, monitor_leaf.key)
+    monitor = cell.client_config("plant", "monitor", monitor_password, [listen], monitor_tls)
+    monitor["transport"]["auth"]["usrpwd"]["user"] = cell.PLANT_MONITOR
+    said = "The plant monitor's account: it reads every cell and says nothing."
+    return {
+        "router.json5": (cell.to_json5(router, f"The plant's router: it reads {', '.join(cells)}."), 0o600),
+        "users.txt": (f"{cell.PLANT_MONITOR}:{monitor_password}\n", 0o600),
+        "plant-monitor.json5": (cell.to_json5(monitor, said), 0o600),
+        "plant.json": (secret.for_cells(), 0o644),
+        "plant-secret.json": (secret.to_json(), 0o600),
+    }
