@@ -26,6 +26,17 @@ def test_bench_plan_prints_times_ratios_and_fronts() -> None:
     assert r.tf_exact < r.tf_hull
     if r.tf_ruckig is not None:
         assert r.tf_exact < r.tf_ruckig
+    # docs/design.md's table of the fastest t_f (the same to the ms on any machine: k = N's last bits
+    # move by 1e-7 s between kernels, docs/development.md)
+    from tests.support.paths import DOCS
+
+    text = (DOCS / "design.md").read_text()
+    rows = {"hull limits (the paper's)": r.tf_hull, "exact limits (Cadence's default)": r.tf_exact}
+    if r.tf_ruckig is not None:
+        rows["Ruckig, stopping at every waypoint"] = r.tf_ruckig
+    for name, tf in rows.items():
+        row = f"| {name} | {tf:.3f} |"
+        assert row in text, f"docs/design.md, the fastest t_f: expected the row {row}"
 
 
 def test_bench_replanning_prints_today_beside_the_fast_engine() -> None:
