@@ -114,3 +114,36 @@ def test_the_personal_modes_examples_are_what_cadence_decide_gives() -> None:
     assert f"120 windows at 0.79 s give k {min(low)}–{max(low)} in every window" in said
     share = f"{100 * changed / len(noisy):.1f} %"
     assert f"change k in {changed} ({share}), median {int(np.median(noisy))}" in said
+
+
+def test_the_ssm_table_is_what_the_executor_computes_for_the_shipped_sets() -> None:
+    """docs/robot.md's S_p table: for each listed path and k of the example task's shipped sets, T_s, the
+    top speed of arm and tool, S_p at rest and at full speed, as the executor computes them with its
+    default settings on the sim (T_r 0.55 s, the default tool) for a sensor that sees the body (C 0.85 m)."""
+    import re
+
+    import numpy as np
+
+    from common.runtime.resources import EXAMPLE_TASK, SHIPPED_SETS
+    from common.safety.separation import Figures, Ssm
+    from common.trajectory.scaling import Curve
+    from common.trajectory.shipped import read_shipped
+    from common.trajectory.task import load_task
+    from services.executor.settings import Settings
+
+    task, s = load_task(EXAMPLE_TASK), Settings()
+    sets = {p.path_id: p for p in read_shipped(SHIPPED_SETS / "box_filling.json").sets}
+    reaction = sum(s.reaction_parts(0.05).values())
+    assert reaction == pytest.approx(0.55)
+    text = (DOCS / "robot.md").read_text()
+    row = r"^\s*\| (\w+) \| (\d+) \| ([0-9.]+) s \| ([0-9.]+) m/s \| ([0-9.]+) m \| ([0-9.]+) m \|"
+    rows = re.findall(row, text, flags=re.MULTILINE)
+    assert len(rows) == 5, rows
+    for path_id, k, *shown in rows:
+        h = np.array(sets[path_id].solutions[int(k) - 1].h)
+        path = task.paths[path_id]
+        figures = Figures.of(Curve.of(h, path), task.limits, arm=s.arm())
+        ssm = figures.ssm(Ssm(s.human_speed_m_s, reaction, s.stop_time_s, 0.85, s.uncertainty_m))
+        got = [f"{ssm.stop_time_s:.3f}", f"{figures.speed_m_s:.2f}", f"{ssm.protective_distance(0.0):.2f}",
+               f"{ssm.protective_distance(figures.speed_m_s):.2f}"]  # fmt: skip
+        assert got == shown, (path_id, k, got, shown)
