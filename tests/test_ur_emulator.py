@@ -173,7 +173,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
     from schemas import CycleReport, RobotEvent
     from services.executor.__main__ import Settings
     from services.executor.__main__ import main as executor_main
-    from tests.support.executor import CALM, next_of, operator_resumes, store_serving
+    from tests.support.executor import CALM, next_of, next_while_busy, operator_resumes, store_serving
 
     emu = EmulatorProcess(free_loopback(), q0_deg=[float(x) for x in FIRST_WAYPOINT_DEG])
     try:
@@ -197,7 +197,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
             assert (await next_of(events, lambda e: e.kind == "connected", timeout=30)).message.startswith(
                 "ur_rtde"
             )
-            report = await next_of(cycles, timeout=90)
+            report = await next_while_busy(cycles, events)  # a whole cycle at k = 1: 40 s and the stalls
             await asyncio.wait_for(ex.task, 20)
             operator.cancel()
             await store.close()

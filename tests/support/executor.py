@@ -132,3 +132,26 @@ async def next_of(sub, pred=lambda m: True, timeout: float = 30.0):
             if pred(msg):
                 return msg
     raise AssertionError("unreachable")
+
+
+async def next_while_busy(sub, busy, quiet_s: float = 60.0, limit_s: float = 900.0):
+    """The next message of ``sub``, waiting as long as ``busy`` (another subscription: the executor's
+    events) says something at least every ``quiet_s``: on the wall clock a cycle takes what the host
+    gives it (a loaded host's stalls trip the controller's watchdog, and each costs a resume), and a
+    test fails when nothing moves, not when the host is slow. ``limit_s`` bounds it all the same."""
+    got = asyncio.ensure_future(anext(sub))
+    try:
+        async with asyncio.timeout(limit_s):
+            while not got.done():
+                said = asyncio.ensure_future(anext(busy))
+                done, _ = await asyncio.wait(
+                    {got, said}, timeout=quiet_s, return_when=asyncio.FIRST_COMPLETED
+                )
+                if not done:
+                    said.cancel()
+                    raise AssertionError(f"no message, and nothing from the executor for {quiet_s:g} s")
+                if said not in done:
+                    said.cancel()
+        return got.result()[1]
+    finally:
+        got.cancel()
