@@ -23,7 +23,6 @@ import json
 import os
 import pwd
 import re
-import secrets
 import shutil
 import socket
 import subprocess
@@ -31,9 +30,10 @@ import sys
 import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 from cadence.deploy import cell
-from cadence.deploy.pki import Pem, issue, load_ca, make_ca
+from cadence.deploy.pki import Pem, issue, load_ca, make_ca, new_password, read_secrets
 from cadence.deploy.plant import PlantForCell, load_for_cell
 from common.runtime.errors import InputError
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
@@ -143,8 +143,7 @@ class Bundle:
 
     @classmethod
     def load(cls, path: Path) -> Bundle:
-        try:
-            raw = json.loads(path.read_text())
+        def parse(raw: Any) -> Bundle:
             bundle = cls(
                 cell=str(raw["cell"]),
                 router_host=str(raw["router_host"]),
@@ -155,14 +154,8 @@ class Bundle:
             )
             load_ca(bundle.ca)
             return bundle
-        except OSError as exc:
-            raise InstallError(f"{path}: (file): {exc.strerror or exc}") from exc
-        except (ValueError, KeyError, TypeError, AttributeError) as exc:
-            raise InstallError(f"{path}: not a cell bundle from `cadence install` ({exc!r})") from exc
 
-
-def new_password() -> str:
-    return secrets.token_urlsafe(24)
+        return read_secrets(path, "a cell bundle from `cadence install`", parse, InstallError)
 
 
 def new_bundle(opts: Options) -> Bundle:

@@ -10,13 +10,21 @@ from __future__ import annotations
 
 import datetime as dt
 import ipaddress
+import json
+import secrets
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from common.runtime.errors import InputError
+
+T = TypeVar("T")
 VALID_DAYS = 3650  # a cell runs for years; to renew, remove credentials/ and install again (new CA)
 
 
@@ -128,3 +136,18 @@ def issue(ca: Pem, cn: str, cell: str, hosts: list[str], now: dt.datetime | None
 def common_name(cert_pem: bytes) -> str:
     cert = x509.load_pem_x509_certificate(cert_pem)
     return str(cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value)
+
+
+def new_password() -> str:
+    return secrets.token_urlsafe(24)
+
+
+def read_secrets(path: Path, what: str, parse: Callable[[Any], T], error: type[InputError] = InputError) -> T:
+    """A JSON file of secrets (a cell's bundle, a plant's secret, its plant.json), ``parse``d; a file that
+    cannot be read or is not ``what`` is one line naming it, never a traceback."""
+    try:
+        return parse(json.loads(path.read_text()))
+    except OSError as exc:
+        raise error(f"{path}: (file): {exc.strerror or exc}") from exc
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise error(f"{path}: not {what} ({exc!r})") from exc

@@ -11,12 +11,12 @@ certificate and the password the plant logs in with. The plant's own secret (``p
 from __future__ import annotations
 
 import json
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from cadence.deploy import cell
-from cadence.deploy.pki import Pem, issue, load_ca, make_ca
+from cadence.deploy.pki import Pem, issue, load_ca, make_ca, new_password, read_secrets
 from common.runtime.errors import InputError
 
 
@@ -43,32 +43,26 @@ class PlantForCell:
 
 
 def new_secret() -> PlantSecret:
-    return PlantSecret(make_ca("plant"), secrets.token_urlsafe(24))
+    return PlantSecret(make_ca("plant"), new_password())
 
 
 def load_secret(path: Path) -> PlantSecret:
-    try:
-        raw = json.loads(path.read_text())
+    def parse(raw: Any) -> PlantSecret:
         secret = PlantSecret(Pem(raw["ca_cert"].encode(), raw["ca_key"].encode()), str(raw["password"]))
         load_ca(secret.ca)
         return secret
-    except OSError as exc:
-        raise InputError(f"{path}: (file): {exc.strerror or exc}") from exc
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise InputError(f"{path}: not a plant secret from `cadence plant-router` ({exc!r})") from exc
+
+    return read_secrets(path, "a plant secret from `cadence plant-router`", parse)
 
 
 def load_for_cell(path: Path) -> PlantForCell:
-    try:
-        raw = json.loads(path.read_text())
+    def parse(raw: Any) -> PlantForCell:
         ca = str(raw["ca_cert"]).encode()
         if b"BEGIN CERTIFICATE" not in ca or "ca_key" in raw:
             raise ValueError("expected the plant's CA certificate and password only (plant.json)")
         return PlantForCell(ca, str(raw["password"]))
-    except OSError as exc:
-        raise InputError(f"{path}: (file): {exc.strerror or exc}") from exc
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise InputError(f"{path}: not a plant.json from `cadence plant-router` ({exc})") from exc
+
+    return read_secrets(path, "a plant.json from `cadence plant-router`", parse)
 
 
 def parse_cell(spec: str) -> tuple[str, str, Path]:
@@ -91,7 +85,7 @@ def plant_files(
     endpoints = {c: endpoint for c, (endpoint, _) in cells.items()}
     tls = cell.Tls(trusted, leaf.cert, leaf.key)
     router = cell.plant_router_config(endpoints, [listen], tls, str(folder / "users.txt"), secret.password)
-    monitor_password = secrets.token_urlsafe(24)
+    monitor_password = new_password()
     monitor_leaf = issue(secret.ca, cell.PLANT_MONITOR, "plant", [cell.PLANT_MONITOR])
     monitor_tls = cell.Tls(secret.ca.cert, monitor_leaf.cert, monitor_leaf.key)
     monitor = cell.client_config("plant", "monitor", monitor_password, [listen], monitor_tls)

@@ -20,6 +20,18 @@ if TYPE_CHECKING:
 SILENT_S = 10.0  # no window for this long: calibrate says where it listens
 
 
+async def at_the_slowest(bus: Bus, by: str, what: str) -> None:
+    """The robot at its slowest solution (k = 1), where it stays until a session sets its condition: a
+    calibration at work is taken there, and a person settles there before a condition (a heart does not
+    come back to its baseline beside a robot at minimum time). ``what`` names the step in the error."""
+    from schemas.topology import DECISION_CONDITION
+
+    replies = await bus.get(DECISION_CONDITION, timeout=10.0, parameters=f"mode=fixed;k=1;by={by}")
+    if not replies or replies[0].message is None:
+        why = replies[0].error if replies else "no decision maker answered"
+        raise CadenceError(f"{what}: cannot set the slowest solution (k = 1): {why}")
+
+
 async def calibrate(
     bus: Bus,
     minutes: float,
@@ -40,14 +52,11 @@ async def calibrate(
     the arm moved: a person next to a working robot is not at rest."""
 
     from common.hrv.calibration import calibration, load_calibration, store_calibration
-    from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, ROBOT_STATE
+    from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE
 
     calibrations = bus.publisher(CALIBRATION)
     if posture == "working":
-        replies = await bus.get(DECISION_CONDITION, timeout=10.0, parameters="mode=fixed;k=1;by=calibrate")
-        if not replies or replies[0].message is None:
-            why = replies[0].error if replies else "no decision maker answered"
-            raise CadenceError(f"calibrate --posture working: cannot set the slowest solution (k = 1): {why}")
+        await at_the_slowest(bus, "calibrate", "calibrate --posture working")
     wins: list[HrvWindow] = []
     if arm is not None:
 

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cadence import version
+from cadence.lab.calibrate import at_the_slowest
 from cadence.lab.marks import counted
 from cadence.tools.recording import Recorder, read
 from common.hrv.calibration import SETTLED_WINDOWS, settled
@@ -428,19 +429,6 @@ class Watch:
         }
 
 
-async def at_the_slowest(bus: Bus, opts: SessionOptions) -> None:
-    """The robot at its slowest solution (k = 1) while the person settles: the condition before (the
-    training, the last session's) kept the pace that lowered their RR, and a heart does not come back to
-    its baseline beside a robot at minimum time. At rest, a person settles anyway."""
-    from schemas.topology import DECISION_CONDITION
-
-    params = f"mode=fixed;k=1;by=session {opts.subject}/{opts.condition}: settling"
-    replies = await bus.get(DECISION_CONDITION, timeout=10.0, parameters=params)
-    if not replies or replies[0].message is None:
-        why = replies[0].error if replies else "no decision maker answered"
-        raise CadenceError(f"cannot set the slowest solution (k = 1) while the person settles: {why}")
-
-
 async def until_settled(
     watch: Watch,
     rr_rest_s: float,
@@ -634,7 +622,9 @@ async def run_session(
         # 3b. right before the condition: the person has settled near the baseline, as Alg. 1 starts from
         # RR_{-1} = RR_r (after the training, not before it: the training moves the heart too)
         if cal is not None and opts.settle_timeout_s is not None and not stop.is_set():
-            await at_the_slowest(bus, opts)
+            # the last condition's pace lowered their RR: they settle at the slowest (at rest, anyway)
+            by = f"session {opts.subject}/{opts.condition}: settling"
+            await at_the_slowest(bus, by, "while the person settles")
             await until_settled(watch, cal.rr_rest_s, opts, stop, show)
         # 4. the condition, set afresh ((c) starts Alg. 1 again), and from then on the session counts
         #    (counted from when the robot moves at the condition's k, not from the decision maker's answer:
