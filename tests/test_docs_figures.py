@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.paths import DOCS, SHARED_DATA
+from tests.support.paths import DOCS, PAGES, SHARED_DATA
 
 DECISION = DOCS / "decision.md"
 
@@ -147,3 +147,93 @@ def test_the_ssm_table_is_what_the_executor_computes_for_the_shipped_sets() -> N
         got = [f"{ssm.stop_time_s:.3f}", f"{figures.speed_m_s:.2f}", f"{ssm.protective_distance(0.0):.2f}",
                f"{ssm.protective_distance(figures.speed_m_s):.2f}"]  # fmt: skip
         assert got == shown, (path_id, k, got, shown)
+
+
+SECONDS = {"h": 3600.0, "min": 60.0, "s": 1.0, "ms": 1e-3, "µs": 1e-6}
+# a setting quoted with its value: `name` (V …, `name` (`[section]`, V …, `name`, V …, `name` = V …
+QUOTED = re.compile(
+    r"`(\w+)`(?: \((?:`\[[\w.]+\]`, )?|, | = )(-?[0-9][0-9,]*(?:\.[0-9]+)?)(?: ?(h|min|ms|µs|s)\b)?"
+)
+
+
+def setting_defaults() -> dict[str, set[float]]:
+    """Every numeric setting's default, by name, over every service's section (nested ones included: the
+    twin's) and ``[cadence]``; a name two sections share has both."""
+    import msgspec
+
+    from common.runtime.config import CommonSettings
+    from services.registry import SERVICES
+
+    out: dict[str, set[float]] = {}
+
+    def walk(cls: type) -> None:
+        for f in msgspec.structs.fields(cls):
+            if isinstance(f.default, msgspec.Struct):
+                walk(type(f.default))
+            elif isinstance(f.default, int | float) and not isinstance(f.default, bool):
+                out.setdefault(f.name, set()).add(float(f.default))
+
+    for s in SERVICES:
+        if hasattr(s.module(), "Settings"):
+            walk(s.settings())
+    walk(CommonSettings)
+    return out
+
+
+def test_every_setting_a_guide_quotes_with_its_value_is_its_default() -> None:
+    """A guide that says "`separation_max_age_s` (0.3 s)" says what a cell gets when its config is
+    silent: every such quote in every page, in the setting's own unit (2 h for 7200 s)."""
+    defaults = setting_defaults()
+    quoted = []
+    for page in PAGES:
+        for m in QUOTED.finditer(page.read_text()):
+            name, value, unit = m.group(1), float(m.group(2).replace(",", "")), m.group(3)
+            if name not in defaults:
+                continue
+            if unit and name.endswith("_s"):
+                value *= SECONDS[unit]
+            quoted.append(name)
+            assert any(abs(value - d) < 1e-9 for d in defaults[name]), (
+                f"{page.name}: {m.group(0)!r}, {defaults[name]}"
+            )
+    assert {"separation_max_age_s", "clock_skew_s", "human_speed_m_s", "personal_ref_tau_s"} <= set(quoted)
+
+
+def test_the_robot_guides_geometry_and_reaction_time_are_the_codes() -> None:
+    """docs/robot.md's ISO 13855 C, the default tool, the links' radii, the wrist speeds and T_r."""
+    import math
+
+    import numpy as np
+
+    from common.robot.ur16e import N_JOINTS
+    from common.safety.geometry import LINK_RADII_M, Arm, Tool, intrusion_iso13855
+    from services.executor.settings import DEFAULT_TOOL, Settings
+
+    said = " ".join((DOCS / "robot.md").read_text().split())
+    c = {h: intrusion_iso13855("legs", None, h) for h in (0.0, 0.3)}
+    assert f"8 (d − 14) mm, at least 0: {intrusion_iso13855('hand', 30.0):.3f} m at d = 30 mm" in said
+    assert f"{c[0.0]:.1f} m at the floor, {c[0.3]:.2f} m at 0.3 m" in said
+    assert f"| `arm` (40 < d ≤ 70 mm) | {1000 * intrusion_iso13855('arm', 60.0):.0f} mm |" in said
+    assert f"adds {c[0.0] - intrusion_iso13855('body'):.2f} m to each" in said
+    x, y, z, r = DEFAULT_TOOL
+    assert (x, y) == (0.0, 0.0) and f"one of {r:.2f} m at {z:.2f} m" in said
+    upper, fore, wrist = LINK_RADII_M[1], LINK_RADII_M[2], LINK_RADII_M[3:]
+    assert f": {upper:.2f} m; the forearm {fore:.2f} m; the wrists {wrist.max():.3f} m)" in said
+    assert wrist.min() == wrist.max()
+    dt, omega = 0.002, math.radians(180.0)
+    spin = np.zeros((2, N_JOINTS))
+    spin[1, 5] = omega * dt
+    turn = np.radians([[0, -90, 90, -90, -90, 0]] * 2)
+    turn[1, 3] += omega * dt
+    tip = Arm(tool=Tool.of([[0.1, 0.0, 0.0, 0.0]])).top_speed(spin, dt)
+    flange, tool = Arm().top_speed(turn, dt), Arm(tool=Tool.of([[0.0, 0.0, 0.2, 0.0]])).top_speed(turn, dt)
+    assert (
+        f"reads {Arm().top_speed(spin, dt):.0f} m/s at the flange and {tip:.2f} m/s at a gripper tip" in said
+    )
+    assert (
+        f"a wrist-1 turn {flange:.2f} m/s at the flange and {tool:.2f} m/s at the tip of a 0.2 m tool" in said
+    )
+    skew = setting_defaults()["clock_skew_s"].pop()
+    sim = sum(Settings().reaction_parts(skew).values())
+    real = sum(Settings(backend="ur_rtde").reaction_parts(skew).values())
+    assert f"{sim:.2f} s on the sim, {real:.2f} s on a UR16e, by default" in said

@@ -156,6 +156,7 @@ def the_statistics_are_scipys_and_statsmodels(doc: dict) -> None:
 
 
 def readme_tables_are(doc: dict) -> None:
+    """docs/study.md's two tables, and the figures its prose gives beside them."""
     from cadence.lab.analysis import METRICS
     from schemas.session import CONDITION_NAMES
     from tests.support.paths import DOCS
@@ -169,6 +170,25 @@ def readme_tables_are(doc: dict) -> None:
     for pair, row in doc["wilcoxon"].items():
         line = f"| {pair} | " + " | ".join(f"{row[m]['p']:.2g} ({row[m]['method']})" for m in shown) + " |"
         assert line in text, f"docs/study.md, the simulated study's Wilcoxon table: expected the row\n{line}"
+    # and the figures of the prose beside the tables
+    said = " ".join(text.split())
+    fr = {m: f"{v['p']:.2g}" for m, v in doc["friedman"].items()}
+    assert fr["productivity_per_min"] == fr["mean_rr_norm"]
+    n = doc["friedman"]["error_rate"]["n"]
+    assert f"p = {fr['mean_rr_norm']} for φ and RR / RR_r, {fr['error_rate']} for ε, n = {n}" in said
+    tests = [row[m] for row in doc["wilcoxon"].values() for m in METRICS]
+    holm = max(t["p_holm"] for t in tests)
+    assert holm < 0.01
+    assert f"over all {len(tests)} pairwise tests every pair stays below 0.01 (largest {holm:.2g})" in said
+    rb = {(pair, m): row[m]["rank_biserial"] for pair, row in doc["wilcoxon"].items() for m in shown}
+    assert [k for k, r in rb.items() if abs(r) < 1] == [("a-c", "error_rate")]
+    eps = {(r["subject"], r["condition"]): r["error_rate"] for r in doc["sessions"]}
+    (who,) = [s for s, c in eps if c == "c" and eps[(s, "c")] > eps[(s, "a")]]
+    worse = f"{eps[(who, 'c')]:.3f} against {eps[(who, 'a')]:.3f}"
+    r_ac = abs(rb[("a-c", "error_rate")])
+    assert f"(−{r_ac:.2f}: {who} erred a little more often tuned online, {worse})" in said
+    phi = {c: doc["table"][c]["productivity_per_min"]["mean"] for c in "ac"}
+    assert f"{100 * phi['c'] / phi['a']:.0f} % of minimum time's production rate" in said
 
 
 def test_online_tuning_lowers_k_for_an_intolerant_subject_and_keeps_it_high_for_a_tolerant_one() -> None:
