@@ -13,7 +13,7 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from cadence.tools.recording import read, record, replay
+from cadence.tools.recording import Recorder, read, record, replay
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, Selection
 from services.decision_maker.__main__ import Settings as DecisionSettings
@@ -187,6 +187,25 @@ async def test_cadence_record_loses_nothing_on_sigterm(tmp_path: Path, endpoint:
     seqs = [msgspec.msgpack.decode(m.data, type=Selection).seq for m in read(path)]
     assert count == len(seqs) > 0
     assert seqs == list(range(1, count + 1))
+
+
+def test_cadence_record_never_overwrites_a_recording_unless_forced(tmp_path: Path) -> None:
+    """`cadence record -o run.mcap` once truncated a recording already there, silently: the evidence of
+    an earlier run lost to a repeated command line. Refused in one line before the bus opens; the writer
+    itself takes the name exclusively, so a second recording started meanwhile is refused too."""
+    path = tmp_path / "run.mcap"
+    path.write_bytes(b"an earlier run")
+    r = subprocess.run([sys.executable, "-m", "cadence", "record", "-o", str(path), "--duration", "1"],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "exists" in r.stderr and "--force" in r.stderr, r.stderr
+    assert path.read_bytes() == b"an earlier run"
+    with pytest.raises(FileExistsError):
+        Recorder(path, replace=False)
+    assert path.read_bytes() == b"an earlier run"
+    rec = Recorder(path)  # forced (`--force`): the file is a new recording
+    rec.close()
+    assert [m.topic for m in read(path)] == [] and path.read_bytes()[:5] == b"\x89MCAP"
 
 
 def test_a_json_recording_reads_as_the_msgpack_one_for_report_and_replay(tmp_path: Path) -> None:

@@ -97,6 +97,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     "data), no arm state or separation readings",
 )
 @arg("-o", "--output", required=True, metavar="FILE.mcap")
+@arg("--force", action="store_true", help="overwrite FILE.mcap if it is there (by default: refused)")
 @arg("--duration", type=float, help="stop after this many seconds")
 @arg("--json", action="store_true", help="JSON channels (for Foxglove) instead of MessagePack")
 @arg("--cell", default=DEFAULT_CELL, help=f"robot cell (default {DEFAULT_CELL})")
@@ -110,6 +111,9 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     if args.plant and args.keys:
         raise InputError("--plant records its own keys (every cell's derived ones): give no KEYEXPR with it")
+    taken = f"{args.output}: exists (a recording is evidence): give another -o, or --force to overwrite it"
+    if not args.force and Path(args.output).exists():
+        raise InputError(taken)  # before the bus: said at once
 
     async def go() -> int:
         stop = stop_on_signals()
@@ -120,15 +124,19 @@ def cmd_record(args: argparse.Namespace) -> int:
             shown = "every cell's derived keys (--plant)" if args.plant else ", ".join(keys)
             err.print(f"recording {shown} to {args.output} (Ctrl-C to stop)")
             say_when_alone(bus, "record")
-            rec = await record(
-                bus,
-                Path(args.output),
-                keys,
-                stop,
-                json=args.json,
-                on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
-                keep=PlantThinning() if args.plant else None,
-            )
+            try:
+                rec = await record(
+                    bus,
+                    Path(args.output),
+                    keys,
+                    stop,
+                    json=args.json,
+                    on_first=lambda key: err.print(f"first message: {key}", markup=False, highlight=False),
+                    keep=PlantThinning() if args.plant else None,
+                    replace=args.force,
+                )
+            except FileExistsError:  # another recording took the name since the check
+                raise InputError(taken) from None
             alone = bus.isolation()
         if rec.failed is not None:  # what a flush put in the file is readable; the rest was lost
             err.print(f"{rec.failed}: the recording stopped; {rec.on_disk} messages are in {args.output}",

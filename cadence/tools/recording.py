@@ -94,9 +94,10 @@ class Recorder:
 
     path: Path
     json: bool = False
+    replace: bool = True  # False: a file already there is never overwritten (FileExistsError)
 
     def __post_init__(self) -> None:
-        self._file = self.path.open("wb")
+        self._file = self.path.open("wb" if self.replace else "xb")
         self._writer = Writer(self._file, chunk_size=256 * 1024, compression=CompressionType.ZSTD)
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -184,11 +185,13 @@ async def record(
     json: bool = False,
     on_first: Callable[[str], None] | None = None,
     keep: Callable[[str, bytes], bool] | None = None,
+    replace: bool = True,
 ) -> Recorder:
     """Record until ``stop``; the file is complete even when the stop is a signal. ``on_first(key)`` is
     called once, when the first message is written (a person wants to know that anything comes);
-    ``keep(key, payload)`` False leaves a message out (``PlantThinning``)."""
-    rec = Recorder(path, json)
+    ``keep(key, payload)`` False leaves a message out (``PlantThinning``); ``replace`` False: a file already
+    at ``path`` is left as it is (FileExistsError), another recording's evidence."""
+    rec = Recorder(path, json, replace)
 
     def write(key: str, payload: bytes) -> None:
         if keep is not None and not keep(key, payload):
