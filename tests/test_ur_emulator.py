@@ -20,7 +20,7 @@ import pytest
 
 from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
-from services.executor.backends import UrRtdeBackend
+from services.executor.backends import RobotUnavailable, UrRtdeBackend
 from services.executor.servo import ServoLoop
 from services.ur_emulator.server import SCRIPT_QUIET_S, take_programs
 from tests.support.cell import Cell
@@ -108,6 +108,38 @@ def test_a_jump_is_a_protective_stop_the_client_sees(backend: UrRtdeBackend) -> 
     while backend.fault() != "protective stop" and time.monotonic() < end:
         time.sleep(0.01)
     assert backend.fault() == "protective stop"
+
+
+def test_a_protective_stop_that_keeps_the_link_down_is_unlocked_by_a_resume_through_the_dashboard(
+    backend: UrRtdeBackend,
+) -> None:
+    """Loaded run 1 of issue 53's last stop: a stall tripped the watchdog, the arm was then in a protective
+    stop, and an arm in a protective stop runs no control script, so the executor's reconnect failed
+    ("Failed to start control script") every 10 s while each resume was refused as "not connected": a
+    deadlock for 15 minutes. The dashboard needs no RTDE link: the reconnect says what holds it, and a
+    resume unlocks the stop there, then connects."""
+    target = backend.prepare((backend.actual_q() + 0.5)[None, :])[0]
+    for _ in range(5):
+        backend.servo(target)
+        time.sleep(0.002)
+    end = time.monotonic() + 5
+    while backend.fault() != "protective stop" and time.monotonic() < end:
+        time.sleep(0.01)
+    backend.close()  # the link lost, as after the watchdog's trip
+    with pytest.raises(RobotUnavailable, match=r"in a protective stop.*cadence robot resume"):
+        backend.connect()
+    refusals = []
+    end = time.monotonic() + 30
+    while time.monotonic() < end:  # the controller refuses an unlock within 5 s of the stop
+        try:
+            backend.reset_fault()
+            break
+        except RobotUnavailable as exc:
+            refusals.append(str(exc))
+            assert "5s" in str(exc), refusals
+            time.sleep(0.2)
+    assert not backend.link_lost()
+    assert backend.fault() == ""
 
 
 def test_the_watchdog_stops_the_program_when_the_executor_stalls(

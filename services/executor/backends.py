@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Protocol, cast
 
 import numpy as np
@@ -189,6 +189,11 @@ class UrRtdeBackend:
             self._c = rtde_control.RTDEControlInterface(self.host, 500.0)
         except RuntimeError as exc:
             self.close()
+            if self._protective_stop():  # the script cannot run until the stop is unlocked
+                raise RobotUnavailable(
+                    f"UR controller at {self.host} is in a protective stop, so its control script cannot "
+                    "start: `cadence robot resume` unlocks it (or unlock it on the pendant)"
+                ) from None
             raise RobotUnavailable(f"UR controller at {self.host}: {exc}") from None
         self._lost = ""
         self._watchdog = False
@@ -245,30 +250,54 @@ class UrRtdeBackend:
         ``RobotUnavailable`` with its words, and the robot stays stopped. Without a link to the controller
         there is nothing to unlock yet: ``RobotUnavailable`` says so (the executor is reconnecting)."""
         if self.link_lost():
-            raise RobotUnavailable(
-                f"not connected to the controller at {self.host} ({self.fault()}); the executor reconnects "
-                "by itself: resume again once it says it is connected"
-            )
+            # a controller in a protective stop runs no control script, so the link cannot come back
+            # until the stop is unlocked: the dashboard needs no RTDE link (a watchdog trip, then a stop)
+            if not self._protective_stop():
+                raise RobotUnavailable(
+                    f"not connected to the controller at {self.host} ({self.fault()}); the executor "
+                    "reconnects by itself: resume again once it says it is connected"
+                )
+            self._unlock()
+            deadline = time.monotonic() + 1.0
+            while self._protective_stop() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            self.reconnect()
+            return
         r = self._r
         if r is not None and r.isConnected() and r.isProtectiveStopped():
-            import dashboard_client
-
-            dash = dashboard_client.DashboardClient(self.host)
-            try:
-                dash.connect()
-                dash.unlockProtectiveStop()
-                dash.closeSafetyPopup()
-            except RuntimeError as exc:
-                raise RobotUnavailable(f"UR dashboard at {self.host}: {exc}") from None
-            finally:
-                with contextlib.suppress(RuntimeError):
-                    dash.disconnect()
+            self._unlock()
             deadline = time.monotonic() + 1.0  # the receive interface sees the release a tick or two later
             while r.isProtectiveStopped() and time.monotonic() < deadline:
                 time.sleep(0.01)
             if r.isProtectiveStopped():
                 raise RobotUnavailable(f"the controller at {self.host} did not release its protective stop")
         self.reconnect()
+
+    def _dashboard(self, act: Callable[[Any], object]) -> object:
+        """One exchange with the controller's dashboard server (port 29999), which answers whatever the
+        RTDE link and the control script do."""
+        import dashboard_client
+
+        dash = dashboard_client.DashboardClient(self.host)
+        try:
+            dash.connect()
+            return act(dash)
+        except RuntimeError as exc:
+            raise RobotUnavailable(f"UR dashboard at {self.host}: {exc}") from None
+        finally:
+            with contextlib.suppress(RuntimeError):
+                dash.disconnect()
+
+    def _unlock(self) -> None:
+        """What a person does at the pendant after a protective stop: unlock it, close the pop-up."""
+        self._dashboard(lambda dash: (dash.unlockProtectiveStop(), dash.closeSafetyPopup()))
+
+    def _protective_stop(self) -> bool:
+        """The dashboard's word on it; False when the dashboard cannot be asked either."""
+        try:
+            return "PROTECTIVE_STOP" in str(self._dashboard(lambda dash: dash.safetystatus()))
+        except RobotUnavailable:
+            return False
 
     def prepare(self, q: Array) -> Sequence[object]:
         """Also arms the controller's watchdog: from here on the servo loop kicks it every tick, and the
