@@ -12,7 +12,7 @@ Quality = Literal["good", "low", "none"]
 # why a window is not good: data missing in it, too many of its intervals excluded by the cleaning, too
 # little of it covered by clean intervals, no clean interval at all, or a burst of noise in which beats
 # were excluded (how many beats it hides cannot be told)
-HoldReason = Literal["gap", "excluded", "coverage", "no_clean_beats", "noise", "irregular"]
+HoldReason = Literal["gap", "excluded", "coverage", "no_clean_beats", "noise", "irregular", "rhythm"]
 MAX_WINDOW_S = 600.0  # a window is 30 s by default; none is longer than ten minutes
 MAX_BEATS = 1000  # per Beats message, and far above what a window at 300 bpm can hold (x 3 for 600 s)
 Spread = Annotated[float, msgspec.Meta(ge=0.0, le=RR_MAX_S)]

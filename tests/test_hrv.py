@@ -321,3 +321,44 @@ def test_the_polar_sensor_logger_exports_read_and_their_ecg_and_rr_agree(tmp_pat
     r = run_cli("hrv", "peaks", str(plain))
     assert r.returncode == 2
     assert "no ECG" in r.stderr
+
+
+def test_a_run_of_tachycardia_and_a_2_to_1_block_are_held_as_rhythm_but_not_breathing_or_bigeminy() -> None:
+    """Issue 55: a window whose rate jumps from one beat to the next (a run of supraventricular
+    tachycardia starts, a 2:1 block halves the rate) is not sinus rhythm, however regular each side is:
+    held with the reason ``rhythm``. A deep breath, a premature beat and its pause, and a run of bigeminy
+    move a median of six intervals little, and keep their windows."""
+    from dataclasses import replace
+
+    from common.hrv.stream import RULES
+
+    def held(rr: np.ndarray, quiet: bool = False) -> list[str | None]:
+        """The windows' reasons; ``quiet``: an ECG that shows nothing between the beats (a blocked P
+        wave is no QRS), so a doubled interval is the heart's pause, not a missed beat."""
+        beats = np.concatenate([[0.0], np.cumsum(rr)])
+        iv = intervals(beats, excursion=np.zeros(beats.size) if quiet else None)
+        return [w.reason for w in windows(iv, 30.0, rules=replace(RULES, step=1.5))]
+
+    n = 400
+    breath = 0.9 * (1 + 0.1 * np.sin(2 * np.pi * np.arange(n) / 6.0))  # ±10 %, slow: 6 beats a breath
+    assert held(breath) == [None] * len(held(breath))
+    pvc = breath.copy()
+    pvc[100], pvc[101] = 0.5 * breath[100], 1.5 * breath[100]
+    assert "rhythm" not in held(pvc)
+    bigeminy = breath.copy()
+    bigeminy[200:260:2], bigeminy[201:260:2] = 0.55, 1.25  # a premature beat after every normal one
+    assert "rhythm" not in held(bigeminy)
+    svt = breath.copy()
+    svt[150:190] = 0.4  # 150 beats a minute, from one beat to the next, for 40 beats
+    assert "rhythm" in held(svt)
+    for_ever = np.full(1200, 0.8)
+    for_ever[100:] = 0.4  # at 80 s, a jump with no way back: held RHYTHM_HOLD_S (300 s), then believed
+    reasons = held(for_ever)
+    assert reasons[2:13] == ["rhythm"] * 11 and set(reasons[13:]) == {None}
+    block = np.full(n, 0.8)
+    block[150:190] = 1.6  # every other beat not conducted
+    during = held(block, quiet=True)
+    assert during[4:7] == ["rhythm"] * 3  # from the jump to the jump back (120-184 s), then sinus again
+    assert "rhythm" not in during[:4] + during[7:]
+    # a strap's RR cannot tell a blocked beat from a missed one: its windows are held all the same
+    assert {held(block)[i] for i in (4, 5)} == {"no_clean_beats"}

@@ -81,3 +81,32 @@ def test_each_window_carries_its_annotated_rhythm_and_the_score_counts_what_pass
     other.add("s", [w1], [None], ["irregular"])
     sc.merge(other)
     assert sc.by_rhythm["(SVTA"] == [2, 1, 1]
+
+
+def test_the_cross_validation_never_chooses_a_point_that_holds_a_healthy_persons_window() -> None:
+    """Of two grid points, the one with the lesser loss holds a window of a GUDB subject (a healthy heart,
+    in sinus rhythm whatever it does) on the units it is chosen on: the other is chosen. Left out, that
+    subject does not count for its own fold's choice."""
+    from cadence.bench.hrv_cv import CrossValidation, grid
+    from cadence.bench.hrv_scoring import Truth
+
+    def score(name: str, held_normal: int, over_10: int) -> WindowScore:
+        sc = WindowScore(name)
+        truths = [Truth(30.0 * i, 30.0 * (i + 1), 1.0) for i in range(10)]
+        means = [None] * held_normal + [1.011] * over_10 + [1.0] * (10 - held_normal - over_10)
+        sc.add("r", truths, means, ["rhythm"] * 10, sinus=True)
+        return sc
+
+    rules = grid({"step": (1.5, 1.6)})
+    # point 0 holds one healthy window and erases an error elsewhere; point 1 holds none
+    scores = {
+        "100": [{("clean", "cadence"): score("cadence", 0, 0)},
+                {("clean", "cadence"): score("cadence", 0, 1)}],
+        "gudb/subject_00": [{("clean", "gudb-cs"): score("gudb-cs", 1, 0)},
+                            {("clean", "gudb-cs"): score("gudb-cs", 0, 0)}],
+    }  # fmt: skip
+    cv = CrossValidation(rules, sorted(scores), scores)
+    assert cv.losses()["100"][0] < cv.losses()["100"][1]
+    assert list(cv.healthy_held()) == [1, 0]
+    assert cv.chosen() == 1
+    assert cv.chosen(leave_out="gudb/subject_00") == 0  # its own hold is not its fold's to see

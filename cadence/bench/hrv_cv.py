@@ -10,7 +10,8 @@ units; how many folds chose the same one says how stable the choice is.
 
 The loss is what a decision needs: a good window a decision step off is a hundred held windows; one over
 10 ms, ten; holding a window of a normal rhythm costs one, of an arrhythmia (where there is little to
-read) a tenth.
+read) a tenth. A grid point that holds a window of a healthy person's strap beats (GUDB) on the units
+it is chosen on is not chosen: a healthy heart is in sinus rhythm whatever its owner does.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ GRID: dict[str, tuple[float, ...]] = {
     "hold_noisy": (2, 3),
     "irregular": (0.09, 0.12),
     "max_excluded": (0.2, 0.3),
+    "step": (1.5, 1.6, float("inf")),  # inf: no jump holds a window; a 2:1 block is a jump of 2
 }
 # sharp (0, 3) and long_ok (1.0, 1.5) were in the grid of the first run: 3 and 1.5 were chosen in every
 # fold, and they are held there so that this grid stays within minutes
@@ -112,7 +114,10 @@ class Unit:
         def classified(
             key: tuple[object, ...], rules: Rules, make: Callable[[Rules], Intervals]
         ) -> Intervals:
-            k = (*key, replace(rules, hold_noise=0.0, hold_noisy=0, irregular=0.0, max_excluded=0.0))
+            k = (
+                *key,
+                replace(rules, hold_noise=0.0, hold_noisy=0, irregular=0.0, step=0.0, max_excluded=0.0),
+            )
             if k not in cache:
                 cache[k] = make(rules)
             return cache[k]
@@ -233,10 +238,25 @@ class CrossValidation:
     def losses(self) -> dict[str, NDArray[np.float64]]:
         return {u: np.array([loss(s.values()) for s in self.scores[u]]) for u in self.units}
 
+    def healthy_held(self, leave_out: str | None = None) -> NDArray[np.float64]:
+        """Per grid point, the windows of healthy people's strap beats (GUDB) it holds on every unit but
+        ``leave_out``: a healthy heart is in sinus rhythm whatever its owner does."""
+        held = np.zeros(len(self.rules))
+        for u in self.units:
+            if u != leave_out:
+                held += [
+                    sum(sc.held for (_, p), sc in s.items() if p.startswith("gudb")) for s in self.scores[u]
+                ]
+        return held
+
     def chosen(self, leave_out: str | None = None) -> int:
-        """The grid point with the least loss on every unit but ``leave_out``; the first on ties."""
+        """The grid point with the least loss on every unit but ``leave_out`` among those that hold no
+        healthy person's window there (any, if none is such); the first on ties."""
         losses = self.losses()
         total = sum((v for u, v in losses.items() if u != leave_out), np.zeros(len(self.rules)))
+        healthy = self.healthy_held(leave_out)
+        if (healthy == 0).any():
+            total = np.where(healthy == 0, total, np.inf)
         return int(np.argmin(total))
 
     def held_out(self) -> tuple[dict[tuple[str, str], WindowScore], dict[str, int]]:

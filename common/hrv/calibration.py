@@ -32,6 +32,8 @@ HOLD_WORDS: dict[str, str] = {
     "excluded": "too many beats are unlike the person's own or out of rhythm (frequent ectopic beats?)",
     "irregular": "the rhythm is irregular beat to beat (atrial fibrillation?): its mean RR does not follow "
     "load",
+    "rhythm": "the heart rate jumped from one beat to the next (a run of fast beats, or a beat in two not "
+    "conducted?): its mean RR does not follow load until the rate comes back",
     "gap": "the signal dropped out (the strap lost contact or the link)",
     "coverage": "too few clean beats cover the window",
     "no_clean_beats": "no clean beat at all (is the strap on?)",

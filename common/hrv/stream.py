@@ -34,6 +34,8 @@ MIN_COVERAGE = 0.6  # clean intervals must cover this share of the window
 RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the notification time: a gap
 LEVEL_N, LEVEL_MIN = 30, 10  # the rhythm's level: the median of the last LEVEL_N clean intervals, once 10
 RELEVEL = 40  # intervals in a row at twice the level: a rhythm that slow is believed, and the level relearnt
+STEP_BEATS = 6  # the clean intervals on each side of a jump in rate (``rhythm_jumps``)
+RHYTHM_HOLD_S = 300.0  # a jump in rate holds the windows until the rate is back, this long at most
 SPREAD_N, SPREAD_MIN = 60, 5  # the person's own spread and step: medians of the last 60 plausible intervals
 
 
@@ -63,6 +65,7 @@ class Rules:
     hold_noise: float = 2.9  # a window with hold_noisy intervals noisier than this that are excluded, …
     hold_noisy: int = 3  # … or next to one that is, is held
     irregular: float = 0.09  # a window whose median step is this share of its median RR is held (AF)
+    step: float = 1.6  # a window where the rate of STEP_BEATS beats jumps by this ratio: held (rhythm)
     max_excluded: float = 0.2  # a window with a larger share of its intervals excluded is held
 
 
@@ -352,6 +355,8 @@ def window_stats(
         reason = "gap"
     elif irregularity(iv.rr_s[idx[0] : idx[-1] + 1]) > rules.irregular:
         reason = "irregular"
+    elif rhythm_jumps(iv, excluded_all, gaps_s, start_s, end_s, rules.step):
+        reason = "rhythm"
     elif excluded > rules.max_excluded:
         reason = "excluded"
     elif coverage < MIN_COVERAGE:
@@ -386,6 +391,43 @@ def irregularity(rr: NDArray[np.float64]) -> float:
     ok = (rr >= MIN_RR_S) & (rr <= MAX_RR_S)
     steps = np.abs(np.diff(rr))[ok[1:] & ok[:-1]]
     return float(np.median(steps) / np.median(rr[ok])) if steps.size >= 2 else 0.0
+
+
+def rhythm_jumps(
+    iv: Intervals, excluded: NDArray[np.bool_], gaps_s: Gaps, start_s: float, end_s: float, step: float
+) -> bool:
+    """Whether a jump in rate makes the window [start, end) no sinus rhythm: a jump in it, or its median
+    still away from the rate before the first jump of the RHYTHM_HOLD_S before it by more than half a
+    jump (in ratio: the square root of ``step``). A jump is a ratio over ``step`` between the medians of
+    the STEP_BEATS clean intervals after a beat and before it, dated by the last of those after it
+    (``excluded``: ``iv.excluded``, which the caller has built).
+
+    Clean intervals only: a missed or a false beat is the detector's, not the heart's; none across a gap.
+    A premature beat and its pause, a run of bigeminy or a breath move a median of six little (of four,
+    a strap's deep breathing, 750 to 1,100 ms in three beats, read as a jump of 1.5); a run of
+    supraventricular tachycardia starts, and a 2:1 block halves the rate, from one beat to the next. Held
+    until the rate is back where it was, not until a jump back is seen: a run may end less sharply than
+    it began, and a jump the rate never followed (one odd median) holds only its own window."""
+    since = max([start_s - RHYTHM_HOLD_S, *(g1 for g0, g1 in gaps_s if g1 <= end_s and g0 < end_s)])
+    sel = ~excluded & (iv.t_s >= since) & (iv.t_s < end_s)
+    rr, t = iv.rr_s[sel], iv.t_s[sel]
+    n = STEP_BEATS
+    if rr.size < 2 * n:
+        return False
+    # ratios, square roots and medians only: IEEE rounds them alike on every processor, which numpy's
+    # log does not (development.md, "The same story on every machine"), and the threshold must not flip
+    level = np.median(np.lib.stride_tricks.sliding_window_view(rr, n), axis=1)  # of rr[j : j + n]
+    ratio = level[n:] / level[:-n]  # at the beat that ends interval j + n − 1
+    dated = t[2 * n - 1 :]
+    jumps = np.flatnonzero((ratio > step) | (ratio * step < 1.0))
+    if jumps.size == 0:
+        return False
+    if np.any(dated[jumps] >= start_s):
+        return True
+    inside = rr[t >= start_s]
+    away = float(np.median(inside)) / float(level[jumps[0]]) if inside.size else 1.0  # from before the first
+    half = float(np.sqrt(step))
+    return away > half or away * half < 1.0
 
 
 def noisy_exclusions(iv: Intervals, idx: NDArray[np.intp], hold_noise: float) -> int:
@@ -652,7 +694,8 @@ class HrvStream:
             out.append(window_stats(self._win_start, end, iv, self.gaps, self.rules))
             self._win_start = end
         if out:  # what closed windows used is no longer needed: the stream runs for hours
-            keep = next((i for i, t in enumerate(self._done_t) if t >= self._win_start), len(self._done_t))
+            since = self._win_start - RHYTHM_HOLD_S  # what a jump in rate before the next window needs
+            keep = next((i for i, t in enumerate(self._done_t) if t >= since), len(self._done_t))
             del self._done_t[:keep], self._done_rr[:keep], self._done_kind[:keep], self._done_noise[:keep]
-            self.gaps = [g for g in self.gaps if g[1] > self._win_start]
+            self.gaps = [g for g in self.gaps if g[1] > since]
         return out
