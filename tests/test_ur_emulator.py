@@ -99,7 +99,8 @@ def test_servoing_a_path_tracks_it_and_stops_on_its_last_waypoint(backend: UrRtd
     print(f"servo ticks {s.ticks}, p99.9 error {s.p999_err_us} µs, overruns {s.overruns}")
 
 
-def test_a_jump_is_a_protective_stop_the_client_sees(backend: UrRtdeBackend) -> None:
+def jump(backend: UrRtdeBackend) -> str:
+    """Servo the arm half a radian at once, and what the backend says of it within 5 s."""
     target = backend.prepare((backend.actual_q() + 0.5)[None, :])[0]
     for _ in range(5):
         backend.servo(target)
@@ -107,7 +108,11 @@ def test_a_jump_is_a_protective_stop_the_client_sees(backend: UrRtdeBackend) -> 
     end = time.monotonic() + 5
     while backend.fault() != "protective stop" and time.monotonic() < end:
         time.sleep(0.01)
-    assert backend.fault() == "protective stop"
+    return backend.fault()
+
+
+def test_a_jump_is_a_protective_stop_the_client_sees(backend: UrRtdeBackend) -> None:
+    assert jump(backend) == "protective stop"
 
 
 def test_a_protective_stop_that_keeps_the_link_down_is_unlocked_by_a_resume_through_the_dashboard(
@@ -118,13 +123,7 @@ def test_a_protective_stop_that_keeps_the_link_down_is_unlocked_by_a_resume_thro
     ("Failed to start control script") every 10 s while each resume was refused as "not connected": a
     deadlock for 15 minutes. The dashboard needs no RTDE link: the reconnect says what holds it, and a
     resume unlocks the stop there, then connects."""
-    target = backend.prepare((backend.actual_q() + 0.5)[None, :])[0]
-    for _ in range(5):
-        backend.servo(target)
-        time.sleep(0.002)
-    end = time.monotonic() + 5
-    while backend.fault() != "protective stop" and time.monotonic() < end:
-        time.sleep(0.01)
+    assert jump(backend) == "protective stop"
     backend.close()  # the link lost, as after the watchdog's trip
     with pytest.raises(RobotUnavailable, match=r"in a protective stop.*cadence robot resume"):
         backend.connect()
