@@ -247,8 +247,9 @@ class UrRtdeBackend:
         """What a person does at the pendant after a protective stop, through the dashboard server
         (port 29999): unlock it and close the safety pop-up; then the control script is started again
         (a reconnect uploads it). The controller refuses an unlock within 5 s of the stop: that is a
-        ``RobotUnavailable`` with its words, and the robot stays stopped. Without a link to the controller
-        there is nothing to unlock yet: ``RobotUnavailable`` says so (the executor is reconnecting)."""
+        ``RobotUnavailable`` with its words, and the robot stays stopped. Without an RTDE link, a protective
+        stop is unlocked through the dashboard all the same (it holds the link down: no control script
+        runs while it lasts); with none, ``RobotUnavailable`` says the executor is reconnecting."""
         if self.link_lost():
             # a controller in a protective stop runs no control script, so the link cannot come back
             # until the stop is unlocked: the dashboard needs no RTDE link (a watchdog trip, then a stop)
