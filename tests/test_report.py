@@ -189,3 +189,24 @@ def test_the_legends_name_only_what_is_drawn() -> None:
     )
     assert "held: moving (not read as stress)" in held
     assert "held: moving (not read as stress)" not in labels(rr_k_axes(windows, selections, 0.85))
+
+
+def test_the_figure_says_why_the_analyser_held_its_windows() -> None:
+    """Issue 55: a window held for a jump in rate keeps k, and the figure says why, beside the other
+    reasons and how often; a run recorded before windows carried a reason says only "low quality"."""
+    import matplotlib.pyplot as plt
+
+    from cadence.lab.plots import rr_k_axes
+
+    def labels(windows: list[dict]) -> set[str]:
+        fig = rr_k_axes(windows, [{"t_s": 30.0, "k": 5, "reason": "initial", "n": 15}], 0.85)
+        out = {t.get_text() for ax in fig.axes if (leg := ax.get_legend()) for t in leg.get_texts()}
+        plt.close(fig)
+        return out
+
+    good = [{"end_s": 30.0, "mean_rr_s": 0.8, "quality": "good", "reason": None}]
+    held = [{"end_s": 30.0 * i, "mean_rr_s": 0.5, "quality": "low", "reason": why}
+            for i, why in enumerate(["rhythm", "rhythm", "noise"], start=2)]  # fmt: skip
+    assert "mean RR, held: rhythm 2, noise 1" in labels(good + held)
+    old = [{k: v for k, v in w.items() if k != "reason"} for w in good + held]
+    assert "mean RR (low quality)" in labels(old)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from collections import Counter
 from typing import Any
 
 import matplotlib
@@ -75,6 +76,15 @@ def rr_k_figure(*args: Any, **kwargs: Any) -> bytes:
     return _png(rr_k_axes(*args, **kwargs))
 
 
+def held_label(low: list[dict]) -> str:
+    """The legend of the windows the analyser held, with why and how often (a run recorded before
+    windows carried their reason says only "low quality")."""
+    reasons = Counter(w.get("reason") for w in low if w.get("reason"))
+    if not reasons:
+        return "mean RR (low quality)"
+    return "mean RR, held: " + ", ".join(f"{why} {n}" for why, n in reasons.most_common())
+
+
 def rr_k_axes(
     windows: list[dict],
     selections: list[dict],
@@ -119,7 +129,7 @@ def rr_k_axes(
             [w["mean_rr_s"] for w in low],
             "x",
             c="0.5",
-            label="mean RR (low quality)",
+            label=held_label(low),
         )
     for i, (a, b) in enumerate(drawn_spans(idle)):
         ax.axvspan(a, b, color="0.85", lw=0, label="robot stopped or waiting" if i == 0 else None)

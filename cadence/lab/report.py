@@ -98,7 +98,8 @@ def from_demo(folder: Path) -> Run:
 
 def window_row(w: HrvWindow, end_s: float) -> dict:
     """A window as a run keeps it (and a demo's summary.json)."""
-    return {"end_s": end_s, "mean_rr_s": w.mean_rr_s, "quality": w.quality, "movement_mg": w.movement_mg}
+    return {"end_s": end_s, "mean_rr_s": w.mean_rr_s, "quality": w.quality, "reason": w.reason,
+            "movement_mg": w.movement_mg}  # fmt: skip
 
 
 SCALE_EVERY_S = 0.25  # the scale trace keeps a robot state this often (robot/state comes at 50 Hz)
