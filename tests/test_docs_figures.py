@@ -201,13 +201,9 @@ def test_every_setting_a_guide_quotes_with_its_value_is_its_default() -> None:
 
 def test_the_robot_guides_geometry_and_reaction_time_are_the_codes() -> None:
     """docs/robot.md's ISO 13855 C, the default tool, the links' radii, the wrist speeds and T_r."""
-    import math
-
-    import numpy as np
-
-    from common.robot.ur16e import N_JOINTS
-    from common.safety.geometry import LINK_RADII_M, Arm, Tool, intrusion_iso13855
+    from common.safety.geometry import LINK_RADII_M, intrusion_iso13855
     from services.executor.settings import DEFAULT_TOOL, Settings
+    from tests.support.arm import wrist_speeds
 
     said = " ".join((DOCS / "robot.md").read_text().split())
     c = {h: intrusion_iso13855("legs", None, h) for h in (0.0, 0.3)}
@@ -220,19 +216,10 @@ def test_the_robot_guides_geometry_and_reaction_time_are_the_codes() -> None:
     upper, fore, wrist = LINK_RADII_M[1], LINK_RADII_M[2], LINK_RADII_M[3:]
     assert f": {upper:.2f} m; the forearm {fore:.2f} m; the wrists {wrist.max():.3f} m)" in said
     assert wrist.min() == wrist.max()
-    dt, omega = 0.002, math.radians(180.0)
-    spin = np.zeros((2, N_JOINTS))
-    spin[1, 5] = omega * dt
-    turn = np.radians([[0, -90, 90, -90, -90, 0]] * 2)
-    turn[1, 3] += omega * dt
-    tip = Arm(tool=Tool.of([[0.1, 0.0, 0.0, 0.0]])).top_speed(spin, dt)
-    flange, tool = Arm().top_speed(turn, dt), Arm(tool=Tool.of([[0.0, 0.0, 0.2, 0.0]])).top_speed(turn, dt)
-    assert (
-        f"reads {Arm().top_speed(spin, dt):.0f} m/s at the flange and {tip:.2f} m/s at a gripper tip" in said
-    )
-    assert (
-        f"a wrist-1 turn {flange:.2f} m/s at the flange and {tool:.2f} m/s at the tip of a 0.2 m tool" in said
-    )
+    w = wrist_speeds()
+    spin = f"reads {w['spin_flange']:.0f} m/s at the flange and {w['spin_tip']:.2f} m/s at a gripper tip"
+    turn = f"a wrist-1 turn {w['turn_flange']:.2f} m/s at the flange and {w['turn_tip']:.2f} m/s at the tip"
+    assert spin in said and f"{turn} of a 0.2 m tool" in said
     skew = setting_defaults()["clock_skew_s"].pop()
     sim = sum(Settings().reaction_parts(skew).values())
     real = sum(Settings(backend="ur_rtde").reaction_parts(skew).values())

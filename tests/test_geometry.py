@@ -109,15 +109,12 @@ def test_points_are_placed_by_the_sensors_pose_unless_already_placed() -> None:
 def test_a_wrist_3_spin_moves_the_tool_and_a_wrist_1_turn_moves_its_tip_faster_than_the_flange() -> None:
     """Issue 52's figures: a wrist-3 spin read 0 m/s at the flange, a gripper tip 0.1 m off its axis
     moves at ω r; a wrist-1 turn moves a 0.2 m tool's tip faster than the flange."""
-    dt, omega = 0.002, math.radians(180.0)
-    spin = np.zeros((2, N_JOINTS))
-    spin[1, 5] = omega * dt
-    assert Arm().top_speed(spin, dt) == pytest.approx(0.0, abs=1e-9)
-    tip = Arm(tool=Tool.of([[0.1, 0.0, 0.0, 0.0]]))
-    assert tip.top_speed(spin, dt) == pytest.approx(omega * 0.1, rel=1e-3)
-    turn = np.radians([[0, -90, 90, -90, -90, 0]] * 2)  # the example tasks' working pose
-    turn[1, 3] += omega * dt
-    flange, tool = Arm().top_speed(turn, dt), Arm(tool=Tool.of([[0.0, 0.0, 0.2, 0.0]])).top_speed(turn, dt)
+    from tests.support.arm import OMEGA, wrist_speeds
+
+    s = wrist_speeds()
+    assert s["spin_flange"] == pytest.approx(0.0, abs=1e-9)
+    assert s["spin_tip"] == pytest.approx(OMEGA * 0.1, rel=1e-3)
+    flange, tool = s["turn_flange"], s["turn_tip"]
     print(f"wrist 1 at 180°/s: flange {flange:.2f} m/s, tip of a 0.2 m tool {tool:.2f} m/s")
     assert (round(flange, 2), round(tool, 2)) == (0.53, 1.06)
     assert NO_TOOL.speed_points().shape == (0, 3)

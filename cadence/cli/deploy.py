@@ -134,7 +134,6 @@ def cmd_uninstall(args: argparse.Namespace) -> int:
 @arg("--host", action="append", default=[], help="the plant router's host names (default: this host's name)")
 @arg("--out", required=True, metavar="DIR")
 def cmd_plant_router(args: argparse.Namespace) -> int:
-    import os
     import socket
 
     from cadence.deploy.plant import load_secret, new_secret, parse_cell, plant_files
@@ -154,7 +153,6 @@ def cmd_plant_router(args: argparse.Namespace) -> int:
     files = plant_files(secret, cells, args.listen, args.host or [socket.gethostname()], out)
     for name, (text, mode) in files.items():
         atomic_write(out / name, text.encode(), mode)
-        os.chmod(out / name, mode)
         print(f"wrote {out / name} ({mode:o})")
     print(f"give {out / 'plant.json'} to each cell: cadence install … --plant plant.json")
     return 0

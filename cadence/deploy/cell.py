@@ -183,7 +183,7 @@ def router_config(
 # --- a plant: a router that connects to many cells' routers ------------------------------------------
 
 PLANT = "plant"  # the plant router's identity on every cell's router (certificate CN and username)
-PLANT_MONITOR = "plant-monitor"  # who reads the plant (`cadence plant`, `cadence record --plant`)
+PLANT_MONITOR = identity(PLANT, "monitor")  # who reads the plant (`cadence plant`, `cadence record --plant`)
 UPLINK_STATE_HZ = 5.0  # the arm's state per cell as the plant gets it (the cell's own is 50 Hz or more)
 
 

@@ -88,8 +88,7 @@ def plant_files(
     monitor_password = new_password()
     monitor_leaf = issue(secret.ca, cell.PLANT_MONITOR, "plant", [cell.PLANT_MONITOR])
     monitor_tls = cell.Tls(secret.ca.cert, monitor_leaf.cert, monitor_leaf.key)
-    monitor = cell.client_config("plant", "monitor", monitor_password, [listen], monitor_tls)
-    monitor["transport"]["auth"]["usrpwd"]["user"] = cell.PLANT_MONITOR
+    monitor = cell.client_config(cell.PLANT, "monitor", monitor_password, [listen], monitor_tls)
     said = "The plant monitor's account: it reads every cell and says nothing."
     return {
         "router.json5": (cell.to_json5(router, f"The plant's router: it reads {', '.join(cells)}."), 0o600),

@@ -408,7 +408,7 @@ def rhythm_jumps(
     supraventricular tachycardia starts, and a 2:1 block halves the rate, from one beat to the next. Held
     until the rate is back where it was, not until a jump back is seen: a run may end less sharply than
     it began, and a jump the rate never followed (one odd median) holds only its own window."""
-    since = max([start_s - RHYTHM_HOLD_S, *(g1 for g0, g1 in gaps_s if g1 <= end_s and g0 < end_s)])
+    since = max([start_s - RHYTHM_HOLD_S, *(g1 for _, g1 in gaps_s if g1 <= end_s)])
     sel = ~excluded & (iv.t_s >= since) & (iv.t_s < end_s)
     rr, t = iv.rr_s[sel], iv.t_s[sel]
     n = STEP_BEATS

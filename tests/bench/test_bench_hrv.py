@@ -53,16 +53,8 @@ def test_bench_hrv_against_established_detectors() -> None:
 @pytest.mark.skipif(BENCH_QUICK, reason="quick: tests/test_hrv.py scores every record's windows")
 def test_bench_hrv_windows_prints_cadence_and_neurokit2_per_noise_variant() -> None:
     """The window scorer's CLI on one noisy record (the whole set is `cadence bench hrv --windows`)."""
-    args = ["--windows", "--data", str(ECG), "--records", "105", "--variants", "clean,white6,motion"]
-    r = subprocess.run(
-        [sys.executable, "-m", "cadence", "bench", "hrv", *args],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert r.returncode == 0, r.stderr
-    print("\n" + r.stdout)
-    figures = json.loads(r.stdout.strip().splitlines()[-1])
+    figures, _ = bench_hrv_json("--windows", "--data", str(ECG), "--records", "105", "--variants",
+                                "clean,white6,motion", timeout=600)  # fmt: skip
     assert set(figures) == {"clean", "white6", "motion"}
     for by_pipeline in figures.values():
         ours = by_pipeline["cadence"]
@@ -120,11 +112,11 @@ def table_rows(text: str, after: str) -> list[str]:
     return rows[2:]
 
 
-def bench_hrv_json(*args: str) -> tuple[dict, str]:
+def bench_hrv_json(*args: str, timeout: float = 1800) -> tuple[dict, str]:
     """`cadence bench hrv`'s figures (its last line) and what it printed."""
     cmd = [sys.executable, "-m", "cadence", "bench", "hrv", *args]
     wide = {**os.environ, "COLUMNS": "300"}  # the fold lines whole
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, env=wide)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=wide)
     assert r.returncode == 0, r.stderr
     print("\n" + r.stdout)
     return json.loads(r.stdout.strip().splitlines()[-1]), r.stdout

@@ -1,0 +1,29 @@
+"""The wrist motions of issue 52, which tests/test_geometry.py holds to their figures and
+tests/test_docs_figures.py to what docs/robot.md says of them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from common.robot.ur16e import N_JOINTS
+from common.safety.geometry import Arm, Tool
+
+DT, OMEGA = 0.002, math.radians(180.0)  # one controller step, at 180°/s
+
+
+def wrist_speeds() -> dict[str, float]:
+    """The top speed of arm and tool over one step: a wrist-3 spin read at the flange (bare arm) and at
+    a gripper tip 0.1 m off its axis; a wrist-1 turn in the example tasks' working pose, at the flange
+    and at the tip of a 0.2 m tool."""
+    spin = np.zeros((2, N_JOINTS))
+    spin[1, 5] = OMEGA * DT
+    turn = np.radians([[0, -90, 90, -90, -90, 0]] * 2)
+    turn[1, 3] += OMEGA * DT
+    return {
+        "spin_flange": Arm().top_speed(spin, DT),
+        "spin_tip": Arm(tool=Tool.of([[0.1, 0.0, 0.0, 0.0]])).top_speed(spin, DT),
+        "turn_flange": Arm().top_speed(turn, DT),
+        "turn_tip": Arm(tool=Tool.of([[0.0, 0.0, 0.2, 0.0]])).top_speed(turn, DT),
+    }
