@@ -383,6 +383,76 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
     assert calls[1] == calls[0]  # tried again
 
 
+async def test_a_look_that_cannot_have_its_ramp_down_lets_the_lease_run_out_and_the_loop_stops_the_arm(
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A look that wants a lower scale and cannot have it (here every ramp below full speed is refused,
+    the fallback stop too) does not renew the lease on the scale in force: the loop takes its own stop
+    when it runs out. The looks once renewed it whatever they found, and an arm whose ramps down were
+    refused ran on at full speed with a person at 0.6 m."""
+    import services.executor.pathrun as pathrun
+
+    real = pathrun.plan_ramp
+
+    def no_way_down(*args: object, **kwargs: object) -> object:
+        return None if float(args[3]) < 1.0 else real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pathrun, "plan_ramp", no_way_down)
+    distance: list[float | None] = [5.0]
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
+        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
+        try:
+            await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
+            distance[0] = 0.6
+            stopped = await held(states)
+            distance[0] = 5.0  # the path ends at full speed again, and says what its lease did
+            said = await next_of(events, lambda e: e.kind == "scale" and "lease ran out" in e.message, 30)
+            ex.ctx.stop.set()
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+    assert stopped[0].separation_m == 0.6
+    assert "unchecked" in said.message  # no planned stop: the loop's own, over the path's T_s
+    assert ex.ctx.counters["lease_lapses"] >= 1 and ex.ctx.counters["unchecked_stops"] >= 1
+
+
+async def test_looks_that_never_come_stop_the_arm_at_the_scale_a_path_started_at(
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A path starts at the scale its first look allowed, leased like any look's: should no look follow
+    (the executor's thread starved from the start of the path on), the loop stops the arm when that lease
+    runs out. A path once began unleased and ran at its starting scale until a look came."""
+    from services.executor.reaction import Reactions
+
+    async def starved(self: Reactions) -> None:
+        return None
+
+    monkeypatch.setattr(Reactions, "_look", starved)
+    distance: list[float | None] = [5.0]
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
+        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
+        try:
+            moving = await next_of(states, lambda s: s.state == "moving" and max(map(abs, s.qd)) > 1e-3, 20)
+            stopped = await held(states)
+            ex.ctx.stop.set()
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+    assert stopped[0].state == "moving" and stopped[0].path_id == moving.path_id  # held within the path
+    assert (stopped[0].t_ns - moving.t_ns) / 1e9 < 3.0  # the lease, then a stop over the path's T_s
+
+
 async def sensors(bus: Bus, table: dict[str, tuple[str, float, float]], now_ns: Callable[[], int]) -> None:
     """Publishers of distances at about 33 Hz on the cell's clock (``now_ns``): each entry of ``table`` (by
     a name of the test's) says (source, distance, how far its stamp runs ahead of the clock in s); a

@@ -117,6 +117,7 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
     load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
     procs: list[subprocess.Popen[bytes]] = []
     states: list[tuple[float, RobotState]] = []
+    told: list[float] = []  # when the tracker said where the person was (wall s)
     try:
         async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), CELL) as bus:
             sub = bus.subscribe(bus.key("robot/state"), RobotState, maxsize=100_000)
@@ -129,6 +130,7 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
             await bus.until_subscribed(key, 120)
 
             def tell(x: float) -> None:
+                told.append(time.time())
                 sep = Separation(t_ns=time.time_ns(), seq=0, distance_m=min(100.0, math.hypot(x, HEIGHT)),
                                  source="tracker", points=((x, 0.0, HEIGHT),), placed=True)  # fmt: skip
                 bus.put_raw(key, encode(sep))
@@ -163,8 +165,12 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         for p in load:
             p.kill()
             p.wait()
-    margins, literal, reach, held_near = [], [], [], 0
-    for t, s in states:
+        if sys.exc_info()[0] is not None:  # what the services said, beside the failure
+            for name in ("pareto_store", "executor"):
+                said = (tmp_path / f"{name}.log").read_text()[-4000:]
+                print(f"--- {name}.log (the last 4000 characters)\n{said}")
+    margins, literal, reach, held_near, at = [], [], [], 0, []
+    for i, (t, s) in enumerate(states):
         q, qd = np.array(s.q), np.array(s.qd)
         dt = 1e-3
         v = arm.top_speed(np.stack([q, q + qd * dt]), dt)
@@ -176,6 +182,7 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         f = each.get(s.path_id or "", worst)
         left = math.sqrt(min(1.0, v / f.speed_m_s))  # the stop from the speed left (scaling.ramp_duration)
         margins.append(sep - (V_H * f.stop_time_s * left + v * f.stop_travel_s * left + c + z))
+        at.append(i)
         reach.append(sep - (c + z))
         ssm = f.ssm(Ssm(V_H, tr, 0.0, c, z))
         literal.append(sep - ssm.protective_distance(v))
@@ -186,7 +193,18 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
           f"(the arm answering a reading up to T_r = {tr:.2f} s old); still with the person at {NEAR} m: "
           f"{held_near} samples")  # fmt: skip
     adoption = {k: v for k, v in counters.items() if k.startswith("adoption")}
-    print(f"the executor's adoption with {busy} busy loops (ms): {adoption}")
+    lease = {k: counters.get(k, 0) for k in ("lease_lapses", "unchecked_stops", "ramps_refused", "late")}
+    print(f"the executor's adoption with {busy} busy loops (ms): {adoption}; the lease: {lease}")
+    worst_i = at[int(np.argmin(margins))]
+    gaps = np.diff([x - start for x in told if x >= start])
+    print(
+        f"the tracker's longest silence {gaps.max():.3f} s; the samples before the least margin "
+        "(t s, person x m, arm speed m/s, scale, S shown m, state):"
+    )
+    for t, s in states[max(0, worst_i - 12) : worst_i + 2]:
+        q, qd = np.array(s.q), np.array(s.qd)
+        v = arm.top_speed(np.stack([q, q + qd * 1e-3]), 1e-3)
+        print(f"  {t:8.3f} {person_x(t):5.2f} {v:5.2f} {s.scale:5.2f} {s.separation_m} {s.state}")
     assert held_near > 0  # the person stood inside the arm's reach: the arm held
     assert min(reach) > 0.0  # the moving arm never within the person's reach
     assert least >= 0.0

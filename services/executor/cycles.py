@@ -458,6 +458,7 @@ class Cycles:
             start = self.reactions.start_ramp(own, self.carried, figures)
             run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
                                                self.task.limits, self.speed, self.reactions.arm)  # fmt: skip
+            self.reactions.lease(run)  # the first look may be late: the scale it starts at is leased too
             settle = round(self.settings.settle_s * RATE_HZ)
             try:
                 result: MotionResult = await run.play(self.loop, settle)

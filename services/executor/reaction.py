@@ -25,6 +25,7 @@ from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
 from services.executor.pathrun import PathRun
+from services.executor.playback import SIGMA_EPS
 from services.executor.settings import RAMP_LEAD_S, Settings
 from services.executor.supervisor import Supervisor
 
@@ -208,11 +209,9 @@ class Reactions:
             a.answered(arrival, monotonic())
             return
         self.last_figures = r.figures
-        # the scale in force holds until the next look is due, with room for one late: past it the loop
-        # takes the stop kept ready for it (services/executor/playback.py, the lease)
         budget = self.adoption.budget_s
-        r.playback.stop_s = max(r.guard.stop_time_s, self.ssm.stop_time_s)
-        r.playback.renew(monotonic() + budget / 2)
+        if r.playback.now.target <= wanted + SIGMA_EPS:  # the scale the arm heads for is one this look allows
+            self.lease(r)
         await r.keep_fallback(0.75 * budget, 0.5 * budget)
         current = r.playback.now.target
         if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
@@ -224,8 +223,19 @@ class Reactions:
         elif wanted < current:  # answered when the servo plays its first step
             a.offered(ramp, arrival)
             self.offered_on = r
+            self.lease(r)  # the ramp down is the loop's: the scale it heads for is confirmed
         else:  # a rise may come late: nothing waits for it
             a.answered(arrival, monotonic())
+
+    def lease(self, run: PathRun) -> None:
+        """The scale the arm heads for holds until the next look is due, with room for one late; past it
+        the loop takes the stop kept ready for it (services/executor/playback.py). Given at a path's start
+        and by a look that finds that scale no higher than the distance allows, or has the ramp down
+        adopted: a look that wants a lower scale and cannot have it (a refused ramp, a planner starved)
+        lets the lease run out, so no arm runs on a scale the last reading did not allow."""
+        if self.on:
+            run.playback.stop_s = max(run.guard.stop_time_s, self.ssm.stop_time_s)
+            run.playback.renew(monotonic() + self.adoption.budget_s / 2)
 
     def count_adoption(self) -> None:
         """The adoption's figures in the status (ms), at most every 5 s: a quantile of 10⁵ delays is not
