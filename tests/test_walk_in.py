@@ -158,6 +158,7 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
             while health.pending:
                 counters = (await health.receive(1))[1].counters
     finally:
+        alive = [p.poll() is None for p in procs]  # before the stop: had a service died?
         for p in procs:
             p.terminate()
         for p in procs:
@@ -166,6 +167,7 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
             p.kill()
             p.wait()
         if sys.exc_info()[0] is not None:  # what the services said, beside the failure
+            print(f"still running at the failure (store, executor): {alive}")
             for name in ("pareto_store", "executor"):
                 said = (tmp_path / f"{name}.log").read_text()[-4000:]
                 print(f"--- {name}.log (the last 4000 characters)\n{said}")
