@@ -106,6 +106,41 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
     assert report.k_per_path == {"there": 2, "back": 2}
 
 
+async def test_a_latched_stop_outlives_a_restart_until_a_person_resumes(
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stop is latched on disk: an executor restarted while stopped (it crashed, the host rebooted, a
+    library died with the controller's link) comes up stopped, still until a person resumes; the resume
+    clears it there too, so the next restart moves. A restart once forgot the stop and moved the arm."""
+    on = stall(monkeypatch, SimBackend)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        settings = sim_settings(task_file, overrun_limit=RUN, cycles=0, initial_k=2)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+        await next_of(states, lambda s: s.mode == "moving")
+        on["stall"] = True
+        await next_of(events, lambda e: e.kind == "protective_stop")
+        on["stall"] = False
+        await still_while_stopped(states, 5)
+        await ex.close()
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+        said = await next_of(events, lambda e: e.kind == "protective_stop" and "last run" in e.message)
+        held = await still_while_stopped(states)
+        answer = await resume(bus)
+        await next_of(states, lambda s: s.mode == "moving", timeout=30)
+        await ex.close()
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+        again = await next_of(states, lambda s: s.mode == "moving" or s.state == "stopped", timeout=30)
+        await ex.close()
+        await store.close()
+    assert "overruns in a row" in said.message and "until `cadence robot resume`" in said.message
+    assert held.reason.endswith("(latched before a restart)") and "overruns in a row" in held.reason
+    assert "resumed by the test" in answer
+    assert again.mode == "moving"  # the resume cleared it on disk
+
+
 async def test_a_stalled_host_never_stops_the_sim_arm(
     task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -150,6 +150,7 @@ class Cycles:
         self.k: int | None = None
         self.waiting_for: str | None = None
         self.cut_short: int | None = None  # the cycle a restart cut short, said when the cycles start
+        self.latched: str | None = None  # a stop the last run latched and nobody resumed: why
         self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last path ended with
         self.switching: asyncio.Task[None] | None = None
         self.unwritten: str | None = None  # what could not be written (a full disk), while it cannot
@@ -163,7 +164,8 @@ class Cycles:
         self.notes = [p for p in (*self.sets.problems, loaded.problem) if p]
         self.ctx.detail = "; ".join(self.notes)
         if loaded.value is not None:
-            self.cut_short = loaded.value.cycle_in_progress
+            self.cut_short, self.latched = loaded.value.cycle_in_progress, loaded.value.latched
+        self.safety.on_latch = self.remember_latch
 
     def select(self, sel: Selection) -> None:
         """A selection is a sequence (DESIGN §8): one that is no newer than the newest applied, by its seq
@@ -189,7 +191,14 @@ class Cycles:
     def remember(self, sel: Selection) -> None:
         """Kept on disk in the background (a restart goes on at the newest k decided); a disk that
         cannot take it is said once, as any record the executor keeps."""
-        task = asyncio.create_task(self.keep(partial(self.store.received, sel), hold=False))
+        self.in_background(partial(self.store.received, sel))
+
+    def remember_latch(self, why: str | None) -> None:
+        """A stop latched (or cleared by a resume), kept on disk as a selection is."""
+        self.in_background(partial(self.store.latch, why))
+
+    def in_background(self, write: Callable[[], None]) -> None:
+        task = asyncio.create_task(self.keep(write, hold=False))
         self.writes.add(task)
         task.add_done_callback(self.writes.discard)
 
@@ -232,6 +241,11 @@ class Cycles:
                 f"cycle {self.cut_short} of the last run was cut short by a restart; "
                 "it has no report, and cycles count again from 0",
             )
+        if self.latched is not None:  # a restart does not clear a stop: a person does
+            again = " (latched before a restart)"
+            self.safety.fire(Event.FAULT, self.latched.removesuffix(again) + again)
+            self.safety.event("protective_stop", f"the last run ended stopped ({self.latched}); the robot "
+                              "stays stopped until `cadence robot resume`")  # fmt: skip
         await self.start_selection()
         await self.sets.fetch_missing(self.settings.query_timeout_s)
         k = self.selection.k if self.selection is not None else None

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
+from collections.abc import Callable
 
 from common.runtime.bus import QueryError
 from common.runtime.clock import monotonic
@@ -57,6 +58,8 @@ class Supervisor:
             else None
         )
         self._last_event: tuple[str, str] | None = None
+        # told of a stop latched (its reason) and of one cleared (None): the cycles keep it on disk
+        self.on_latch: Callable[[str | None], None] = lambda why: None
 
     @property
     def stopped(self) -> bool:
@@ -73,6 +76,10 @@ class Supervisor:
             change = (old.state.value, new.state.value)
             self.event("state", f"{old.state} → {new.state}{why}", self.path_id, repeat=True, change=change)
             self.changed.set()
+            if new.state is State.STOPPED and old.state is not State.RECOVERING:
+                self.on_latch(new.reason)
+            elif old.state in STOPPED_STATES and new.state not in STOPPED_STATES:
+                self.on_latch(None)
         return new
 
     def ready(self) -> None:
