@@ -4,12 +4,14 @@ ports, decoding and graph checks); its SIGTERM as a process, over real Zenoh."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -30,7 +32,7 @@ from schemas import (
 from schemas.topology import encode
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
-from tests.support.cell import CELL, Cell, put
+from tests.support.cell import CELL, Cell, InProcessService, put
 from tests.support.executor import SPEED, TASK, cached_sets, next_of, sim_settings, store_serving, tracked
 
 pytestmark = pytest.mark.asyncio
@@ -340,6 +342,28 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
 
 
 @pytest.mark.lockstep
+@contextlib.asynccontextmanager
+async def monitored(
+    cell: Cell, task_file: Path, tmp_path: Path, distance: list[float | None]
+) -> AsyncIterator[tuple[Any, Any, InProcessService]]:
+    """The executor with separation monitoring on, a store, and a sensor saying ``distance[0]``: its
+    robot states, its events, the service; stopped (and awaited) at the end."""
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
+        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
+        try:
+            yield states, events, ex
+            ex.ctx.stop.set()
+            await asyncio.wait_for(ex.task, 15)
+        finally:
+            feeding.cancel()
+            await store.close()
+
+
 async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm(
     task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -357,25 +381,11 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
 
     monkeypatch.setattr(pathrun, "plan_ramp", flaky)
     distance: list[float | None] = [5.0]
-    async with cell.session() as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", cell)
-        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
-        feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
-        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
-        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
-        try:
-            await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
-            distance[0] = 0.6
-            said = await next_of(
-                events, lambda e: e.kind == "info" and "could not be planned" in e.message, 10
-            )
-            held = await next_of(states, lambda s: s.scale == 0.0 and max(map(abs, s.qd)) < 1e-4, 10)
-            ex.ctx.stop.set()
-            await asyncio.wait_for(ex.task, 15)
-        finally:
-            feeding.cancel()
-            await store.close()
+    async with monitored(cell, task_file, tmp_path, distance) as (states, events, ex):
+        await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
+        distance[0] = 0.6
+        said = await next_of(events, lambda e: e.kind == "info" and "could not be planned" in e.message, 10)
+        held = await next_of(states, lambda s: s.scale == 0.0 and max(map(abs, s.qd)) < 1e-4, 10)
     assert "LinAlgError('Singular matrix')" in said.message
     assert held.separation_m == 0.6
     assert ex.ctx.counters["scale_errors"] == 1
@@ -399,24 +409,12 @@ async def test_a_look_that_cannot_have_its_ramp_down_lets_the_lease_run_out_and_
 
     monkeypatch.setattr(pathrun, "plan_ramp", no_way_down)
     distance: list[float | None] = [5.0]
-    async with cell.session() as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", cell)
-        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
-        feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
-        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
-        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
-        try:
-            await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
-            distance[0] = 0.6
-            stopped = await held(states)
-            distance[0] = 5.0  # the path ends at full speed again, and says what its lease did
-            said = await next_of(events, lambda e: e.kind == "scale" and "lease ran out" in e.message, 30)
-            ex.ctx.stop.set()
-            await asyncio.wait_for(ex.task, 15)
-        finally:
-            feeding.cancel()
-            await store.close()
+    async with monitored(cell, task_file, tmp_path, distance) as (states, events, ex):
+        await next_of(states, lambda s: s.state == "moving" and s.scale == 1.0, 20)
+        distance[0] = 0.6
+        stopped = await held(states)
+        distance[0] = 5.0  # the path ends at full speed again, and says what its lease did
+        said = await next_of(events, lambda e: e.kind == "scale" and "lease ran out" in e.message, 30)
     assert stopped[0].separation_m == 0.6
     assert "unchecked" in said.message  # no planned stop: the loop's own, over the path's T_s
     assert ex.ctx.counters["lease_lapses"] >= 1 and ex.ctx.counters["unchecked_stops"] >= 1
@@ -434,21 +432,9 @@ async def test_looks_that_never_come_stop_the_arm_at_the_scale_a_path_started_at
         return None
 
     monkeypatch.setattr(Reactions, "_look", starved)
-    distance: list[float | None] = [5.0]
-    async with cell.session() as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", cell)
-        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
-        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
-        ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
-        try:
-            moving = await next_of(states, lambda s: s.state == "moving" and max(map(abs, s.qd)) > 1e-3, 20)
-            stopped = await held(states)
-            ex.ctx.stop.set()
-            await asyncio.wait_for(ex.task, 15)
-        finally:
-            feeding.cancel()
-            await store.close()
+    async with monitored(cell, task_file, tmp_path, [5.0]) as (states, _, _):
+        moving = await next_of(states, lambda s: s.state == "moving" and max(map(abs, s.qd)) > 1e-3, 20)
+        stopped = await held(states)
     assert stopped[0].state == "moving" and stopped[0].path_id == moving.path_id  # held within the path
     assert (stopped[0].t_ns - moving.t_ns) / 1e9 < 3.0  # the lease, then a stop over the path's T_s
 
