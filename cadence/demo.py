@@ -69,6 +69,7 @@ from schemas.topology import (
     SELECTION,
 )
 from services.decision_maker import STATE_FILE
+from services.executor.persist import ExecutorStore
 from services.registry import launch_order
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
@@ -314,13 +315,22 @@ def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, S
     return Group(t, ev)
 
 
+def fresh_start(data: Path) -> None:
+    """A demo starts from a rested operator and a simulated arm no earlier demo left stopped (a real
+    executor's restart keeps its latched stop: services/executor/persist.py)."""
+    for stale in (STATE_FILE, CALIBRATION_FILE):
+        (data / stale).unlink(missing_ok=True)
+    executor = ExecutorStore(data / "executor")
+    if executor.load().value is not None:
+        executor.latch(None)
+
+
 async def run_demo(opts: DemoOptions, console: Console) -> dict:
     task = load_task(opts.task)
     opts.out.mkdir(parents=True, exist_ok=True)
     data, logs = opts.out / "data", opts.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    for stale in (STATE_FILE, CALIBRATION_FILE):  # a demo starts from a rested operator
-        (data / stale).unlink(missing_ok=True)
+    fresh_start(data)
     endpoint = opts.listen or f"tcp/127.0.0.1:{free_port()}"
     stopping = asyncio.Event()
     procs: dict[str, Supervised] = {}

@@ -30,6 +30,7 @@ from cadence.demo import (
     DemoOptions,
     Observed,
     demo_settings,
+    fresh_start,
     interrupted_before_data_time,
     live_view,
     summarise,
@@ -44,7 +45,6 @@ from common.runtime.mock_bus import MockBus, MockNetwork
 from common.runtime.service import serve
 from schemas.health import ServiceStatus
 from schemas.topology import DEFAULT_CELL, HEALTH
-from services.decision_maker import STATE_FILE
 from services.registry import BY_NAME
 
 TICK_S = 1.0  # data time between two looks at the services and the live view
@@ -62,7 +62,7 @@ async def run_lockstep(opts: DemoOptions, console: Console) -> dict[str, Any]:
         raise CadenceError("--kill SIGKILLs a service's process: the lockstep cell has none (--processes)")
     data, logs = opts.out / "data", opts.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    (data / STATE_FILE).unlink(missing_ok=True)  # a demo starts from a rested operator
+    fresh_start(data)
     handler = logging.FileHandler(logs / "cell.log", mode="w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s"))
     root, level = logging.getLogger(), logging.getLogger().level

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from common.runtime.resources import EXAMPLE_TASK
+from services.executor.persist import ExecutorStore
 from tests.support.cell import CELL
 from tests.support.cli import as_in_a_terminal
 
@@ -107,15 +108,19 @@ def test_the_personal_mode_steps_both_ways_in_the_twin_demo(tmp_path: Path) -> N
     """The decision maker in the personal mode (DESIGN §7), with every guarantee Alg. 1 has: the fast
     initial pace stresses the twin and k steps down, relief brings it up again, k stays within 1 … N. In
     lockstep (`--speed max`), with the twin's walks: at 16x they were turned off, as a loaded host kept
-    the twin below stress (issue 39)."""
+    the twin below stress (issue 39). Its folder holds a stop an earlier demo latched: a demo's arm is a
+    new simulated one, and starts unlatched (a real executor's restart keeps the latch)."""
     out = tmp_path / "demo"
+    ExecutorStore(out / "data" / "executor").latch("overruns, in an earlier demo")
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "demo", "--duration", "420", "--speed", "max", "--out", str(out),
          "--no-live", "--decide", "personal"],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert r.returncode == 0, r.stdout + r.stderr
-    sel = json.loads((out / "summary.json").read_text())["selections"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["cycles"] >= 5
+    sel = summary["selections"]
     assert sel[0]["reason"] == "initial"
     assert all(1 <= x["k"] <= 15 for x in sel)  # N = 15
     first_down = next(i for i, x in enumerate(sel) if x["delta"] < 0)
