@@ -16,6 +16,7 @@ from schemas import CycleReport, RobotEvent, RobotState, Selection, ServiceStatu
 from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from services.executor.backends import SimBackend, UrRtdeBackend
+from services.executor.persist import ExecutorStore
 from tests.support.cell import Cell, put
 from tests.support.executor import SPEED, TASK, next_of, operator_resumes, sim_settings, store_serving
 
@@ -139,6 +140,31 @@ async def test_a_latched_stop_outlives_a_restart_until_a_person_resumes(
     assert held.reason.endswith("(latched before a restart)") and "overruns in a row" in held.reason
     assert "resumed by the test" in answer
     assert again.mode == "moving"  # the resume cleared it on disk
+
+
+async def test_a_run_that_died_during_a_motion_restarts_stopped_until_a_person_resumes(
+    task_file: Path, tmp_path: Path, cell: Cell
+) -> None:
+    """The executor says on disk that the arm may move before each path's first step, and that it no longer
+    does once the path ended in order: a run that died during a motion (a crash of ur-rtde when its
+    controller vanished, a kill, a power cut), before it could latch its stop, leaves the first said, and
+    the restart comes up stopped until a person resumes."""
+    ExecutorStore(tmp_path / "ex" / "executor").moving("there")  # as a run killed during 'there' left it
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        settings = sim_settings(task_file, cycles=0, initial_k=2)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+        said = await next_of(events, lambda e: e.kind == "protective_stop" and "last run" in e.message)
+        held = await still_while_stopped(states, 20)
+        answer = await resume(bus)
+        await next_of(states, lambda s: s.mode == "moving", timeout=30)
+        await ex.close()
+        await store.close()
+    assert "ended during 'there' with no stop" in said.message
+    assert "ended during 'there'" in held.reason
+    assert "resumed by the test" in answer
 
 
 async def test_a_stalled_host_never_stops_the_sim_arm(

@@ -12,7 +12,7 @@ import logging
 import os
 import threading
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Literal
@@ -44,6 +44,8 @@ from services.executor.supervisor import Supervisor
 
 log = logging.getLogger("cadence.executor")
 RATE_HZ = 500.0
+Again = Literal["again"]
+AGAIN: Again = "again"  # a path to be tried again (Cycles.move)
 
 
 def _lowest_priority() -> None:
@@ -163,8 +165,10 @@ class Cycles:
         loaded = self.store.load()
         self.notes = [p for p in (*self.sets.problems, loaded.problem) if p]
         self.ctx.detail = "; ".join(self.notes)
-        if loaded.value is not None:
-            self.cut_short, self.latched = loaded.value.cycle_in_progress, loaded.value.latched
+        if (last := loaded.value) is not None:
+            self.cut_short, self.latched = last.cycle_in_progress, last.latched
+            if self.latched is None and last.moving is not None:
+                self.latched = f"the last run ended during '{last.moving}' with no stop (a crash or a kill)"
         self.safety.on_latch = self.remember_latch
 
     def select(self, sel: Selection) -> None:
@@ -450,70 +454,89 @@ class Cycles:
                 self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
                 await self.until_changed()
                 continue
-            if not await self.reach(own.waypoints[0], pid):
-                if self.safety.motion.state is State.REFUSED:
-                    await self.until_changed()
-                continue
-            if not await self.keep(partial(self.store.applied, self.selection)):
-                return None
-            if self.safety.motion.state is not State.READY:  # held for the disk meanwhile: look again
-                continue
-            if self.ctx.stop.is_set():  # the stop came while the path was prepared: no motion begins after it
-                return None
-            try:
-                self.safety.fire(Event.MOVE, f"'{pid}' at k = {k}")
-            except IllegalTransition as exc:  # a stop came in between: no motion
-                log.warning("%s", exc)
-                continue
-            self.safety.path_id, self.k = pid, k
-            # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
-            # converted to the form servo takes (backend.target), touching nothing
-            self.backend.prepare(own.waypoints[:1])
-            start = self.reactions.start_ramp(own, self.carried, figures)
-            run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
-                                               self.task.limits, self.speed, self.reactions.arm)  # fmt: skip
-            self.reactions.lease(run)  # the first look may be late: the scale it starts at is leased too
-            settle = round(self.settings.settle_s * RATE_HZ)
-            try:
-                result: MotionResult = await run.play(self.loop, settle)
-            finally:
-                self.reactions.run = None
-                self.ctx.counters["ramps"] += run.ramps
-                self.ctx.counters["ramps_refused"] += run.ramps_refused
-                self.ctx.counters["lease_lapses"] += run.playback.lapses
-                self.ctx.counters["unchecked_stops"] += run.playback.unchecked
-                self.carried = run.playback.state()
-                self.reactions.idle_scale = run.playback.sigma  # what the arm ended at, until the next look
-            k = self.k = run.k  # a switch within the path may have changed it
-            await asyncio.to_thread(self.backend.motion_ended)
-            self.ctx.counters["paths"] += 1
-            self.ctx.counters["overruns"] = self.loop.overruns
-            if result.overruns:
-                self.safety.event(
-                    "overrun", f"{result.overruns} servo overruns during '{pid}'", pid, repeat=True
-                )
-            if lapses := run.playback.lapses:  # the looks at the distance stopped coming: the loop stopped
-                unchecked = run.playback.unchecked
-                why = f" ({unchecked} unchecked: no planned stop fitted)" if unchecked else ""
-                said = (
-                    f"the scale's lease ran out {lapses} times during '{pid}': the servo took its stop{why}"
-                )
-                self.safety.event("scale", said, pid, repeat=True)
-            if result.outcome == "done":
-                self.safety.fire(Event.DONE)
-                return k
-            if result.outcome == "stopped":
-                self.safety.event("info", f"stopped during '{pid}' (decelerating stop)", pid)
-                self.safety.fire(Event.SHUTDOWN)
-                return None
-            if result.outcome == "overruns":
-                why = f"{self.settings.overrun_limit} servo overruns in a row during '{pid}'"
-            else:
-                why = f"during '{pid}': {self.backend.fault() or 'refused by the arm'}"
-            self.safety.event("protective_stop", why, pid)
-            self.safety.fire(Event.FAULT, why)
-            self.ctx.counters["protective_stops"] += 1
+            async with self.in_motion(pid) as said:  # a crash before it ends leaves the stop latched
+                outcome = await self.move(pid, own, k, curve, figures) if said else None
+            if outcome != AGAIN:
+                return outcome
         return None
+
+    @contextlib.asynccontextmanager
+    async def in_motion(self, pid: str) -> AsyncIterator[bool]:
+        """The arm may move inside: so it says on disk before the first step (the arm held until the disk
+        takes it; False: the service stopped first, and nothing may move), and only a body that ends in
+        order (a return, a fault handled) says it no longer does. A run that dies inside (a crash, a kill,
+        a power cut) leaves it said, and the restart comes up stopped until a person resumes (``load``)."""
+        said = await self.keep(partial(self.store.moving, pid))
+        yield said
+        if said:
+            await self.keep(partial(self.store.moving, None), hold=False)
+
+    async def move(
+        self, pid: str, own: PathPlan, k: int, curve: Curve, figures: Figures
+    ) -> int | Again | None:
+        """One path from its start: its k (a switch within it may have changed it), None when stopped,
+        ``AGAIN`` when the path is to be tried again (a refusal, a fault handled, a hold for the disk)."""
+        if not await self.reach(own.waypoints[0], pid):
+            if self.safety.motion.state is State.REFUSED:
+                await self.until_changed()
+            return AGAIN
+        assert self.selection is not None  # run_path waited for one, and one is never taken back
+        if not await self.keep(partial(self.store.applied, self.selection)):
+            return None
+        if self.safety.motion.state is not State.READY:  # held for the disk meanwhile: look again
+            return AGAIN
+        if self.ctx.stop.is_set():  # the stop came while the path was prepared: no motion begins after it
+            return None
+        try:
+            self.safety.fire(Event.MOVE, f"'{pid}' at k = {k}")
+        except IllegalTransition as exc:  # a stop came in between: no motion
+            log.warning("%s", exc)
+            return AGAIN
+        self.safety.path_id, self.k = pid, k
+        # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
+        # converted to the form servo takes (backend.target), touching nothing
+        self.backend.prepare(own.waypoints[:1])
+        start = self.reactions.start_ramp(own, self.carried, figures)
+        run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
+                                           self.task.limits, self.speed, self.reactions.arm)  # fmt: skip
+        self.reactions.lease(run)  # the first look may be late: the scale it starts at is leased too
+        settle = round(self.settings.settle_s * RATE_HZ)
+        try:
+            result: MotionResult = await run.play(self.loop, settle)
+        finally:
+            self.reactions.run = None
+            self.ctx.counters["ramps"] += run.ramps
+            self.ctx.counters["ramps_refused"] += run.ramps_refused
+            self.ctx.counters["lease_lapses"] += run.playback.lapses
+            self.ctx.counters["unchecked_stops"] += run.playback.unchecked
+            self.carried = run.playback.state()
+            self.reactions.idle_scale = run.playback.sigma  # what the arm ended at, until the next look
+        k = self.k = run.k  # a switch within the path may have changed it
+        await asyncio.to_thread(self.backend.motion_ended)
+        self.ctx.counters["paths"] += 1
+        self.ctx.counters["overruns"] = self.loop.overruns
+        if result.overruns:
+            self.safety.event("overrun", f"{result.overruns} servo overruns during '{pid}'", pid, repeat=True)
+        if lapses := run.playback.lapses:  # the looks at the distance stopped coming: the loop stopped
+            unchecked = run.playback.unchecked
+            why = f" ({unchecked} unchecked: no planned stop fitted)" if unchecked else ""
+            said = f"the scale's lease ran out {lapses} times during '{pid}': the servo took its stop{why}"
+            self.safety.event("scale", said, pid, repeat=True)
+        if result.outcome == "done":
+            self.safety.fire(Event.DONE)
+            return k
+        if result.outcome == "stopped":
+            self.safety.event("info", f"stopped during '{pid}' (decelerating stop)", pid)
+            self.safety.fire(Event.SHUTDOWN)
+            return None
+        if result.outcome == "overruns":
+            why = f"{self.settings.overrun_limit} servo overruns in a row during '{pid}'"
+        else:
+            why = f"during '{pid}': {self.backend.fault() or 'refused by the arm'}"
+        self.safety.event("protective_stop", why, pid)
+        self.safety.fire(Event.FAULT, why)
+        self.ctx.counters["protective_stops"] += 1
+        return AGAIN
 
     def prepare_path(self, h: np.ndarray, own: PathPlan, claimed: np.ndarray) -> tuple[Curve, Figures]:
         """In a worker thread, before the motion: the trajectory checked against the executor's own

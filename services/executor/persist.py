@@ -1,9 +1,10 @@
 """What the executor keeps on disk besides its sets (DESIGN §9): the last selection it applied and the
 newest it received (a decision maker that decided 11 and 14 while a path ran at 8 is not taken back to 8
 by a restart), so a restart while the decision maker is unreachable can go on at the last decided k (if
-that is young enough), the cycle in progress, so a restart says which cycle it cut short, and a stop
-latched and not yet resumed, so that a restart (the service crashed, the host rebooted) comes up stopped
-until a person resumes, as the stop was. Validated on load like a message; a damaged file is moved aside."""
+that is young enough); the cycle in progress, so a restart says which cycle it cut short; and a stop
+latched and not yet resumed, or a motion not ended in order, so that a restart (the service crashed, the
+host rebooted) comes up stopped until a person resumes. Validated on load like a message; a damaged file
+is moved aside."""
 
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ class ExecutorRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     cycle_in_progress: NonNegInt | None = None
     received: AppliedSelection | None = None  # the newest selection received (``applied_ns``: when)
     latched: str | None = None  # a stop latched and not yet resumed: why (a restart keeps it)
+    moving: str | None = None  # the path the arm may be moving on (a restart finding one latches a stop)
 
     @property
     def newest(self) -> AppliedSelection | None:
@@ -85,6 +87,9 @@ class ExecutorStore:
 
     def latch(self, why: str | None) -> None:
         self._change(latched=why)
+
+    def moving(self, path_id: str | None) -> None:
+        self._change(moving=path_id)
 
 
 def _kept(old: AppliedSelection | None, sel: Selection) -> AppliedSelection | None:
