@@ -316,13 +316,13 @@ def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, S
 
 
 def fresh_start(data: Path) -> None:
-    """A demo starts from a rested operator and a simulated arm no earlier demo left stopped (a real
-    executor's restart keeps its latched stop: services/executor/persist.py)."""
+    """A demo starts from a rested operator and a simulated arm no earlier demo left stopped or killed
+    mid-path (a real executor's restart keeps both as a stop: services/executor/persist.py)."""
     for stale in (STATE_FILE, CALIBRATION_FILE):
         (data / stale).unlink(missing_ok=True)
     executor = ExecutorStore(data / "executor")
-    if executor.load().value is not None:
-        executor.latch(None)
+    executor.load()
+    executor.forget_stop()  # an unchanged record is not written
 
 
 async def run_demo(opts: DemoOptions, console: Console) -> dict:

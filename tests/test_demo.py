@@ -111,7 +111,9 @@ def test_the_personal_mode_steps_both_ways_in_the_twin_demo(tmp_path: Path) -> N
     the twin below stress (issue 39). Its folder holds a stop an earlier demo latched: a demo's arm is a
     new simulated one, and starts unlatched (a real executor's restart keeps the latch)."""
     out = tmp_path / "demo"
-    ExecutorStore(out / "data" / "executor").latch("overruns, in an earlier demo")
+    earlier = ExecutorStore(out / "data" / "executor")
+    earlier.latch("overruns, in an earlier demo")
+    earlier.moving("b1_to_b2")  # and killed during a path
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "demo", "--duration", "420", "--speed", "max", "--out", str(out),
          "--no-live", "--decide", "personal"],

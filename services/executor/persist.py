@@ -91,6 +91,10 @@ class ExecutorStore:
     def moving(self, path_id: str | None) -> None:
         self._change(moving=path_id)
 
+    def forget_stop(self) -> None:
+        """Neither a latched stop nor a motion cut short (a new simulated arm: the demo's)."""
+        self._change(latched=None, moving=None)
+
 
 def _kept(old: AppliedSelection | None, sel: Selection) -> AppliedSelection | None:
     """``sel`` as it is kept, or None when it is the one on file already."""
