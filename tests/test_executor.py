@@ -341,19 +341,18 @@ async def test_the_scale_follows_the_separation_stale_holds_and_a_new_k_takes_ov
     assert ex.ctx.counters["ramps"] >= 4
 
 
-@pytest.mark.lockstep
 @contextlib.asynccontextmanager
 async def monitored(
-    cell: Cell, task_file: Path, tmp_path: Path, distance: list[float | None]
+    cell: Cell, task_file: Path, tmp_path: Path, distance: list[float | None], **changes: object
 ) -> AsyncIterator[tuple[Any, Any, InProcessService]]:
-    """The executor with separation monitoring on, a store, and a sensor saying ``distance[0]``: its
-    robot states, its events, the service; stopped (and awaited) at the end."""
+    """The executor with separation monitoring on (and ``changes`` to its settings), a store, and a sensor
+    saying ``distance[0]``: its robot states, its events, the service; stopped (and awaited) at the end."""
     async with cell.session() as bus:
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         feeding = asyncio.create_task(sensor(bus, distance, cell.now_ns))
-        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"))
+        settings = sim_settings(task_file, separation=True, separation_sources=tracked("test"), **changes)
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         try:
             yield states, events, ex
@@ -364,6 +363,30 @@ async def monitored(
             await store.close()
 
 
+@pytest.mark.lockstep
+async def test_the_slow_move_to_a_paths_start_waits_for_room_for_its_speed(
+    task_file: Path, tmp_path: Path, cell: Cell
+) -> None:
+    """The controller's moveJ to a path's start (after a resume mid-path, or an arm moved by hand) once ran
+    whoever stood beside the arm: the walk-in test, resuming after a stop, saw it move at 0.2 m/s inside
+    the person's reach. It begins only once the distance allows it at its speed."""
+    distance: list[float | None] = [0.6]
+    away = [10, -90, 90, -90, -90, 0]
+    async with monitored(cell, task_file, tmp_path, distance, sim_start_deg=away, start_policy="move") as (
+        states,
+        events,
+        _,
+    ):
+        said = await next_of(events, lambda e: "moving there slowly" in e.message, 20)
+        later = await next_of(states, lambda s: s.t_ns > said.t_ns + 2_000_000_000, 20)
+        np.testing.assert_allclose(later.q, np.radians(away), atol=1e-9)  # two seconds on, not moved
+        assert later.scale == 0.0 and later.state == "moving"
+        distance[0] = 5.0
+        there = await next_of(states, lambda s: s.path_id == "there" and s.state == "moving", 20)
+    assert there.t_ns > later.t_ns
+
+
+@pytest.mark.lockstep
 async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm(
     task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -393,6 +416,7 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
     assert calls[1] == calls[0]  # tried again
 
 
+@pytest.mark.lockstep
 async def test_a_look_that_cannot_have_its_ramp_down_lets_the_lease_run_out_and_the_loop_stops_the_arm(
     task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -433,10 +457,21 @@ async def test_looks_that_never_come_stop_the_arm_at_the_scale_a_path_started_at
         return None
 
     monkeypatch.setattr(Reactions, "_look", starved)
-    async with monitored(cell, task_file, tmp_path, [5.0]) as (states, _, _):
+    async with monitored(cell, task_file, tmp_path, [5.0]) as (states, _, ex):
         moving = await next_of(states, lambda s: s.state == "moving" and max(map(abs, s.qd)) > 1e-3, 20)
-        stopped = await held(states)
-    assert stopped[0].state == "moving" and stopped[0].path_id == moving.path_id  # held within the path
+        first = await next_of(states, lambda s: max(map(abs, s.qd)) < 1e-4, timeout=10)
+        still = [first]
+        while still[-1].t_ns < first.t_ns + 500_000_000:
+            still.append(await next_of(states))
+    np.testing.assert_allclose(still[-1].q, first.q, atol=1e-4)  # and stays so
+    assert first.path_id == moving.path_id  # within the path it began
+    # the lease's stop, held on the path; or, where this loaded host starved the servo thread as well (the
+    # test's own process runs the executor), the sim's watchdog stopped the arm before it
+    if first.state == "moving":
+        assert all(s.scale == 0.0 for s in still)
+        assert ex.ctx.counters["lease_lapses"] >= 1
+    else:
+        assert first.state == "stopped" and "watchdog" in first.reason, first.reason
 
 
 async def sensors(bus: Bus, table: dict[str, tuple[str, float, float]], now_ns: Callable[[], int]) -> None:

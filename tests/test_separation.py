@@ -260,11 +260,11 @@ def test_the_adoption_holds_the_arm_when_a_reading_was_answered_late_and_frees_i
     assert not a.late and list(a.delays) == [0.05]
     a.arrived(1.0)
     a.offered(ramp, a.take())
-    a.began(None, None, 1.05)  # not yet played, within the budget
+    a.began(None, None, 1.05, ramp)  # pending, not yet played, within the budget
     assert not a.late
-    a.began(None, None, 1.2)  # still waited for past it: a hold before the ramp comes
+    a.began(None, None, 1.2, ramp)  # still waited for past it: a hold before the ramp comes
     assert a.late and a.times_late == 1
-    a.began(ramp, 1.21, 1.22)  # it played at last, 0.21 s after its reading
+    a.began(ramp, 1.21, 1.22, None)  # it played at last, 0.21 s after its reading
     assert a.late and a.delays[-1] == pytest.approx(0.21)
     a.arrived(2.0)
     a.answered(a.take(), 2.02)
@@ -275,3 +275,24 @@ def test_the_adoption_holds_the_arm_when_a_reading_was_answered_late_and_frees_i
     assert a.take() == 3.0
     q = a.quantiles()
     assert q["max"] == pytest.approx(0.21) and q["p50"] == pytest.approx(0.05)
+
+
+def test_a_ramp_replaced_before_it_played_ends_the_wait_and_a_reading_in_time_frees_the_arm() -> None:
+    """A ramp down waited for, then replaced in the loop before it began (the lease ran out and its stop
+    took the ramp's place): the wait ended only with a newer ramp, and a held arm wants none. The arm
+    stayed held for good, on an idle host too (the walk-in test: 32 s of a 45 s run)."""
+    from common.safety.separation import Adoption
+
+    a, ramp, stop = Adoption(0.1), object(), object()
+    a.arrived(1.0)
+    a.offered(ramp, a.take())
+    a.began(None, None, 1.2, ramp)
+    assert a.late  # waited for past the budget
+    a.began(stop, 1.25, 1.3, None)  # the lease's stop began in its place
+    assert a.late and a.take() == 1.0  # the look answers its readings, late
+    a.answered(1.0, 1.3)
+    assert a.late
+    a.arrived(1.31)
+    a.began(stop, 1.25, 1.33, None)
+    a.answered(a.take(), 1.33)  # the next look: the stop in force answers a fresh reading in time
+    assert not a.late and a.waiting is None

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pytest
 
 from common.trajectory.task import load_task
 from common.trajectory.validate import validated_samples
-from services.executor.backends import SimBackend
+from services.executor.backends import SimBackend, backend_for
 from services.executor.servo import PERIOD_NS, ServoLoop
+from services.executor.settings import Settings
 from tests.support.paths import EXAMPLE_TASK
 
 
@@ -111,19 +114,95 @@ def test_a_run_of_overruns_stops_the_robot(samples: np.ndarray) -> None:
     assert np.all(sim.arm.qd == 0.0)
 
 
-def test_a_stalled_host_never_stops_a_simulated_arm(samples: np.ndarray) -> None:
+def test_a_short_stall_of_the_host_is_caught_up_and_never_stops_a_simulated_arm(samples: np.ndarray) -> None:
     def stall(b: SimBackend) -> bool | None:
         if b.calls <= 140:
             time.sleep(0.005)  # 2.5 periods, 41 ticks in a row
         return None
 
-    sim = Scripted(samples[0], 100, stall)
+    sim = Scripted(samples[0], 100, stall, watchdog_s=0.1)  # each silence 5 ms: within the watchdog
     _, r = run(sim, samples, overrun_limit=4, realtime=False)
     assert r.outcome == "done"
     assert r.samples_sent == len(samples)
     assert r.overruns >= 41
     assert np.max(np.abs(sim.arm.q - samples[-1])) <= 1e-4
     assert not sim.fault()
+
+
+class Silent:
+    """A clock a test moves: the silence of a starved servo thread, without waiting for one."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_a_silence_past_the_watchdog_stops_the_simulated_arm_where_its_controller_would(
+    samples: np.ndarray,
+) -> None:
+    """A starved executor (its servo thread too) once left the sim arm standing mid-motion with its
+    speed, to run on from there after the stall: a stop that began only once the person was in reach."""
+    clock = Silent()
+    sim = SimBackend(samples[0], watchdog_s=0.1, clock=clock)
+    sim.prepare(samples[:1])
+    for row in samples[: len(samples) // 2]:  # mid-path, moving
+        clock.t += 0.002
+        assert sim.servo(row)
+    q, qd = sim.actual_q(), sim.actual_qd()
+    assert np.max(np.abs(qd)) > 0.1
+    clock.t += 0.09  # within the watchdog: the arm is as it was, and the next target is taken
+    assert np.array_equal(sim.actual_q(), q) and np.array_equal(sim.actual_qd(), qd)
+    clock.t += 0.05  # past it: a read while the servo thread is still starved sees the stop already taken
+    seen_q, seen_qd = sim.actual_q(), sim.actual_qd()
+    assert np.all(seen_qd == 0.0)
+    assert np.all((seen_q - q) * qd >= 0.0)  # the braking way, along the way it moved
+    assert np.max(np.abs(seen_q - q)) > 1e-3
+    assert not sim.fault() and np.array_equal(sim.arm.q, q)  # nothing taken yet: a read changes nothing
+    assert not sim.servo(samples[len(samples) // 2])  # the loop back: the stop is the arm's now
+    assert "watchdog" in sim.fault() and "0.140 s" in sim.fault()
+    assert np.array_equal(sim.actual_q(), seen_q) and np.all(sim.actual_qd() == 0.0)
+    sim.motion_ended()
+    sim.reset_fault()  # a person's resume; between motions nothing watches
+    clock.t += 10.0
+    assert not sim.fault() and np.array_equal(sim.actual_q(), seen_q)
+    sim.prepare(samples[:1])
+    assert sim.servo(seen_q)  # held where it stands: at rest, a silence stops nothing
+    clock.t += 1.0
+    assert sim.servo(seen_q) and not sim.fault()
+    clock.t += 10.0
+    assert not sim.fault() and np.array_equal(sim.actual_q(), seen_q)
+
+
+def test_in_the_servo_loop_a_silence_past_the_watchdog_ends_the_motion_as_a_fault(
+    samples: np.ndarray,
+) -> None:
+    clock = Silent()
+
+    def starve(b: SimBackend) -> None:
+        clock.t += 0.5 if b.calls == 100 else 0.002
+
+    sim = Scripted(samples[0], 1, starve, watchdog_s=0.1, clock=clock)
+    _, r = run(sim, samples)
+    assert r.outcome == "fault"
+    assert r.samples_sent == 100
+    assert "watchdog" in sim.fault()
+    assert np.all(sim.arm.qd == 0.0)
+
+
+def test_a_lockstep_arm_and_one_no_person_stands_beside_have_no_watchdog(samples: np.ndarray) -> None:
+    task, settings = load_task(EXAMPLE_TASK), Settings(separation=True)
+    assert cast(SimBackend, backend_for(settings, task, 8.0)).watchdog_s == 1.0 / settings.watchdog_hz
+    assert cast(SimBackend, backend_for(Settings(), task, 1.0)).watchdog_s is None  # no person watched
+    sim = cast(SimBackend, backend_for(settings, task, math.inf))  # a lockstep cell's
+    assert sim.watchdog_s is None
+    clock = sim.clock = Silent()
+    sim.arm.q[:] = samples[0]  # this test's path, not the task's first
+    for row in samples[:50]:
+        assert sim.servo(row)
+    clock.t += 100.0
+    assert sim.servo(samples[50]) and not sim.fault()
 
 
 def test_a_refusing_arm_ends_the_motion_as_a_fault(samples: np.ndarray) -> None:

@@ -17,6 +17,13 @@ margins, neither ever below 0:
   begin its stop there, a person walking on at v_h would not reach it. It is S_p with its reaction time
   spent; the reaction is what the reading's age and the executor's adoption use up.
 
+Before the last walk the executor's process is stopped (SIGSTOP) while its arm moves fast, until the
+person has walked in to ``STALL_UNTIL_X``: a starvation the host gives now and then under load (8 s once,
+in a loaded run). Its looks, its servo thread and its states all stand still. The controller's watchdog
+(the sim has one, as a UR has) must stop the arm during that silence: without it, the loop caught up the
+lost ticks at once when the process came back, the lease's stop among them, and a state read in between
+showed an arm at speed beside the person.
+
 The least of each is printed, and S − S_p at the sample too, with T_r: what a reading must show when it
 is taken. That one goes negative by design while the arm answers a reading up to T_r old (ISO/TS 15066
 asks the system to react once S falls below S_p, not to have foreseen it), and is not asserted."""
@@ -26,7 +33,9 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -37,11 +46,12 @@ import pytest
 
 from common.robot.ur16e import UR16E
 from common.runtime.bus import Bus, BusConfig
+from common.safety.geometry import Arm
 from common.safety.separation import Figures, Ssm
 from common.trajectory.planner import content_hash
 from common.trajectory.scaling import Curve
 from common.trajectory.task import load_task
-from schemas import RobotState, Separation, ServiceStatus
+from schemas import RobotEvent, RobotState, Separation, ServiceStatus
 from schemas.topology import encode
 from services.executor.settings import Settings as ExecutorSettings
 from services.pareto_store.store import SetStore
@@ -51,15 +61,21 @@ from tests.support.paths import EXAMPLE_TASK
 V_H = 1.6  # ISO 13855's walking speed
 FAR, NEAR, HEIGHT = 6.0, 1.0, 1.0  # the walk along the cell's x axis, the tracker's point at chest height
 STAND_S, OUT_S, WALKS = 2.0, 3.0, 4
+# the executor's process stopped as the arm moves fast, from the end of the last walk but one, until the
+# person of the last walk is this far in
+STALL_FROM_S, STALL_FAST_M_S, STALL_UNTIL_X = OUT_S - 0.3, 0.5, 1.6
 PERIOD_S = 0.05  # the tracker's rate: 20 Hz
 SOURCE = '[{ name = "tracker", detects = "body" }]'  # it sees the body: C = 0.85 m (ISO 13855)
 
 
-def person_x(t: float) -> float:
+ONE_S = 2 * (FAR - NEAR) / V_H + STAND_S + OUT_S  # one walk: in, standing, out, far
+
+
+def person_x(t: float, walks: int = WALKS) -> float:
     """Where the person is on the x axis, t s after the first walk begins (walks, then far for good)."""
     walk_s = (FAR - NEAR) / V_H
-    one = 2 * walk_s + STAND_S + OUT_S
-    if t < 0 or t >= WALKS * one:
+    one = ONE_S
+    if t < 0 or t >= walks * one:
         return FAR
     u = t % one
     if u < walk_s:
@@ -89,10 +105,55 @@ def figures_at_top_k(db: Path) -> tuple[Figures, dict[str, Figures]]:
     return worst, each
 
 
+def speed(arm: Arm, s: RobotState) -> float:
+    """The speed of the arm's (and tool's) fastest point at a sample, m/s."""
+    q, qd = np.array(s.q), np.array(s.qd)
+    return arm.top_speed(np.stack([q, q + qd * 1e-3]), 1e-3)
+
+
+def row(arm: Arm, t: float, s: RobotState, walks: int) -> str:
+    return (
+        f"  {t:8.3f} {person_x(t, walks):5.2f} {speed(arm, s):5.2f} {s.scale:5.2f} {s.separation_m} {s.state}"
+    )
+
+
+async def starve(pid: int, until: float) -> float:
+    """The host starving the executor's process, all its threads, from now ``until`` (wall s). When it
+    was stopped (wall s)."""
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        stopped = time.time()
+        await asyncio.sleep(max(0.0, until - stopped))
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    return stopped
+
+
 @pytest.mark.asyncio
 async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never_meets_a_moving_arm(
     tmp_path: Path, example_sets: Path
 ) -> None:
+    busy = int(os.environ.get("CADENCE_WALK_BUSY_LOOPS", "2"))  # 0: the same walks on an idle host
+    await walk_in(tmp_path, example_sets, busy, WALKS, stall=False)
+
+
+@pytest.mark.asyncio
+async def test_the_executors_whole_process_stalled_as_the_person_walks_in_is_a_stop_of_the_arm(
+    tmp_path: Path, example_sets: Path
+) -> None:
+    """SIGSTOP as the arm runs a path, until the person is within reach: its controller's watchdog stops
+    it during the silence, and no sample after shows it moving beside the person. No busy loops: the
+    stall is the test's own, and the arm must be running a path when it comes."""
+    await walk_in(tmp_path, example_sets, 0, 2, stall=True)
+
+
+def in_a_path(s: RobotState) -> bool:
+    """The servo loop is playing a path (held or not), not a moveJ: what the watchdog watches."""
+    return s.state == "moving" and "slowly" not in s.reason
+
+
+async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, stall: bool) -> None:
+    """``walks`` walks in, beside ``busy`` busy loops; with ``stall``, the executor stopped in the last."""
     worst, each = figures_at_top_k(example_sets)
     settings = ExecutorSettings()
     arm, tr = settings.arm(), sum(settings.reaction_parts(0.05).values())
@@ -113,7 +174,6 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         "CADENCE_EXECUTOR_FIFO_PRIORITY": "80" if os.geteuid() == 0 else "0",  # as its unit grants
         "CADENCE_EXECUTOR_LOCK_DIR": str(tmp_path / "locks"),
     }
-    busy = int(os.environ.get("CADENCE_WALK_BUSY_LOOPS", "2"))  # 0: the same walks on an idle host
     load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
     procs: list[subprocess.Popen[bytes]] = []
     states: list[tuple[float, RobotState]] = []
@@ -148,18 +208,34 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
             tracker.cancel()
             start = time.time()
             tracker = asyncio.create_task(track(start))
-            one = 2 * (FAR - NEAR) / V_H + STAND_S + OUT_S
-            async with asyncio.timeout(WALKS * one + 60):
-                while time.time() < start + WALKS * one:
+            starving: asyncio.Task[float] | None = None
+            resume: asyncio.Task[object] | None = None  # a person's, after a watchdog's stop
+            resumes = 0
+            last = (walks - 1) * ONE_S  # when the last walk begins
+            resumed = last + (FAR - STALL_UNTIL_X) / V_H  # when the stall ends
+            async with asyncio.timeout(walks * ONE_S + 60):
+                while time.time() < start + walks * ONE_S:
                     _, s = await sub.receive(30)
-                    states.append((s.t_ns / 1e9 - start, s))
+                    states.append((t := s.t_ns / 1e9 - start, s))
+                    # fast from just before the last walk, or else in a path at all once it has begun
+                    window = last - STALL_FROM_S < t < resumed - 1
+                    fast = speed(arm, s) > STALL_FAST_M_S or t > last + 0.5
+                    if stall and starving is None and window and fast and in_a_path(s):
+                        starving = asyncio.create_task(starve(procs[1].pid, start + resumed))
+                    if s.state == "stopped" and "watchdog" in s.reason and (resume is None or resume.done()):
+                        resume = asyncio.create_task(bus.get(f"{bus.key('robot/resume')}?by=walk-in",
+                                                             RobotEvent, timeout=20))  # fmt: skip
+                        resumes += 1
             tracker.cancel()
+            assert starving is not None or not stall, "the arm ran no path in the last walk: no stall tried"
+            stalled_at = (await starving if starving is not None else math.nan) - start
             counters = {}
             while health.pending:
                 counters = (await health.receive(1))[1].counters
     finally:
         alive = [p.poll() is None for p in procs]  # before the stop: had a service died?
         for p in procs:
+            p.send_signal(signal.SIGCONT)  # one the failure left stopped takes its SIGTERM
             p.terminate()
         for p in procs:
             p.wait(30)
@@ -173,13 +249,11 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
                 print(f"--- {name}.log (the last 4000 characters)\n{said}")
     margins, literal, reach, held_near, at = [], [], [], 0, []
     for i, (t, s) in enumerate(states):
-        q, qd = np.array(s.q), np.array(s.qd)
-        dt = 1e-3
-        v = arm.top_speed(np.stack([q, q + qd * dt]), dt)
-        person = np.array([[person_x(t), 0.0, HEIGHT]])
+        q, v = np.array(s.q), speed(arm, s)
+        person = np.array([[person_x(t, walks), 0.0, HEIGHT]])
         sep = arm.body(q).distance(person)
         if v < 1e-3:
-            held_near += person_x(t) <= NEAR + 1e-9
+            held_near += person_x(t, walks) <= NEAR + 1e-9
             continue
         f = each.get(s.path_id or "", worst)
         left = math.sqrt(min(1.0, v / f.speed_m_s))  # the stop from the speed left (scaling.ramp_duration)
@@ -189,7 +263,7 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         ssm = f.ssm(Ssm(V_H, tr, 0.0, c, z))
         literal.append(sep - ssm.protective_distance(v))
     least = min(margins)
-    print(f"\n{len(states)} robot/state samples in {WALKS} walks, {len(margins)} moving; least margin "
+    print(f"\n{len(states)} robot/state samples in {walks} walks, {len(margins)} moving; least margin "
           f"{least:+.3f} m (a stop begun at the sample), {min(reach):+.3f} m past the person's reach C + Z; "
           f"S - S_p at the sample: least {min(literal):+.3f} m, negative in {sum(m < 0 for m in literal)} "
           f"(the arm answering a reading up to T_r = {tr:.2f} s old); still with the person at {NEAR} m: "
@@ -204,9 +278,19 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
         "(t s, person x m, arm speed m/s, scale, S shown m, state):"
     )
     for t, s in states[max(0, worst_i - 12) : worst_i + 2]:
-        q, qd = np.array(s.q), np.array(s.qd)
-        v = arm.top_speed(np.stack([q, q + qd * 1e-3]), 1e-3)
-        print(f"  {t:8.3f} {person_x(t):5.2f} {v:5.2f} {s.scale:5.2f} {s.separation_m} {s.state}")
+        print(row(arm, t, s, walks))
+    stops = {s.reason: t for t, s in states if "watchdog" in s.reason}  # each stop once, when first seen
+    silences = {why: float(m[1]) for why in stops if (m := re.search(r"no target for ([0-9.]+) s", why))}
+    print(f"the watchdog's stops: {len(stops)} ({resumes} resumes by the test), the silences (s): "
+          f"{sorted(silences.values())}")  # fmt: skip
+    whole = [why for why, silent in silences.items() if silent > resumed - stalled_at - 0.5]
+    if stall:
+        print(f"the executor's process stopped from {stalled_at:.3f} s to {resumed:.3f} s (the person at "
+              f"{STALL_UNTIL_X} m), and said: {whole}; the samples then:")  # fmt: skip
+        for t, s in states:
+            if stalled_at - 0.1 <= t <= resumed + 0.5:
+                print(row(arm, t, s, walks))
     assert held_near > 0  # the person stood inside the arm's reach: the arm held
+    assert whole or not stall, "the arm ran a path at the stall: the watchdog must have stopped it for it"
     assert min(reach) > 0.0  # the moving arm never within the person's reach
     assert least >= 0.0

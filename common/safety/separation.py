@@ -323,15 +323,20 @@ class Adoption:
             arrival = min(arrival, self.waiting[1])
         self.waiting = (ramp, arrival)
 
-    def began(self, ramp: object | None, at: float | None, now: float) -> None:
-        """At each look: what the servo has begun playing (``ramp`` from ``at``). The ramp waited for, when
-        begun, is measured; a wait past the budget makes the arm hold before the ramp comes."""
+    def began(self, ramp: object | None, at: float | None, now: float, pending: object | None) -> None:
+        """At each look: what the servo has begun playing (``ramp`` from ``at``) and what it holds pending.
+        The ramp waited for, when begun, is measured; a wait past the budget makes the arm hold before the
+        ramp comes. One neither begun nor pending any more was replaced before it played (the lease's stop,
+        a newer ramp): it will never play, and its readings go to this look. Waiting on for it held the arm
+        for good: a hold wants no ramp, so no newer one ever came to end the wait."""
         if self.waiting is None:
             return
         wanted, arrival = self.waiting
         if ramp is wanted and at is not None:
             self.waiting = None
             self._record(at - arrival)
+        elif wanted is not pending:
+            self.dropped()
         elif now - arrival > self.budget_s:
             self._over()
 

@@ -72,6 +72,14 @@ class SimArm:
         self.q += self.qd * self.dt
         return False
 
+    def halt(self, deceleration: float) -> int:
+        """The braking stop a controller takes on its own when the commands stop (its watchdog), taken
+        all at once: the steps it took while nobody sent any. How many it took."""
+        n = 0
+        while not self.brake(deceleration):
+            n += 1
+        return n
+
     def jump_to(self, q: Array) -> bool:
         """One step of a controller-side motion (moveJ) already planned within the limits."""
         np.subtract(q, self.q, out=self._d)

@@ -8,6 +8,8 @@ thread of the service (they block: moveJ waits for the motion, connecting waits 
 from __future__ import annotations
 
 import contextlib
+import copy
+import math
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol, cast
@@ -22,6 +24,7 @@ from common.trajectory.task import Task
 from services.executor.settings import Settings
 
 Array = NDArray[np.float64]
+AT_REST = 1e-4  # rad/s: a joint speed the sim's watchdog takes for an arm at rest
 
 
 class RobotUnavailable(CadenceError):
@@ -55,10 +58,21 @@ class Backend(Protocol):
 
 class SimBackend:
     """The simulated UR16e. Its time is the servo loop's: one controller step per target sent, so at
-    ``speed`` X the arm moves X times faster than real time, exactly as far per step."""
+    ``speed`` X the arm moves X times faster than real time, exactly as far per step.
+
+    Where a person's separation is watched on the wall clock it has a UR controller's watchdog
+    (``watchdog_s``; none in a lockstep cell, whose time waits for its servo, nor where no person is
+    watched): once a servo motion has begun, targets that stop coming for longer than that mean the
+    controller stopped the arm. A frozen arm that keeps its speed does not exist: without the watchdog,
+    a starved executor (its servo thread and all) left the arm standing mid-motion while a person walked
+    in, and the loop then caught the lost steps up at once, the lease's stop among them, while a state
+    read in between showed an arm at speed beside the person. Now the braking stop is taken as the
+    controller would have taken it during the silence, the arm is in a protective stop that a resume
+    clears, and a state read while the servo thread is still starved already shows the arm where that
+    stop leaves it, at rest. A shorter silence is caught up by the loop (services/executor/servo.py)."""
 
     name = "sim"
-    realtime = False  # its time is the samples sent: a stalled host never stops it (servo.ServoLoop)
+    realtime = False  # its time is the samples sent: the loop catches up short stalls (servo.ServoLoop)
 
     def __init__(
         self,
@@ -71,12 +85,16 @@ class SimBackend:
         speed: float = 1.0,
         limits: JointLimits = UR16E,
         gripper_output: int = 0,
+        watchdog_s: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.arm = SimArm(q0, limits)
         self.lookahead, self.gain = lookahead, gain
         self.stop_deceleration, self.settle_tol = stop_deceleration, settle_tol
         self.speed = speed
         self.gripper_output = gripper_output
+        self.watchdog_s, self.clock = watchdog_s, clock
+        self._kicked: float | None = None  # the last target's time, from a motion's first until its end
         self._abort = False
 
     def connect(self) -> None:
@@ -85,14 +103,45 @@ class SimBackend:
     def close(self) -> None:
         pass
 
+    def _silent_s(self) -> float:
+        """How long past the watchdog's period the targets have been silent; ≤ 0 while it holds, or while
+        the arm is at rest (held on its path: a silence then stops nothing)."""
+        if self.watchdog_s is None or self._kicked is None or float(np.abs(self.arm.qd).max()) <= AT_REST:
+            return 0.0
+        return self.clock() - self._kicked - self.watchdog_s
+
+    def _kick(self) -> bool:
+        """The servo thread's call at each step: False once the watchdog has stopped the arm."""
+        now = self.clock()
+        if self._silent_s() > 0.0:
+            silent = now - cast(float, self._kicked)
+            self._kicked = None
+            self.arm.halt(self.stop_deceleration)
+            self.arm.protect(
+                f"the controller's watchdog: no target for {silent:.3f} s (the executor stalled); "
+                "the arm stopped"
+            )
+            return False
+        self._kicked = now
+        return True
+
+    def _seen(self) -> SimArm:
+        """The arm as a state read sees it: where the watchdog's stop leaves it once the targets have
+        been silent past its period, though the starved servo thread has not yet taken that stop."""
+        if self._silent_s() <= 0.0:
+            return self.arm
+        ghost = copy.deepcopy(self.arm)  # a read during a stall, not a servo step: it may allocate
+        ghost.halt(self.stop_deceleration)
+        return ghost
+
     def actual_q(self) -> Array:
-        return self.arm.q.copy()
+        return self._seen().q.copy()
 
     def actual_qd(self) -> Array:
-        return self.arm.qd.copy()
+        return self._seen().qd.copy()
 
     def tcp_pose(self) -> Array:
-        return forward_kinematics(self.arm.q.copy())
+        return forward_kinematics(self._seen().q.copy())
 
     def fault(self) -> str:
         return self.arm.fault
@@ -113,15 +162,20 @@ class SimBackend:
         return q
 
     def servo(self, target: object) -> bool:
+        if not self._kick():
+            return False
         return self.arm.servo(cast(Array, target), self.lookahead, self.gain)  # what prepare gave: a row
 
     def brake(self) -> bool:
+        if not self._kick():  # the watchdog's stop came first: at rest
+            return True
         return self.arm.brake(self.stop_deceleration)
 
     def settled(self, target: object) -> bool:
         return float(np.max(np.abs(np.asarray(target) - self.arm.q))) <= self.settle_tol
 
     def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
+        self._abort = False  # a stop_move ends the move it came during, not every later one
         for row in move_j_profile(self.arm.q, q, speed, acceleration):
             if self._abort:
                 while not self.arm.brake(acceleration):
@@ -134,6 +188,7 @@ class SimBackend:
         return True
 
     def motion_ended(self) -> None:
+        self._kicked = None  # between motions nothing sends: the watchdog is off
         self.arm.rest()
 
     def stop_move(self) -> None:
@@ -411,4 +466,5 @@ def backend_for(settings: Settings, task: Task, speed: float) -> Backend:
         speed=speed,
         limits=task.limits,
         gripper_output=settings.gripper_output,
+        watchdog_s=1.0 / settings.watchdog_hz if settings.separation and math.isfinite(speed) else None,
     )

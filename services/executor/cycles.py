@@ -405,12 +405,10 @@ class Cycles:
             "info", f"the arm is {off:.4f} rad from the start of '{path_id}': moving there slowly", path_id
         )
         self.safety.fire(Event.MOVE, f"moving slowly to the start of '{path_id}'")
-        ok = await asyncio.to_thread(
-            self.backend.move_j, q_start, self.settings.start_speed, self.settings.start_acceleration
-        )
-        arrived = (
-            float(np.max(np.abs(self.backend.actual_q() - q_start))) <= self.settings.start_tolerance_rad
-        )
+        ok = arrived = False
+        held = True
+        while held and not self.ctx.stop.is_set():  # a look's hold: wait for room, then on from there
+            ok, arrived, held = await self.guarded_move(q_start)
         if ok and arrived:
             self.safety.fire(Event.DONE)
             return True
@@ -421,6 +419,30 @@ class Cycles:
                 Event.FAULT, f"the move to the start of '{path_id}' did not arrive: {self.backend.fault()}"
             )
         return False
+
+    async def guarded_move(self, q_start: np.ndarray) -> tuple[bool, bool, bool]:
+        """One slow moveJ toward ``q_start`` under separation monitoring: it begins only once the distance
+        allows it at its speed, and a look that no longer does stops it (the controller's moveJ cannot
+        be slowed, so it runs whole or not at all). (moved without an error, arrived, stopped by a look).
+        A resume after a stop mid-path once moved the arm back to its path's start whoever stood there."""
+        s, r = self.settings, self.reactions
+        figures = r.move_figures(self.backend.actual_q(), q_start, s.start_speed, s.start_acceleration)
+        if not await r.until_clear(figures, self.ctx.stop):
+            return False, False, False
+        halted = False
+
+        def halt() -> None:
+            nonlocal halted
+            halted = True
+            self.backend.stop_move()
+
+        guard = asyncio.create_task(r.guard(figures, halt))
+        try:
+            ok = await asyncio.to_thread(self.backend.move_j, q_start, s.start_speed, s.start_acceleration)
+        finally:
+            guard.cancel()
+        arrived = float(np.max(np.abs(self.backend.actual_q() - q_start))) <= s.start_tolerance_rad
+        return ok, arrived, halted and not self.backend.fault()
 
     async def run_path(self, pid: str) -> int | None:
         """Run one path with the selection current at its start; its k, or None when stopped."""

@@ -8,6 +8,7 @@ zone, with the changes folded in between counted.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import threading
@@ -16,11 +17,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.robot.ur16e import JointLimits
+from common.robot.ur16e import DT, JointLimits
 from common.runtime.clock import monotonic
 from common.runtime.node import Node, Rejected
+from common.runtime.service import first_of
 from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
-from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
+from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm, path_speed
+from common.sim.arm import move_j_profile
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
@@ -158,6 +161,38 @@ class Reactions:
                 self._figures.popitem(last=False)
         return found
 
+    def move_figures(self, q0: np.ndarray, q1: np.ndarray, speed: float, acceleration: float) -> Figures:
+        """A controller's moveJ (the slow move to a path's start) as S_p sees it: its top speed, and a
+        stop from its joint speed at its own deceleration (the sim brakes at it; a UR's stopJ is faster)."""
+        if not self.on:
+            return Figures(0.0, 0.0)
+        top = path_speed(move_j_profile(q0, q1, speed, acceleration), DT, self.arm)
+        stop_s = speed / acceleration
+        return Figures(top, stop_s, stop_s / 2)  # a linear stop covers half its time at the top speed
+
+    async def until_clear(self, figures: Figures, stop: asyncio.Event) -> bool:
+        """Hold a move the controller cannot slow (moveJ) until the distance allows it at its own speed:
+        True then, False at a stop. Its figures are the ones the looks show the zone and scale by."""
+        self.last_figures = figures
+        while self.on and not stop.is_set():
+            self.look_distance()
+            if self.allowed(figures) >= 1.0:
+                break
+            await first_of(stop.wait(), asyncio.sleep(self.settings.scale_period_s))
+        return not stop.is_set()
+
+    async def guard(self, figures: Figures, halt: Callable[[], None]) -> None:
+        """While a moveJ runs: a look every ``scale_period_s``, and its decelerating stop (``halt``) at the
+        first that does not allow it at its speed (a person came in, the distance went stale)."""
+        if not self.on:
+            return
+        while True:
+            self.look_distance()
+            if self.allowed(figures) < 1.0:
+                halt()
+                return
+            await asyncio.sleep(self.settings.scale_period_s)
+
     def known(self, path: PathPlan, h: np.ndarray) -> bool:
         with self._figures_lock:
             return (path.id, np.asarray(h, dtype=float).tobytes()) in self._figures
@@ -198,7 +233,7 @@ class Reactions:
         if r is None or r is not self.offered_on:  # a ramp offered on a path that ended never plays
             a.dropped()
         ramp, at = (r.playback.began if r is not None else None) or (None, None)
-        a.began(ramp, at, monotonic())
+        a.began(ramp, at, monotonic(), r.playback.now.pending_ramp if r is not None else None)
         arrival = a.take()  # the readings this look answers
         nearest = self.look_distance()
         wanted = self.allowed(r.guard if r is not None else self.last_figures)
@@ -210,13 +245,17 @@ class Reactions:
             return
         self.last_figures = r.figures
         budget = self.adoption.budget_s
-        if r.playback.now.target <= wanted + SIGMA_EPS:  # the scale the arm heads for is one this look allows
+        current = r.playback.now.target
+        if current <= wanted + SIGMA_EPS:  # the scale the arm heads for is one this look allows
             self.lease(r)
+        if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
+            # the scale in force answers them, found so now: not once the fallback below is planned (a
+            # loaded host's planning counted as lateness, and held the arm for it)
+            a.answered(arrival, monotonic())
+            await r.keep_fallback(0.75 * budget, 0.5 * budget)
+            return
         await r.keep_fallback(0.75 * budget, 0.5 * budget)
         current = r.playback.now.target
-        if abs(wanted - current) < 1e-9 or (current < wanted < min(1.0, current + RAISE_BY)):
-            a.answered(arrival, monotonic())  # the scale in force answers them
-            return
         ramp = await r.ramp_to(wanted, RAMP_LEAD_S)
         if ramp is None:  # the next look plans again, for these readings too
             a.dropped_arrival(arrival)

@@ -14,9 +14,10 @@ consecutive samples, so the arm still sees one 2 ms step per sample and the CPU 
 A simulated arm (``realtime=False``) has no controller waiting on the wall clock: its time is the samples
 it was sent, one controller step each, however close together they come. A late tick is still counted as
 an overrun (the host's timing, reported as ever), but no run of them stops the arm: the ticks after a
-stall come at once until the loop is back on its deadlines, so the arm keeps the pace of the data time
-the rest of the cell runs on, and a host too slow for the speed slows the arm and never stops it. A
-real robot (``ur_rtde``, the emulator) keeps the overrun stop exactly as it is.
+short stall come at once until the loop is back on its deadlines, so the arm keeps the pace of the data
+time the rest of the cell runs on. A stall past the controller's watchdog does stop it, in the backend
+(``SimBackend``), as a real controller would have during the silence. A real robot (``ur_rtde``, the
+emulator) keeps the overrun stop exactly as it is.
 """
 
 from __future__ import annotations
