@@ -17,12 +17,15 @@ margins, neither ever below 0:
   begin its stop there, a person walking on at v_h would not reach it. It is S_p with its reaction time
   spent; the reaction is what the reading's age and the executor's adoption use up.
 
-Before the last walk the executor's process is stopped (SIGSTOP) while its arm moves fast, until the
-person has walked in to ``STALL_UNTIL_X``: a starvation the host gives now and then under load (8 s once,
-in a loaded run). Its looks, its servo thread and its states all stand still. The controller's watchdog
-(the sim has one, as a UR has) must stop the arm during that silence: without it, the loop caught up the
-lost ticks at once when the process came back, the lease's stop among them, and a state read in between
-showed an arm at speed beside the person.
+The controller's watchdog (the sim has one where a person is watched, as a UR has) stops the arm when the
+servo's targets fall silent past 0.1 s; on this host beside two busy loops that happens 10–15 times a
+minute, and the test resumes the arm each time, as a person at the cell would (a resume once moved the arm
+back to its path's start beside the person: the move now waits for room). A second test, with no busy
+loops, stops the executor's whole process (SIGSTOP) while it runs a path, until the person has walked in
+to ``STALL_UNTIL_X``: a starvation the host gives now and then under load (8 s once, in a loaded run).
+Its looks, its servo thread and its states all stand still, and the watchdog must have stopped the arm
+for that silence: without it, the loop caught the lost ticks up at once when the process came back, the
+lease's stop among them, and a state read in between showed an arm at speed beside the person.
 
 The least of each is printed, and S − S_p at the sample too, with T_r: what a reading must show when it
 is taken. That one goes negative by design while the arm answers a reading up to T_r old (ISO/TS 15066
