@@ -64,9 +64,8 @@ from tests.support.paths import EXAMPLE_TASK
 V_H = 1.6  # ISO 13855's walking speed
 FAR, NEAR, HEIGHT = 6.0, 1.0, 1.0  # the walk along the cell's x axis, the tracker's point at chest height
 STAND_S, OUT_S, WALKS = 2.0, 3.0, 4
-# the executor's process stopped as the arm moves fast, from the end of the last walk but one, until the
-# person of the last walk is this far in
-STALL_FROM_S, STALL_FAST_M_S, STALL_UNTIL_X = OUT_S - 0.3, 0.5, 1.6
+# the executor's process stopped once the arm runs a path this fast, until the person walking in is this near
+STALL_FAST_M_S, STALL_UNTIL_X = 0.5, 1.6
 PERIOD_S = 0.05  # the tracker's rate: 20 Hz
 SOURCE = '[{ name = "tracker", detects = "body" }]'  # it sees the body: C = 0.85 m (ISO 13855)
 
@@ -144,10 +143,10 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
 async def test_the_executors_whole_process_stalled_as_the_person_walks_in_is_a_stop_of_the_arm(
     tmp_path: Path, example_sets: Path
 ) -> None:
-    """SIGSTOP as the arm runs a path, until the person is within reach: its controller's watchdog stops
-    it during the silence, and no sample after shows it moving beside the person. No busy loops: the
-    stall is the test's own, and the arm must be running a path when it comes."""
-    await walk_in(tmp_path, example_sets, 0, 2, stall=True)
+    """SIGSTOP as the arm runs a path fast, the person far, until they have walked in to within reach: its
+    controller's watchdog stops it during the silence, and no sample after shows it moving beside the
+    person. No busy loops: the stall is the test's own."""
+    await walk_in(tmp_path, example_sets, 0, 1, stall=True)
 
 
 def in_a_path(s: RobotState) -> bool:
@@ -156,7 +155,7 @@ def in_a_path(s: RobotState) -> bool:
 
 
 async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, stall: bool) -> None:
-    """``walks`` walks in, beside ``busy`` busy loops; with ``stall``, the executor stopped in the last."""
+    """``walks`` walks in, beside ``busy`` busy loops; with ``stall``, the executor stopped as they begin."""
     worst, each = figures_at_top_k(example_sets)
     settings = ExecutorSettings()
     arm, tr = settings.arm(), sum(settings.reaction_parts(0.05).values())
@@ -203,34 +202,34 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
                     tell(person_x(time.time() - start) if start is not None else FAR)
                     await asyncio.sleep(PERIOD_S)
 
-            # far, until the arm runs at full speed; then the walks, the person's clock from now
+            # far, until the arm runs at full speed (with ``stall``: fast, in a path, and then the executor
+            # stopped at once); then the walks, the person's clock from now
+            resumes: list[asyncio.Task[object]] = []  # a person's, after each of the watchdog's stops
+
+            def resume_after(s: RobotState) -> None:
+                if s.state == "stopped" and "watchdog" in s.reason and (not resumes or resumes[-1].done()):
+                    resumes.append(asyncio.create_task(bus.get(f"{bus.key('robot/resume')}?by=walk-in",
+                                                               RobotEvent, timeout=20)))  # fmt: skip
+
             tracker = asyncio.create_task(track(None))
             async with asyncio.timeout(180):
-                while not ((s := (await sub.receive(60))[1]).state == "moving" and s.scale == 1.0):
-                    pass
+                while True:
+                    s = (await sub.receive(60))[1]
+                    resume_after(s)
+                    fast = in_a_path(s) and (speed(arm, s) > STALL_FAST_M_S if stall else s.scale == 1.0)
+                    if fast:
+                        break
             tracker.cancel()
             start = time.time()
+            resumed = (FAR - STALL_UNTIL_X) / V_H  # when the stall ends: the person at STALL_UNTIL_X
+            starving = asyncio.create_task(starve(procs[1].pid, start + resumed)) if stall else None
             tracker = asyncio.create_task(track(start))
-            starving: asyncio.Task[float] | None = None
-            resume: asyncio.Task[object] | None = None  # a person's, after a watchdog's stop
-            resumes = 0
-            last = (walks - 1) * ONE_S  # when the last walk begins
-            resumed = last + (FAR - STALL_UNTIL_X) / V_H  # when the stall ends
             async with asyncio.timeout(walks * ONE_S + 60):
                 while time.time() < start + walks * ONE_S:
                     _, s = await sub.receive(30)
-                    states.append((t := s.t_ns / 1e9 - start, s))
-                    # fast from just before the last walk, or else in a path at all once it has begun
-                    window = last - STALL_FROM_S < t < resumed - 1
-                    fast = speed(arm, s) > STALL_FAST_M_S or t > last + 0.5
-                    if stall and starving is None and window and fast and in_a_path(s):
-                        starving = asyncio.create_task(starve(procs[1].pid, start + resumed))
-                    if s.state == "stopped" and "watchdog" in s.reason and (resume is None or resume.done()):
-                        resume = asyncio.create_task(bus.get(f"{bus.key('robot/resume')}?by=walk-in",
-                                                             RobotEvent, timeout=20))  # fmt: skip
-                        resumes += 1
+                    states.append((s.t_ns / 1e9 - start, s))
+                    resume_after(s)
             tracker.cancel()
-            assert starving is not None or not stall, "the arm ran no path in the last walk: no stall tried"
             stalled_at = (await starving if starving is not None else math.nan) - start
             counters = {}
             while health.pending:
@@ -284,7 +283,7 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
         print(row(arm, t, s, walks))
     stops = {s.reason: t for t, s in states if "watchdog" in s.reason}  # each stop once, when first seen
     silences = {why: float(m[1]) for why in stops if (m := re.search(r"no target for ([0-9.]+) s", why))}
-    print(f"the watchdog's stops: {len(stops)} ({resumes} resumes by the test), the silences (s): "
+    print(f"the watchdog's stops: {len(stops)} ({len(resumes)} resumes by the test), the silences (s): "
           f"{sorted(silences.values())}")  # fmt: skip
     whole = [why for why, silent in silences.items() if silent > resumed - stalled_at - 0.5]
     if stall:
