@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import signal
 import socket
 import struct
@@ -425,3 +426,26 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
     assert resumed.message is not None
     assert resumed.message.message.startswith("ready")
     assert again.path_id
+
+
+def test_a_reconnect_while_the_servo_thread_sends_waits_for_its_call_and_crashes_nothing() -> None:
+    """ur-rtde does not guard an interface against its own disconnect: a servoJ in flight while the
+    supervisor reconnected ended the whole process with SIGSEGV (CI, the lost-controller test; 2 of 2
+    runs of this race crashed before the backend waited for calls in flight). Its own process here, so a
+    crash is its exit status."""
+    emu = EmulatorProcess(free_loopback())
+    try:
+        run = subprocess.run(
+            [sys.executable, "-X", "faulthandler", "-m", "tests.support.reconnect_race", emu.host, "20"],
+            capture_output=True,
+            text=True,
+            timeout=240,
+            cwd=Path(__file__).parents[1],
+        )
+    finally:
+        emu.stop()
+    assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-3000:]}"
+    reconnects, calls, refused = (int(n) for n in re.findall(r"\d+", run.stdout))
+    assert reconnects == 20
+    assert calls > 1000  # the servo thread sent all along: the race was run
+    assert refused < calls  # most went to a live link, between the reconnects

@@ -10,8 +10,9 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, cast
 
 import numpy as np
@@ -24,6 +25,7 @@ from common.trajectory.task import Task
 from services.executor.settings import Settings
 
 Array = NDArray[np.float64]
+CLOSE_WAIT_S = 30.0  # s: a moveJ in flight ends well within it (the start-up move is slow and short)
 AT_REST = 1e-4  # rad/s: a joint speed the sim's watchdog takes for an arm at rest
 
 
@@ -205,7 +207,13 @@ class SimBackend:
 class UrRtdeBackend:
     """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
     every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
-    slow start-up move, a standard digital output for the gripper (see ``set_gripper``)."""
+    slow start-up move, a standard digital output for the gripper (see ``set_gripper``).
+
+    Three threads call into the client: the servo loop, the service's worker threads (moveJ, a
+    reconnect) and its event loop (the state, the fault). ur-rtde does not guard an interface against
+    its own ``disconnect``: a servoJ in flight while another thread disconnects crashed the whole
+    process (SIGSEGV, in CI). So every call goes through ``_using``, and ``close`` tears the interfaces
+    down only once no call is in flight; a call that comes meanwhile finds no link."""
 
     name = "ur_rtde"
     realtime = True
@@ -234,6 +242,27 @@ class UrRtdeBackend:
         self._watchdog = False
         self._last = {"q": np.zeros(6), "qd": np.zeros(6), "tcp": np.zeros(6)}
         self._inputs = 0
+        self._io = threading.Condition()
+        self._in_flight = 0  # calls into the interfaces now
+        self._closing = False
+
+    @contextlib.contextmanager
+    def _using(self) -> Iterator[tuple[Any, Any] | None]:
+        """The (control, receive) interfaces for one call, kept from ``close`` until it returns; None
+        while they are being torn down or are gone."""
+        with self._io:
+            if self._closing or self._c is None or self._r is None:
+                ifaces = None
+            else:
+                ifaces = (self._c, self._r)
+                self._in_flight += 1
+        try:
+            yield ifaces
+        finally:
+            if ifaces is not None:
+                with self._io:
+                    self._in_flight -= 1
+                    self._io.notify_all()
 
     def connect(self) -> None:
         import rtde_control
@@ -254,19 +283,32 @@ class UrRtdeBackend:
         self._watchdog = False
 
     def close(self) -> None:
-        for iface in (self._c, self._r):
-            if iface is not None:
-                with contextlib.suppress(RuntimeError):
-                    iface.disconnect()
-        self._c = self._r = None
+        """Waits for the calls in flight (a moveJ runs to its end or its stop) before disconnecting."""
+        with self._io:
+            self._closing = True
+            if not self._io.wait_for(lambda: self._in_flight == 0, timeout=CLOSE_WAIT_S):
+                self._closing = False
+                raise RobotUnavailable(
+                    f"UR controller at {self.host}: a call into the client has not returned for "
+                    f"{CLOSE_WAIT_S:.0f} s; the link is left as it is"
+                )
+            ifaces, self._c, self._r = (self._c, self._r), None, None
+        try:
+            for iface in ifaces:
+                if iface is not None:
+                    with contextlib.suppress(RuntimeError):
+                        iface.disconnect()
+        finally:
+            with self._io:
+                self._closing = False
 
     def _read(self, name: str, getter: str) -> Array:
         """The receive interface's latest value; while it reconnects (None, or a dead link), the last
         value read, so the state publisher never fails on a reconnect."""
-        r = self._r
-        if r is not None:
-            with contextlib.suppress(RuntimeError):
-                self._last[name] = np.array(getattr(r, getter)())
+        with self._using() as ifaces:
+            if ifaces is not None:
+                with contextlib.suppress(RuntimeError):
+                    self._last[name] = np.array(getattr(ifaces[1], getter)())
         return self._last[name].copy()
 
     def actual_q(self) -> Array:
@@ -279,20 +321,21 @@ class UrRtdeBackend:
         return self._read("tcp", "getActualTCPPose")
 
     def fault(self) -> str:
-        c, r = self._c, self._r  # one read each: a reconnect in another thread sets them to None
-        if self._lost or c is None or r is None or not c.isConnected():
-            return self._lost or f"no connection to the controller at {self.host}"
-        if r.isProtectiveStopped():
-            return "protective stop"
-        if r.isEmergencyStopped():
-            return "emergency stop"
-        if not c.isProgramRunning():
-            return "the control script stopped on the controller (its watchdog, or a stop there)"
-        return ""
+        with self._using() as ifaces:
+            if self._lost or ifaces is None or not ifaces[0].isConnected():
+                return self._lost or f"no connection to the controller at {self.host}"
+            c, r = ifaces
+            if r.isProtectiveStopped():
+                return "protective stop"
+            if r.isEmergencyStopped():
+                return "emergency stop"
+            if not c.isProgramRunning():
+                return "the control script stopped on the controller (its watchdog, or a stop there)"
+            return ""
 
     def link_lost(self) -> bool:
-        c = self._c
-        return bool(self._lost) or c is None or self._r is None or not c.isConnected()
+        with self._using() as ifaces:
+            return bool(self._lost) or ifaces is None or not ifaces[0].isConnected()
 
     def reconnect(self) -> None:
         self.close()
@@ -319,14 +362,19 @@ class UrRtdeBackend:
                 time.sleep(0.05)
             self.reconnect()
             return
-        r = self._r
-        if r is not None and r.isConnected() and r.isProtectiveStopped():
-            self._unlock()
-            deadline = time.monotonic() + 1.0  # the receive interface sees the release a tick or two later
-            while r.isProtectiveStopped() and time.monotonic() < deadline:
-                time.sleep(0.01)
-            if r.isProtectiveStopped():
-                raise RobotUnavailable(f"the controller at {self.host} did not release its protective stop")
+        with self._using() as ifaces:
+            r = ifaces[1] if ifaces is not None else None
+            if r is not None and r.isConnected() and r.isProtectiveStopped():
+                self._unlock()
+                deadline = (
+                    time.monotonic() + 1.0
+                )  # the receive interface sees the release a tick or two later
+                while r.isProtectiveStopped() and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                if r.isProtectiveStopped():
+                    raise RobotUnavailable(
+                        f"the controller at {self.host} did not release its protective stop"
+                    )
         self.reconnect()
 
     def _dashboard(self, act: Callable[[Any], object]) -> object:
@@ -357,10 +405,15 @@ class UrRtdeBackend:
 
     def prepare(self, q: Array) -> Sequence[object]:
         """Also arms the controller's watchdog: from here on the servo loop kicks it every tick, and the
-        controller stops the program if the kicks stop (the executor stalled or died)."""
-        if not self._watchdog:
-            self._c.setWatchdog(self.watchdog_hz)
-            self._watchdog = True
+        controller stops the program if the kicks stop (the executor stalled or died). Without a link it
+        arms nothing: the motion's first servo call finds the link lost, and that is its fault."""
+        with self._using() as ifaces:
+            if not self._watchdog and ifaces is not None and not self._lost:
+                try:
+                    ifaces[0].setWatchdog(self.watchdog_hz)
+                    self._watchdog = True
+                except RuntimeError:
+                    self._lost = "connection to the controller lost before the motion"
         return np.asarray(q, dtype=float).tolist()
 
     def target(self, q: Array) -> object:
@@ -370,25 +423,27 @@ class UrRtdeBackend:
         # The receive interface sees a vanished controller at once (its reader thread gets EOF). Asking
         # the control interface then would enter its own reconnect, which blocks inside the call for
         # seconds: this check keeps the servo thread out of it.
-        if self._lost or not self._r.isConnected():
-            self._lost = self._lost or "connection to the controller lost during motion"
-            return False
-        try:
-            ok = self._c.servoJ(target, 0.0, 0.0, DT, self.lookahead, self.gain)
-            self._c.kickWatchdog()
-        except RuntimeError:
-            self._lost = "connection to the controller lost during motion"
-            return False
-        return bool(ok)
+        with self._using() as ifaces:
+            if self._lost or ifaces is None or not ifaces[1].isConnected():
+                self._lost = self._lost or "connection to the controller lost during motion"
+                return False
+            try:
+                ok = ifaces[0].servoJ(target, 0.0, 0.0, DT, self.lookahead, self.gain)
+                ifaces[0].kickWatchdog()
+            except RuntimeError:
+                self._lost = "connection to the controller lost during motion"
+                return False
+            return bool(ok)
 
     def brake(self) -> bool:
-        if self._lost or not self._r.isConnected():
-            return True  # nothing to tell a controller that is gone
-        try:
-            self._c.servoStop(self.stop_deceleration)
-        except RuntimeError:
-            self._lost = "connection to the controller lost while stopping"
-        return True  # the controller decelerates on its own
+        with self._using() as ifaces:
+            if self._lost or ifaces is None or not ifaces[1].isConnected():
+                return True  # nothing to tell a controller that is gone
+            try:
+                ifaces[0].servoStop(self.stop_deceleration)
+            except RuntimeError:
+                self._lost = "connection to the controller lost while stopping"
+            return True  # the controller decelerates on its own
 
     def settled(self, target: object) -> bool:
         return float(np.max(np.abs(np.asarray(target) - self.actual_q()))) <= self.settle_tol
@@ -396,25 +451,29 @@ class UrRtdeBackend:
     def motion_ended(self) -> None:
         """Disarms the watchdog: between motions (gripper, waits, moveJ) nothing kicks it, and the robot
         is at rest. ``prepare`` arms it again before the next motion."""
-        if self._watchdog and not self._lost:
-            with contextlib.suppress(RuntimeError):
-                self._c.setWatchdog(0.0)
+        with self._using() as ifaces:
+            if self._watchdog and not self._lost and ifaces is not None:
+                with contextlib.suppress(RuntimeError):
+                    ifaces[0].setWatchdog(0.0)
         self._watchdog = False
 
     def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
+        """False, not moved, without a link."""
         self.motion_ended()  # nothing kicks the watchdog during a blocking moveJ
-        return bool(self._c.moveJ(np.asarray(q, float).tolist(), speed, acceleration))
+        with self._using() as ifaces:
+            return ifaces is not None and bool(
+                ifaces[0].moveJ(np.asarray(q, float).tolist(), speed, acceleration)
+            )
 
     def stop_move(self) -> None:
-        if self._c is not None:
-            with contextlib.suppress(RuntimeError):
-                self._c.stopJ(self.stop_deceleration, False)
+        with self._using() as ifaces, contextlib.suppress(RuntimeError):
+            if ifaces is not None:
+                ifaces[0].stopJ(self.stop_deceleration, False)
 
     def digital_inputs(self) -> int:
-        r = self._r
-        if r is not None:
-            with contextlib.suppress(RuntimeError):
-                self._inputs = int(r.getActualDigitalInputBits()) & 0xFF
+        with self._using() as ifaces, contextlib.suppress(RuntimeError):
+            if ifaces is not None:
+                self._inputs = int(ifaces[1].getActualDigitalInputBits()) & 0xFF
         return self._inputs
 
     def set_gripper(self, on: bool) -> None:
