@@ -285,6 +285,9 @@ def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
             "separation": "true" if twin_table(opts).get("separation", True) else "false",
             # the twin is the cell's one source: a tracker that sees the body and measures to the arm
             "separation_sources": TWIN_SOURCE,
+            # no person stands at a pendant: a stop (the sim's watchdog on a loaded host) resumes by itself,
+            # said in the events, rather than ending the demo's cycles until `cadence robot resume`
+            "resume_policy": "auto",
         },
     }
 

@@ -367,9 +367,10 @@ async def monitored(
 async def test_the_slow_move_to_a_paths_start_waits_for_room_for_its_speed(
     task_file: Path, tmp_path: Path, cell: Cell
 ) -> None:
-    """The controller's moveJ to a path's start (after a resume mid-path, or an arm moved by hand) once ran
-    whoever stood beside the arm: the walk-in test, resuming after a stop, saw it move at 0.2 m/s inside
-    the person's reach. It begins only once the distance allows it at its speed."""
+    """The move to a path's start (after a resume mid-path, or an arm moved by hand) once ran whoever stood
+    beside the arm: the walk-in test, resuming after a stop, saw it move at 0.2 m/s inside the person's
+    reach. It is a path of its own now, held at the scale the distance allows (0 here) until there is
+    room."""
     distance: list[float | None] = [0.6]
     away = [10, -90, 90, -90, -90, 0]
     async with monitored(cell, task_file, tmp_path, distance, sim_start_deg=away, start_policy="move") as (
@@ -442,6 +443,47 @@ async def test_a_look_that_cannot_have_its_ramp_down_lets_the_lease_run_out_and_
     assert stopped[0].separation_m == 0.6
     assert "unchecked" in said.message  # no planned stop: the loop's own, over the path's T_s
     assert ex.ctx.counters["lease_lapses"] >= 1 and ex.ctx.counters["unchecked_stops"] >= 1
+
+
+@pytest.mark.lockstep
+async def test_the_move_to_a_paths_start_is_leased_and_looks_that_never_come_stop_it(
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The move to a path's start is played as a path is, under the lease on its scale: with no look after
+    it got going (the executor's event loop starved), the loop stops it on its way. It was a controller's
+    moveJ, which a look could stop, but which ran on whatever the executor did: an executor stalled for
+    2.7 s on a loaded host left it moving inside the person's reach."""
+    from services.executor.reaction import Reactions
+
+    looks, starving = Reactions._look, asyncio.Event()
+
+    async def until_starved(self: Reactions) -> None:
+        if not starving.is_set():
+            await looks(self)
+
+    monkeypatch.setattr(Reactions, "_look", until_starved)
+    away = [10, -90, 90, -90, -90, 0]
+    async with monitored(cell, task_file, tmp_path, [5.0], sim_start_deg=away, start_policy="move") as (
+        states,
+        events,
+        ex,
+    ):
+        await next_of(events, lambda e: "moving there slowly" in e.message, 20)
+        moving = await next_of(states, lambda s: max(map(abs, s.qd)) > 1e-3, 20)
+        starving.set()
+        stopped = await held(states)
+        starving.clear()  # the looks come again: it goes on to the start, and says what its lease did
+        said = await next_of(events, lambda e: e.kind == "scale" and "lease ran out" in e.message, 20)
+        there_ = await next_of(states, lambda s: s.path_id == "there" and s.state == "moving", 20)
+    start = np.radians(away)
+    there = load_task(task_file).paths["there"].waypoints[0]
+    assert moving.path_id is None and stopped[0].path_id is None  # no path of the task began
+    part = float(np.linalg.norm(stopped[0].q - start) / np.linalg.norm(there - start))
+    assert 0.0 < part < 1.0  # on its way, neither where it stood nor at the start
+    assert stopped[0].state == "moving"  # the lease's stop, held at scale 0: not a fault
+    assert "during 'approach to there'" in said.message
+    assert there_.t_ns >= said.t_ns
+    assert ex.ctx.counters["lease_lapses"] >= 1
 
 
 async def test_looks_that_never_come_stop_the_arm_at_the_scale_a_path_started_at(

@@ -191,9 +191,12 @@ def test_in_the_servo_loop_a_silence_past_the_watchdog_ends_the_motion_as_a_faul
     assert np.all(sim.arm.qd == 0.0)
 
 
-def test_a_lockstep_arm_and_one_no_person_stands_beside_have_no_watchdog(samples: np.ndarray) -> None:
+def test_a_lockstep_arm_a_sped_up_one_and_one_no_person_stands_beside_have_no_watchdog(
+    samples: np.ndarray,
+) -> None:
     task, settings = load_task(EXAMPLE_TASK), Settings(separation=True)
-    assert cast(SimBackend, backend_for(settings, task, 8.0)).watchdog_s == 1.0 / settings.watchdog_hz
+    assert cast(SimBackend, backend_for(settings, task, 1.0)).watchdog_s == 1.0 / settings.watchdog_hz
+    assert cast(SimBackend, backend_for(settings, task, 16.0)).watchdog_s is None  # the process demo's pace
     assert cast(SimBackend, backend_for(Settings(), task, 1.0)).watchdog_s is None  # no person watched
     sim = cast(SimBackend, backend_for(settings, task, math.inf))  # a lockstep cell's
     assert sim.watchdog_s is None

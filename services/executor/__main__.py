@@ -129,7 +129,6 @@ class Executor(Node):
         """SIGTERM during a motion: a decelerating stop, then the cycles end."""
         await self.ctx.stop.wait()
         self.loop.request_stop()
-        self.backend.stop_move()
 
     async def close(self) -> None:
         self.loop.request_stop()

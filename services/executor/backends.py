@@ -2,14 +2,13 @@
 and ``ur_rtde``, a UR16e (or URSim, or the emulator) through the real ``ur-rtde`` client.
 
 ``servo``, ``brake`` and ``settled`` run inside the servo loop; the rest runs outside it, in a worker
-thread of the service (they block: moveJ waits for the motion, connecting waits for the controller).
+thread of the service (they block: connecting waits for the controller).
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -25,7 +24,7 @@ from common.trajectory.task import Task
 from services.executor.settings import Settings
 
 Array = NDArray[np.float64]
-CLOSE_WAIT_S = 30.0  # s: a moveJ in flight ends well within it (the start-up move is slow and short)
+CLOSE_WAIT_S = 30.0  # s: a call in flight (a benchmark's moveJ, slow and short) ends well within it
 AT_REST = 1e-4  # rad/s: a joint speed the sim's watchdog takes for an arm at rest
 
 
@@ -51,9 +50,8 @@ class Backend(Protocol):
     def servo(self, target: object) -> bool: ...
     def brake(self) -> bool: ...
     def settled(self, target: object) -> bool: ...
-    def move_j(self, q: Array, speed: float, acceleration: float) -> bool: ...
+    def move_j(self, q: Array, speed: float, acceleration: float) -> bool: ...  # the benchmark's, blocking
     def motion_ended(self) -> None: ...  # after a servo motion, whatever its outcome
-    def stop_move(self) -> None: ...  # from another thread: end a move_j now, decelerating
     def set_gripper(self, on: bool) -> None: ...
     def digital_inputs(self) -> int: ...  # the standard digital inputs 0–7 as bits (the cell's buttons)
 
@@ -62,16 +60,18 @@ class SimBackend:
     """The simulated UR16e. Its time is the servo loop's: one controller step per target sent, so at
     ``speed`` X the arm moves X times faster than real time, exactly as far per step.
 
-    Where a person's separation is watched on the wall clock it has a UR controller's watchdog
+    Where a person's separation is watched in real time it has a UR controller's watchdog
     (``watchdog_s``; none in a lockstep cell, whose time waits for its servo, nor where no person is
-    watched): once a servo motion has begun, targets that stop coming for longer than that mean the
-    controller stopped the arm. A frozen arm that keeps its speed does not exist: without the watchdog,
-    a starved executor (its servo thread and all) left the arm standing mid-motion while a person walked
-    in, and the loop then caught the lost steps up at once, the lease's stop among them, while a state
-    read in between showed an arm at speed beside the person. Now the braking stop is taken as the
-    controller would have taken it during the silence, the arm is in a protective stop that a resume
-    clears, and a state read while the servo thread is still starved already shows the arm where that
-    stop leaves it, at rest. A shorter silence is caught up by the loop (services/executor/servo.py)."""
+    watched, nor in a cell sped up, which no controller runs: the process demo at 16× on a loaded host
+    was silent past 0.1 s, and a stop latched until a person's resume ended its cycles). Once a servo
+    motion has begun, targets that stop coming for longer than that mean the controller stopped the arm.
+    A frozen arm that keeps its speed does not exist: without the watchdog, a starved executor (its servo
+    thread and all) left the arm standing mid-motion while a person walked in, and the loop then caught
+    the lost steps up at once, the lease's stop among them, while a state read in between showed an arm
+    at speed beside the person. Now the braking stop is taken as the controller would have taken it
+    during the silence, the arm is in a protective stop that a resume clears, and a state read while the
+    servo thread is still starved already shows the arm where that stop leaves it, at rest. A shorter
+    silence is caught up by the loop (services/executor/servo.py)."""
 
     name = "sim"
     realtime = False  # its time is the samples sent: the loop catches up short stalls (servo.ServoLoop)
@@ -97,7 +97,6 @@ class SimBackend:
         self.gripper_output = gripper_output
         self.watchdog_s, self.clock = watchdog_s, clock
         self._kicked: float | None = None  # the last target's time, from a motion's first until its end
-        self._abort = False
 
     def connect(self) -> None:
         pass
@@ -105,17 +104,17 @@ class SimBackend:
     def close(self) -> None:
         pass
 
-    def _silent_s(self) -> float:
-        """How long past the watchdog's period the targets have been silent; ≤ 0 while it holds, or while
-        the arm is at rest (held on its path: a silence then stops nothing)."""
+    def _silent_s(self, now: float) -> float:
+        """How long past the watchdog's period the targets have been silent at ``now``; ≤ 0 while it
+        holds, or while the arm is at rest (held on its path: a silence then stops nothing)."""
         if self.watchdog_s is None or self._kicked is None or float(np.abs(self.arm.qd).max()) <= AT_REST:
             return 0.0
-        return self.clock() - self._kicked - self.watchdog_s
+        return now - self._kicked - self.watchdog_s
 
     def _kick(self) -> bool:
         """The servo thread's call at each step: False once the watchdog has stopped the arm."""
         now = self.clock()
-        if self._silent_s() > 0.0:
+        if self._silent_s(now) > 0.0:
             silent = now - cast(float, self._kicked)
             self._kicked = None
             self.arm.halt(self.stop_deceleration)
@@ -130,7 +129,7 @@ class SimBackend:
     def _seen(self) -> SimArm:
         """The arm as a state read sees it: where the watchdog's stop leaves it once the targets have
         been silent past its period, though the starved servo thread has not yet taken that stop."""
-        if self._silent_s() <= 0.0:
+        if self._silent_s(self.clock()) <= 0.0:
             return self.arm
         ghost = copy.deepcopy(self.arm)  # a read during a stall, not a servo step: it may allocate
         ghost.halt(self.stop_deceleration)
@@ -177,12 +176,7 @@ class SimBackend:
         return float(np.max(np.abs(np.asarray(target) - self.arm.q))) <= self.settle_tol
 
     def move_j(self, q: Array, speed: float, acceleration: float) -> bool:
-        self._abort = False  # a stop_move ends the move it came during, not every later one
         for row in move_j_profile(self.arm.q, q, speed, acceleration):
-            if self._abort:
-                while not self.arm.brake(acceleration):
-                    time.sleep(DT / self.speed)
-                return False
             if not self.arm.jump_to(row):
                 return False
             time.sleep(DT / self.speed)
@@ -192,9 +186,6 @@ class SimBackend:
     def motion_ended(self) -> None:
         self._kicked = None  # between motions nothing sends: the watchdog is off
         self.arm.rest()
-
-    def stop_move(self) -> None:
-        self._abort = True
 
     def digital_inputs(self) -> int:
         return self.arm.digital_in
@@ -207,11 +198,12 @@ class SimBackend:
 class UrRtdeBackend:
     """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
     every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
-    slow start-up move, a standard digital output for the gripper (see ``set_gripper``).
+    benchmark (the executor moves to a path's start on the servo loop), a standard digital output for
+    the gripper (see ``set_gripper``).
 
-    Three threads call into the client: the servo loop, the service's worker threads (moveJ, a
-    reconnect) and its event loop (the state, the fault). ur-rtde does not guard an interface against
-    its own ``disconnect``: a servoJ in flight while another thread disconnects crashed the whole
+    Three threads call into the client: the servo loop, the service's worker threads (a reconnect, the
+    watchdog's arming) and its event loop (the state, the fault). ur-rtde does not guard an interface
+    against its own ``disconnect``: a servoJ in flight while another thread disconnects crashed the whole
     process (SIGSEGV, in CI). So every call goes through ``_using``, and ``close`` tears the interfaces
     down only once no call is in flight; a call that comes meanwhile finds no link."""
 
@@ -449,7 +441,7 @@ class UrRtdeBackend:
         return float(np.max(np.abs(np.asarray(target) - self.actual_q()))) <= self.settle_tol
 
     def motion_ended(self) -> None:
-        """Disarms the watchdog: between motions (gripper, waits, moveJ) nothing kicks it, and the robot
+        """Disarms the watchdog: between motions (gripper, waits) nothing kicks it, and the robot
         is at rest. ``prepare`` arms it again before the next motion."""
         with self._using() as ifaces:
             if self._watchdog and not self._lost and ifaces is not None:
@@ -464,11 +456,6 @@ class UrRtdeBackend:
             return ifaces is not None and bool(
                 ifaces[0].moveJ(np.asarray(q, float).tolist(), speed, acceleration)
             )
-
-    def stop_move(self) -> None:
-        with self._using() as ifaces, contextlib.suppress(RuntimeError):
-            if ifaces is not None:
-                ifaces[0].stopJ(self.stop_deceleration, False)
 
     def digital_inputs(self) -> int:
         with self._using() as ifaces, contextlib.suppress(RuntimeError):
@@ -525,5 +512,5 @@ def backend_for(settings: Settings, task: Task, speed: float) -> Backend:
         speed=speed,
         limits=task.limits,
         gripper_output=settings.gripper_output,
-        watchdog_s=1.0 / settings.watchdog_hz if settings.separation and math.isfinite(speed) else None,
+        watchdog_s=1.0 / settings.watchdog_hz if settings.separation and speed == 1.0 else None,
     )

@@ -26,6 +26,7 @@ from common.runtime.node import Node, Rejected
 from common.runtime.service import first_of
 from common.safety.separation import Figures
 from common.safety.states import Event, IllegalTransition, State
+from common.trajectory.approach import approach
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan, Step, Task
 from common.trajectory.validate import check_trajectory
@@ -405,44 +406,23 @@ class Cycles:
             "info", f"the arm is {off:.4f} rad from the start of '{path_id}': moving there slowly", path_id
         )
         self.safety.fire(Event.MOVE, f"moving slowly to the start of '{path_id}'")
-        ok = arrived = False
-        held = True
-        while held and not self.ctx.stop.is_set():  # a look's hold: wait for room, then on from there
-            ok, arrived, held = await self.guarded_move(q_start)
-        if ok and arrived:
+        s = self.settings
+        own, h = approach(self.backend.actual_q(), q_start, s.start_speed, s.start_acceleration,
+                          self.task.limits, f"approach to {path_id}")  # fmt: skip
+        curve = Curve.of(h, own)
+        figures = await asyncio.to_thread(self.reactions.figures, own, h, curve)
+        result, _ = await self.play(own, curve, figures, 0)  # no solution of a set: no k
+        arrived = float(np.max(np.abs(self.backend.actual_q() - q_start))) <= s.start_tolerance_rad
+        if result.outcome == "done" and arrived:
             self.safety.fire(Event.DONE)
             return True
-        if self.ctx.stop.is_set():
+        if result.outcome == "stopped" or self.ctx.stop.is_set():
             self.safety.fire(Event.SHUTDOWN)
-        else:
-            self.safety.fire(
-                Event.FAULT, f"the move to the start of '{path_id}' did not arrive: {self.backend.fault()}"
-            )
+            return False
+        why = f"the move to the start of '{path_id}' did not arrive: {self.backend.fault() or result.outcome}"
+        self.safety.event("protective_stop", why, path_id)
+        self.safety.fire(Event.FAULT, why)
         return False
-
-    async def guarded_move(self, q_start: np.ndarray) -> tuple[bool, bool, bool]:
-        """One slow moveJ toward ``q_start`` under separation monitoring: it begins only once the distance
-        allows it at its speed, and a look that no longer does stops it (the controller's moveJ cannot
-        be slowed, so it runs whole or not at all). (moved without an error, arrived, stopped by a look).
-        A resume after a stop mid-path once moved the arm back to its path's start whoever stood there."""
-        s, r = self.settings, self.reactions
-        figures = r.move_figures(self.backend.actual_q(), q_start, s.start_speed, s.start_acceleration)
-        if not await r.until_clear(figures, self.ctx.stop):
-            return False, False, False
-        halted = False
-
-        def halt() -> None:
-            nonlocal halted
-            halted = True
-            self.backend.stop_move()
-
-        guard = asyncio.create_task(r.guard(figures, halt))
-        try:
-            ok = await asyncio.to_thread(self.backend.move_j, q_start, s.start_speed, s.start_acceleration)
-        finally:
-            guard.cancel()
-        arrived = float(np.max(np.abs(self.backend.actual_q() - q_start))) <= s.start_tolerance_rad
-        return ok, arrived, halted and not self.backend.fault()
 
     async def run_path(self, pid: str) -> int | None:
         """Run one path with the selection current at its start; its k, or None when stopped."""
@@ -515,35 +495,9 @@ class Cycles:
             log.warning("%s", exc)
             return AGAIN
         self.safety.path_id, self.k = pid, k
-        # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
-        # converted to the form servo takes (backend.target), touching nothing
-        self.backend.prepare(own.waypoints[:1])
-        start = self.reactions.start_ramp(own, self.carried, figures)
-        run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
-                                           self.task.limits, self.speed, self.reactions.arm)  # fmt: skip
-        self.reactions.lease(run)  # the first look may be late: the scale it starts at is leased too
-        settle = round(self.settings.settle_s * RATE_HZ)
-        try:
-            result: MotionResult = await run.play(self.loop, settle)
-        finally:
-            self.reactions.run = None
-            self.ctx.counters["ramps"] += run.ramps
-            self.ctx.counters["ramps_refused"] += run.ramps_refused
-            self.ctx.counters["lease_lapses"] += run.playback.lapses
-            self.ctx.counters["unchecked_stops"] += run.playback.unchecked
-            self.carried = run.playback.state()
-            self.reactions.idle_scale = run.playback.sigma  # what the arm ended at, until the next look
+        result, run = await self.play(own, curve, figures, k)
         k = self.k = run.k  # a switch within the path may have changed it
-        await asyncio.to_thread(self.backend.motion_ended)
         self.ctx.counters["paths"] += 1
-        self.ctx.counters["overruns"] = self.loop.overruns
-        if result.overruns:
-            self.safety.event("overrun", f"{result.overruns} servo overruns during '{pid}'", pid, repeat=True)
-        if lapses := run.playback.lapses:  # the looks at the distance stopped coming: the loop stopped
-            unchecked = run.playback.unchecked
-            why = f" ({unchecked} unchecked: no planned stop fitted)" if unchecked else ""
-            said = f"the scale's lease ran out {lapses} times during '{pid}': the servo took its stop{why}"
-            self.safety.event("scale", said, pid, repeat=True)
         if result.outcome == "done":
             self.safety.fire(Event.DONE)
             return k
@@ -567,6 +521,41 @@ class Cycles:
         check_trajectory(h, own, self.task.limits, claimed)
         curve = Curve.of(h, own)
         return curve, self.reactions.figures(own, h, curve)
+
+    async def play(
+        self, own: PathPlan, curve: Curve, figures: Figures, k: int
+    ) -> tuple[MotionResult, PathRun]:
+        """One motion on the servo loop, a task's path or the slow move to its start: at the scale the
+        person's distance allows, under the lease on it and the controller's watchdog."""
+        # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
+        # converted to the form servo takes (backend.target), touching nothing
+        self.backend.prepare(own.waypoints[:1])
+        start = self.reactions.start_ramp(own, self.carried, figures)
+        run = self.reactions.run = PathRun(own, curve, figures, k, start, self.backend.target,
+                                           self.task.limits, self.speed, self.reactions.arm)  # fmt: skip
+        self.reactions.lease(run)  # the first look may be late: the scale it starts at is leased too
+        settle = round(self.settings.settle_s * RATE_HZ)
+        try:
+            result: MotionResult = await run.play(self.loop, settle)
+        finally:
+            self.reactions.run = None
+            self.ctx.counters["ramps"] += run.ramps
+            self.ctx.counters["ramps_refused"] += run.ramps_refused
+            self.ctx.counters["lease_lapses"] += run.playback.lapses
+            self.ctx.counters["unchecked_stops"] += run.playback.unchecked
+            self.carried = run.playback.state()
+            self.reactions.idle_scale = run.playback.sigma  # what the arm ended at, until the next look
+        await asyncio.to_thread(self.backend.motion_ended)
+        self.ctx.counters["overruns"] = self.loop.overruns
+        pid = own.id
+        if result.overruns:
+            self.safety.event("overrun", f"{result.overruns} servo overruns during '{pid}'", pid, repeat=True)
+        if lapses := run.playback.lapses:  # the looks at the distance stopped coming: the loop stopped
+            unchecked = run.playback.unchecked
+            why = f" ({unchecked} unchecked: no planned stop fitted)" if unchecked else ""
+            said = f"the scale's lease ran out {lapses} times during '{pid}': the servo took its stop{why}"
+            self.safety.event("scale", said, pid, repeat=True)
+        return result, run
 
     async def wait_for(self, step: Step, cycle: int) -> Literal["arrived", "stopped", "late"]:
         """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),

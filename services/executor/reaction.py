@@ -8,7 +8,6 @@ zone, with the changes folded in between counted.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import threading
@@ -17,13 +16,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.robot.ur16e import DT, JointLimits
+from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
 from common.runtime.node import Node, Rejected
-from common.runtime.service import first_of
 from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
-from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm, path_speed
-from common.sim.arm import move_j_profile
+from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
@@ -160,38 +157,6 @@ class Reactions:
             while len(self._figures) > FIGURES_KEPT:
                 self._figures.popitem(last=False)
         return found
-
-    def move_figures(self, q0: np.ndarray, q1: np.ndarray, speed: float, acceleration: float) -> Figures:
-        """A controller's moveJ (the slow move to a path's start) as S_p sees it: its top speed, and a
-        stop from its joint speed at its own deceleration (the sim brakes at it; a UR's stopJ is faster)."""
-        if not self.on:
-            return Figures(0.0, 0.0)
-        top = path_speed(move_j_profile(q0, q1, speed, acceleration), DT, self.arm)
-        stop_s = speed / acceleration
-        return Figures(top, stop_s, stop_s / 2)  # a linear stop covers half its time at the top speed
-
-    async def until_clear(self, figures: Figures, stop: asyncio.Event) -> bool:
-        """Hold a move the controller cannot slow (moveJ) until the distance allows it at its own speed:
-        True then, False at a stop. Its figures are the ones the looks show the zone and scale by."""
-        self.last_figures = figures
-        while self.on and not stop.is_set():
-            self.look_distance()
-            if self.allowed(figures) >= 1.0:
-                break
-            await first_of(stop.wait(), asyncio.sleep(self.settings.scale_period_s))
-        return not stop.is_set()
-
-    async def guard(self, figures: Figures, halt: Callable[[], None]) -> None:
-        """While a moveJ runs: a look every ``scale_period_s``, and its decelerating stop (``halt``) at the
-        first that does not allow it at its speed (a person came in, the distance went stale)."""
-        if not self.on:
-            return
-        while True:
-            self.look_distance()
-            if self.allowed(figures) < 1.0:
-                halt()
-                return
-            await asyncio.sleep(self.settings.scale_period_s)
 
     def known(self, path: PathPlan, h: np.ndarray) -> bool:
         with self._figures_lock:
