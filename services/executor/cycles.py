@@ -419,10 +419,17 @@ class Cycles:
         if result.outcome == "stopped" or self.ctx.stop.is_set():
             self.safety.fire(Event.SHUTDOWN)
             return False
-        why = f"the move to the start of '{path_id}' did not arrive: {self.backend.fault() or result.outcome}"
-        self.safety.event("protective_stop", why, path_id)
-        self.safety.fire(Event.FAULT, why)
+        self.protective_stop(
+            f"the move to the start of '{path_id}' did not arrive: {self.backend.fault() or result.outcome}",
+            path_id,
+        )
         return False
+
+    def protective_stop(self, why: str, pid: str) -> None:
+        """A motion ended by a fault (the arm's, the controller's, a run of overruns): latched, and said."""
+        self.safety.event("protective_stop", why, pid)
+        self.safety.fire(Event.FAULT, why)
+        self.ctx.counters["protective_stops"] += 1
 
     async def run_path(self, pid: str) -> int | None:
         """Run one path with the selection current at its start; its k, or None when stopped."""
@@ -509,9 +516,7 @@ class Cycles:
             why = f"{self.settings.overrun_limit} servo overruns in a row during '{pid}'"
         else:
             why = f"during '{pid}': {self.backend.fault() or 'refused by the arm'}"
-        self.safety.event("protective_stop", why, pid)
-        self.safety.fire(Event.FAULT, why)
-        self.ctx.counters["protective_stops"] += 1
+        self.protective_stop(why, pid)
         return AGAIN
 
     def prepare_path(self, h: np.ndarray, own: PathPlan, claimed: np.ndarray) -> tuple[Curve, Figures]:
