@@ -21,6 +21,7 @@ from tests.support.paths import (
 # such cells on a 2-core machine, with other work running, starved each other's simulated operator. (The
 # systemd cells run at real time, beside them.)
 CELL_FILES = frozenset({"test_demo.py", "test_lab.py", "test_packaging.py", "test_walk_in.py"})
+BENCH_TIMEOUT_S = 3600  # s: the pyproject's 600 s is for a test
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
@@ -38,8 +39,12 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The cell files first: the worker that takes them is busy with them alone for minutes, while the
-    other works through the rest."""
+    other works through the rest. A benchmark may take longer than a test's ``timeout`` (pyproject): the
+    whole HRV cross-validation takes minutes on its own, so a benchmark's limit is an hour."""
     items.sort(key=lambda item: item.path.name not in CELL_FILES)
+    for item in items:
+        if item.get_closest_marker("bench") is not None and item.get_closest_marker("timeout") is None:
+            item.add_marker(pytest.mark.timeout(BENCH_TIMEOUT_S))
 
 
 def pytest_asyncio_loop_factories(config: pytest.Config, item: pytest.Item) -> dict[str, object]:
