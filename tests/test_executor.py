@@ -492,28 +492,43 @@ async def test_looks_that_never_come_stop_the_arm_at_the_scale_a_path_started_at
     """A path starts at the scale its first look allowed, leased like any look's: should no look follow
     (the executor's thread starved from the start of the path on), the loop stops the arm when that lease
     runs out. A path once began unleased and ran at its starting scale until a look came (here: for
-    good, path after path; a held arm is what tells them apart, not how soon, which a loaded host sets)."""
+    good, path after path; a held arm is what tells them apart, not how soon, which a loaded host sets).
+    Where this loaded host starves the servo thread as well (the test's own process runs the executor),
+    the sim's watchdog may stop the arm first. What the test waits for is where the arm ends, not a state
+    seen in motion: a loaded run once published no state during the arm's short run before its stop."""
     from services.executor.reaction import Reactions
 
     async def starved(self: Reactions) -> None:
         return None
 
     monkeypatch.setattr(Reactions, "_look", starved)
+    path = load_task(task_file).paths["there"].waypoints
+
+    def moved(s: RobotState) -> bool:
+        return float(np.max(np.abs(np.asarray(s.q) - path[0]))) > 1e-3
+
+    def ended(s: RobotState) -> bool:
+        tripped = s.state == "stopped" and "watchdog" in s.reason
+        held = s.state == "moving" and s.scale == 0.0 and max(map(abs, s.qd)) < 1e-4
+        return s.path_id == "there" and moved(s) and (tripped or held)
+
     async with monitored(cell, task_file, tmp_path, [5.0]) as (states, _, ex):
-        moving = await next_of(states, lambda s: s.state == "moving" and max(map(abs, s.qd)) > 1e-3, 20)
-        first = await next_of(states, lambda s: max(map(abs, s.qd)) < 1e-4, timeout=10)
+        first = await next_of(states, ended, 30)
         still = [first]
         while still[-1].t_ns < first.t_ns + 500_000_000:
             still.append(await next_of(states))
-    np.testing.assert_allclose(still[-1].q, first.q, atol=1e-4)  # and stays so
-    assert first.path_id == moving.path_id  # within the path it began
-    # the lease's stop, held on the path; or, where this loaded host starved the servo thread as well (the
-    # test's own process runs the executor), the sim's watchdog stopped the arm before it
-    if first.state == "moving":
-        assert all(s.scale == 0.0 for s in still)
+    np.testing.assert_allclose([s.q for s in still], np.tile(first.q, (len(still), 1)), atol=1e-4)  # stays
+    assert float(np.max(np.abs(np.asarray(first.q) - path[-1]))) > 1e-3  # within the path, not at its end
+    # held at scale 0 by the lease's stop; the watchdog's stop may come after it, while the arm still
+    # settles on its target (a real controller's watchdog stops the program whatever the arm does), and
+    # is latched from then on
+    kinds = ["held" if s.state == "moving" and s.scale == 0.0 else "tripped" if ended(s) else s.state
+             for s in still]  # fmt: skip
+    assert set(kinds) <= {"held", "tripped"}, [(s.state, s.scale, s.reason) for s in still]
+    if "tripped" in kinds:  # latched from then on
+        assert "held" not in kinds[kinds.index("tripped") :], kinds
+    if "held" in kinds:
         assert ex.ctx.counters["lease_lapses"] >= 1
-    else:
-        assert first.state == "stopped" and "watchdog" in first.reason, first.reason
 
 
 async def sensors(bus: Bus, table: dict[str, tuple[str, float, float]], now_ns: Callable[[], int]) -> None:
