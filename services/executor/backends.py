@@ -275,7 +275,7 @@ class UrRtdeBackend:
         self._watchdog = False
 
     def close(self) -> None:
-        """Waits for the calls in flight (a moveJ runs to its end or its stop) before disconnecting."""
+        """Waits for the calls in flight (a benchmark's moveJ runs to its end) before disconnecting."""
         with self._io:
             self._closing = True
             if not self._io.wait_for(lambda: self._in_flight == 0, timeout=CLOSE_WAIT_S):
