@@ -21,7 +21,7 @@ from tests.support.paths import (
 # such cells on a 2-core machine, with other work running, starved each other's simulated operator. (The
 # systemd cells run at real time, beside them.)
 CELL_FILES = frozenset({"test_demo.py", "test_lab.py", "test_packaging.py", "test_walk_in.py"})
-BENCH_TIMEOUT_S = 3600  # s: the pyproject's 600 s is for a test
+BENCH_TIMEOUT_S = 3600  # s: the pyproject's 1,200 s is for a test
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
