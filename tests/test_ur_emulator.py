@@ -430,9 +430,9 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
 
 def test_a_reconnect_while_the_servo_thread_sends_waits_for_its_call_and_crashes_nothing() -> None:
     """ur-rtde does not guard an interface against its own disconnect: a servoJ in flight while the
-    supervisor reconnected ended the whole process with SIGSEGV (CI, the lost-controller test; 2 of 2
-    runs of this race crashed before the backend waited for calls in flight). Its own process here, so a
-    crash is its exit status."""
+    supervisor reconnected ended the whole process with SIGSEGV (in CI, the executor's servo thread
+    inside servoJ; 2 of 2 runs of this race crashed before the backend waited for calls in flight). Its
+    own process here, so a crash is its exit status."""
     emu = EmulatorProcess(free_loopback())
     try:
         run = subprocess.run(

@@ -394,7 +394,8 @@ class Cycles:
 
     async def reach(self, q_start: np.ndarray, path_id: str) -> bool:
         """Start-up safety: the arm must be at the path's first waypoint before the path runs."""
-        off = float(np.max(np.abs(self.backend.actual_q() - q_start)))
+        q = self.backend.actual_q()
+        off = float(np.max(np.abs(q - q_start)))
         if off <= self.settings.start_tolerance_rad:
             return True
         if self.settings.start_policy == "refuse":
@@ -407,7 +408,7 @@ class Cycles:
         )
         self.safety.fire(Event.MOVE, f"moving slowly to the start of '{path_id}'")
         s = self.settings
-        own, h = approach(self.backend.actual_q(), q_start, s.start_speed, s.start_acceleration,
+        own, h = approach(q, q_start, s.start_speed, s.start_acceleration,
                           self.task.limits, f"approach to {path_id}")  # fmt: skip
         curve = Curve.of(h, own)
         figures = await asyncio.to_thread(self.reactions.figures, own, h, curve)
