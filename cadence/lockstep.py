@@ -41,7 +41,7 @@ from cadence.lab.session import served_sets
 from common.runtime.bus import BusConfig
 from common.runtime.config import CommonSettings, section
 from common.runtime.errors import CadenceError
-from common.runtime.mock_bus import MockBus, MockNetwork
+from common.runtime.memory import MemoryNetwork
 from common.runtime.service import serve
 from schemas.health import ServiceStatus
 from schemas.topology import DEFAULT_CELL, HEALTH
@@ -80,17 +80,17 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
     loop = asyncio.get_running_loop()
     epoch_ns = time.time_ns() // 1_000_000_000 * 1_000_000_000  # data time starts now, to the second
     common = CommonSettings(data_dir=str(data), epoch_ns=epoch_ns, lockstep=True, status_period_s=1.0)
-    network, stop = MockNetwork(), asyncio.Event()
+    network, stop = MemoryNetwork(), asyncio.Event()
     obs = Observed(epoch_ns=epoch_ns)
     services: dict[str, asyncio.Task[None]] = {}
 
     def start(name: str) -> None:
         main, settings = BY_NAME[name].module().main, settings_of(name, opts)
-        bus = MockBus(DEFAULT_CELL, name, network)
+        bus = network.bus(DEFAULT_CELL, name)
         served = serve(name, main, common, BusConfig(), settings, stop=stop, install_signals=False, bus=bus)
         services[name] = asyncio.ensure_future(served)
 
-    async with MockBus(DEFAULT_CELL, "demo", network) as bus:  # no router: nobody joins a lockstep cell
+    async with network.bus(DEFAULT_CELL, "demo") as bus:  # no router: nobody joins a lockstep cell
         health = bus.subscribe(HEALTH.at("pareto_store"), maxsize=1)
         try:
             with console.status("planning the task's Pareto sets (once; they are stored) …"):

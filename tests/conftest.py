@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from common.runtime.lockstep import LockstepLoop
-from common.runtime.mock_bus import MockNetwork
+from common.runtime.memory import MemoryNetwork
 from tests.support.cell import Cell, free_port, now_ns
 from tests.support.decisions import _base_now  # noqa: F401 (autouse: each test's windows end near its now)
 from tests.support.paths import (
@@ -80,8 +80,8 @@ def cell(request: pytest.FixtureRequest) -> Cell:
     test marked ``lockstep`` its services read the lockstep loop's data time, from now to the second, and
     the test stamps its own messages with ``Cell.now_ns``."""
     if request.node.get_closest_marker("lockstep") is not None:
-        return Cell(network=MockNetwork(), epoch_ns=now_ns())
-    return Cell(network=MockNetwork())
+        return Cell(network=MemoryNetwork(), epoch_ns=now_ns())
+    return Cell(network=MemoryNetwork())
 
 
 @pytest.fixture

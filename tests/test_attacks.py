@@ -12,7 +12,7 @@ import msgspec
 import pytest
 
 from common.runtime.bus import Bus
-from common.runtime.mock_bus import MockBus, serving
+from common.runtime.memory import MemoryNetwork, serving
 from common.runtime.node import Rejected
 from common.safety.separation import Sources
 from schemas import OperatorSignal, Selection, Separation
@@ -134,7 +134,7 @@ async def test_a_payload_nested_50000_maps_deep_is_a_counted_decode_error_logged
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     nested = b"\x81\xa1a" * 50_000 + b"\xc0"
-    bus: Bus = MockBus(role="executor")
+    bus: Bus = MemoryNetwork().bus(role="executor")
     decoder = msgspec.msgpack.Decoder(OperatorSignal)
     key = bus.key("operator/signal")
     with caplog.at_level(logging.WARNING):

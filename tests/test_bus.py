@@ -88,6 +88,50 @@ async def test_a_queryable_answers_and_an_error_reply_says_why(endpoint: str) ->
         assert bad[0].error == "no such thing"
 
 
+@pytest.mark.parametrize("transport", ["zenoh", "memory"])
+async def test_both_transports_keep_the_bus_s_contract(transport: str, endpoint: str) -> None:
+    """What a ``Bus`` asks of a transport (common/runtime/transport.py), asked of Zenoh's and of the
+    in-memory one alike: the lockstep cell and a node's tests run on the second, so where it answered
+    otherwise, they would prove nothing of a service on the first."""
+    from common.runtime.memory import MemoryNetwork
+
+    if transport == "zenoh":
+        a, b = await pair(endpoint)
+    else:
+        network = MemoryNetwork()
+        a, b = network.bus(CELL), network.bus(CELL)
+    key = a.key("decision/selection")
+    async with a, b:
+        assert a.isolation() is None and b.isolation() is None
+        assert not a.matching(key)  # nobody listens yet: a put now would be dropped
+        sub = b.subscribe(key, Selection)
+        await a.until_subscribed(key, 10)
+        assert a.matching(key)
+        sent = [Selection(t_ns=5 + i, seq=i, k=1 + i, n=15, delta=0, reason="initial") for i in range(5)]
+        for m in sent:
+            put(a, key, m, block=True)
+        got = [await sub.receive(10) for _ in sent]
+        assert got == [(key, m) for m in sent]  # decoded, on their key, in order
+
+        async def handler(req: Request) -> Selection:
+            if req.params.get("k") == "0":
+                raise QueryError("k counts from 1")
+            return sent[int(req.params["k"]) - 1]
+
+        b.serve(b.key("decision/**"), handler)
+        async with asyncio.timeout(10):  # a queryable's declaration reaches the querier asynchronously
+            while not (replies := await a.get(f"{key}?k=3", Selection, timeout=1.0)):
+                pass
+        assert [(r.key, r.message, r.error) for r in replies] == [(key, sent[2], None)]
+        (bad,) = await a.get(f"{key}?k=0", Selection, timeout=2.0)
+        assert (bad.message, bad.error) == (None, "k counts from 1")
+        b.token(b.key("health/test"))
+        put(a, key, SEL)
+        assert (await sub.receive(10))[1] == SEL  # a bus that declared all of that still delivers
+    with pytest.raises(BusError, match="closed"):
+        a.matching(key)
+
+
 async def test_a_closed_bus_refuses_use(endpoint: str) -> None:
     a = await Bus.open(BusConfig(listen=[endpoint]), CELL)
     await a.close()

@@ -451,7 +451,7 @@ async def test_absurd_pareto_sets_are_never_used_or_cached_and_a_refused_cache_i
                 query.reply(query.key_expr, absurd[0] if "there" in str(query.key_expr) else absurd[1])
                 answered.set()
 
-        fake = bus.session.declare_queryable(bus.key("pareto/**"), on_query)
+        fake = bus.transport.session.declare_queryable(bus.key("pareto/**"), on_query)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(task_file)

@@ -1,4 +1,4 @@
-"""A node's logic without Zenoh (common/runtime/node.py, common/runtime/mock_bus.py): the decision maker's
+"""A node's logic without Zenoh (common/runtime/node.py, common/runtime/memory.py): the decision maker's
 handlers called as methods, the node served on the in-memory bus with the real bus's typing, graph checks
 and decoding, and a node class held to its role's declaration in the graph."""
 
@@ -15,7 +15,7 @@ from common.hrv.live import Taken
 from common.runtime.bus import Bus, QueryError
 from common.runtime.config import CommonSettings
 from common.runtime.errors import BusError
-from common.runtime.mock_bus import MockBus, MockNetwork, run_node, serving
+from common.runtime.memory import MemoryNetwork, run_node, serving
 from common.runtime.node import Node, Rejected, check, every, node_main, on
 from common.runtime.service import ServiceContext, serve
 from schemas import Calibration, HrvWindow, Selection
@@ -36,7 +36,7 @@ def window(base: int, i: int, rr: float | None, quality: str = "good") -> HrvWin
 
 
 async def decision_maker(tmp_path: Path, settings: Settings) -> DecisionMaker:
-    bus = MockBus(role="decision_maker")
+    bus = MemoryNetwork().bus(role="decision_maker")
     ctx = ServiceContext(
         "decision_maker", bus, CommonSettings(data_dir=str(tmp_path)), settings, asyncio.Event()
     )
@@ -92,19 +92,19 @@ async def test_without_calibration_the_node_publishes_nothing_and_a_calibration_
 
 
 @pytest.mark.asyncio
-async def test_the_node_served_on_the_mock_bus_answers_windows_queries_and_drops_bad_input(
+async def test_the_node_served_on_the_bus_in_memory_answers_windows_queries_and_drops_bad_input(
     tmp_path: Path,
 ) -> None:
-    network = MockNetwork()
+    network = MemoryNetwork()
     stop = asyncio.Event()
-    service = MockBus(role="decision_maker", network=network)
+    service = network.bus(role="decision_maker")
     common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
     settings = Settings(rr_rest_s=0.85, republish_s=60.0)
     task = asyncio.ensure_future(
         serve("decision_maker", node_main(DecisionMaker), common, None, settings, stop,  # type: ignore[arg-type]
               install_signals=False, bus=service)
     )  # fmt: skip
-    async with MockBus(network=network) as test:
+    async with network.bus() as test:
         sub = test.subscribe(test.key("decision/selection"), Selection)
         await test.until_subscribed(test.key("hrv/window"), timeout=10)
         assert (await sub.receive(10))[1].reason == "initial"
@@ -138,8 +138,8 @@ async def test_the_node_served_on_the_mock_bus_answers_windows_queries_and_drops
 
 
 @pytest.mark.asyncio
-async def test_the_mock_bus_refuses_what_the_graph_refuses() -> None:
-    async with MockBus(role="hrv_analyser") as bus:
+async def test_the_bus_in_memory_refuses_what_the_graph_refuses() -> None:
+    async with MemoryNetwork().bus(role="hrv_analyser") as bus:
         with pytest.raises(BusError, match="does not let hrv_analyser publish decision/selection"):
             bus.publisher(SELECTION)
         with pytest.raises(BusError, match="subscribe robot/state"):
@@ -147,7 +147,7 @@ async def test_the_mock_bus_refuses_what_the_graph_refuses() -> None:
         out = bus.publisher(HRV_WINDOW)
         with pytest.raises(TypeError, match="hrv/window carries HrvWindow, not Selection"):
             out.put(Selection(t_ns=1, seq=0, k=1, n=1, delta=0, reason="initial"))  # type: ignore[arg-type]  # the mistake under test
-    assert issubclass(MockBus, Bus)
+    assert type(bus) is Bus  # the product's own, on another transport
 
 
 @needs_data
@@ -160,7 +160,7 @@ async def test_the_analysers_handlers_window_a_record_and_drop_a_chunk_out_of_li
     from common.hrv.stream import peak_intervals, windows
     from schemas.ecg import EcgChunk
 
-    bus = MockBus(role="hrv_analyser")
+    bus = MemoryNetwork().bus(role="hrv_analyser")
     ctx = ServiceContext("hrv_analyser", bus, CommonSettings(data_dir=str(tmp_path)), AnalyserSettings(),
                          asyncio.Event())  # fmt: skip
     node = HrvAnalyser(ctx)
@@ -192,8 +192,9 @@ async def test_the_analysers_handlers_window_a_record_and_drop_a_chunk_out_of_li
 async def test_a_replay_waits_for_its_reader_sends_every_chunk_and_then_stops_its_service(
     tmp_path: Path,
 ) -> None:
-    """The gateway as a node on the mock bus: nothing before a reader of ecg/samples is there (a recording
-    is worth nothing to nobody), then every 73-sample chunk in order, then the service ends by itself."""
+    """The gateway as a node on the bus in memory: nothing before a reader of ecg/samples is there (a
+    recording is worth nothing to nobody), then every 73-sample chunk in order, then the service ends by
+    itself."""
     import numpy as np
 
     from schemas.ecg import EcgChunk
@@ -203,14 +204,14 @@ async def test_a_replay_waits_for_its_reader_sends_every_chunk_and_then_stops_it
     csv = tmp_path / "ecg.csv"
     t = np.arange(0, 20, 1 / 130)
     np.savetxt(csv, np.c_[t, 1000 * np.exp(-(((t % 0.8) - 0.4) ** 2) / 2e-4)], delimiter=",")
-    network, stop = MockNetwork(), asyncio.Event()
-    service = MockBus(role="ecg_gateway", network=network)
+    network, stop = MemoryNetwork(), asyncio.Event()
+    service = network.bus(role="ecg_gateway")
     common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
     task = asyncio.ensure_future(
         serve("ecg_gateway", node_main(EcgGateway), common, None, GatewaySettings(record=str(csv), speed=0.0),  # type: ignore[arg-type]
               stop, install_signals=False, bus=service)
     )  # fmt: skip
-    async with MockBus(network=network) as test:
+    async with network.bus() as test:
         # its first status: it runs, and has sent no ECG
         await network.until(lambda: any(k.endswith("/health/ecg_gateway") for k, _ in network.sent), 10)
         assert not any(k.endswith("/ecg/samples") for k, _ in network.sent)
@@ -262,7 +263,8 @@ async def test_the_executors_one_safety_state_latches_a_stop_and_only_a_resume_c
     from services.executor.settings import Settings as ExecutorSettings
 
     settings = ExecutorSettings(lock_dir=str(tmp_path / "locks"), fifo_priority=0, lock_memory=False)
-    ctx = ServiceContext("executor", MockBus(role="executor"), CommonSettings(data_dir=str(tmp_path)),
+    bus = MemoryNetwork().bus(role="executor")
+    ctx = ServiceContext("executor", bus, CommonSettings(data_dir=str(tmp_path)),
                          settings, asyncio.Event())  # fmt: skip
     node = Executor(ctx)
     await node.setup()
@@ -316,14 +318,14 @@ async def test_the_gateway_replays_the_polar_export_with_its_accelerometer_or_sa
         acc_record=str(polar / "Polar_H10_55354125_20210516_080900_ACC.txt") if with_acc else None,
         speed=50.0,  # 3 s: its status comes while it runs
     )
-    network, stop = MockNetwork(), asyncio.Event()
-    service = MockBus(role="ecg_gateway", network=network)
+    network, stop = MemoryNetwork(), asyncio.Event()
+    service = network.bus(role="ecg_gateway")
     common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
     task = asyncio.ensure_future(
         serve("ecg_gateway", node_main(EcgGateway), common, None, settings, stop,  # type: ignore[arg-type]
               install_signals=False, bus=service)
     )  # fmt: skip
-    async with MockBus(network=network) as test:
+    async with network.bus() as test:
         acc = test.subscribe(test.key("ecg/acc"), AccChunk, maxsize=10_000)
         ecg = test.subscribe(test.key("ecg/samples"), EcgChunk, maxsize=10_000)
         status = test.subscribe(test.key("health/ecg_gateway"), ServiceStatus, maxsize=10_000)
@@ -352,7 +354,8 @@ async def test_a_strap_whose_accelerometer_stops_mid_session_is_said_on_the_gate
     from services.ecg_gateway.__main__ import EcgGateway
     from services.ecg_gateway.__main__ import Settings as GatewaySettings
 
-    ctx = ServiceContext("ecg_gateway", MockBus(role="ecg_gateway"), CommonSettings(data_dir=str(tmp_path)),
+    bus = MemoryNetwork().bus(role="ecg_gateway")
+    ctx = ServiceContext("ecg_gateway", bus, CommonSettings(data_dir=str(tmp_path)),
                          GatewaySettings(source="polar"), asyncio.Event())  # fmt: skip
     node = EcgGateway(ctx)
     node.source, node.acc_until_ns = SimpleNamespace(accelerometer=True), 100 * S  # type: ignore[assignment]
@@ -377,7 +380,7 @@ async def test_a_part_put_down_is_said_again_while_the_robot_waits_and_counted_o
     from services.operator_twin.__main__ import Settings as TwinSettings
 
     common = CommonSettings(data_dir=str(tmp_path))
-    bus = MockBus(role="operator_twin")
+    bus = MemoryNetwork().bus(role="operator_twin")
     ctx = ServiceContext("operator_twin", bus, common, TwinSettings(TwinParams(seed=3)), asyncio.Event())
     twin = OperatorTwin(ctx)
     await twin.setup()
@@ -427,7 +430,8 @@ async def test_a_twin_away_until_calibrated_fetches_no_part_until_a_calibration_
 
     settings = TwinSettings(TwinParams(seed=3, away_until_calibrated=True))
     common = CommonSettings(data_dir=str(tmp_path))
-    ctx = ServiceContext("operator_twin", MockBus(role="operator_twin"), common, settings, asyncio.Event())
+    bus = MemoryNetwork().bus(role="operator_twin")
+    ctx = ServiceContext("operator_twin", bus, common, settings, asyncio.Event())
     twin = OperatorTwin(ctx)
     await twin.setup()
     twin.origin_ns -= 60 * S
@@ -452,7 +456,8 @@ async def test_the_analyser_answers_for_its_last_windows_one_at_a_time(tmp_path:
     from common.runtime.bus import Request
     from services.hrv_analyser.__main__ import KEPT_WINDOWS
 
-    ctx = ServiceContext("hrv_analyser", MockBus(role="hrv_analyser"), CommonSettings(data_dir=str(tmp_path)),
+    bus = MemoryNetwork().bus(role="hrv_analyser")
+    ctx = ServiceContext("hrv_analyser", bus, CommonSettings(data_dir=str(tmp_path)),
                          AnalyserSettings(), asyncio.Event())  # fmt: skip
     node = HrvAnalyser(ctx)
     await node.setup()

@@ -192,12 +192,12 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         seps = m1.subscribe(m1.key("operator/separation"), Separation)
         sels = m1.subscribe(m1.key("decision/selection"), Selection)
         await s1.until_subscribed(s1.key("operator/separation"), 30)
-        token = s1.session.liveliness().declare_token("cadence/c1/health/separation_sensor")
+        token = s1.transport.session.liveliness().declare_token("cadence/c1/health/separation_sensor")
 
         async def round_trip() -> bool:
             """A liveliness query over the plant's link and its reply: what the plant sent before it on
             that link, the cell's router has handled."""
-            get = plant_side.session.liveliness().get
+            get = plant_side.transport.session.liveliness().get
             return bool(await asyncio.to_thread(lambda: list(get("cadence/c1/health/**", timeout=2.0))))
 
         async with asyncio.timeout(60):  # the plant's link is up (or the puts below would prove nothing)
@@ -208,7 +208,7 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         put(plant_side, "cadence/c1/decision/selection",
             Selection(t_ns=3, seq=9, k=15, n=15, delta=0, reason="initial"), block=True)  # fmt: skip
         resumed = await asyncio.to_thread(
-            lambda: list(plant_side.session.get("cadence/c1/robot/resume", timeout=2.0))
+            lambda: list(plant_side.transport.session.get("cadence/c1/robot/resume", timeout=2.0))
         )
         assert await round_trip()
         near = Separation(t_ns=4, seq=1, distance_m=0.6, source="scanner:front")

@@ -1,21 +1,19 @@
-"""Zenoh 1.x from asyncio: the one place Cadence touches the Zenoh API (DESIGN §3; STYLE "Zenoh 1.x").
+"""The bus from asyncio: typed ports on the graph, over a transport (DESIGN §3; STYLE "Zenoh 1.x").
 
-Zenoh has no asyncio API. Its callbacks run on Zenoh's own threads and only hand the sample to the event
-loop (``call_soon_threadsafe``, tolerant of a closed loop); decoding and handling happen in the loop.
-``get`` runs in a worker thread with a timeout; queryable handlers always drop the query (``with query``),
-or the querier would wait for its timeout; everything declared is undeclared before the session closes.
-What is dropped is counted and logged at most once per key and kind every 10 s (docs/operations.md):
-a payload that does not decode (``decode_errors``), a message its receiver rejects (``reject``, the rules
-of ``common/runtime/admission.py``), a handler that raises (``handler_errors``). None of them stops a service.
+A ``Bus`` checks every port against the graph, decodes at arrival, counts and runs handlers in its event
+loop; its ``Transport`` (common/runtime/transport.py) only moves bytes by key: Zenoh for a service, a tool
+and end to end, memory for the lockstep cell and a node's tests (common/runtime/memory.py). Everything
+declared is undeclared before the transport closes. What is dropped is counted and logged at most once
+per key and kind every 10 s (docs/operations.md): a payload that does not decode (``decode_errors``), a
+message its receiver rejects (``reject``, the rules of ``common/runtime/admission.py``), a handler that
+raises (``handler_errors``). None of them stops a service.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
-import re
 import time
 from collections import Counter
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -26,6 +24,7 @@ import msgspec
 import zenoh
 
 from common.runtime.errors import BusError
+from common.runtime.transport import Declared, Transport, ZenohTransport, zenoh_words
 from schemas.base import Message
 from schemas.topology import ROLE, Topic, encode, may_ask, may_publish, may_subscribe, topic_of
 from schemas.topology import key as topology_key
@@ -75,12 +74,6 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     return conf
 
 
-def _call_soon(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: object) -> None:
-    """From a Zenoh thread into the loop; a closed loop (shutdown) drops the call (bleak's habit)."""
-    with contextlib.suppress(RuntimeError):
-        loop.call_soon_threadsafe(fn, *args)
-
-
 @dataclass(frozen=True, slots=True)
 class Request:
     """A query as the handler sees it: the concrete key and the selector's parameters."""
@@ -99,12 +92,6 @@ class Reply(Generic[M]):
     key: str
     message: M | None
     error: str | None
-
-
-def zenoh_words(exc: Exception) -> str:
-    """Zenoh's message without the Rust source file it was raised in (``… at /root/.cargo/…/x.rs:447.``),
-    which says nothing to a user."""
-    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 class QueryError(Exception):
@@ -148,7 +135,7 @@ class Subscription(Generic[M]):
         self._queue: asyncio.Queue[tuple[str, M]] = asyncio.Queue(maxsize)
         self._arrival, self._screen = arrival, screen
         self.dropped = 0
-        self._sub: Any = bus._declare_subscriber(key_expr, self._put)
+        self._sub: Declared | None = bus.transport.declare_subscriber(key_expr, self._put)
 
     def _put(self, key: str, payload: bytes) -> None:
         """On the loop thread: decode at arrival, so bad input is counted whether or not anyone reads. With
@@ -217,17 +204,17 @@ class Publisher(Generic[M]):
         if not isinstance(msg, self.topic.message):
             raise TypeError(f"{self.key} carries {self.topic.message.__name__}, not {type(msg).__name__}")
         self._bus._check_open()
-        self._bus._send(self.key, encode(msg), block=self.topic.qos == "block")
+        self._bus.transport.send(self.key, encode(msg), block=self.topic.qos == "block")
 
     async def until_subscribed(self, timeout: float) -> None:
         await self._bus.until_subscribed(self.key, timeout)
 
 
 class RawSubscription:
-    """Something declared on the session (a raw subscriber, a queryable); ``undeclare`` is idempotent."""
+    """Something declared on the transport (a raw subscriber, a queryable); ``undeclare`` is idempotent."""
 
-    def __init__(self, sub: Any) -> None:
-        self._sub: Any = sub
+    def __init__(self, sub: Declared) -> None:
+        self._sub: Declared | None = sub
 
     def undeclare(self) -> None:
         if self._sub is not None:
@@ -236,19 +223,14 @@ class RawSubscription:
 
 
 class Bus:
-    """One Zenoh session used from one event loop; an async context manager (httpx's habit)."""
+    """The typed ports of one process (or of a test) on one transport, used from one event loop; an async
+    context manager (httpx's habit)."""
 
     def __init__(
-        self,
-        session: zenoh.Session,
-        loop: asyncio.AbstractEventLoop,
-        cell: str,
-        role: str | None = None,
-        cfg: BusConfig | None = None,
+        self, transport: Transport, cell: str, role: str | None = None, cfg: BusConfig | None = None
     ) -> None:
-        self.session = session
+        self.transport = transport
         self.cfg = cfg or BusConfig()
-        self.loop = loop
         self.cell = cell
         # Who this process is on the graph (schemas/topology.py); None for a test's or a replay's
         # session, which speak for nobody and are held to nothing (the router's ACL still is).
@@ -258,12 +240,15 @@ class Bus:
         self.rejected: Counter[tuple[str, str]] = Counter()  # (key, reason)
         self.handler_errors: Counter[tuple[str, str]] = Counter()  # (key, exception type)
         self._last_log: dict[tuple[str, str], float] = {}
-        self._declared: list[Any] = []
+        self._declared: list[Subscription[Any] | RawSubscription] = []
         self._tasks: set[asyncio.Task[None]] = set()
+        self._handled: list[Subscription[Any]] = []  # the handlers' queues
+        self._handling = 0  # handlers running now
         self._closed = False
 
     @classmethod
     async def open(cls, cfg: BusConfig, cell: str, role: str | None = None) -> Bus:
+        """On a Zenoh session configured by ``cfg``."""
         if role is not None and role not in ROLE:  # before a session exists that would need closing
             raise BusError(f"unknown role {role!r}; the graph has {', '.join(ROLE)}")
         conf = zenoh_config(cfg)
@@ -273,7 +258,8 @@ class Bus:
             raise BusError(
                 f"cannot open a Zenoh session ({cfg.mode or cfg.config_file or 'peer'}): {zenoh_words(exc)}"
             ) from exc
-        return cls(session, asyncio.get_running_loop(), cell, role, cfg)
+        transport = ZenohTransport(session, asyncio.get_running_loop(), cfg.mode == "router", cfg.connect)
+        return cls(transport, cell, role, cfg)
 
     async def __aenter__(self) -> Bus:
         return self
@@ -285,29 +271,14 @@ class Bus:
         return topology_key(self.cell, suffix)
 
     def isolation(self) -> str | None:
-        """Why nothing can reach this session: None while it has a router or a peer (or is a router,
-        which others come to); else what it tried, for a person to act on. Zenoh itself says nothing."""
-        if self.cfg.mode == "router":
-            return None
-        info = self.session.info
-        if any(True for _ in info.routers_zid()) or any(True for _ in info.peers_zid()):
-            return None
-        tried = ", ".join(self.cfg.connect) or "no endpoint to connect to, and multicast scouting is off"
-        return f"connected to no router and no peer (connect: {tried})"
+        """Why nothing can reach this bus: None while it has a router or a peer (or is a router, which
+        others come to); else what it tried, for a person to act on."""
+        return self.transport.isolation()
 
-    # --- the transport (with _declare_queryable, _query, token, matching, until_subscribed, isolation
-    # and _close_transport below): what touches the Zenoh session, and what MockBus replaces ----------
-
-    def _declare_subscriber(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any:
-        """``callback(key, payload)`` on the loop thread for each sample; the handle undeclares it."""
-        loop = self.loop
-        return self.session.declare_subscriber(
-            key_expr, lambda s: _call_soon(loop, callback, str(s.key_expr), s.payload.to_bytes())
-        )
-
-    def _send(self, key: str, payload: bytes, block: bool) -> None:
-        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self.session.put(key, payload, congestion_control=cc)
+    def idle(self) -> bool:
+        """No handler running and none with a message waiting: what an in-memory network waits for
+        before it calls itself settled (common/runtime/memory.py)."""
+        return self._handling == 0 and not any(sub.pending for sub in self._handled)
 
     # --- the graph ----------------------------------------------------------------------------------
 
@@ -420,39 +391,24 @@ class Bus:
         self._check_open()
         if self.role is not None:
             raise BusError(f"{self.role}: publish {key} through Bus.publisher (schemas/topology.py)")
-        self._send(key, payload, block)
+        self.transport.send(key, payload, block)
 
     def matching(self, key: str) -> bool:
         """Whether a subscriber somewhere matches ``key`` now (Zenoh's matching status): a put to a key
         nobody subscribes to is dropped silently, so a replay says so rather than count it as sent."""
         self._check_open()
-        pub: Any = self.session.declare_publisher(key)
-        try:
-            return bool(pub.matching_status.matching)
-        finally:
-            pub.undeclare()
+        return self.transport.matching(key)
 
     async def until_subscribed(self, key: str, timeout: float) -> None:
         """Wait until a subscriber somewhere matches ``key`` (Zenoh's matching status), so that what is
         published next reaches it: a replay, a test. TimeoutError when none appears."""
         self._check_open()
-        pub: Any = self.session.declare_publisher(key)  # zenoh's stubs type matching_status as a bool
-        matched = asyncio.Event()
-        loop = self.loop
-        listener: Any = pub.declare_matching_listener(
-            lambda status: _call_soon(loop, matched.set) if status.matching else None
-        )
-        try:
-            if not pub.matching_status.matching:
-                await asyncio.wait_for(matched.wait(), timeout)
-        finally:
-            listener.undeclare()
-            pub.undeclare()
+        await self.transport.until_subscribed(key, timeout)
 
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> RawSubscription:
         """Payloads as they travel, undecoded (recording): ``callback(key, bytes)`` on the loop thread."""
         self._check_open()
-        sub = RawSubscription(self._declare_subscriber(key_expr, callback))
+        sub = RawSubscription(self.transport.declare_subscriber(key_expr, callback))
         self._declared.append(sub)
         return sub
 
@@ -522,13 +478,17 @@ class Bus:
         input never stops a service. ``screen``: whether a message may be queued (``Subscription``)."""
         msg_type, handler = args if isinstance(what, str) else (None, *args)
         sub = self._subscription(what, msg_type, maxsize, screen=screen)
+        self._handled.append(sub)
 
         async def pump() -> None:
             async for key, msg in sub:
+                self._handling += 1
                 try:
                     await handler(key, msg)
                 except Exception as exc:
                     self.handler_failed(key, exc)
+                finally:
+                    self._handling -= 1
 
         self._spawn(pump())
         return sub
@@ -540,32 +500,18 @@ class Bus:
         the topic's message or raises ``QueryError``. The returned handle undeclares the queryable (the
         bus does at close)."""
         key_expr, answers = self._resolve("publish", what, None)
-        served = RawSubscription(self._declare_queryable(key_expr, answers, handler))
+
+        async def respond(key: str, parameters: str) -> tuple[bool, bytes]:
+            return await answer(answers, handler, Request(key, parameters))
+
+        served = RawSubscription(self.transport.declare_queryable(key_expr, respond))
         self._declared.append(served)
         return served
-
-    def _declare_queryable(
-        self, key_expr: str, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]]
-    ) -> Any:
-        def on_query(query: zenoh.Query) -> None:
-            _call_soon(self.loop, self._spawn, self._answer(answers, handler, query))
-
-        return self.session.declare_queryable(key_expr, on_query)
 
     def _spawn(self, coro: Awaitable[None]) -> None:
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-
-    async def _answer(
-        self, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]], query: zenoh.Query
-    ) -> None:
-        with query:  # dropping the query tells the querier that no more replies come
-            ok, payload = await answer(answers, handler, Request(str(query.key_expr), str(query.parameters)))
-            if ok:
-                query.reply(query.key_expr, payload)
-            else:
-                query.reply_err(payload)
 
     @overload
     async def get(
@@ -591,7 +537,7 @@ class Bus:
             selector += f"?{parameters}"
         decoder = msgspec.msgpack.Decoder(msg_type)
         out: list[Reply[Any]] = []
-        for key, ok, payload in await self._query(selector, timeout):
+        for key, ok, payload in await self.transport.query(selector, timeout):
             if ok:
                 msg = self.decode(key, payload, decoder)
                 out.append(Reply(key, msg, None if msg is not None else "reply does not decode"))
@@ -599,28 +545,11 @@ class Bus:
                 out.append(Reply(selector, None, payload.decode(errors="replace")))
         return out
 
-    async def _query(self, selector: str, timeout: float) -> list[tuple[str, bool, bytes]]:
-        """(key, ok, payload) per reply; an error reply's key is the selector's."""
-
-        def run() -> list[Any]:
-            return list(self.session.get(selector, timeout=timeout))
-
-        try:
-            replies = await asyncio.to_thread(run)
-        except zenoh.ZError as exc:
-            raise BusError(f"query {selector} failed: {zenoh_words(exc)}") from exc
-        return [
-            (str(r.ok.key_expr), True, r.ok.payload.to_bytes())
-            if r.ok is not None
-            else (selector, False, r.err.payload.to_bytes())
-            for r in replies
-        ]
-
     # --- presence -----------------------------------------------------------------------------------
 
     def token(self, key: str) -> None:
         self._check_open()
-        self._declared.append(self.session.liveliness().declare_token(key))
+        self._declared.append(RawSubscription(self.transport.token(key)))
 
     # --- shutdown -----------------------------------------------------------------------------------
 
@@ -634,7 +563,4 @@ class Bus:
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        await self._close_transport()
-
-    async def _close_transport(self) -> None:
-        await asyncio.to_thread(self.session.close)
+        await self.transport.close()

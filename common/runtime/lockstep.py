@@ -10,7 +10,7 @@ thread, at the instant it was asked for. Time does not move while it runs, and n
 beside it, so its result comes back in the same order on every host.
 
 Only for simulation: a lockstep cell has no wall clock, no sockets and no threads of its own. Its nodes
-meet on the in-memory bus (common/runtime/mock_bus.py), and its services read ``Clock(driven=True)``
+meet on the in-memory bus (common/runtime/memory.py), and its services read ``Clock(driven=True)``
 (``CommonSettings.lockstep``).
 """
 

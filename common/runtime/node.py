@@ -3,8 +3,8 @@
 The graph (``schemas/topology.py``, ``ROLES``) declares once what each role reads, publishes and answers.
 A node implements that declaration: a method per input (``@on``), per query it answers (``@answers``)
 and per timer (``@every``). Handlers take a typed message and return the messages to publish; they never
-touch the bus, so a node's logic is tested by calling them, or served on the in-memory ``MockBus``
-(common/runtime/mock_bus.py), with nothing else to fake. Work that runs beside the handlers (the
+touch the bus, so a node's logic is tested by calling them, or served on a bus in memory
+(common/runtime/memory.py), with nothing else to fake. Work that runs beside the handlers (the
 executor's cycles) publishes through ``Node.publish``, routed the same way.
 
 ``node_main(Node)`` gives the ``main`` that ``service_main`` serves: it checks the class against its role's

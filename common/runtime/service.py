@@ -199,7 +199,7 @@ async def serve(
     bus: Bus | None = None,
 ) -> None:
     """Run ``main`` until it returns or the stop event is set, then shut down in order. ``bus``: one
-    opened already (a test's ``MockBus``) instead of a Zenoh session from ``bus_cfg``."""
+    opened already (on a ``MemoryNetwork``: the lockstep cell, a test) instead of Zenoh's from ``bus_cfg``."""
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     if install_signals:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from common.runtime.bus import Bus, BusConfig
 from common.runtime.clock import Clock
-from common.runtime.mock_bus import MockBus, MockNetwork
+from common.runtime.memory import MemoryNetwork
 from schemas import ServiceStatus
 from schemas.topology import DEFAULT_CELL
 
@@ -51,7 +51,7 @@ class InProcessService:
         speed: float = 1.0,
         cell: str = DEFAULT_CELL,
         epoch_ns: int | None = None,
-        network: MockNetwork | None = None,
+        network: MemoryNetwork | None = None,
         lockstep: bool = False,
     ) -> None:
         import asyncio
@@ -82,7 +82,7 @@ class InProcessService:
                 settings,
                 stop=self.stop,
                 install_signals=False,
-                bus=MockBus(cell, name, network) if network is not None else None,
+                bus=network.bus(cell, name) if network is not None else None,
             )
         )
 
@@ -151,7 +151,7 @@ class Cell:
 
     name: str = DEFAULT_CELL
     endpoint: str | None = None
-    network: MockNetwork | None = None
+    network: MemoryNetwork | None = None
     epoch_ns: int | None = None  # a lockstep cell's (in-memory only): its data time is epoch + loop time
 
     def now_ns(self) -> int:
@@ -164,7 +164,7 @@ class Cell:
     async def session(self) -> AsyncIterator[Bus]:
         """The test's own session: it speaks for nobody, reads everything and puts raw (``put``)."""
         if self.network is not None:
-            async with MockBus(self.name, None, self.network) as bus:
+            async with self.network.bus(self.name) as bus:
                 yield bus
         else:
             async with await Bus.open(BusConfig(listen=[self.endpoint or ""]), self.name) as bus:

@@ -1,14 +1,16 @@
-"""The bus in memory, for a node's logic tested without Zenoh (dora's ``MockNode``).
+"""The bus in memory: the lockstep cell's transport, and a node's logic tested without Zenoh (dora's
+``MockNode``).
 
-A ``MockBus`` is a ``Bus`` whose transport is a list: every typed port, every graph check of a role's
-ports, every decode (the schema's bounds), every drop counter and every rejection is the real ``Bus``'s
-code. Only delivery differs: a put reaches the matching subscribers of every ``MockBus`` of the same
-``MockNetwork`` (key expressions matched as Zenoh matches them), and a query the matching queryables.
-The Zenoh tier of the tests stays for the bus itself and for end to end.
+A ``MemoryNetwork`` is what the buses of one process share in place of a network: ``network.bus(cell,
+role)`` is a real ``Bus`` on a ``MemoryTransport``, so every typed port, every graph check of a role's
+ports, every decode (the schema's bounds), every drop counter and every rejection is the ``Bus``'s own
+code. Only delivery differs: a put reaches the matching subscribers of every bus of the same network (key
+expressions matched as Zenoh matches them), later on the loop and in order, and a query the matching
+queryables. The Zenoh tier of the tests stays for the bus itself and for end to end.
 
 ``serving(Node, settings)`` serves one node on it beside a test's own session, and ``run_node`` feeds it
 inputs and gives back what it published: a node's logic tested with its ports, its decoding and its
-graph checks, in milliseconds and with no network. ``MockNetwork.settle`` waits until every put has been
+graph checks, in milliseconds and with no network. ``MemoryNetwork.settle`` waits until every put has been
 delivered and every handler has returned, so a test asserts on what the node did, not on a delay.
 """
 
@@ -16,17 +18,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
 import zenoh
 
-from common.runtime.bus import Bus, BusConfig, M, Request, Subscription, answer
+from common.runtime.bus import Bus, M
 from common.runtime.config import CommonSettings
 from common.runtime.node import Node, serve_node
 from common.runtime.service import ServiceContext
+from common.runtime.transport import Declared, Respond
 from schemas.base import Message
 from schemas.topology import DEFAULT_CELL, Topic, decode_any, encode, topic_of
 
@@ -34,8 +37,8 @@ from schemas.topology import DEFAULT_CELL, Topic, decode_any, encode, topic_of
 @dataclass
 class _Entry:
     key_expr: str
-    callback: Any  # (key, payload) for a subscriber; (answers type, handler) for a queryable
-    network: MockNetwork
+    callback: Any  # (key, payload) for a subscriber; a queryable's ``Respond``
+    network: MemoryNetwork
     kind: str
 
     def undeclare(self) -> None:
@@ -44,9 +47,14 @@ class _Entry:
             entries.remove(self)
 
 
+class _Token:
+    def undeclare(self) -> None:
+        pass
+
+
 @dataclass
-class MockNetwork:
-    """What the MockBuses of one test share: who subscribes and who answers, and every put, in order."""
+class MemoryNetwork:
+    """What the buses of one process share: who subscribes and who answers, and every put, in order."""
 
     subscribers: list[_Entry] = field(default_factory=list)
     queryables: list[_Entry] = field(default_factory=list)
@@ -54,12 +62,17 @@ class MockNetwork:
     senders: list[str | None] = field(default_factory=list)  # the role that sent each of ``sent``
     changed: asyncio.Event = field(default_factory=asyncio.Event)  # set at each declaration and put
     in_flight: int = 0  # deliveries scheduled and not yet made
-    handling: int = 0  # handlers running
-    handled: list[Subscription[Any]] = field(default_factory=list)  # the handlers' queues
+    buses: list[Bus] = field(default_factory=list)
+
+    def bus(self, cell: str = DEFAULT_CELL, role: str | None = None) -> Bus:
+        """A bus on this network, for ``role`` (None: a session that speaks for nobody, a test's)."""
+        bus = Bus(MemoryTransport(self, asyncio.get_running_loop(), role), cell, role)
+        self.buses.append(bus)
+        return bus
 
     def settled(self) -> bool:
         """Nothing on its way: every put delivered, every handler's queue empty, no handler running."""
-        return self.in_flight == 0 and self.handling == 0 and not any(s.pending for s in self.handled)
+        return self.in_flight == 0 and all(b.idle() for b in self.buses)
 
     async def settle(self, timeout: float = 10.0) -> None:
         """Until ``settled`` holds across a few turns of the loop (a handler's reply is delivered a turn
@@ -71,9 +84,10 @@ class MockNetwork:
                     await asyncio.sleep(0 if self.settled() else 0.001)  # a handler may wait on a thread
                     quiet = quiet + 1 if self.settled() else 0
         except TimeoutError:
+            busy = [b.role or "a test's session" for b in self.buses if not b.idle()]
             raise TimeoutError(
-                f"the mock bus did not settle in {timeout:g} s: {self.in_flight} deliveries, "
-                f"{self.handling} handlers running, {sum(s.pending for s in self.handled)} queued"
+                f"the in-memory bus did not settle in {timeout:g} s: {self.in_flight} deliveries, "
+                f"handlers busy or queued on {', '.join(busy) or 'none'}"
             ) from None
 
     async def until(self, condition: Callable[[], bool], timeout: float) -> None:
@@ -88,20 +102,19 @@ def _intersects(a: str, b: str) -> bool:
     return bool(zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)))
 
 
-class MockBus(Bus):
-    def __init__(
-        self, cell: str = DEFAULT_CELL, role: str | None = None, network: MockNetwork | None = None
-    ) -> None:
-        super().__init__(None, asyncio.get_running_loop(), cell, role, BusConfig())  # type: ignore[arg-type]
-        self.network = network or MockNetwork()
+class MemoryTransport:
+    """One bus's end of a ``MemoryNetwork``; ``role``: whose puts these are (``MemoryNetwork.senders``)."""
 
-    def _declare_subscriber(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any:
+    def __init__(self, network: MemoryNetwork, loop: asyncio.AbstractEventLoop, role: str | None) -> None:
+        self.network, self.loop, self.role = network, loop, role
+
+    def declare_subscriber(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Declared:
         entry = _Entry(key_expr, callback, self.network, "sub")
         self.network.subscribers.append(entry)
         self.network.changed.set()
         return entry
 
-    def _send(self, key: str, payload: bytes, block: bool) -> None:
+    def send(self, key: str, payload: bytes, block: bool) -> None:
         network = self.network
         network.sent.append((key, payload))
         network.senders.append(self.role)
@@ -116,39 +129,18 @@ class MockBus(Bus):
                 network.in_flight += 1
                 self.loop.call_soon(deliver, entry.callback)  # as from Zenoh's thread: later, in order
 
-    def handle(self, what: Any, /, *args: Any, maxsize: int = 256, screen: Any = None) -> Any:
-        """``Bus.handle``, counted: ``settle`` waits for the handler as for the delivery."""
-        *rest, handler = args
-        network = self.network
-
-        async def counted(key: str, msg: Any) -> None:
-            network.handling += 1
-            try:
-                await handler(key, msg)
-            finally:
-                network.handling -= 1
-
-        sub = super().handle(what, *rest, counted, maxsize=maxsize, screen=screen)  # type: ignore[call-overload]
-        network.handled.append(sub)
-        return sub
-
-    def _declare_queryable(
-        self, key_expr: str, answers: type[M] | None, handler: Callable[[Request], Awaitable[M]]
-    ) -> Any:
-        entry = _Entry(key_expr, (answers, handler), self.network, "query")
+    def declare_queryable(self, key_expr: str, respond: Respond) -> Declared:
+        entry = _Entry(key_expr, respond, self.network, "query")
         self.network.queryables.append(entry)
         self.network.changed.set()
         return entry
 
-    async def _query(self, selector: str, timeout: float) -> list[tuple[str, bool, bytes]]:
+    async def query(self, selector: str, timeout: float) -> list[tuple[str, bool, bytes]]:
         key_expr, _, parameters = selector.partition("?")
         out = []
         for entry in list(self.network.queryables):
-            if _intersects(entry.key_expr, key_expr):
-                answers, handler = entry.callback  # replied on the query's key, as a Zenoh queryable does
-                ok, payload = await asyncio.wait_for(
-                    answer(answers, handler, Request(key_expr, parameters)), timeout
-                )
+            if _intersects(entry.key_expr, key_expr):  # replied on the query's key, as a Zenoh queryable does
+                ok, payload = await asyncio.wait_for(entry.callback(key_expr, parameters), timeout)
                 out.append((key_expr if ok else selector, ok, payload))
         return out
 
@@ -158,24 +150,24 @@ class MockBus(Bus):
     async def until_subscribed(self, key: str, timeout: float) -> None:
         await self.network.until(lambda: self.matching(key), timeout)
 
-    def token(self, key: str) -> None:
-        self._check_open()
+    def token(self, key: str) -> Declared:
+        return _Token()
 
     def isolation(self) -> str | None:
         return None
 
-    async def _close_transport(self) -> None:
+    async def close(self) -> None:
         pass
 
 
 @dataclass
 class NodeRun:
-    """One node served on a ``MockNetwork``, and the test's own session on it (``test``: a session that
+    """One node served on a ``MemoryNetwork``, and the test's own session on it (``test``: a session that
     speaks for nobody, as a test's on Zenoh does)."""
 
     node: Node
-    network: MockNetwork
-    test: MockBus
+    network: MemoryNetwork
+    test: Bus
 
     def _sent_by_node(self) -> list[tuple[str, bytes]]:
         return [
@@ -209,14 +201,14 @@ async def serving(
 ) -> AsyncIterator[NodeRun]:
     """``cls`` served as its service serves it (``serve_node``: the declared ports, the timers, the work),
     on the in-memory bus; stopped, its work ended and ``close`` run at the end."""
-    network = MockNetwork()
-    bus = MockBus(cell, cls.role, network)
+    network = MemoryNetwork()
+    bus = network.bus(cell, cls.role)
     ctx = ServiceContext(cls.role, bus, CommonSettings(cell=cell, data_dir=str(data_dir), **common),
                          settings, asyncio.Event())  # fmt: skip
     node = cls(ctx)
     await node.setup()
     served = asyncio.ensure_future(serve_node(node))
-    test = MockBus(cell, None, network)
+    test = network.bus(cell)
     try:
         yield NodeRun(node, network, test)
         if served.done():
