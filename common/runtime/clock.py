@@ -37,12 +37,13 @@ class Clock:
             return (self.epoch_ns or 0) + round(asyncio.get_running_loop().time() * 1e9)
         return self.data_ns(time.time_ns())
 
-    def wall_s(self, data_s: float) -> float:
-        """How long a stretch of data time takes on the event loop's clock (the wall's, unless driven)."""
+    def loop_s(self, data_s: float) -> float:
+        """How long a stretch of data time takes on the event loop's clock: the wall's divided by the
+        speed, or data time itself where the loop is driven (a lockstep cell's)."""
         return data_s if self.driven else data_s / self.speed
 
     async def sleep(self, data_s: float) -> None:
-        await asyncio.sleep(max(0.0, self.wall_s(data_s)))
+        await asyncio.sleep(max(0.0, self.loop_s(data_s)))
 
 
 def monotonic() -> float:

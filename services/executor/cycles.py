@@ -146,7 +146,7 @@ class Cycles:
         self.sets = SetCache(node.ctx.bus, folder, task)
         self.store = ExecutorStore(folder)
         self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None},
-                               {s.wait_for: self.clock.wall_s(s.early) for s in task.cycle
+                               {s.wait_for: self.clock.loop_s(s.early) for s in task.cycle
                                 if s.wait_for is not None and s.early is not None})  # fmt: skip
         self.selection: Selection | None = None
         self.selection_changed = asyncio.Event()
@@ -567,7 +567,7 @@ class Cycles:
         """A ``wait_for`` step; past its deadline the part is late: an operator error (kind ``late``),
         then the robot keeps waiting or goes on without it, as the task program says."""
         assert step.wait_for is not None
-        timeout = None if step.deadline is None else self.clock.wall_s(step.deadline)
+        timeout = None if step.deadline is None else self.clock.loop_s(step.deadline)
         got = await self.signals.wait(step.wait_for, self.ctx.stop, timeout)
         if got != "late":
             return got

@@ -92,7 +92,7 @@ class Reactions:
         refused (``Rejected``, counted) when stamped ahead of it by more than the skew bound, already too
         old, or past its source's rate; else S, the person's distance to the arm and tool at the joints
         now (common/safety/geometry.py), kept less the source's C."""
-        stamp_age = self.clock.wall_s((self.clock.now_ns() - sep.t_ns) / 1e9)
+        stamp_age = self.clock.loop_s((self.clock.now_ns() - sep.t_ns) / 1e9)
         now = monotonic()
         why = self.sources.judge(sep.source, stamp_age, sep.age_s, now)
         if why == "ahead":

@@ -161,7 +161,7 @@ class Supervisor:
                         "until `cadence robot resume`",
                     )
                 else:
-                    await first_of(asyncio.sleep(auto_s), stop.wait())  # wall time: a person's
+                    await first_of(asyncio.sleep(auto_s), stop.wait())  # the loop's: data time in lockstep
                     if stop.is_set() or self.motion.state is not State.STOPPED:
                         continue
                     self.auto.used(monotonic())

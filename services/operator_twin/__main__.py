@@ -126,7 +126,7 @@ class OperatorTwin(Node):
         the parts put down by then."""
         for i in range(0, 2**62, CHUNK):
             ahead_s = (self.ns((i + CHUNK) / FS_HZ) - self.clock.now_ns()) / 1e9
-            await asyncio.sleep(max(0.0, self.clock.wall_s(ahead_s)))
+            await asyncio.sleep(max(0.0, self.clock.loop_s(ahead_s)))
             t0, t1 = i / FS_HZ, (i + CHUNK) / FS_HZ
             x = np.rint(self.operator.ecg(t0, CHUNK)).astype(int).tolist()
             out: list[Message] = [EcgChunk(t_ns=self.ns(t0), seq=0, fs_hz=FS_HZ, samples_uv=x, source="twin")]
