@@ -54,3 +54,42 @@ def test_an_arm_already_there_has_a_move_of_a_step_that_goes_nowhere() -> None:
     path, h = approach(q, q, 0.3, 0.6, UR16E, "approach to there")
     assert h.sum() == pytest.approx(1e-3)
     np.testing.assert_allclose(Curve.of(h, path).at(np.linspace(0, h.sum(), 5), 0)[0], np.tile(q, (5, 1)))
+
+
+@pytest.mark.asyncio
+async def test_two_moves_to_one_start_that_share_an_h_have_each_its_own_figures_and_neither_is_kept(
+    tmp_path,
+) -> None:
+    """The executor remembers a path's figures (top speed, stop) by its id and its h; a move to a path's
+    start is named after the path and its h is the move's length in time, so two of them from two places
+    can share both and not the motion: one's figures must never stand for the other's. Nor are they kept,
+    each made once, where they would push the paths' own out."""
+    import asyncio
+
+    from common.runtime.config import CommonSettings
+    from common.runtime.memory import MemoryNetwork
+    from common.runtime.service import ServiceContext
+    from services.executor.__main__ import Executor
+    from tests.support.executor import sim_settings, tracked
+    from tests.support.paths import EXAMPLE_TASK
+
+    settings = sim_settings(EXAMPLE_TASK, separation=True, separation_sources=tracked("test"),
+                            lock_dir=str(tmp_path / "locks"))  # fmt: skip
+    bus = MemoryNetwork().bus(role="executor")
+    node = Executor(ServiceContext("executor", bus, CommonSettings(data_dir=str(tmp_path)), settings,
+                                   asyncio.Event()))  # fmt: skip
+    await node.setup()
+    try:
+        q1 = np.zeros(6)
+        base = approach(np.array([1.0, 0, 0, 0, 0, 0]), q1, 0.5, 1.0, UR16E, "approach to b1_to_b2")
+        wrist = approach(np.array([0, 0, 0, 1.0, 0, 0]), q1, 0.5, 1.0, UR16E, "approach to b1_to_b2")
+        np.testing.assert_array_equal(base[1], wrist[1])  # the same h: one joint 1 rad, either way
+        each = [node.reactions.figures(p, h, Curve.of(h, p), keep=False) for p, h in (base, wrist)]
+        assert each[0].speed_m_s > 1.5 * each[1].speed_m_s  # the base swings the whole arm
+        assert not node.reactions.known(*base) and not node.reactions.known(*wrist)
+        kept = node.reactions.figures(*base, Curve.of(base[1], base[0]))
+        assert node.reactions.known(*base) and not node.reactions.known(*wrist)
+        assert node.reactions.figures(*wrist, Curve.of(wrist[1], wrist[0])) != kept
+    finally:
+        await node.close()
+        await bus.close()

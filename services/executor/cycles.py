@@ -411,7 +411,7 @@ class Cycles:
         own, h = approach(q, q_start, s.start_speed, s.start_acceleration,
                           self.task.limits, f"approach to {path_id}")  # fmt: skip
         curve = Curve.of(h, own)
-        figures = await asyncio.to_thread(self.reactions.figures, own, h, curve)
+        figures = await asyncio.to_thread(self.reactions.figures, own, h, curve, False)  # made once
         result, _ = await self.play(own, curve, figures, 0)  # no solution of a set: no k
         arrived = float(np.max(np.abs(self.backend.actual_q() - q_start))) <= s.start_tolerance_rad
         if result.outcome == "done" and arrived:

@@ -36,6 +36,12 @@ UNDECLARED_C = intrusion_iso13855("legs")  # 1.2 m: the largest C of ISO 13855, 
 FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found once, some tenths of a s)
 
 
+def _figures_key(path: PathPlan, h: np.ndarray) -> tuple[str, bytes, bytes]:
+    """A curve is its waypoints and its h: two motions of one id (moves to a path's start from two places)
+    may share an h and not a geometry."""
+    return path.id, np.asarray(path.waypoints, dtype=float).tobytes(), np.asarray(h, dtype=float).tobytes()
+
+
 class Zones:
     """When to say the zone the arm is in: at a change, at most once every ``every_s`` per zone; what
     changed meanwhile is counted and said with the next."""
@@ -82,7 +88,7 @@ class Reactions:
         self.idle_scale = 0.0 if self.on else 1.0
         self.last_figures = Figures(1.0, 0.0)  # of the last path run: the scale shown between paths
         self.zones = Zones()
-        self._figures: OrderedDict[tuple[str, bytes], Figures] = OrderedDict()
+        self._figures: OrderedDict[tuple[str, bytes, bytes], Figures] = OrderedDict()
         self._figures_lock = threading.Lock()  # the paths' and the prefetch's worker threads
 
     # --- the distance -------------------------------------------------------------------------------
@@ -142,25 +148,28 @@ class Reactions:
 
     # --- the figures of a curve -----------------------------------------------------------------------
 
-    def figures(self, path: PathPlan, h: np.ndarray, curve: Curve) -> Figures:
-        """In a worker thread, before a path: its top speed and longest stop, remembered per (path, h)."""
+    def figures(self, path: PathPlan, h: np.ndarray, curve: Curve, keep: bool = True) -> Figures:
+        """In a worker thread, before a path: its top speed and longest stop, remembered per (path, its
+        waypoints, h). ``keep=False`` for a motion made once (the move to a path's start, from wherever
+        the arm is): it would push a path's figures out of the memory for nothing."""
         if not self.on:
             return Figures(0.0, 0.0)
-        key = (path.id, np.asarray(h, dtype=float).tobytes())
+        key = _figures_key(path, h)
         with self._figures_lock:
             if (known := self._figures.get(key)) is not None:
                 self._figures.move_to_end(key)
                 return known
         found = Figures.of(curve, self.limits, arm=self.arm)
-        with self._figures_lock:
-            self._figures[key] = found
-            while len(self._figures) > FIGURES_KEPT:
-                self._figures.popitem(last=False)
+        if keep:
+            with self._figures_lock:
+                self._figures[key] = found
+                while len(self._figures) > FIGURES_KEPT:
+                    self._figures.popitem(last=False)
         return found
 
     def known(self, path: PathPlan, h: np.ndarray) -> bool:
         with self._figures_lock:
-            return (path.id, np.asarray(h, dtype=float).tobytes()) in self._figures
+            return _figures_key(path, h) in self._figures
 
     # --- the scale ----------------------------------------------------------------------------------
 
