@@ -97,15 +97,15 @@ async def test_a_replayed_selection_is_refused_and_counted_and_a_republished_one
         ex.on_selection(current)  # the decision maker's republishing: nothing new, nothing refused
         with pytest.raises(Rejected):  # its seq and stamp with another k: not the decision maker's
             ex.on_selection(msgspec.structs.replace(current, k=15))
-        assert ex.cycles.selection == current
+        assert ex.chosen.selection == current
         fixed = Selection(t_ns=t - 5 * S, seq=52, k=1, n=15, delta=0, reason="fixed")  # the same seq, later
         ex.on_selection(fixed)
-        assert ex.cycles.selection == fixed
+        assert ex.chosen.selection == fixed
         calibrated = Selection(
             t_ns=t - S, seq=53, k=8, n=15, delta=0, reason="initial"
         )  # older stamp, new seq
         ex.on_selection(calibrated)
-        assert ex.cycles.selection == calibrated
+        assert ex.chosen.selection == calibrated
 
 
 async def test_twenty_signals_at_once_while_nothing_waits_bank_nothing_and_a_wait_takes_one() -> None:

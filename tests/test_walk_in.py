@@ -208,8 +208,8 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
             key = bus.key("operator/separation")
             for name, e in (("pareto_store", env), ("executor", executor_env)):
                 log = (tmp_path / f"{name}.log").open("wb")
-                procs.append(subprocess.Popen([sys.executable, "-m", f"services.{name}"], env=e, stdout=log,
-                                              stderr=subprocess.STDOUT))  # fmt: skip
+                run = [sys.executable, "-X", "faulthandler", "-m", f"services.{name}"]  # stacks at SIGABRT
+                procs.append(subprocess.Popen(run, env=e, stdout=log, stderr=subprocess.STDOUT))
             await bus.until_subscribed(key, 120)
 
             def tell(x: float) -> None:
@@ -270,16 +270,23 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
         for p in procs:
             p.send_signal(signal.SIGCONT)  # one the failure left stopped takes its SIGTERM
             p.terminate()
-        for p in procs:
-            p.wait(30)
+        hung = []
+        for name, p in zip(("pareto_store", "executor"), procs, strict=False):
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:  # its threads' stacks to its log (faulthandler), then gone
+                hung.append(name)
+                p.send_signal(signal.SIGABRT)
+                p.wait(30)
         for p in load:
             p.kill()
             p.wait()
-        if sys.exc_info()[0] is not None:  # what the services said, beside the failure
+        if sys.exc_info()[0] is not None or hung:  # what the services said, beside the failure
             print(f"still running at the failure (store, executor): {alive}")
             for name in ("pareto_store", "executor"):
-                said = (tmp_path / f"{name}.log").read_text()[-4000:]
-                print(f"--- {name}.log (the last 4000 characters)\n{said}")
+                said = (tmp_path / f"{name}.log").read_text()[-8000:]
+                print(f"--- {name}.log (the last 8000 characters)\n{said}")
+    assert not hung, f"{hung} did not exit within 30 s of SIGTERM (the stacks above)"
     margins, literal, reach, held_near, at = [], [], [], 0, []
     for i, (t, s) in enumerate(states):
         q, v = np.array(s.q), speed(arm, s)

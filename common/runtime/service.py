@@ -26,6 +26,7 @@ import time
 from collections import Counter
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import msgspec
@@ -59,6 +60,17 @@ class ServiceContext:
     detail: str = ""  # what an operator should know beyond the state (a damaged file moved aside)
     link: str = ""  # set while the bus reaches no router and no peer (``Bus.isolation``)
     started: float = field(default_factory=time.monotonic)
+    notes: dict[str, str] = field(default_factory=dict)  # each part's own say beside ``detail``, by part
+
+    def said(self) -> str:
+        """The status's detail: the link's word, the service's, each part's."""
+        return "; ".join(x for x in (self.link, self.detail, *self.notes.values()) if x)
+
+    def note(self, part: str) -> Callable[[str], None]:
+        """A part's own say in the status's detail ("" when it has nothing to say): each writes its own,
+        and no part's word overwrites another's."""
+        self.notes.setdefault(part, "")
+        return partial(self.notes.__setitem__, part)
 
     def status(self, seq: int) -> ServiceStatus:
         counters = {k: v for k, v in self.counters.items() if v >= 0}
@@ -70,7 +82,7 @@ class ServiceContext:
             state=self.state[:MAX_STATE_CHARS],
             uptime_s=time.monotonic() - self.started,
             counters=counters,
-            detail="; ".join(x for x in (self.link, self.detail) if x)[:MAX_STATE_CHARS],
+            detail=self.said()[:MAX_STATE_CHARS],
         )
 
 

@@ -34,11 +34,17 @@ from schemas.robot import RobotEvent
 from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION, Topic
 from services.executor.backends import backend_for
 from services.executor.cycles import Cycles
+from services.executor.kit import Kit
+from services.executor.motions import Motions
+from services.executor.persist import ExecutorStore
 from services.executor.reaction import Reactions
+from services.executor.records import Records
+from services.executor.selection import SelectionInForce
 from services.executor.servo import servo_for
+from services.executor.sets import SetCache
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
-from services.executor.telemetry import Telemetry
+from services.executor.telemetry import Snapshot, Telemetry
 
 log = logging.getLogger("cadence.executor")
 NAME = "executor"
@@ -51,18 +57,31 @@ class Executor(Node):
     stop_grace_s = 30.0  # at a stop, a moving arm decelerates to rest and the cycles say so
 
     async def setup(self) -> None:
-        s, driven = self.ctx.settings, self.ctx.common.clock.driven
-        speed = 1.0 if driven else self.ctx.common.speed  # a driven clock's time is data time
+        ctx = self.ctx
+        s, common, driven = ctx.settings, ctx.common, ctx.common.clock.driven
+        speed = 1.0 if driven else common.speed  # a driven clock's time is data time
+
+        def set_state(state: str) -> None:
+            ctx.state = state
+
+        kit = Kit(s, common.clock, speed, common.clock_skew_s, ctx.counters, ctx.stop, self.publish, ctx.note,
+                  set_state)  # fmt: skip
         task = load_task(s.task)
         # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
         self.backend = backend_for(s, task, math.inf if driven else speed)
         self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
         if self.claim.core is not None:
-            self.ctx.counters["servo_core"] = self.claim.core
-        self.safety = Supervisor(self, self.backend, s)
-        self.reactions = Reactions(self, self.safety, task.limits, self.backend.actual_q)
-        self.cycles = Cycles(self, self.safety, task, self.backend, self.loop, self.reactions)
-        self.telemetry = Telemetry(self, self.backend, task)
+            ctx.counters["servo_core"] = self.claim.core
+        folder = common.data_path / "executor"
+        # each part gets the kit and the parts it calls, never this node (services/executor/kit.py)
+        self.safety = Supervisor(kit, self.backend)
+        self.reactions = Reactions(kit, self.safety, task.limits, self.backend.actual_q)
+        self.sets = SetCache(ctx.bus, folder, task)
+        records = Records(kit, ExecutorStore(folder), self.safety)
+        self.chosen = SelectionInForce(kit, ctx.bus, self.safety, records, self.sets, self.reactions)
+        motions = Motions(kit, self.safety, self.backend, self.loop, self.reactions, task.limits)
+        self.cycles = Cycles(kit, task, self.safety, self.backend, self.sets, records, self.chosen, motions)
+        self.telemetry = Telemetry(kit, self.backend, task, self.snapshot)
         self.cycles.load()
         self.connected = False
 
@@ -71,7 +90,7 @@ class Executor(Node):
         ahead_s = (sel.t_ns - self.ctx.common.clock.now_ns()) / 1e9
         if ahead_s > self.ctx.common.clock_skew_s:  # it would stand until a later stamp: never
             raise Rejected("ahead", f"a selection stamped {ahead_s:.3f} s ahead of the executor's clock")
-        self.cycles.select(sel)
+        self.chosen.select(sel)
 
     @on(OPERATOR_SIGNAL)
     async def on_signal(self, sig: OperatorSignal) -> Out:
@@ -94,9 +113,15 @@ class Executor(Node):
     async def resume(self, req: Request) -> RobotEvent:
         return await self.safety.resume_by(req.params.get("by", ""))
 
+    def snapshot(self) -> Snapshot:
+        """What the parts say of the arm now, for robot/state."""
+        r = self.reactions
+        return Snapshot(self.safety.motion, self.safety.path_id, self.chosen.k, self.cycles.waiting_for,
+                        r.scale_now(), r.shown_m() if r.on else None)  # fmt: skip
+
     @every
     async def state(self) -> Out:
-        return self.telemetry.sample(self.safety, self.cycles) if self.connected else []
+        return self.telemetry.sample() if self.connected else []
 
     async def work(self) -> None:
         if not await self.safety.connect():
@@ -105,8 +130,9 @@ class Executor(Node):
         self.loop.start()
         for w in self.loop.warnings:
             log.warning("%s", w)
+        k_now = lambda: self.chosen.selection.k if self.chosen.selection is not None else 1  # noqa: E731
         helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop()),
-                   asyncio.create_task(self.cycles.prefetch_figures())]  # fmt: skip
+                   asyncio.create_task(self.reactions.prefetch(self.sets, k_now, self.ctx.stop))]  # fmt: skip
         if not self.ctx.settings.separation:
             self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
                               "runs at the planned speed whoever is near")  # fmt: skip

@@ -8,25 +8,32 @@ zone, with the changes folded in between counted.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import math
+import os
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
 from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
-from common.runtime.node import Node, Rejected
+from common.runtime.node import Rejected
+from common.runtime.service import first_of
 from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
 from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Curve, Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
+from services.executor.kit import Kit
 from services.executor.pathrun import PathRun
 from services.executor.playback import SIGMA_EPS
-from services.executor.settings import RAMP_LEAD_S, Settings
+from services.executor.sets import SetCache
+from services.executor.settings import RAMP_LEAD_S
 from services.executor.supervisor import Supervisor
 
 log = logging.getLogger("cadence.executor")
@@ -34,6 +41,32 @@ RAISE_BY = 0.1  # a higher σ is taken only when it is this much higher (or 1): 
 SAY_EVERY_S = 1.0  # a zone is said at most this often (two sources flapping made 20–40 events a second)
 UNDECLARED_C = intrusion_iso13855("legs")  # 1.2 m: the largest C of ISO 13855, for a source nobody placed
 FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found once, some tenths of a s)
+
+
+def _at_lowest_priority(work: Callable[[], object]) -> asyncio.Future[object]:
+    """``work`` in a thread of its own at the least priority the scheduler gives (Linux: a thread's nice
+    value is its own). A daemon: the process's exit never waits for it. A pool's worker is joined at exit,
+    and one at nice 19 beside busy loops took tens of seconds to finish its figures, after SIGTERM."""
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[object] = loop.create_future()
+
+    def settle(result: object, error: BaseException | None) -> None:
+        if not done.done():
+            done.set_exception(error) if error is not None else done.set_result(result)
+
+    def run() -> None:
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        result, error = None, None
+        try:
+            result = work()
+        except BaseException as exc:  # handed to the awaiting task, as a pool would
+            error = exc
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nobody waits
+            loop.call_soon_threadsafe(settle, result, error)
+
+    threading.Thread(target=run, name="figures", daemon=True).start()
+    return done
 
 
 def _figures_key(path: PathPlan, h: np.ndarray) -> tuple[str, bytes, bytes]:
@@ -64,20 +97,23 @@ class Zones:
 
 
 class Reactions:
+    """Owns what the executor knows of the people near the arm: the readings kept per source, the nearest,
+    the scale it allows on the path running (the look, the lease, the adoption's lateness), the figures of
+    every curve, and the zone said."""
+
     def __init__(
-        self, node: Node, safety: Supervisor, limits: JointLimits, joints: Callable[[], np.ndarray]
+        self, kit: Kit, safety: Supervisor, limits: JointLimits, joints: Callable[[], np.ndarray]
     ) -> None:
         """``joints``: the arm's joints now (the backend's), where a reading's points are measured to."""
-        self.node, self.safety, self.limits, self.joints = node, safety, limits, joints
-        s: Settings = node.ctx.settings
-        common = node.ctx.common
-        self.settings, self.clock, self.on = s, common.clock, s.separation
-        self.reaction_parts = s.reaction_parts(common.clock_skew_s)
+        self.kit, self.safety, self.limits, self.joints = kit, safety, limits, joints
+        s = kit.settings
+        self.settings, self.clock, self.on = s, kit.clock, s.separation
+        self.reaction_parts = s.reaction_parts(kit.clock_skew_s)
         # C is each source's own: a reading is kept as S − C, the room a person has before S_p's other terms
         self.ssm = Ssm(s.human_speed_m_s, sum(self.reaction_parts.values()), s.stop_time_s, 0.0,
                        s.uncertainty_m, s.separation_max_age_s)  # fmt: skip
         self.arm, self.sensors = s.arm(), s.sensors()
-        self.sources = Sources(s.separation_max_age_s, common.clock_skew_s, tuple(self.sensors),
+        self.sources = Sources(s.separation_max_age_s, kit.clock_skew_s, tuple(self.sensors),
                                max_rate_hz=s.separation_max_rate_hz)  # fmt: skip
         self._body: tuple[bytes, Body] | None = None  # the arm's body at the joints it was last found for
         self.adoption = Adoption(s.adoption_budget_s)
@@ -187,6 +223,36 @@ class Reactions:
             return Ramp.hold(0.0, 0.0, self.allowed(figures))
         return carried
 
+    def running(self, run: PathRun) -> None:
+        """A motion begins on the servo loop: the looks scale it, and its starting scale is leased (the
+        first look may be late)."""
+        self.run = run
+        self.lease(run)
+
+    def ended(self, run: PathRun) -> None:
+        """The motion is over: the scale shown is what the arm ended at, until the next look."""
+        if self.run is run:
+            self.run = None
+        self.idle_scale = run.playback.sigma
+
+    async def prefetch(self, sets: SetCache, k_now: Callable[[], int], stop: asyncio.Event) -> None:
+        """With separation monitoring: the figures of every path at every k, the k in force first, found
+        in a thread of its own at the lowest priority while the arm works, so that a path at a new k does
+        not wait for them (some tenths of a second each), and nothing that must be on time waits for
+        this. Again whenever the sets change."""
+        if not self.on:
+            return
+        while not stop.is_set():
+            sets.arrived.clear()
+            k = k_now()
+            for pid, s in list(sets.sets.items()):
+                path = sets.task.paths[pid]
+                for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
+                    h = np.array(s.solutions[i].h)
+                    if not self.known(path, h) and not stop.is_set():
+                        await _at_lowest_priority(partial(self.figures, path, h, Curve.of(h, path)))
+            await first_of(sets.arrived.wait(), stop.wait())
+
     async def look(self) -> None:
         """Every ``scale_period_s``: the σ the distance allows now, planned as a ramp when it differs. A look
         that fails is said and tried again at the next: the arm must not keep whatever scale it had."""
@@ -195,8 +261,8 @@ class Reactions:
         try:
             await self._look()
         except Exception as e:  # any failure of one look: the next one runs
-            self.node.ctx.counters["scale_errors"] += 1
-            if self.node.ctx.counters["scale_errors"] == 1:  # the traceback once, not 50 times a second
+            self.kit.counters["scale_errors"] += 1
+            if self.kit.counters["scale_errors"] == 1:  # the traceback once, not 50 times a second
                 log.exception("the scale's look failed")
             r = self.run
             self.safety.event("info", f"the time scale could not be planned ({e!r}): trying again",
@@ -253,7 +319,7 @@ class Reactions:
     def count_adoption(self) -> None:
         """The adoption's figures in the status (ms), at most every 5 s: a quantile of 10⁵ delays is not
         free."""
-        c, a, now = self.node.ctx.counters, self.adoption, monotonic()
+        c, a, now = self.kit.counters, self.adoption, monotonic()
         c["adoption_late"] = a.times_late
         if now - self._counted_at < 5.0:
             return

@@ -16,12 +16,11 @@ from collections.abc import Callable
 
 from common.runtime.bus import QueryError
 from common.runtime.clock import monotonic
-from common.runtime.node import Node
 from common.runtime.service import first_of
 from common.safety.states import Event, Motion, State, transition
 from schemas.robot import EventKind, RobotEvent
 from services.executor.backends import Backend, RobotUnavailable
-from services.executor.settings import Settings
+from services.executor.kit import Kit
 
 log = logging.getLogger("cadence.executor")
 STOPPED_STATES = (State.STOPPED, State.RECOVERING)
@@ -47,8 +46,11 @@ class AutoResume:
 
 
 class Supervisor:
-    def __init__(self, node: Node, backend: Backend, settings: Settings) -> None:
-        self.node, self.ctx, self.backend, self.settings = node, node.ctx, backend, settings
+    """Owns the safety state: every change, its event and the status's state; a stop's clearing; the
+    link to the controller."""
+
+    def __init__(self, kit: Kit, backend: Backend) -> None:
+        self.kit, self.backend, settings = kit, backend, kit.settings
         self.motion = Motion()
         self.changed = asyncio.Event()  # set at every change of state
         self.path_id: str | None = None  # the path the arm is on, or ran last: events name it
@@ -72,7 +74,7 @@ class Supervisor:
         new = self.motion = transition(old, event, reason)
         if (new.state, new.reason) != (old.state, old.reason):
             why = f": {new.reason}" if new.reason else ""
-            self.ctx.state = f"{new.state}{why}"
+            self.kit.set_state(f"{new.state}{why}")
             change = (old.state.value, new.state.value)
             self.event("state", f"{old.state} → {new.state}{why}", self.path_id, repeat=True, change=change)
             self.changed.set()
@@ -100,7 +102,7 @@ class Supervisor:
         """Publish a RobotEvent (and log it); the same event twice in a row only once, unless asked.
         ``change``: a state change's (from, to)."""
         msg = RobotEvent(
-            t_ns=self.ctx.common.clock.now_ns(),
+            t_ns=self.kit.clock.now_ns(),
             seq=0,
             kind=kind,
             message=message,
@@ -113,8 +115,8 @@ class Supervisor:
         self._last_event = (kind, message)
         level = logging.INFO if kind in ("started", "connected", "info", "state") else logging.WARNING
         log.log(level, "%s: %s", kind, message)
-        self.ctx.counters[f"event_{kind}"] += 1
-        self.node.publish(msg)
+        self.kit.counters[f"event_{kind}"] += 1
+        self.kit.publish(msg)
         return msg
 
     async def resume_by(self, by: str) -> RobotEvent:
@@ -138,7 +140,7 @@ class Supervisor:
 
     async def while_stopped(self) -> bool:
         """Latched: the robot stays still until a resume clears the stop. False when the service stops."""
-        stop, delay = self.ctx.stop, 1.0
+        stop, delay = self.kit.stop, 1.0
         while self.stopped and not stop.is_set():
             wait_s = 5.0
             if self.motion.state is State.STOPPED and self.backend.link_lost():
@@ -146,7 +148,7 @@ class Supervisor:
                     await asyncio.to_thread(self.backend.reconnect)
                     self.event(
                         "connected",
-                        f"reconnected to {self.settings.host}; "
+                        f"reconnected to {self.kit.settings.host}; "
                         "the robot stays stopped until `cadence robot resume`",
                     )
                 except RobotUnavailable as exc:  # right after an e-stop the controller refuses a while
@@ -182,8 +184,8 @@ class Supervisor:
             except RobotUnavailable as exc:
                 self.event("disconnected", f"{exc}; retrying in {delay:.0f} s")
                 self.fire(Event.DISCONNECTED, str(exc))
-                await first_of(asyncio.sleep(delay), self.ctx.stop.wait())
-                if self.ctx.stop.is_set():
+                await first_of(asyncio.sleep(delay), self.kit.stop.wait())
+                if self.kit.stop.is_set():
                     return False
                 delay = min(delay * 2, 30.0)
         self.event("connected", f"{self.backend.name} backend ready")
