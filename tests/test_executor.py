@@ -625,3 +625,24 @@ async def test_a_declared_sensor_falling_silent_holds_the_arm_while_another_stil
             await store.close()
     assert all(s.separation_m is None for s in seen)
     assert "no fresh distance from scanner:back (declared): holding" in said.message
+
+
+async def test_a_figures_computation_still_running_never_holds_the_executors_exit() -> None:
+    """The prefetch of figures runs at nice 19; beside busy loops one computation can take tens of seconds.
+    A pool's worker is joined at the interpreter's exit, so an executor stopped by SIGTERM then could not
+    exit (loaded run 1 of this stop's first commit: 30 s and more). The prefetch's threads are daemons."""
+    code = (
+        "import asyncio, time\n"
+        "from services.executor.reaction import _at_lowest_priority\n"
+        "async def main():\n"
+        "    work = _at_lowest_priority(lambda: time.sleep(60))\n"
+        "    await asyncio.sleep(0.2)\n"
+        "    work.cancel()\n"
+        "asyncio.run(main())\n"
+        "print('exiting', flush=True)\n"
+    )
+    # a joined thread would hold the exit for its 60 s: past this timeout, which fails the test
+    run = [sys.executable, "-c", code]
+    r = await asyncio.to_thread(subprocess.run, run, capture_output=True, text=True, timeout=50)
+    assert r.returncode == 0, r.stderr
+    assert "exiting" in r.stdout

@@ -542,3 +542,23 @@ def test_a_timer_is_declared_in_the_graph_beside_the_ports() -> None:
 
     with pytest.raises(BusError, match=r"no handler for .*current"):
         check(Idle)
+
+
+@pytest.mark.asyncio
+async def test_each_part_has_its_own_word_in_the_status_and_none_overwrites_anothers(tmp_path: Path) -> None:
+    """The executor's parts say what holds them in the status's detail: the disk's refusal, the sets it
+    waits for, the damaged files it moved aside. Once they shared one field, and the sets' wait wiped the
+    disk's refusal from the status while the arm was still held for it."""
+    bus = MemoryNetwork().bus(role="executor")
+    ctx = ServiceContext("executor", bus, CommonSettings(data_dir=str(tmp_path)), None, asyncio.Event())
+    disk, sets = ctx.note("disk"), ctx.note("sets")
+    disk("cannot write executor.json: No space left on device")
+    sets("waiting for Pareto sets: b1_to_b2")
+    ctx.detail = "a service's own word"
+    assert ctx.status(0).detail == (
+        "a service's own word; cannot write executor.json: No space left on device; "
+        "waiting for Pareto sets: b1_to_b2"
+    )
+    sets("")  # the sets came: the disk's refusal stands
+    assert ctx.status(1).detail == "a service's own word; cannot write executor.json: No space left on device"
+    await bus.close()
