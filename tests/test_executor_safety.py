@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import signal
 from pathlib import Path
 from typing import Any
@@ -105,6 +106,46 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
     assert "overruns in a row" in held.reason
     assert said.startswith("ready")
     assert "resumed by the test" in said
+    assert report.k_per_path == {"there": 2, "back": 2}
+
+
+async def test_a_path_cut_short_by_a_stop_goes_on_from_where_the_arm_stopped_once_resumed(
+    task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A resume goes on with the path from where the arm stopped, not from the path's start: going back
+    and running it whole again is what a loaded host's next stop interrupted, and an executor without
+    real-time priority beside busy loops never ended a cycle (issue 53). Joint 0 of 'there' only rises, so
+    it never goes back towards 0."""
+    on = stall(monkeypatch, SimBackend)
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = sim_settings(task_file, overrun_limit=RUN, initial_k=2)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+        await next_of(states, lambda s: s.path_id == "there" and s.q[0] > math.radians(10), timeout=30)
+        on["stall"] = True
+        await next_of(events, lambda e: e.kind == "protective_stop")
+        on["stall"] = False
+        stopped = await still_while_stopped(states, 10)
+        await resume(bus)
+        going_on = await next_of(events, lambda e: "goes on from where it stopped" in e.message)
+        seen = []
+        while (s := await next_of(states, timeout=30)).path_id != "back":
+            seen.append(s)
+        report = await next_of(cycles, timeout=60)
+        await ex.close()
+        await store.close()
+    after = [s for s in seen if s.t_ns > going_on.t_ns]
+    assert after and any(s.mode == "moving" for s in after)
+    # at most a short move back onto the curve (the braking stop left the arm off it, past the last
+    # sample), never the way back to the start (joint 0 at 0)
+    assert min(s.q[0] for s in after) >= stopped.q[0] - 0.02, "the arm went back along 'there'"
+    assert not any("the start of 'there'" in s.reason for s in after)
+    assert max(s.q[0] for s in after) == pytest.approx(math.radians(45), abs=1e-3)  # and ended it
+    said = float(going_on.message.split("s = ")[1].split(" s")[0])
+    assert 0.0 < said < float(going_on.message.split(" of ")[1].split(" s")[0])
     assert report.k_per_path == {"there": 2, "back": 2}
 
 

@@ -17,6 +17,8 @@ from common.trajectory.scaling import (
     commanded,
     plan_ramp,
     ramp_ratio,
+    resume_at,
+    resume_ramp,
     stop_time,
     switch_curve,
 )
@@ -175,6 +177,34 @@ def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sam
     held = [i for i, (ti, _) in enumerate(trace) if 1.6 + ssm.max_age_s + ssm.stop_time_s + 0.1 <= ti < 4.1]
     assert len(held) > 300
     assert np.ptp(q[held], axis=0).max() < 1e-12
+
+
+def test_a_path_resumed_from_rest_within_it_goes_on_from_the_arms_point_inside_the_limits(
+    planned: tuple[PathPlan, ParetoResult],
+) -> None:
+    """A stop cut the fastest solution short at its top speed: it goes on from the point of the curve
+    nearest where the braking stop left the arm (past the last sample), from σ = 0, every commanded sample
+    inside the limits, to the path's end."""
+    path, result = planned
+    curve = Curve.of(result.solutions[-1].h, path)
+    s_last = float(curve.t_f * 0.4)
+    q_at, qd_at = curve.at(np.array([s_last]), order=1)[:, 0]
+    q_stopped = q_at + qd_at * 0.05  # a braking stop carries the arm on along its velocity for a while
+    at = resume_at(curve, q_stopped, s_last)
+    assert s_last < at < s_last + 0.5
+    q_there = curve.at(np.array([at]), order=0)[0, 0]
+    assert np.abs(q_there - q_stopped).max() < np.abs(q_at - q_stopped).max()  # nearer than the sample
+    assert resume_ramp(curve, at, 0.0, LIMITS) == Ramp.hold(0.0, at, 0.0)  # nobody may move it: held
+    ramp = resume_ramp(curve, at, 1.0, LIMITS)
+    assert ramp is not None and ramp.target == 1.0
+    pb = Playback(curve, ramp, lambda q: q.copy())
+    q, trace = run(pb, lambda t: None)
+    assert pb.finished and trace[0][1] == 0.0
+    np.testing.assert_allclose(q[0], q_there, atol=1e-12)  # from the arm's point, at rest
+    np.testing.assert_allclose(q[-1], path.waypoints[-1], atol=1e-9)
+    fd = finite_difference_ratios(np.vstack([q_there, q_there, q_there, q]))  # from rest: no jump either
+    assert fd[0] <= 1.001 and fd[1] <= 1.01 and fd[2] <= 1.1, fd
+    assert ramp_ratio(curve, ramp, LIMITS) <= 1.0 + LIMIT_RTOL
 
 
 @pytest.mark.parametrize(("k_from", "k_to"), [(3, 15), (15, 1), (8, 12)])

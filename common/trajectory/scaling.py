@@ -225,6 +225,26 @@ def plan_ramp(
     return None
 
 
+def resume_at(curve: Curve, q: Array, s_last: float, ahead_s: float = 0.5) -> float:
+    """The path time a path cut short by a stop goes on from: the point of the curve nearest the arm at
+    ``q`` (by the largest joint's difference), from the last sample sent (``s_last``) up to ``ahead_s``
+    further on. A controller's braking stop carries the arm on past that sample, along the path's
+    direction at first; going on from the sample itself would move it back first."""
+    s = np.arange(s_last, min(s_last + ahead_s, curve.t_f), DT)
+    if s.size == 0:
+        return s_last
+    off = np.max(np.abs(curve.at(s, order=0)[0] - np.asarray(q, dtype=float)), axis=1)
+    return float(s[np.argmin(off)])
+
+
+def resume_ramp(curve: Curve, s0: float, sigma1: float, limits: JointLimits) -> Ramp | None:
+    """The scale of a path going on from rest at path time ``s0``: from σ = 0 up to ``sigma1``, inside the
+    limits (a path's own start is at rest by its boundary conditions; a point within it is not, so the
+    scale must rise from 0). None when no ramp fits; held at 0 when 0 is what is allowed."""
+    held = Ramp.hold(0.0, s0, 0.0)
+    return held if sigma1 <= 0.0 else plan_ramp(curve, held, 0.0, sigma1, limits)
+
+
 def _derivatives(curve: Curve, s: Array) -> tuple[Array, Array, Array]:
     """q', q'', q''' at path times s (n,), span by span: a span's coefficients broadcast over its points
     instead of gathered per point (``Curve.at``): four times faster, where the stop-time scan needs

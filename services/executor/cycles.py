@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import Counter, deque
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -21,7 +22,7 @@ from common.runtime.node import Rejected
 from common.runtime.service import first_of
 from common.safety.separation import Figures
 from common.safety.states import Event, IllegalTransition, State
-from common.trajectory.scaling import Curve
+from common.trajectory.scaling import Curve, resume_at
 from common.trajectory.task import PathPlan, Step, Task
 from schemas.operator import OperatorError, OperatorSignal
 from schemas.robot import CycleReport
@@ -107,6 +108,21 @@ class Signals:
             self.open, self.met = None, False
 
 
+@dataclass(frozen=True, slots=True)
+class Paused:
+    """A path a protective stop cut short (a run of overruns, the arm's or the controller's fault): it goes
+    on from where the arm stopped once a person resumes, as a UR program does, on the curve it was on (a
+    switch within it included), at its k; a selection decided meanwhile takes over from the next path.
+    It went back to its start and ran whole again: on a loaded host without real-time priority a stop
+    came in most of those moves, and a cycle never ended (issue 53: 158 stops in 900 s)."""
+
+    pid: str
+    curve: Curve
+    figures: Figures
+    k: int
+    s: float  # the path time of the last sample sent
+
+
 class Cycles:
     """Owns the task program's run: its cycles and steps, the operator's signals, the Pareto sets kept
     fetched, and what a restart finds on disk of the last run."""
@@ -132,6 +148,7 @@ class Cycles:
         self.waiting_for: str | None = None
         self.cut_short: int | None = None  # the cycle a restart cut short, said when the cycles start
         self.latched: str | None = None  # a stop the last run latched and nobody resumed: why
+        self.paused: Paused | None = None  # the path a protective stop cut short, to go on with
 
     def load(self) -> None:
         """What the last run left on disk: cached sets, the last selection applied, its cycle."""
@@ -209,6 +226,13 @@ class Cycles:
                 self.safety.event("protective_stop", f"before '{pid}': {fault}", pid)
                 self.safety.fire(Event.FAULT, fault)
                 continue
+            if (paused := self.paused) is not None and paused.pid == pid:
+                self.safety.ready()
+                async with self.records.in_motion(pid) as said:
+                    outcome = await self.resume(paused, own) if said else None
+                if outcome != AGAIN:
+                    return outcome
+                continue
             s = self.sets.sets.get(pid)
             if s is None:
                 self.safety.event("refused", f"no Pareto set for '{pid}' yet; waiting for the store", pid)
@@ -232,18 +256,38 @@ class Cycles:
                 return outcome
         return None
 
+    async def resume(self, paused: Paused, own: PathPlan) -> int | Again | None:
+        """A path cut short goes on from the point of its curve nearest the arm, the scale rising from 0."""
+        q = self.backend.actual_q()
+        at = await asyncio.to_thread(resume_at, paused.curve, q, paused.s)
+        self.safety.event("info", f"'{own.id}' goes on from where it stopped: s = {at:.3f} s of "
+                          f"{paused.curve.t_f:.3f} s, at k = {paused.k}", own.id)  # fmt: skip
+        return await self.move(own.id, own, paused.k, paused.curve, paused.figures, at)
+
     async def move(
-        self, pid: str, own: PathPlan, k: int, curve: Curve, figures: Figures
+        self, pid: str, own: PathPlan, k: int, curve: Curve, figures: Figures, at: float = 0.0
     ) -> int | Again | None:
-        """One path from its start: its k (a switch within it may have changed it), None when stopped,
-        ``AGAIN`` when the path is to be tried again (a refusal, a fault handled, a hold for the disk)."""
-        if not await self.motions.reach(own.waypoints[0], pid):
+        """One path from its start, or from path time ``at`` within it (``resume``): its k (a switch within
+        it may have changed it), None when stopped, ``AGAIN`` when the path is to be tried again (a
+        refusal, a fault handled, a hold for the disk)."""
+        first, where = own.waypoints[0], "the start of"
+        if at > 0.0:
+            first, where = curve.at(np.array([at]), order=0)[0, 0], f"where it stopped (s = {at:.3f} s) on"
+        if not await self.motions.reach(first, pid, where):
             if self.safety.motion.state is State.REFUSED:
                 await self.until_changed()
             return AGAIN
         sel = self.chosen.selection
         assert sel is not None  # run_path waited for one, and one is never taken back
-        if not await self.records.applied(sel):
+        start = None
+        if at > 0.0:  # the selection it runs at was applied when it began
+            start = await self.motions.resume_ramp(curve, figures, at)
+            if start is None:
+                self.paused = None
+                self.safety.event("info", f"'{pid}' cannot go on from s = {at:.3f} s inside the limits: "
+                                  "from its start again", pid)  # fmt: skip
+                return AGAIN
+        elif not await self.records.applied(sel):
             return None
         if self.safety.motion.state is not State.READY:  # held for the disk meanwhile: look again
             return AGAIN
@@ -256,7 +300,8 @@ class Cycles:
             return AGAIN
         self.safety.path_id = pid
         self.chosen.running_at(k)
-        result, run = await self.motions.play(own, curve, figures, k)
+        self.paused = None
+        result, run = await self.motions.play(own, curve, figures, k, start)
         k = run.k  # a switch within the path may have changed it
         self.chosen.running_at(k)
         self.kit.counters["paths"] += 1
@@ -267,6 +312,9 @@ class Cycles:
             self.safety.event("info", f"stopped during '{pid}' (decelerating stop)", pid)
             self.safety.fire(Event.SHUTDOWN)
             return None
+        pb = run.playback
+        if not pb.finished:
+            self.paused = Paused(pid, pb.curve, run.figures, k, pb.s)
         if result.outcome == "overruns":
             why = f"{self.settings.overrun_limit} servo overruns in a row during '{pid}'"
         else:

@@ -13,7 +13,7 @@ from common.robot.ur16e import JointLimits
 from common.safety.separation import Figures
 from common.safety.states import Event
 from common.trajectory.approach import approach
-from common.trajectory.scaling import Curve, Ramp
+from common.trajectory.scaling import Curve, Ramp, resume_ramp
 from common.trajectory.task import PathPlan
 from common.trajectory.validate import check_trajectory
 from services.executor.backends import Backend
@@ -50,22 +50,23 @@ class Motions:
         curve = Curve.of(h, own)
         return curve, self.reactions.figures(own, h, curve)
 
-    async def reach(self, q_start: np.ndarray, path_id: str) -> bool:
-        """Start-up safety: the arm must be at the path's first waypoint before the path runs."""
+    async def reach(self, q_start: np.ndarray, path_id: str, where: str = "the start of") -> bool:
+        """Start-up safety: the arm must be where the path starts (its first waypoint, or the point it goes
+        on from after a stop: ``where``) before the path runs."""
         q = self.backend.actual_q()
         off = float(np.max(np.abs(q - q_start)))
         s = self.kit.settings
         if off <= s.start_tolerance_rad:
             return True
         if s.start_policy == "refuse":
-            why = f"the arm is {off:.4f} rad from the start of '{path_id}'; not moving"
+            why = f"the arm is {off:.4f} rad from {where} '{path_id}'; not moving"
             self.safety.event("refused", why, path_id)
             self.safety.fire(Event.REFUSE, why)
             return False
         self.safety.event(
-            "info", f"the arm is {off:.4f} rad from the start of '{path_id}': moving there slowly", path_id
+            "info", f"the arm is {off:.4f} rad from {where} '{path_id}': moving there slowly", path_id
         )
-        self.safety.fire(Event.MOVE, f"moving slowly to the start of '{path_id}'")
+        self.safety.fire(Event.MOVE, f"moving slowly to {where} '{path_id}'")
         own, h = approach(q, q_start, s.start_speed, s.start_acceleration, self.limits,
                           f"approach to {path_id}")  # fmt: skip
         curve = Curve.of(h, own)
@@ -79,10 +80,15 @@ class Motions:
             self.safety.fire(Event.SHUTDOWN)
             return False
         self.protective_stop(
-            f"the move to the start of '{path_id}' did not arrive: {self.backend.fault() or result.outcome}",
+            f"the move to {where} '{path_id}' did not arrive: {self.backend.fault() or result.outcome}",
             path_id,
         )
         return False
+
+    async def resume_ramp(self, curve: Curve, figures: Figures, at: float) -> Ramp | None:
+        """The scale of a path going on from rest at path time ``at``: up to what the distance allows now."""
+        sigma = self.reactions.allowed_now(figures)
+        return await asyncio.to_thread(resume_ramp, curve, at, sigma, self.limits)
 
     def protective_stop(self, why: str, pid: str) -> None:
         """A motion ended by a fault (the arm's, the controller's, a run of overruns): latched, and said."""
@@ -91,14 +97,15 @@ class Motions:
         self.kit.counters["protective_stops"] += 1
 
     async def play(
-        self, own: PathPlan, curve: Curve, figures: Figures, k: int
+        self, own: PathPlan, curve: Curve, figures: Figures, k: int, start: Ramp | None = None
     ) -> tuple[MotionResult, PathRun]:
         """One motion on the servo loop, a task's path or the slow move to its start: at the scale the
-        person's distance allows, under the lease on it and the controller's watchdog."""
+        person's distance allows, under the lease on it and the controller's watchdog. ``start``: the
+        scale of a path going on from within (``resumed``)."""
         # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
         # converted to the form servo takes (backend.target), touching nothing
         self.backend.prepare(own.waypoints[:1])
-        start = self.reactions.start_ramp(own, self.carried, figures)
+        start = start or self.reactions.start_ramp(own, self.carried, figures)
         run = PathRun(own, curve, figures, k, start, self.backend.target, self.limits, self.kit.speed,
                       self.reactions.arm)  # fmt: skip
         self.reactions.running(run)

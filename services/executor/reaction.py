@@ -218,10 +218,14 @@ class Reactions:
         the last path ended with, carried over."""
         b = path.boundary
         if not any(np.any(x) for x in (b.v0, b.a0, b.j0)):
-            if self.on:
-                self.look_distance()
-            return Ramp.hold(0.0, 0.0, self.allowed(figures))
+            return Ramp.hold(0.0, 0.0, self.allowed_now(figures))
         return carried
+
+    def allowed_now(self, figures: Figures) -> float:
+        """σ for the nearest distance now (looked at afresh), before a motion starts."""
+        if self.on:
+            self.look_distance()
+        return self.allowed(figures)
 
     def running(self, run: PathRun) -> None:
         """A motion begins on the servo loop: the looks scale it, and its starting scale is leased (the
