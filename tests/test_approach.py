@@ -84,12 +84,12 @@ async def test_two_moves_to_one_start_that_share_an_h_have_each_its_own_figures_
         base = approach(np.array([1.0, 0, 0, 0, 0, 0]), q1, 0.5, 1.0, UR16E, "approach to b1_to_b2")
         wrist = approach(np.array([0, 0, 0, 1.0, 0, 0]), q1, 0.5, 1.0, UR16E, "approach to b1_to_b2")
         np.testing.assert_array_equal(base[1], wrist[1])  # the same h: one joint 1 rad, either way
-        each = [node.reactions.figures(p, h, Curve.of(h, p), keep=False) for p, h in (base, wrist)]
+        each = [node.figures.of(p, h, Curve.of(h, p), keep=False) for p, h in (base, wrist)]
         assert each[0].speed_m_s > 1.5 * each[1].speed_m_s  # the base swings the whole arm
-        assert not node.reactions.known(*base) and not node.reactions.known(*wrist)
-        kept = node.reactions.figures(*base, Curve.of(base[1], base[0]))
-        assert node.reactions.known(*base) and not node.reactions.known(*wrist)
-        assert node.reactions.figures(*wrist, Curve.of(wrist[1], wrist[0])) != kept
+        assert not node.figures.known(*base) and not node.figures.known(*wrist)
+        kept = node.figures.of(*base, Curve.of(base[1], base[0]))
+        assert node.figures.known(*base) and not node.figures.known(*wrist)
+        assert node.figures.of(*wrist, Curve.of(wrist[1], wrist[0])) != kept
     finally:
         await node.close()
         await bus.close()

@@ -633,7 +633,7 @@ async def test_a_figures_computation_still_running_never_holds_the_executors_exi
     exit (loaded run 1 of this stop's first commit: 30 s and more). The prefetch's threads are daemons."""
     code = (
         "import asyncio, time\n"
-        "from services.executor.reaction import _at_lowest_priority\n"
+        "from services.executor.figures import _at_lowest_priority\n"
         "async def main():\n"
         "    work = _at_lowest_priority(lambda: time.sleep(60))\n"
         "    await asyncio.sleep(0.2)\n"

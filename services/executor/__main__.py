@@ -34,6 +34,7 @@ from schemas.robot import RobotEvent
 from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION, Topic
 from services.executor.backends import backend_for
 from services.executor.cycles import Cycles
+from services.executor.figures import CurveFigures
 from services.executor.kit import Kit
 from services.executor.motions import Motions
 from services.executor.persist import ExecutorStore
@@ -77,10 +78,14 @@ class Executor(Node):
         self.safety = Supervisor(kit, self.backend)
         self.reactions = Reactions(kit, self.safety, task.limits, self.backend.actual_q)
         self.sets = SetCache(ctx.bus, folder, task)
+        self.figures = CurveFigures(task.limits, s.arm(), s.separation)
         records = Records(kit, ExecutorStore(folder), self.safety)
         self.chosen = SelectionInForce(kit, ctx.bus, self.safety, records, self.sets, self.reactions)
-        motions = Motions(kit, self.safety, self.backend, self.loop, self.reactions, task.limits)
+        motions = Motions(
+            kit, self.safety, self.backend, self.loop, self.reactions, self.figures, task.limits
+        )
         self.cycles = Cycles(kit, task, self.safety, self.backend, self.sets, records, self.chosen, motions)
+        self.say_sets = kit.note("sets")  # the sets' fetching (SetCache.keep), after the cycles' files
         self.telemetry = Telemetry(kit, self.backend, task, self.snapshot)
         self.cycles.load()
         self.connected = False
@@ -131,8 +136,12 @@ class Executor(Node):
         for w in self.loop.warnings:
             log.warning("%s", w)
         k_now = lambda: self.chosen.selection.k if self.chosen.selection is not None else 1  # noqa: E731
-        helpers = [asyncio.create_task(self.cycles.keep_sets()), asyncio.create_task(self.brake_on_stop()),
-                   asyncio.create_task(self.reactions.prefetch(self.sets, k_now, self.ctx.stop))]  # fmt: skip
+        stop = self.ctx.stop
+        helpers = [
+            asyncio.create_task(self.sets.keep(self.ctx.settings.query_timeout_s, stop, self.say_sets)),
+            asyncio.create_task(self.brake_on_stop()),
+            asyncio.create_task(self.figures.prefetch(self.sets, k_now, stop)),
+        ]
         if not self.ctx.settings.separation:
             self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
                               "runs at the planned speed whoever is near")  # fmt: skip

@@ -195,6 +195,46 @@ class SimBackend:
         self.arm.digital_out = (self.arm.digital_out | bit) if on else (self.arm.digital_out & ~bit)
 
 
+def _until_not(holds: Callable[[], bool], within_s: float, every_s: float) -> bool:
+    """Ask ``holds`` every ``every_s`` until it is false or ``within_s`` passed: True if it still holds."""
+    deadline = time.monotonic() + within_s
+    while (still := holds()) and time.monotonic() < deadline:
+        time.sleep(every_s)
+    return still
+
+
+class Dashboard:
+    """A UR controller's dashboard server (port 29999): what a person does at the pendant, answered whatever
+    the RTDE link and the control script do (a protective stop holds both down)."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+
+    def _exchange(self, act: Callable[[Any], object]) -> object:
+        import dashboard_client
+
+        dash = dashboard_client.DashboardClient(self.host)
+        try:
+            dash.connect()
+            return act(dash)
+        except RuntimeError as exc:
+            raise RobotUnavailable(f"UR dashboard at {self.host}: {exc}") from None
+        finally:
+            with contextlib.suppress(RuntimeError):
+                dash.disconnect()
+
+    def unlock(self) -> None:
+        """Unlock a protective stop and close the pop-up."""
+        self._exchange(lambda dash: (dash.unlockProtectiveStop(), dash.closeSafetyPopup()))
+
+    def protective_stop(self) -> bool:
+        """The dashboard's word on it; False when the dashboard cannot be asked either."""
+        try:
+            return "PROTECTIVE_STOP" in str(self._exchange(lambda dash: dash.safetystatus()))
+        except RobotUnavailable:
+            return False
+
+
 class UrRtdeBackend:
     """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
     every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
@@ -237,6 +277,7 @@ class UrRtdeBackend:
         self._io = threading.Condition()
         self._in_flight = 0  # calls into the interfaces now
         self._closing = False
+        self.dashboard = Dashboard(host)
 
     @contextlib.contextmanager
     def _using(self) -> Iterator[tuple[Any, Any] | None]:
@@ -265,7 +306,7 @@ class UrRtdeBackend:
             self._c = rtde_control.RTDEControlInterface(self.host, 500.0)
         except RuntimeError as exc:
             self.close()
-            if self._protective_stop():  # the script cannot run until the stop is unlocked
+            if self.dashboard.protective_stop():  # the script cannot run until the stop is unlocked
                 raise RobotUnavailable(
                     f"UR controller at {self.host} is in a protective stop, so its control script cannot "
                     "start: `cadence robot resume` unlocks it (or unlock it on the pendant)"
@@ -334,66 +375,32 @@ class UrRtdeBackend:
         self.connect()
 
     def reset_fault(self) -> None:
-        """What a person does at the pendant after a protective stop, through the dashboard server
-        (port 29999): unlock it and close the safety pop-up; then the control script is started again
-        (a reconnect uploads it). The controller refuses an unlock within 5 s of the stop: that is a
-        ``RobotUnavailable`` with its words, and the robot stays stopped. Without an RTDE link, a protective
-        stop is unlocked through the dashboard all the same (it holds the link down: no control script
-        runs while it lasts); with none, ``RobotUnavailable`` says the executor is reconnecting."""
+        """What a person does at the pendant after a protective stop, through the dashboard: unlock it and
+        close the safety pop-up; then the control script is started again (a reconnect uploads it). The
+        controller refuses an unlock within 5 s of the stop: that is a ``RobotUnavailable`` with its words,
+        and the robot stays stopped. Without an RTDE link, a protective stop is unlocked through the
+        dashboard all the same (it holds the link down: no control script runs while it lasts); with none,
+        ``RobotUnavailable`` says the executor is reconnecting."""
         if self.link_lost():
             # a controller in a protective stop runs no control script, so the link cannot come back
             # until the stop is unlocked: the dashboard needs no RTDE link (a watchdog trip, then a stop)
-            if not self._protective_stop():
+            if not self.dashboard.protective_stop():
                 raise RobotUnavailable(
                     f"not connected to the controller at {self.host} ({self.fault()}); the executor "
                     "reconnects by itself: resume again once it says it is connected"
                 )
-            self._unlock()
-            deadline = time.monotonic() + 1.0
-            while self._protective_stop() and time.monotonic() < deadline:
-                time.sleep(0.05)
+            self.dashboard.unlock()
+            _until_not(self.dashboard.protective_stop, 1.0, 0.05)
             self.reconnect()
             return
         with self._using() as ifaces:
             r = ifaces[1] if ifaces is not None else None
             if r is not None and r.isConnected() and r.isProtectiveStopped():
-                self._unlock()
-                deadline = (
-                    time.monotonic() + 1.0
-                )  # the receive interface sees the release a tick or two later
-                while r.isProtectiveStopped() and time.monotonic() < deadline:
-                    time.sleep(0.01)
-                if r.isProtectiveStopped():
-                    raise RobotUnavailable(
-                        f"the controller at {self.host} did not release its protective stop"
-                    )
+                self.dashboard.unlock()
+                # the receive interface sees the release a tick or two later
+                if _until_not(r.isProtectiveStopped, 1.0, 0.01):
+                    raise RobotUnavailable(f"the controller at {self.host} kept its protective stop")
         self.reconnect()
-
-    def _dashboard(self, act: Callable[[Any], object]) -> object:
-        """One exchange with the controller's dashboard server (port 29999), which answers whatever the
-        RTDE link and the control script do."""
-        import dashboard_client
-
-        dash = dashboard_client.DashboardClient(self.host)
-        try:
-            dash.connect()
-            return act(dash)
-        except RuntimeError as exc:
-            raise RobotUnavailable(f"UR dashboard at {self.host}: {exc}") from None
-        finally:
-            with contextlib.suppress(RuntimeError):
-                dash.disconnect()
-
-    def _unlock(self) -> None:
-        """What a person does at the pendant after a protective stop: unlock it, close the pop-up."""
-        self._dashboard(lambda dash: (dash.unlockProtectiveStop(), dash.closeSafetyPopup()))
-
-    def _protective_stop(self) -> bool:
-        """The dashboard's word on it; False when the dashboard cannot be asked either."""
-        try:
-            return "PROTECTIVE_STOP" in str(self._dashboard(lambda dash: dash.safetystatus()))
-        except RobotUnavailable:
-            return False
 
     def prepare(self, q: Array) -> Sequence[object]:
         """Also arms the controller's watchdog: from here on the servo loop kicks it every tick, and the

@@ -141,7 +141,7 @@ class Cycles:
         self.kit, self.task, self.safety, self.backend = kit, task, safety, backend
         self.sets, self.records, self.chosen, self.motions = sets, records, chosen, motions
         self.clock, self.settings = kit.clock, kit.settings
-        self.say_files, self.say_sets = kit.note("files"), kit.note("sets")
+        self.say_files = kit.note("files")
         self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None},
                                {s.wait_for: self.clock.loop_s(s.early) for s in task.cycle
                                 if s.wait_for is not None and s.early is not None})  # fmt: skip
@@ -180,20 +180,6 @@ class Cycles:
             "started",
             f"task '{self.task.name}', {len(self.task.paths)} paths, k = {sel.k if sel else 'none yet'}",
         )
-
-    async def keep_sets(self) -> None:
-        """Fetch what is missing (the store may still be planning; a refused set was dropped), and wait
-        while nothing is."""
-        stop = self.kit.stop
-        while not stop.is_set():
-            if not self.sets.missing():
-                self.sets.wanted.clear()
-                await first_of(self.sets.wanted.wait(), stop.wait())
-                continue
-            why = await self.sets.fetch_missing(self.settings.query_timeout_s)
-            self.say_sets(f"waiting for Pareto sets: {', '.join(why)}" if why else "")
-            if why:
-                await first_of(asyncio.sleep(2.0), stop.wait())
 
     async def until_changed(self, at_most_s: float = 5.0) -> None:
         """Wait for something that could resolve a refusal (a new selection, a new set), a stop, or a

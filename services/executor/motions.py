@@ -17,6 +17,7 @@ from common.trajectory.scaling import Curve, Ramp, resume_ramp
 from common.trajectory.task import PathPlan
 from common.trajectory.validate import check_trajectory
 from services.executor.backends import Backend
+from services.executor.figures import CurveFigures
 from services.executor.kit import Kit
 from services.executor.pathrun import PathRun
 from services.executor.reaction import Reactions
@@ -36,10 +37,11 @@ class Motions:
         backend: Backend,
         servo: Servo,
         reactions: Reactions,
+        figures: CurveFigures,
         limits: JointLimits,
     ) -> None:
         self.kit, self.safety, self.backend, self.servo = kit, safety, backend, servo
-        self.reactions, self.limits = reactions, limits
+        self.reactions, self.figures, self.limits = reactions, figures, limits
         self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last motion ended with
 
     def prepare(self, h: np.ndarray, own: PathPlan, claimed: np.ndarray) -> tuple[Curve, Figures]:
@@ -48,7 +50,7 @@ class Motions:
         its top speed and longest stop (S_p's v_r and T_s)."""
         check_trajectory(h, own, self.limits, claimed)
         curve = Curve.of(h, own)
-        return curve, self.reactions.figures(own, h, curve)
+        return curve, self.figures.of(own, h, curve)
 
     async def reach(self, q_start: np.ndarray, path_id: str, where: str = "the start of") -> bool:
         """Start-up safety: the arm must be where the path starts (its first waypoint, or the point it goes
@@ -70,7 +72,7 @@ class Motions:
         own, h = approach(q, q_start, s.start_speed, s.start_acceleration, self.limits,
                           f"approach to {path_id}")  # fmt: skip
         curve = Curve.of(h, own)
-        figures = await asyncio.to_thread(self.reactions.figures, own, h, curve, False)  # made once
+        figures = await asyncio.to_thread(self.figures.of, own, h, curve, False)  # made once
         result, _ = await self.play(own, curve, figures, 0)  # no solution of a set: no k
         arrived = float(np.max(np.abs(self.backend.actual_q() - q_start))) <= s.start_tolerance_rad
         if result.outcome == "done" and arrived:

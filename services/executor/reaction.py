@@ -8,31 +8,23 @@ zone, with the changes folded in between counted.
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 import math
-import os
-import threading
-from collections import OrderedDict
 from collections.abc import Callable
-from functools import partial
 
 import numpy as np
 
 from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
 from common.runtime.node import Rejected
-from common.runtime.service import first_of
 from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
 from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
-from common.trajectory.scaling import Curve, Ramp
+from common.trajectory.scaling import Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
 from services.executor.kit import Kit
 from services.executor.pathrun import PathRun
 from services.executor.playback import SIGMA_EPS
-from services.executor.sets import SetCache
 from services.executor.settings import RAMP_LEAD_S
 from services.executor.supervisor import Supervisor
 
@@ -40,39 +32,6 @@ log = logging.getLogger("cadence.executor")
 RAISE_BY = 0.1  # a higher σ is taken only when it is this much higher (or 1): no ramp per centimetre
 SAY_EVERY_S = 1.0  # a zone is said at most this often (two sources flapping made 20–40 events a second)
 UNDECLARED_C = intrusion_iso13855("legs")  # 1.2 m: the largest C of ISO 13855, for a source nobody placed
-FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found once, some tenths of a s)
-
-
-def _at_lowest_priority(work: Callable[[], object]) -> asyncio.Future[object]:
-    """``work`` in a thread of its own at the least priority the scheduler gives (Linux: a thread's nice
-    value is its own). A daemon: the process's exit never waits for it. A pool's worker is joined at exit,
-    and one at nice 19 beside busy loops took tens of seconds to finish its figures, after SIGTERM."""
-    loop = asyncio.get_running_loop()
-    done: asyncio.Future[object] = loop.create_future()
-
-    def settle(result: object, error: BaseException | None) -> None:
-        if not done.done():
-            done.set_exception(error) if error is not None else done.set_result(result)
-
-    def run() -> None:
-        with contextlib.suppress(OSError, AttributeError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-        result, error = None, None
-        try:
-            result = work()
-        except BaseException as exc:  # handed to the awaiting task, as a pool would
-            error = exc
-        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nobody waits
-            loop.call_soon_threadsafe(settle, result, error)
-
-    threading.Thread(target=run, name="figures", daemon=True).start()
-    return done
-
-
-def _figures_key(path: PathPlan, h: np.ndarray) -> tuple[str, bytes, bytes]:
-    """A curve is its waypoints and its h: two motions of one id (moves to a path's start from two places)
-    may share an h and not a geometry."""
-    return path.id, np.asarray(path.waypoints, dtype=float).tobytes(), np.asarray(h, dtype=float).tobytes()
 
 
 class Zones:
@@ -98,8 +57,8 @@ class Zones:
 
 class Reactions:
     """Owns what the executor knows of the people near the arm: the readings kept per source, the nearest,
-    the scale it allows on the path running (the look, the lease, the adoption's lateness), the figures of
-    every curve, and the zone said."""
+    the scale it allows on the path running (the look, the lease, the adoption's lateness), and the zone
+    said. The figures of the curves it scales are figures.py's."""
 
     def __init__(
         self, kit: Kit, safety: Supervisor, limits: JointLimits, joints: Callable[[], np.ndarray]
@@ -124,8 +83,6 @@ class Reactions:
         self.idle_scale = 0.0 if self.on else 1.0
         self.last_figures = Figures(1.0, 0.0)  # of the last path run: the scale shown between paths
         self.zones = Zones()
-        self._figures: OrderedDict[tuple[str, bytes, bytes], Figures] = OrderedDict()
-        self._figures_lock = threading.Lock()  # the paths' and the prefetch's worker threads
 
     # --- the distance -------------------------------------------------------------------------------
 
@@ -182,31 +139,6 @@ class Reactions:
             return 1.0
         return 0.0 if self.adoption.late else figures.scale(self.ssm, self.nearest.distance_m)
 
-    # --- the figures of a curve -----------------------------------------------------------------------
-
-    def figures(self, path: PathPlan, h: np.ndarray, curve: Curve, keep: bool = True) -> Figures:
-        """In a worker thread, before a path: its top speed and longest stop, remembered per (path, its
-        waypoints, h). ``keep=False`` for a motion made once (the move to a path's start, from wherever
-        the arm is): it would push a path's figures out of the memory for nothing."""
-        if not self.on:
-            return Figures(0.0, 0.0)
-        key = _figures_key(path, h)
-        with self._figures_lock:
-            if (known := self._figures.get(key)) is not None:
-                self._figures.move_to_end(key)
-                return known
-        found = Figures.of(curve, self.limits, arm=self.arm)
-        if keep:
-            with self._figures_lock:
-                self._figures[key] = found
-                while len(self._figures) > FIGURES_KEPT:
-                    self._figures.popitem(last=False)
-        return found
-
-    def known(self, path: PathPlan, h: np.ndarray) -> bool:
-        with self._figures_lock:
-            return _figures_key(path, h) in self._figures
-
     # --- the scale ----------------------------------------------------------------------------------
 
     def scale_now(self) -> float:
@@ -238,24 +170,6 @@ class Reactions:
         if self.run is run:
             self.run = None
         self.idle_scale = run.playback.sigma
-
-    async def prefetch(self, sets: SetCache, k_now: Callable[[], int], stop: asyncio.Event) -> None:
-        """With separation monitoring: the figures of every path at every k, the k in force first, found
-        in a thread of its own at the lowest priority while the arm works, so that a path at a new k does
-        not wait for them (some tenths of a second each), and nothing that must be on time waits for
-        this. Again whenever the sets change."""
-        if not self.on:
-            return
-        while not stop.is_set():
-            sets.arrived.clear()
-            k = k_now()
-            for pid, s in list(sets.sets.items()):
-                path = sets.task.paths[pid]
-                for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
-                    h = np.array(s.solutions[i].h)
-                    if not self.known(path, h) and not stop.is_set():
-                        await _at_lowest_priority(partial(self.figures, path, h, Curve.of(h, path)))
-            await first_of(sets.arrived.wait(), stop.wait())
 
     async def look(self) -> None:
         """Every ``scale_period_s``: the σ the distance allows now, planned as a ramp when it differs. A look

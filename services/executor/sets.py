@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
 import numpy as np
 
 from common.runtime.bus import Bus
+from common.runtime.service import first_of
 from common.runtime.storage import atomic_write, load_checked
 from common.trajectory.planner import content_hash
 from common.trajectory.task import Task
@@ -24,6 +26,9 @@ log = logging.getLogger("cadence.executor")
 
 
 class SetCache:
+    """Owns the Pareto sets the executor runs on: fetched from the store, checked against its own task,
+    cached on disk, and kept fetched while a path has none."""
+
     def __init__(self, bus: Bus, folder: Path, task: Task) -> None:
         self.bus, self.folder, self.task = bus, folder, task
         self.digests = {pid: content_hash(p, task.limits, task.planner) for pid, p in task.paths.items()}
@@ -101,3 +106,16 @@ class SetCache:
             if reason is not None:
                 why[pid] = reason
         return why
+
+    async def keep(self, timeout: float, stop: asyncio.Event, say: Callable[[str], None]) -> None:
+        """Fetch what is missing (the store may still be planning; a refused set was dropped), said in the
+        status (``say``), and wait while nothing is."""
+        while not stop.is_set():
+            if not self.missing():
+                self.wanted.clear()
+                await first_of(self.wanted.wait(), stop.wait())
+                continue
+            why = await self.fetch_missing(timeout)
+            say(f"waiting for Pareto sets: {', '.join(why)}" if why else "")
+            if why:
+                await first_of(asyncio.sleep(2.0), stop.wait())
