@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import time
 from collections import Counter
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
@@ -23,6 +22,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar, overload
 import msgspec
 import zenoh
 
+from common.runtime.clock import wall_monotonic
 from common.runtime.errors import BusError
 from common.runtime.transport import Declared, Transport, ZenohTransport, zenoh_words
 from schemas.base import Message
@@ -336,7 +336,7 @@ class Bus:
     def _log_limited(self, key: str, kind: str, text: str, count: int) -> None:
         """One line per key and kind every 10 s at most, with the count so far: a flood of bad input
         must not become a flood of log."""
-        now = time.monotonic()
+        now = wall_monotonic()
         if now - self._last_log.get((key, kind), -_LOG_EVERY_S) >= _LOG_EVERY_S:
             self._last_log[(key, kind)] = now
             log.warning("%s on %s: %s (%d so far)", kind, key, text, count)

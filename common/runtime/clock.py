@@ -8,6 +8,11 @@ All processes of one run share ``epoch_ns`` (a wall-clock instant) and ``speed``
 A driven clock (``driven``: a lockstep cell, common/runtime/lockstep.py) is the event loop's own: data
 time is ``epoch + loop.time()``, and the loop takes its next instant only when every task of the cell
 waits for one. A busy host then slows the run and never changes it.
+
+This module is the one door to time in ``services/`` and ``common/`` (ruff's banned-api rule in
+pyproject.toml holds every other module to it; the servo thread, the backends' controllers and the
+lockstep loop keep their own): data time (``Clock``), the loop's seconds (``monotonic``, ``pause``), and the
+wall's, for what a person reads or what the host took (``wall_ns``, ``wall_monotonic``). A name says which.
 """
 
 from __future__ import annotations
@@ -53,3 +58,20 @@ def monotonic() -> float:
         return asyncio.get_running_loop().time()
     except RuntimeError:
         return time.monotonic()
+
+
+async def pause(loop_s: float) -> None:
+    """Wait ``loop_s`` seconds of the running event loop's clock (the wall's, or a lockstep cell's data
+    time): a back-off, a retry, a wait with a timeout. A stretch of data time is ``Clock.sleep``."""
+    await asyncio.sleep(loop_s)
+
+
+def wall_ns() -> int:
+    """The wall's time of day: what a person reads (a file's stamp, how old a record is), never data time."""
+    return time.time_ns()
+
+
+def wall_monotonic() -> float:
+    """The wall's monotonic seconds: how long the host took (a computation, a rate limit on logs, a
+    service's uptime), whatever clock the data runs on."""
+    return time.monotonic()

@@ -26,6 +26,7 @@ from typing import Any, cast
 import zenoh
 
 from common.runtime.bus import Bus, M
+from common.runtime.clock import pause
 from common.runtime.config import CommonSettings
 from common.runtime.node import Node, serve_node
 from common.runtime.service import ServiceContext
@@ -81,7 +82,7 @@ class MemoryNetwork:
             async with asyncio.timeout(timeout):
                 quiet = 0
                 while quiet < 3:
-                    await asyncio.sleep(0 if self.settled() else 0.001)  # a handler may wait on a thread
+                    await pause(0 if self.settled() else 0.001)  # a handler may wait on a thread
                     quiet = quiet + 1 if self.settled() else 0
         except TimeoutError:
             busy = [b.role or "a test's session" for b in self.buses if not b.idle()]

@@ -22,7 +22,6 @@ import os
 import signal
 import socket
 import sys
-import time
 from collections import Counter
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from typing import Any
 import msgspec
 
 from common.runtime.bus import Bus, BusConfig
-from common.runtime.clock import monotonic
+from common.runtime.clock import monotonic, pause, wall_monotonic, wall_ns
 from common.runtime.config import CommonSettings, read_config, section
 from common.runtime.errors import BusError, ConfigError, InputError
 from common.runtime.lifetime import die_with_supervisor
@@ -59,7 +58,7 @@ class ServiceContext:
     state: str = "starting"
     detail: str = ""  # what an operator should know beyond the state (a damaged file moved aside)
     link: str = ""  # set while the bus reaches no router and no peer (``Bus.isolation``)
-    started: float = field(default_factory=time.monotonic)
+    started: float = field(default_factory=wall_monotonic)
     notes: dict[str, str] = field(default_factory=dict)  # each part's own say beside ``detail``, by part
 
     def said(self) -> str:
@@ -76,11 +75,11 @@ class ServiceContext:
         counters = {k: v for k, v in self.counters.items() if v >= 0}
         counters.update(self.bus.drop_counters())
         return ServiceStatus(
-            t_ns=time.time_ns(),
+            t_ns=wall_ns(),
             seq=seq,
             service=self.name,
             state=self.state[:MAX_STATE_CHARS],
-            uptime_s=time.monotonic() - self.started,
+            uptime_s=wall_monotonic() - self.started,
             counters=counters,
             detail=self.said()[:MAX_STATE_CHARS],
         )
@@ -171,7 +170,7 @@ async def _periodic(ctx: ServiceContext) -> None:
             next_status = now + ctx.common.status_period_s
         if wd is not None:
             sd_notify("WATCHDOG=1")
-        await asyncio.sleep(min(ctx.common.status_period_s, wd or ctx.common.status_period_s, 1.0))
+        await pause(min(ctx.common.status_period_s, wd or ctx.common.status_period_s, 1.0))
 
 
 async def first_of(*aws: Awaitable[object]) -> None:
@@ -223,7 +222,7 @@ async def serve(
             terminal's SIGINT and a SIGTERM, arrive together, and once cut the executor's decelerating
             stop 40 ms after it began."""
             nonlocal first_at
-            now = time.monotonic()
+            now = wall_monotonic()
             if first_at is not None:
                 if now - first_at >= SECOND_SIGNAL_AFTER_S:
                     log.warning("second signal: exiting now")

@@ -12,6 +12,8 @@ from typing import Generic, TypeVar
 
 import msgspec
 
+from common.runtime.clock import wall_ns
+
 T = TypeVar("T")
 
 
@@ -45,7 +47,7 @@ def quarantine(path: str | os.PathLike[str], now_ns: int | None = None) -> Path:
     import time
 
     src = Path(path)
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime((now_ns or time.time_ns()) / 1e9))
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime((now_ns or wall_ns()) / 1e9))
     dst = src.with_name(f"{src.name}.corrupt-{stamp}")
     n = 1
     while dst.exists():

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -25,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.robot.ur16e import JointLimits
+from common.runtime.clock import wall_monotonic
 from common.runtime.errors import PlanningError
 from common.trajectory import bspline as bs
 from common.trajectory import nsga
@@ -471,7 +471,7 @@ def plan_path(
     set of this path before a waypoint edit; they seed the search, which then runs ``WARM_GENERATIONS``
     unless the settings name a number.
     """
-    started = time.perf_counter()
+    started = wall_monotonic()
     problem = TrajectoryProblem(path, limits, settings.constraints, settings.kappa, evaluator)
     rng = np.random.default_rng(settings.seed)
     seeds = warm_seeds(path, limits, settings.kappa, warm)
@@ -524,7 +524,7 @@ def plan_path(
         solutions=solutions,
         n_evaluated=problem.n_evaluated,
         hypervolume_history=history,
-        seconds=time.perf_counter() - started,
+        seconds=wall_monotonic() - started,
     )
 
 

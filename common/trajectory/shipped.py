@@ -18,7 +18,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import logging
-import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
+from common.runtime.clock import wall_ns
 from common.runtime.errors import InputError
 from common.runtime.resources import SHIPPED_SETS
 from common.trajectory.planner import ParetoResult, content_hash, plan_path
@@ -47,7 +47,7 @@ def as_message(result: ParetoResult, digest: str, t_ns: int | None = None) -> Pa
     """A planning result as the wire message the store keeps and serves."""
     start, end = result.path.boundary.ends()
     return ParetoSet(
-        t_ns=time.time_ns() if t_ns is None else t_ns,
+        t_ns=wall_ns() if t_ns is None else t_ns,
         seq=0,
         path_id=result.path.id,
         content_hash=digest,

@@ -12,6 +12,7 @@ from collections.abc import Callable
 import numpy as np
 
 from common.hrv.polar import HR_MEASUREMENT, PMD_ACC, PMD_CONTROL, PMD_DATA, PMD_ECG
+from common.runtime.clock import pause
 from services.ecg_gateway.polar import POLAR_EPOCH_NS
 from services.ecg_gateway.sources import CHUNK, FS_HZ
 
@@ -116,7 +117,7 @@ class FakeH10:
                 self.callbacks[HR_MEASUREMENT](None, bytearray([0x10, 72]) + struct.pack("<H", 820))
             self.frame += 1
             self.sent += 1
-            await asyncio.sleep(CHUNK / FS_HZ / self.speed if self.speed else 0)
+            await pause(CHUNK / FS_HZ / self.speed if self.speed else 0)
 
     async def disconnect(self) -> None:
         if self._task is not None:

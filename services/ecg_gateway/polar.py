@@ -45,6 +45,7 @@ from common.hrv.polar import (
     parse_ecg_frame,
     parse_heart_rate,
 )
+from common.runtime.clock import pause
 from services.ecg_gateway.sources import FS_HZ, AccSamples, Chunk, EcgSource, Item, RrChunk
 
 log = logging.getLogger("cadence.ecg_gateway.polar")
@@ -183,7 +184,7 @@ class PolarSource(EcgSource):
                 log.warning("strap not connected (%s); trying again in %.0f s", exc, delay)
                 attempt += 1
                 gap = gap or expected_ns is not None
-                await asyncio.sleep(delay)
+                await pause(delay)
                 continue
             attempt = 0
             held: list[tuple[int, list[int]]] = []  # the first frames, while the rate is measured

@@ -9,8 +9,6 @@ simulated operator is a node of its own, services/operator_twin, that sends its 
 from __future__ import annotations
 
 import abc
-import asyncio
-import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 
@@ -18,6 +16,7 @@ import numpy as np
 
 from common.hrv.e4 import read_e4
 from common.hrv.records import AccRecording, read_acc, read_record
+from common.runtime.clock import pause, wall_monotonic, wall_ns
 from schemas.ecg import ACC_RATES_HZ, H10_CHUNK, H10_FS_HZ, MAX_ACC_MG
 
 FS_HZ, CHUNK = H10_FS_HZ, H10_CHUNK
@@ -88,7 +87,7 @@ class ReplaySource(EcgSource):
         self.accelerometer = self.acc is not None
         self.speed = speed
         length_ns = round(len(self.recording.uv) * 1e9 / FS_HZ) if speed != 1.0 else 0
-        self.start_ns = time.time_ns() - length_ns if start_ns is None else start_ns
+        self.start_ns = wall_ns() - length_ns if start_ns is None else start_ns
 
     def _acc_items(self) -> list[AccSamples]:
         """The accelerometer in one-second chunks, each at its own data time (the strap's rate is
@@ -107,13 +106,13 @@ class ReplaySource(EcgSource):
     async def chunks(self) -> AsyncIterator[Item]:
         x = np.rint(self.recording.uv).astype(int)
         acc = [a for a in self._acc_items() if a.t_ns >= self.start_ns]
-        t_wall0 = time.monotonic()
+        t_wall0 = wall_monotonic()
         for i in range(0, len(x), CHUNK):
             if self.speed > 0:
                 due = t_wall0 + (i + CHUNK) / FS_HZ / self.speed  # a chunk exists once its last sample does
-                await asyncio.sleep(max(0.0, due - time.monotonic()))
+                await pause(max(0.0, due - wall_monotonic()))
             else:
-                await asyncio.sleep(0)
+                await pause(0)
             t_ns = self.start_ns + round(i * 1e9 / FS_HZ)
             yield Chunk(t_ns, x[i : i + CHUNK].tolist())
             end_ns = t_ns + round(CHUNK * 1e9 / FS_HZ)
@@ -141,7 +140,7 @@ class E4Source(EcgSource):
         self.accelerometer = accelerometer and self.rec.acc_hz is not None and len(self.rec.acc_mg) > 0
         self.speed = speed
         length_ns = self.rec.end_ns - self.rec.start_ns if speed != 1.0 else 0
-        self.start_ns = time.time_ns() - length_ns if start_ns is None else start_ns
+        self.start_ns = wall_ns() - length_ns if start_ns is None else start_ns
 
     def items(self) -> list[tuple[int, Item]]:
         """Everything with the data time it exists at (an interval at its closing beat, an accelerometer
@@ -165,11 +164,11 @@ class E4Source(EcgSource):
         return out
 
     async def chunks(self) -> AsyncIterator[Item]:
-        t_wall0 = time.monotonic()
+        t_wall0 = wall_monotonic()
         for exists_ns, item in self.items():
             if self.speed > 0:
                 due = t_wall0 + (exists_ns - self.start_ns) / 1e9 / self.speed
-                await asyncio.sleep(max(0.0, due - time.monotonic()))
+                await pause(max(0.0, due - wall_monotonic()))
             else:
-                await asyncio.sleep(0)
+                await pause(0)
             yield item

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 
 from common.decision import k_for_path
-from common.runtime.clock import monotonic
+from common.runtime.clock import monotonic, pause
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.node import Rejected
 from common.runtime.service import first_of
@@ -101,7 +101,7 @@ class Signals:
                 if left is not None and left <= 0:
                     return "late"
                 self.arrived.clear()
-                timer = [asyncio.sleep(left)] if left is not None else []
+                timer = [pause(left)] if left is not None else []
                 await first_of(self.arrived.wait(), stop.wait(), *timer)
             return "arrived"
         finally:
@@ -192,7 +192,7 @@ class Cycles:
             self.sets.changed.wait(),
             self.safety.changed.wait(),
             self.kit.stop.wait(),
-            asyncio.sleep(at_most_s),
+            pause(at_most_s),
         )
 
     async def run_path(self, pid: str) -> int | None:

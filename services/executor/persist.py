@@ -9,11 +9,11 @@ is moved aside."""
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 
 import msgspec
 
+from common.runtime.clock import wall_ns
 from common.runtime.storage import Loaded, atomic_write, load_checked
 from schemas.base import NonNegInt, TimeNs
 from schemas.decision import Selection, SolutionIndex
@@ -33,7 +33,7 @@ class AppliedSelection(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
             raise ValueError(f"k = {self.k} is above n = {self.n}")
 
     def age_s(self, now_ns: int | None = None) -> float:
-        return ((now_ns or time.time_ns()) - self.applied_ns) / 1e9
+        return ((now_ns or wall_ns()) - self.applied_ns) / 1e9
 
     def selection(self) -> Selection:
         return Selection(t_ns=self.t_ns, seq=self.seq, k=self.k, n=self.n, delta=0, reason="hold")
@@ -100,6 +100,4 @@ def _kept(old: AppliedSelection | None, sel: Selection) -> AppliedSelection | No
     """``sel`` as it is kept, or None when it is the one on file already."""
     if old is not None and (old.k, old.n, old.seq, old.t_ns) == (sel.k, sel.n, sel.seq, sel.t_ns):
         return None
-    return AppliedSelection(
-        k=sel.k, n=max(sel.n, sel.k), seq=sel.seq, t_ns=sel.t_ns, applied_ns=time.time_ns()
-    )
+    return AppliedSelection(k=sel.k, n=max(sel.n, sel.k), seq=sel.seq, t_ns=sel.t_ns, applied_ns=wall_ns())

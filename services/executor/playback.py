@@ -32,13 +32,13 @@ evaluation of the current span, and a new ``InForce`` only when something change
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from common.runtime.clock import wall_monotonic
 from common.trajectory.scaling import DT, Curve, Ramp
 
 Array = NDArray[np.float64]
@@ -114,7 +114,7 @@ class Playback:
         ramp: Ramp,
         convert: Callable[[Array], object],
         notify: Callable[[], None] = _nothing,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = wall_monotonic,
     ) -> None:
         """``clock``: the owner's loop's (``loop.time``: the wall's monotonic clock, or a lockstep cell's
         data time), read from the loop's thread once a step while a lease is held."""

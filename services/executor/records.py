@@ -11,6 +11,7 @@ import contextlib
 from collections.abc import AsyncIterator, Callable
 from functools import partial
 
+from common.runtime.clock import pause
 from common.runtime.service import first_of
 from common.safety.states import Event, State
 from schemas.decision import Selection
@@ -78,7 +79,7 @@ class Records:
                     self.safety.event("refused", f"{self.unwritten}; holding the arm still until it can")
                 if self.safety.motion.state is State.READY:
                     self.safety.fire(Event.REFUSE, self.unwritten)
-                await first_of(asyncio.sleep(RETRY_S), self.kit.stop.wait())
+                await first_of(pause(RETRY_S), self.kit.stop.wait())
                 if self.kit.stop.is_set():
                     return False
                 continue

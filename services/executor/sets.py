@@ -15,6 +15,7 @@ import msgspec
 import numpy as np
 
 from common.runtime.bus import Bus
+from common.runtime.clock import pause
 from common.runtime.service import first_of
 from common.runtime.storage import atomic_write, load_checked
 from common.trajectory.planner import content_hash
@@ -118,4 +119,4 @@ class SetCache:
             why = await self.fetch_missing(timeout)
             say(f"waiting for Pareto sets: {', '.join(why)}" if why else "")
             if why:
-                await first_of(asyncio.sleep(2.0), stop.wait())
+                await first_of(pause(2.0), stop.wait())

@@ -15,7 +15,7 @@ from collections import deque
 from collections.abc import Callable
 
 from common.runtime.bus import QueryError
-from common.runtime.clock import monotonic
+from common.runtime.clock import monotonic, pause
 from common.runtime.service import first_of
 from common.safety.states import Event, Motion, State, transition
 from schemas.robot import EventKind, RobotEvent
@@ -163,14 +163,14 @@ class Supervisor:
                         "until `cadence robot resume`",
                     )
                 else:
-                    await first_of(asyncio.sleep(auto_s), stop.wait())  # the loop's: data time in lockstep
+                    await first_of(pause(auto_s), stop.wait())  # the loop's: data time in lockstep
                     if stop.is_set() or self.motion.state is not State.STOPPED:
                         continue
                     self.auto.used(monotonic())
                     await self.resume(f'resumed automatically after {auto_s:.0f} s (resume_policy = "auto")')
                     continue
             self.changed.clear()
-            await first_of(self.changed.wait(), stop.wait(), asyncio.sleep(wait_s))
+            await first_of(self.changed.wait(), stop.wait(), pause(wait_s))
         return not stop.is_set()
 
     async def connect(self) -> bool:
@@ -184,7 +184,7 @@ class Supervisor:
             except RobotUnavailable as exc:
                 self.event("disconnected", f"{exc}; retrying in {delay:.0f} s")
                 self.fire(Event.DISCONNECTED, str(exc))
-                await first_of(asyncio.sleep(delay), self.kit.stop.wait())
+                await first_of(pause(delay), self.kit.stop.wait())
                 if self.kit.stop.is_set():
                     return False
                 delay = min(delay * 2, 30.0)

@@ -12,7 +12,6 @@ robot state far from the states before it is dropped (common/runtime/admission.p
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import sys
 from collections.abc import AsyncIterator
@@ -22,6 +21,7 @@ import msgspec
 import numpy as np
 
 from common.runtime.admission import TimeLine
+from common.runtime.clock import pause
 from common.runtime.node import Node, Out, admitted, every, node_main, on
 from common.runtime.service import service_main
 from common.sim.twin import ACC_FS_HZ, Operator, TwinParams
@@ -126,7 +126,7 @@ class OperatorTwin(Node):
         the parts put down by then."""
         for i in range(0, 2**62, CHUNK):
             ahead_s = (self.ns((i + CHUNK) / FS_HZ) - self.clock.now_ns()) / 1e9
-            await asyncio.sleep(max(0.0, self.clock.loop_s(ahead_s)))
+            await pause(max(0.0, self.clock.loop_s(ahead_s)))
             t0, t1 = i / FS_HZ, (i + CHUNK) / FS_HZ
             x = np.rint(self.operator.ecg(t0, CHUNK)).astype(int).tolist()
             out: list[Message] = [EcgChunk(t_ns=self.ns(t0), seq=0, fs_hz=FS_HZ, samples_uv=x, source="twin")]

@@ -9,13 +9,13 @@ import itertools
 import logging
 import sqlite3
 import sys
-import time
 from collections.abc import AsyncIterator
 from typing import Annotated
 
 import msgspec
 
 from common.runtime.bus import QueryError, Request
+from common.runtime.clock import wall_ns
 from common.runtime.config import CommonSettings
 from common.runtime.lockstep import Inline
 from common.runtime.node import Node, Out, answers, node_main
@@ -105,7 +105,7 @@ class ParetoStore(Node):
 
     def progress(self, pid: str, state: PlanState, message: str = "") -> PlanProgress:
         done = sum(1 for p in self.task.paths if p in self.sets)
-        return PlanProgress(t_ns=time.time_ns(), seq=0, path_id=pid, state=state,
+        return PlanProgress(t_ns=wall_ns(), seq=0, path_id=pid, state=state,
                             done_paths=done, total_paths=len(self.task.paths), message=message)  # fmt: skip
 
     @answers(PARETO_SET)

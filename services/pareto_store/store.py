@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import logging
 import sqlite3
-import time
 from pathlib import Path
 
 import msgspec
 
+from common.runtime.clock import wall_ns
 from common.runtime.storage import quarantine
 from common.trajectory.planner import content_hash
 from common.trajectory.task import Task
@@ -127,7 +127,7 @@ class SetStore:
         with self._db:  # one transaction
             self._db.execute(
                 "INSERT OR REPLACE INTO pareto_sets VALUES (?, ?, ?, ?)",
-                (msg.path_id, msg.content_hash, time.time_ns(), msgspec.msgpack.encode(msg)),
+                (msg.path_id, msg.content_hash, wall_ns(), msgspec.msgpack.encode(msg)),
             )
 
     def close(self) -> None:
