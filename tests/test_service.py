@@ -89,6 +89,24 @@ async def test_a_service_that_reaches_no_router_and_no_peer_says_so_in_its_statu
     await svc.task
 
 
+@pytest.mark.asyncio
+async def test_a_services_status_is_stamped_on_data_time_as_every_other_key() -> None:
+    """health/* once carried the wall's time while every other key carried data time: in a run at 100× a
+    recording put each status far behind the windows and selections it stood beside."""
+    import time
+
+    from common.runtime.memory import MemoryNetwork
+    from common.runtime.service import ServiceContext
+
+    epoch = time.time_ns() - 10 * 1_000_000_000  # the run began 10 s of the wall ago: 1,000 s of data
+    common = CommonSettings(speed=100.0, epoch_ns=epoch)
+    ctx = ServiceContext("decision_maker", MemoryNetwork().bus(role="decision_maker"), common, None, None)
+    before = common.clock.now_ns()
+    stamped = ctx.status(0).t_ns
+    assert before <= stamped <= common.clock.now_ns()
+    assert stamped - epoch > 900 * 1_000_000_000  # data time, not the wall's 10 s
+
+
 def test_cadence_get_alone_on_the_bus_says_why_no_reply_came() -> None:
     import subprocess
     import sys

@@ -31,7 +31,7 @@ from typing import Any
 import msgspec
 
 from common.runtime.bus import Bus, BusConfig
-from common.runtime.clock import monotonic, pause, wall_monotonic, wall_ns
+from common.runtime.clock import monotonic, pause, wall_monotonic
 from common.runtime.config import CommonSettings, read_config, section
 from common.runtime.errors import BusError, ConfigError, InputError
 from common.runtime.lifetime import die_with_supervisor
@@ -75,7 +75,7 @@ class ServiceContext:
         counters = {k: v for k, v in self.counters.items() if v >= 0}
         counters.update(self.bus.drop_counters())
         return ServiceStatus(
-            t_ns=wall_ns(),
+            t_ns=self.common.clock.now_ns(),  # data time, as every other key: a recording lines it up
             seq=seq,
             service=self.name,
             state=self.state[:MAX_STATE_CHARS],
