@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import math
 import signal
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,34 @@ def stall(
     return on
 
 
+@contextlib.asynccontextmanager
+async def stalling(cell: Cell, task_file: Path, tmp_path: Path, **changes: object) -> AsyncIterator[Any]:
+    """A sim executor whose host the test stalls (``stall``), at k = 2: (bus, events, states, cycles,
+    ``operator``). Once the test has resumed the stop it made, ``operator()`` has an operator clear what
+    comes: a loaded host's own misses can stop this real-time arm again, as they would a real one."""
+    async with cell.session() as bus:
+        store = await store_serving(bus, task_file, tmp_path / "store", cell)
+        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
+        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
+        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
+        settings = sim_settings(task_file, overrun_limit=RUN, initial_k=2, **changes)
+        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+        clearing: list[asyncio.Task[None]] = []
+        try:
+            yield (
+                bus,
+                events,
+                states,
+                cycles,
+                lambda: clearing.append(asyncio.create_task(operator_resumes(bus))),
+            )
+        finally:
+            for task in clearing:
+                task.cancel()
+            await ex.close()
+            await store.close()
+
+
 async def still_while_stopped(states, n: int = 100) -> RobotState:
     """The next ``n`` robot states (2 s at 50 Hz) once stopped and at rest: all stopped, none moving."""
     await next_of(states, lambda s: s.state == "stopped" and max(map(abs, s.qd)) == 0.0, timeout=30)
@@ -82,26 +111,15 @@ async def test_an_overrun_stop_holds_the_sim_arm_still_until_resumed(
     task_file: Path, tmp_path: Path, cell: Cell, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     on = stall(monkeypatch, SimBackend)
-    async with cell.session() as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", cell)
-        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
-        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = sim_settings(task_file, overrun_limit=RUN, cycles=0, initial_k=2)
-        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+    async with stalling(cell, task_file, tmp_path, cycles=0) as (bus, events, states, cycles, operator):
         await next_of(states, lambda s: s.mode == "moving")
         on["stall"] = True
         stop = await next_of(events, lambda e: e.kind == "protective_stop")
         on["stall"] = False  # the machine is fine again: still, nothing moves until a person says so
         held = await still_while_stopped(states)
         said = await resume(bus)
-        # a loaded host's own misses can stop this real-time arm again, as they would a real one: what is
-        # tested is that the test's resume let it go on, so from here an operator clears what comes
-        clearing = asyncio.create_task(operator_resumes(bus))
+        operator()
         report = await next_of(cycles, timeout=120)
-        clearing.cancel()
-        await ex.close()
-        await store.close()
     assert "overruns in a row" in stop.message
     assert "overruns in a row" in held.reason
     assert said.startswith("ready")
@@ -117,26 +135,20 @@ async def test_a_path_cut_short_by_a_stop_goes_on_from_where_the_arm_stopped_onc
     real-time priority beside busy loops never ended a cycle (issue 53). Joint 0 of 'there' only rises, so
     it never goes back towards 0."""
     on = stall(monkeypatch, SimBackend)
-    async with cell.session() as bus:
-        store = await store_serving(bus, task_file, tmp_path / "store", cell)
-        events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
-        states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = sim_settings(task_file, overrun_limit=RUN, initial_k=2)
-        ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
+    async with stalling(cell, task_file, tmp_path) as (bus, events, states, cycles, operator):
         await next_of(states, lambda s: s.path_id == "there" and s.q[0] > math.radians(10), timeout=30)
         on["stall"] = True
         await next_of(events, lambda e: e.kind == "protective_stop")
         on["stall"] = False
         stopped = await still_while_stopped(states, 10)
         await resume(bus)
+        operator()
         going_on = await next_of(events, lambda e: "goes on from where it stopped" in e.message)
         seen = []
-        while (s := await next_of(states, timeout=30)).path_id != "back":
-            seen.append(s)
+        async with asyncio.timeout(120):
+            while (s := await next_of(states, timeout=30)).path_id != "back":
+                seen.append(s)
         report = await next_of(cycles, timeout=60)
-        await ex.close()
-        await store.close()
     after = [s for s in seen if s.t_ns > going_on.t_ns]
     assert after and any(s.mode == "moving" for s in after)
     # at most a short move back onto the curve (the braking stop left the arm off it, past the last
