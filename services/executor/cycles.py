@@ -124,8 +124,8 @@ class Paused:
 
 
 class Cycles:
-    """Owns the task program's run: its cycles and steps, the operator's signals, the Pareto sets kept
-    fetched, and what a restart finds on disk of the last run."""
+    """Owns the task program's run: its cycles and steps, the operator's signals, the path a stop cut
+    short (``paused``), and what a restart finds on disk of the last run."""
 
     def __init__(
         self,
