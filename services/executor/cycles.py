@@ -212,49 +212,47 @@ class Cycles:
                 self.safety.event("protective_stop", f"before '{pid}': {fault}", pid)
                 self.safety.fire(Event.FAULT, fault)
                 continue
-            if (paused := self.paused) is not None and paused.pid == pid:
+            if (paused := self.paused) is not None and paused.pid == pid:  # its curve, k and figures kept
                 self.safety.ready()
-                async with self.records.in_motion(pid) as said:
-                    outcome = await self.resume(paused, own) if said else None
-                if outcome != AGAIN:
-                    return outcome
-                continue
-            s = self.sets.sets.get(pid)
-            if s is None:
-                self.safety.event("refused", f"no Pareto set for '{pid}' yet; waiting for the store", pid)
-                self.safety.fire(Event.SET_MISSING, f"no Pareto set for '{pid}'")
-                await self.until_changed()
-                continue
-            self.safety.ready()
-            k = k_for_path(sel.k, len(s.solutions))
-            h = np.array(s.solutions[k - 1].h)
-            try:
-                curve, figures = await asyncio.to_thread(self.motions.prepare, h, own, np.array(s.waypoints))
-            except TrajectoryRejected as exc:
-                self.safety.event("refused", f"k = {k}: {exc}", pid)
-                self.safety.fire(Event.REFUSE, f"k = {k} of '{pid}' refused")
-                self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
-                await self.until_changed()
-                continue
+                k, curve, figures = paused.k, paused.curve, paused.figures
+                at = await self.resumed_at(paused)
+            else:
+                s = self.sets.sets.get(pid)
+                if s is None:
+                    self.safety.event("refused", f"no Pareto set for '{pid}' yet; waiting for the store", pid)
+                    self.safety.fire(Event.SET_MISSING, f"no Pareto set for '{pid}'")
+                    await self.until_changed()
+                    continue
+                self.safety.ready()
+                k, at = k_for_path(sel.k, len(s.solutions)), 0.0
+                h = np.array(s.solutions[k - 1].h)
+                try:
+                    curve, figures = await asyncio.to_thread(self.motions.prepare, h, own,
+                                                             np.array(s.waypoints))  # fmt: skip
+                except TrajectoryRejected as exc:
+                    self.safety.event("refused", f"k = {k}: {exc}", pid)
+                    self.safety.fire(Event.REFUSE, f"k = {k} of '{pid}' refused")
+                    self.sets.discard(pid, str(exc))  # never cached for good: the store is asked again
+                    await self.until_changed()
+                    continue
             async with self.records.in_motion(pid) as said:  # a crash before it ends leaves the stop latched
-                outcome = await self.move(pid, own, k, curve, figures) if said else None
+                outcome = await self.move(pid, own, k, curve, figures, at) if said else None
             if outcome != AGAIN:
                 return outcome
         return None
 
-    async def resume(self, paused: Paused, own: PathPlan) -> int | Again | None:
-        """A path cut short goes on from the point of its curve nearest the arm, the scale rising from 0."""
-        q = self.backend.actual_q()
-        at = await asyncio.to_thread(resume_at, paused.curve, q, paused.s)
-        self.safety.event("info", f"'{own.id}' goes on from where it stopped: s = {at:.3f} s of "
-                          f"{paused.curve.t_f:.3f} s, at k = {paused.k}", own.id)  # fmt: skip
-        return await self.move(own.id, own, paused.k, paused.curve, paused.figures, at)
+    async def resumed_at(self, paused: Paused) -> float:
+        """Where a path cut short goes on: the point of its curve nearest the arm (said as an event)."""
+        at = await asyncio.to_thread(resume_at, paused.curve, self.backend.actual_q(), paused.s)
+        self.safety.event("info", f"'{paused.pid}' goes on from where it stopped: s = {at:.3f} s of "
+                          f"{paused.curve.t_f:.3f} s, at k = {paused.k}", paused.pid)  # fmt: skip
+        return at
 
     async def move(
         self, pid: str, own: PathPlan, k: int, curve: Curve, figures: Figures, at: float = 0.0
     ) -> int | Again | None:
-        """One path from its start, or from path time ``at`` within it (``resume``): its k (a switch within
-        it may have changed it), None when stopped, ``AGAIN`` when the path is to be tried again (a
+        """One path from its start, or from path time ``at`` within it (``resumed_at``): its k (a switch
+        within it may have changed it), None when stopped, ``AGAIN`` when the path is to be tried again (a
         refusal, a fault handled, a hold for the disk)."""
         first, where = own.waypoints[0], "the start of"
         if at > 0.0:
