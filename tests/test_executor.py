@@ -393,7 +393,7 @@ async def test_a_failed_look_at_the_scale_is_said_and_the_next_one_holds_the_arm
 ) -> None:
     """The scale's task outlives a failure of one look (here: planning a ramp raises once): it says so, and
     the next look slows the arm for the person as ever."""
-    import services.executor.pathrun as pathrun
+    import services.executor.playback as pathrun
 
     real, calls = pathrun.plan_ramp, []
 
@@ -425,7 +425,7 @@ async def test_a_look_that_cannot_have_its_ramp_down_lets_the_lease_run_out_and_
     the fallback stop too) does not renew the lease on the scale in force: the loop takes its own stop
     when it runs out. The looks once renewed it whatever they found, and an arm whose ramps down were
     refused ran on at full speed with a person at 0.6 m."""
-    import services.executor.pathrun as pathrun
+    import services.executor.playback as pathrun
 
     real = pathrun.plan_ramp
 

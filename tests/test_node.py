@@ -562,3 +562,48 @@ async def test_each_part_has_its_own_word_in_the_status_and_none_overwrites_anot
     sets("")  # the sets came: the disk's refusal stands
     assert ctx.status(1).detail == "a service's own word; cannot write executor.json: No space left on device"
     await bus.close()
+
+
+@pytest.mark.asyncio
+async def test_work_started_beside_a_nodes_own_is_in_its_task_group_ends_with_it_and_fails_it(
+    tmp_path: Path,
+) -> None:
+    """``Node.start_soon``: a helper runs in the node's task group, is cancelled when the service stops,
+    and its failure is the service's (no task left running, none failing unseen); before the node runs
+    and after it ended there is no group, and the work is dropped (closed, never a warning)."""
+    began, ended = asyncio.Event(), asyncio.Event()
+
+    async def helper(fail: bool = False) -> None:
+        began.set()
+        try:
+            if fail:
+                raise ValueError("the helper's own")
+            await asyncio.Event().wait()
+        finally:
+            ended.set()
+
+    class Helped(DecisionMaker):
+        fail = False
+
+        async def work(self) -> None:
+            assert self.start_soon(helper(self.fail), "helper") is not None
+            await super().work()
+
+    settings = Settings(rr_rest_s=0.85, republish_s=600)
+    async with serving(Helped, settings, tmp_path) as run:
+        await asyncio.wait_for(began.wait(), 10)
+        assert not ended.is_set()
+        node = run.node
+    assert ended.is_set()  # cancelled with the group
+    late = helper()
+    assert node.start_soon(late, "too late") is None
+    assert late.cr_frame is None  # closed
+    early = helper()
+    assert Helped(node.ctx).start_soon(early, "too early") is None
+    assert early.cr_frame is None
+
+    Helped.fail = True
+    began.clear()
+    with pytest.raises(ValueError, match="the helper's own"):
+        async with serving(Helped, settings, tmp_path / "failing"):
+            await asyncio.wait_for(began.wait(), 10)

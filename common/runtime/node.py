@@ -117,12 +117,26 @@ class Node:
         self._readers: dict[str, Callable[[float], Awaitable[None]]] = {}
         self.published: list[Message] = []  # what ``publish`` sent while no bus serves the node
         self._sink: Callable[[Out], None] = self.published.extend
+        self._group: asyncio.TaskGroup | None = None  # the node's tasks, while it runs (``serve_node``)
 
     def publish(self, *msgs: Message) -> None:
         """Publish now, from work that is not a handler's return (the executor's cycles, its safety
         states): each message goes to the output of its type. Without a bus (a node's unit test) the
         messages are kept in ``published``."""
         self._sink(msgs)
+
+    def start_soon(self, work: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any] | None:
+        """Work beside ``work``, in the node's own task group: cancelled when the service ends, and its
+        failure the service's, as a handler's is not (a helper says its own errors first). None, the work
+        dropped, when the node does not run (its setup, its end): the caller then does without."""
+        group = self._group
+        try:
+            if group is None:
+                raise RuntimeError("not running")
+            return group.create_task(work, name=name)
+        except RuntimeError:  # not yet running, or the group already shutting down
+            work.close()
+            return None
 
     async def until_read(self, topic: Topic[Any], timeout_s: float) -> None:
         """Until a reader of one of the node's outputs is there (Zenoh drops a put nobody subscribes to
@@ -296,16 +310,20 @@ async def serve_node(node: Node) -> None:
     # however it ends, nothing of the node outlives it
     try:
         async with asyncio.TaskGroup() as group:
+            node._group = group
             for timer in role.timers:
                 group.create_task(tick(getattr(node, timer.name), timer.period), name=f"timer {timer.name}")
             work = group.create_task(working(), name="work")
             group.create_task(stopping(work), name="stop")
             await ended.wait()
+            node._group = None  # what starts now would not run: its caller does without
             raise _Ended
     except BaseExceptionGroup as group_error:
         failures = [e for e in group_error.exceptions if not isinstance(e, _Ended)]
         if failures:
             raise failures[0] from None
+    finally:
+        node._group = None
 
 
 class _Ended(Exception):

@@ -53,6 +53,9 @@ __all__ = ["Settings", "main", "run"]
 
 
 class Executor(Node):
+    """The node: builds the parts (each handed its kit, its settings and the parts it calls), routes
+    the bus to them, and owns only the servo loop, its core and the backend it drives."""
+
     role = NAME
     ends_with_work = True  # the task's last cycle (``cycles``) ends the service
     stop_grace_s = 30.0  # at a stop, a moving arm decelerates to rest and the cycles say so
@@ -65,8 +68,8 @@ class Executor(Node):
         def set_state(state: str) -> None:
             ctx.state = state
 
-        kit = Kit(s, common.clock, speed, common.clock_skew_s, ctx.counters, ctx.stop, self.publish, ctx.note,
-                  set_state)  # fmt: skip
+        kit = Kit(common.clock, speed, common.clock_skew_s, ctx.counters, ctx.stop, self.publish, ctx.note,
+                  set_state, self.start_soon)  # fmt: skip
         task = load_task(s.task)
         # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
         self.backend = backend_for(s, task, math.inf if driven else speed)
@@ -75,16 +78,19 @@ class Executor(Node):
             ctx.counters["servo_core"] = self.claim.core
         folder = common.data_path / "executor"
         # each part gets the kit and the parts it calls, never this node (services/executor/kit.py)
-        self.safety = Supervisor(kit, self.backend)
-        self.reactions = Reactions(kit, self.safety, task.limits, self.backend.actual_q)
+        self.safety = Supervisor(kit, s, self.backend)
+        self.reactions = Reactions(kit, s, self.safety, task.limits, self.backend.actual_q)
         self.sets = SetCache(ctx.bus, folder, task)
         self.figures = CurveFigures(task.limits, s.arm(), s.separation)
         records = Records(kit, ExecutorStore(folder), self.safety)
-        self.chosen = SelectionInForce(kit, ctx.bus, self.safety, records, self.sets, self.reactions)
+        self.safety.latched_to(records.latch)
+        self.chosen = SelectionInForce(kit, s, ctx.bus, self.safety, records, self.sets, self.reactions)
         motions = Motions(
-            kit, self.safety, self.backend, self.loop, self.reactions, self.figures, task.limits
+            kit, s, self.safety, self.backend, self.loop, self.reactions, self.figures, task.limits
         )
-        self.cycles = Cycles(kit, task, self.safety, self.backend, self.sets, records, self.chosen, motions)
+        self.cycles = Cycles(
+            kit, s, task, self.safety, self.backend, self.sets, records, self.chosen, motions
+        )
         self.say_sets = kit.note("sets")  # the sets' fetching (SetCache.keep), after the cycles' files
         self.telemetry = Telemetry(kit, self.backend, task, self.snapshot)
         self.cycles.load()
@@ -137,11 +143,10 @@ class Executor(Node):
             log.warning("%s", w)
         k_now = lambda: self.chosen.selection.k if self.chosen.selection is not None else 1  # noqa: E731
         stop = self.ctx.stop
-        helpers = [
-            asyncio.create_task(self.sets.keep(self.ctx.settings.query_timeout_s, stop, self.say_sets)),
-            asyncio.create_task(self.brake_on_stop()),
-            asyncio.create_task(self.figures.prefetch(self.sets, k_now, stop)),
-        ]
+        # beside the cycles, in the node's task group: each says its own errors; they end with the service
+        self.start_soon(self.sets.keep(self.ctx.settings.query_timeout_s, stop, self.say_sets), "the sets")
+        self.start_soon(self.brake_on_stop(), "the brake at a stop")
+        self.start_soon(self.figures.prefetch(self.sets, k_now, stop), "the curves' figures")
         if not self.ctx.settings.separation:
             self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
                               "runs at the planned speed whoever is near")  # fmt: skip
@@ -156,9 +161,6 @@ class Executor(Node):
                 self.safety.fire(Event.SHUTDOWN, "cycles done")
         finally:
             self.loop.request_stop()
-            for t in helpers:
-                t.cancel()
-            await asyncio.gather(*helpers, return_exceptions=True)
 
     async def brake_on_stop(self) -> None:
         """SIGTERM during a motion: a decelerating stop, then the cycles end."""

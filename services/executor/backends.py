@@ -33,6 +33,8 @@ class RobotUnavailable(CadenceError):
 
 
 class Backend(Protocol):
+    """What the executor needs of a robot controller, whichever it is; the backend owns the link to it."""
+
     name: str
     realtime: bool  # a controller paces the samples on the wall clock (a stalled executor must stop it)
 

@@ -32,6 +32,7 @@ from services.executor.motions import Motions
 from services.executor.records import Records
 from services.executor.selection import SelectionInForce
 from services.executor.sets import SetCache
+from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
 
 log = logging.getLogger("cadence.executor")
@@ -130,6 +131,7 @@ class Cycles:
     def __init__(
         self,
         kit: Kit,
+        settings: Settings,
         task: Task,
         safety: Supervisor,
         backend: Backend,
@@ -140,7 +142,7 @@ class Cycles:
     ) -> None:
         self.kit, self.task, self.safety, self.backend = kit, task, safety, backend
         self.sets, self.records, self.chosen, self.motions = sets, records, chosen, motions
-        self.clock, self.settings = kit.clock, kit.settings
+        self.clock, self.settings = kit.clock, settings
         self.say_files = kit.note("files")
         self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None},
                                {s.wait_for: self.clock.loop_s(s.early) for s in task.cycle

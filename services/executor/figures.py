@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import threading
 from collections import OrderedDict
@@ -23,6 +24,8 @@ from common.safety.separation import Figures
 from common.trajectory.scaling import Curve
 from common.trajectory.task import PathPlan
 from services.executor.sets import SetCache
+
+log = logging.getLogger("cadence.executor")
 
 FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found once, some tenths of a s)
 
@@ -106,5 +109,8 @@ class CurveFigures:
                 for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
                     h = np.array(s.solutions[i].h)
                     if not self.known(path, h) and not stop.is_set():
-                        await _at_lowest_priority(partial(self.of, path, h, Curve.of(h, path)))
+                        try:
+                            await _at_lowest_priority(partial(self.of, path, h, Curve.of(h, path)))
+                        except Exception:  # found again before the path runs, which says why it cannot
+                            log.exception("no figures ahead for '%s' at k = %d", pid, i + 1)
             await first_of(sets.arrived.wait(), stop.wait())

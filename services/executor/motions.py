@@ -18,11 +18,11 @@ from common.trajectory.task import PathPlan
 from common.trajectory.validate import check_trajectory
 from services.executor.backends import Backend
 from services.executor.figures import CurveFigures
-from services.executor.kit import Kit
-from services.executor.pathrun import PathRun
+from services.executor.kit import Kit, Safety
+from services.executor.playback import PathRun
 from services.executor.reaction import Reactions
 from services.executor.servo import MotionResult, Servo
-from services.executor.supervisor import Supervisor
+from services.executor.settings import Settings
 
 RATE_HZ = 500.0
 
@@ -33,14 +33,15 @@ class Motions:
     def __init__(
         self,
         kit: Kit,
-        safety: Supervisor,
+        settings: Settings,
+        safety: Safety,
         backend: Backend,
         servo: Servo,
         reactions: Reactions,
         figures: CurveFigures,
         limits: JointLimits,
     ) -> None:
-        self.kit, self.safety, self.backend, self.servo = kit, safety, backend, servo
+        self.kit, self.settings, self.safety, self.backend, self.servo = kit, settings, safety, backend, servo
         self.reactions, self.figures, self.limits = reactions, figures, limits
         self.carried = Ramp.hold(0.0, 0.0, 1.0)  # the σ-state the last motion ended with
 
@@ -57,7 +58,7 @@ class Motions:
         on from after a stop: ``where``) before the path runs."""
         q = self.backend.actual_q()
         off = float(np.max(np.abs(q - q_start)))
-        s = self.kit.settings
+        s = self.settings
         if off <= s.start_tolerance_rad:
             return True
         if s.start_policy == "refuse":
@@ -111,11 +112,12 @@ class Motions:
         run = PathRun(own, curve, figures, k, start, self.backend.target, self.limits, self.kit.speed,
                       self.reactions.arm)  # fmt: skip
         self.reactions.running(run)
-        settle = round(self.kit.settings.settle_s * RATE_HZ)
+        settle = round(self.settings.settle_s * RATE_HZ)
         counters = self.kit.counters
         try:
-            result: MotionResult = await run.play(self.servo, settle)
+            result: MotionResult = await asyncio.wrap_future(self.servo.run(run.playback, settle))
         finally:
+            run.ended.set()
             self.reactions.ended(run)
             counters["ramps"] += run.ramps
             counters["ramps_refused"] += run.ramps_refused

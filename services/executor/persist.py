@@ -22,6 +22,8 @@ FILE = "executor_state.json"
 
 
 class AppliedSelection(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """A selection as the record keeps it: enough to go on at it after a restart, and how old it is."""
+
     k: SolutionIndex
     n: SolutionIndex
     seq: NonNegInt
@@ -40,6 +42,8 @@ class AppliedSelection(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
 
 class ExecutorRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """What a restart must know of the last run, as it is on disk."""
+
     selection: AppliedSelection | None = None
     cycle_in_progress: NonNegInt | None = None
     received: AppliedSelection | None = None  # the newest selection received (``applied_ns``: when)
@@ -54,6 +58,8 @@ class ExecutorRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
 
 class ExecutorStore:
+    """Owns the record's file: one read-change-write at a time, each written whole (atomically)."""
+
     def __init__(self, folder: Path) -> None:
         self.path = folder / FILE
         self.record = ExecutorRecord()

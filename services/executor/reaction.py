@@ -1,9 +1,9 @@
 """Speed and separation monitoring in the executor (DESIGN §8; common/safety/separation.py): every source's
 distance on ``operator/separation``, the nearest fresh one winning, and the time scale σ it allows for the
 path in progress, looked at every ``scale_period_s`` (the node's timer) and handed to the path's owner
-(services/executor/pathrun.py) as a ramp. Between paths the scale a path would start at is kept, and the
-zone the arm is in (full speed, reduced, held, unknown) is said when it changes, at most once a second per
-zone, with the changes folded in between counted.
+(``PathRun``, services/executor/playback.py) as a ramp. Between paths the scale a path would start at is
+kept, and the zone the arm is in (full speed, reduced, held, unknown) is said when it changes, at most once
+a second per zone, with the changes folded in between counted.
 """
 
 from __future__ import annotations
@@ -22,11 +22,9 @@ from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
 from common.trajectory.scaling import Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
-from services.executor.kit import Kit
-from services.executor.pathrun import PathRun
-from services.executor.playback import SIGMA_EPS
-from services.executor.settings import RAMP_LEAD_S
-from services.executor.supervisor import Supervisor
+from services.executor.kit import Kit, Safety
+from services.executor.playback import RAMP_LEAD_S, SIGMA_EPS, PathRun
+from services.executor.settings import Settings
 
 log = logging.getLogger("cadence.executor")
 RAISE_BY = 0.1  # a higher σ is taken only when it is this much higher (or 1): no ramp per centimetre
@@ -61,12 +59,11 @@ class Reactions:
     said. The figures of the curves it scales are figures.py's."""
 
     def __init__(
-        self, kit: Kit, safety: Supervisor, limits: JointLimits, joints: Callable[[], np.ndarray]
+        self, kit: Kit, s: Settings, safety: Safety, limits: JointLimits, joints: Callable[[], np.ndarray]
     ) -> None:
         """``joints``: the arm's joints now (the backend's), where a reading's points are measured to."""
         self.kit, self.safety, self.limits, self.joints = kit, safety, limits, joints
-        s = kit.settings
-        self.settings, self.clock, self.on = s, kit.clock, s.separation
+        self.clock, self.on = kit.clock, s.separation
         self.reaction_parts = s.reaction_parts(kit.clock_skew_s)
         # C is each source's own: a reading is kept as S − C, the room a person has before S_p's other terms
         self.ssm = Ssm(s.human_speed_m_s, sum(self.reaction_parts.values()), s.stop_time_s, 0.0,

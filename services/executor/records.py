@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from collections.abc import AsyncIterator, Callable
 from functools import partial
 
@@ -15,9 +16,10 @@ from common.runtime.clock import pause
 from common.runtime.service import first_of
 from common.safety.states import Event, State
 from schemas.decision import Selection
-from services.executor.kit import Kit
+from services.executor.kit import Kit, Safety
 from services.executor.persist import ExecutorStore
-from services.executor.supervisor import Supervisor
+
+log = logging.getLogger("cadence.executor")
 
 RETRY_S = 2.0  # a refused write is tried again this often (loop seconds) while it holds the arm
 
@@ -26,13 +28,11 @@ class Records:
     """Owns the executor's record on disk and every write of it: the writes in the background, the hold of
     the arm while the disk refuses, and the status's word on it."""
 
-    def __init__(self, kit: Kit, store: ExecutorStore, safety: Supervisor) -> None:
+    def __init__(self, kit: Kit, store: ExecutorStore, safety: Safety) -> None:
         self.kit, self.store, self.safety = kit, store, safety
         self.say = kit.note("disk")
         self.unwritten: str | None = None  # what could not be written (a full disk), while it cannot
         self.held_unwritten = False  # the arm held for it: said once, apart from the first refusal
-        self.writes: set[asyncio.Task[bool]] = set()  # records written in the background
-        safety.on_latch = self.latch
 
     def received(self, sel: Selection) -> None:
         """A selection decided, kept in the background (a restart goes on at the newest k decided)."""
@@ -43,9 +43,12 @@ class Records:
         self.in_background(partial(self.store.latch, why))
 
     def in_background(self, write: Callable[[], None]) -> None:
-        task = asyncio.create_task(self.keep(write, hold=False))
-        self.writes.add(task)
-        task.add_done_callback(self.writes.discard)
+        """In the node's task group; where the node no longer runs (a stop latched as it ends), now."""
+        if self.kit.start_soon(self.keep(write, hold=False), "a record") is None:
+            try:
+                write()
+            except OSError as exc:
+                log.error("cannot write %s: %s", self.store.path, exc.strerror or exc)
 
     async def applied(self, sel: Selection, hold: bool = True) -> bool:
         """The selection a path runs at, before it runs (``hold``; a switch within a moving path does not)."""

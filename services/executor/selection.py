@@ -7,6 +7,7 @@ the decision maker cannot be reached, ``start_selection`` says what stands in fo
 from __future__ import annotations
 
 import asyncio
+import logging
 
 import numpy as np
 
@@ -16,12 +17,14 @@ from common.runtime.node import Rejected
 from common.safety.states import Event
 from schemas.decision import Selection
 from schemas.topology import SELECTION
-from services.executor.kit import Kit
-from services.executor.pathrun import PathRun
+from services.executor.kit import Kit, Safety
+from services.executor.playback import PathRun
 from services.executor.reaction import Reactions
 from services.executor.records import Records
 from services.executor.sets import SetCache
-from services.executor.supervisor import Supervisor
+from services.executor.settings import Settings
+
+log = logging.getLogger("cadence.executor")
 
 
 class SelectionInForce:
@@ -29,14 +32,21 @@ class SelectionInForce:
     at or ran last (``k``), and the switch to a new k within a running path."""
 
     def __init__(
-        self, kit: Kit, bus: Bus, safety: Supervisor, records: Records, sets: SetCache, reactions: Reactions
+        self,
+        kit: Kit,
+        settings: Settings,
+        bus: Bus,
+        safety: Safety,
+        records: Records,
+        sets: SetCache,
+        reactions: Reactions,
     ) -> None:
-        self.kit, self.bus, self.safety, self.records = kit, bus, safety, records
+        self.kit, self.settings, self.bus, self.safety, self.records = kit, settings, bus, safety, records
         self.sets, self.reactions = sets, reactions
         self.selection: Selection | None = None
         self.changed = asyncio.Event()
         self.k: int | None = None
-        self.switching: asyncio.Task[None] | None = None
+        self.switching: asyncio.Task[None] | None = None  # in the node's task group (Kit.start_soon)
 
     def select(self, sel: Selection) -> None:
         """A selection is a sequence (DESIGN §8): one that is no newer than the newest applied, by its seq
@@ -56,8 +66,8 @@ class SelectionInForce:
         self.records.received(sel)
         self.safety.fire(Event.SELECTION)
         run = self.reactions.run
-        if run is not None and self.kit.settings.switch_within_path and self.switching is None:
-            self.switching = asyncio.create_task(self.switch_within(run))
+        if run is not None and self.settings.switch_within_path and self.switching is None:
+            self.switching = self.kit.start_soon(self.switch_within(run), "a switch within a path")
 
     def running_at(self, k: int) -> None:
         """The arm runs (or ran last) at ``k``: what robot/state says."""
@@ -65,8 +75,8 @@ class SelectionInForce:
 
     async def switch_within(self, run: PathRun) -> None:
         """A new selection during a path: the rest of it at the new k, when that can join within the
-        limits and at the scale the person's distance allows on it (services/executor/pathrun.py);
-        otherwise, as ever, from the next path start."""
+        limits and at the scale the person's distance allows on it (``PathRun``,
+        services/executor/playback.py); otherwise, as ever, from the next path start."""
         try:
             s = self.sets.sets.get(run.path.id)
             n = len(s.solutions) if s is not None else 0
@@ -78,7 +88,7 @@ class SelectionInForce:
                 k, sel, k_was = wanted(), self.selection, run.k
                 if k == run.k:
                     return
-                lead = self.kit.settings.switch_lead_s
+                lead = self.settings.switch_lead_s
                 took, why = await run.switch(k, np.array(s.solutions[k - 1].h), wanted, lead,
                                              self.reactions.allowed)  # fmt: skip
                 if not took:
@@ -91,12 +101,16 @@ class SelectionInForce:
                 self.safety.event("switch", text, run.path.id)
                 self.k = k
                 await self.records.applied(sel, hold=False)  # the arm is moving
+        except Exception as e:  # the path runs on at its k: the switch's failure is said, not the node's
+            log.exception("a switch within '%s' failed", run.path.id)
+            why = f"the switch within the path failed ({e!r}): the new k from the next path"
+            self.safety.event("info", why, run.path.id)
         finally:
             self.switching = None
 
     async def ask(self) -> bool:
         """Selections are state: ask for the current one at start (DESIGN §11). True when one came."""
-        for r in await self.bus.get(SELECTION, timeout=self.kit.settings.query_timeout_s):
+        for r in await self.bus.get(SELECTION, timeout=self.settings.query_timeout_s):
             if r.message is not None:
                 try:
                     self.select(r.message)
@@ -113,7 +127,7 @@ class SelectionInForce:
             assert self.selection is not None
             self.safety.event("info", f"selection from the decision maker: k = {self.selection.k}")
             return
-        settings = self.kit.settings
+        settings = self.settings
         policy = settings.start_selection or ("wait" if settings.backend == "ur_rtde" else "last")
         last = self.records.store.record.newest
         max_age = settings.last_selection_max_age_s

@@ -65,6 +65,8 @@ Outcome = Literal["done", "stopped", "fault", "overruns"]
 
 @dataclass(frozen=True, slots=True)
 class MotionResult:
+    """How one motion on the loop ended, and what it cost in samples, ticks and missed deadlines."""
+
     outcome: Outcome
     samples_sent: int
     ticks: int
@@ -130,6 +132,9 @@ class _Motion:
 
 
 class ServoLoop:
+    """Owns the 500 Hz thread (on its claimed core, at FIFO priority where granted) and its timing: one
+    motion at a time, handed over through a queue, its result a future."""
+
     def __init__(
         self,
         backend: ServoBackend,

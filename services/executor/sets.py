@@ -116,7 +116,11 @@ class SetCache:
                 self.wanted.clear()
                 await first_of(self.wanted.wait(), stop.wait())
                 continue
-            why = await self.fetch_missing(timeout)
+            try:
+                why = await self.fetch_missing(timeout)
+            except Exception as exc:  # the store's reply or the bus: said, and asked again
+                log.exception("fetching the Pareto sets failed")
+                why = {"all": f"fetching failed ({exc!r})"}
             say(f"waiting for Pareto sets: {', '.join(why)}" if why else "")
             if why:
                 await first_of(pause(2.0), stop.wait())

@@ -12,8 +12,6 @@ from common.runtime.resources import EXAMPLE_TASK
 from common.safety.geometry import NO_TOOL, Arm, Detects, Pose, Sensor, Tool, intrusion_iso13855
 from schemas.decision import MAX_N
 
-RAMP_LEAD_S = 0.022  # a ramp of the scale starts this far ahead of the loop (planning, a step; wall s)
-
 
 def _range(lo: float, hi: float) -> msgspec.Meta:
     return msgspec.Meta(ge=lo, le=hi)
@@ -62,6 +60,8 @@ class SourceSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """The executor's ``[executor]`` settings, checked whole at start: a wrong one is one line, exit 2."""
+
     task: str = str(EXAMPLE_TASK)
     backend: Literal["sim", "ur_rtde"] = "sim"
     host: str = "127.0.0.1"  # ur_rtde: the controller

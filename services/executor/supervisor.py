@@ -21,6 +21,7 @@ from common.safety.states import Event, Motion, State, transition
 from schemas.robot import EventKind, RobotEvent
 from services.executor.backends import Backend, RobotUnavailable
 from services.executor.kit import Kit
+from services.executor.settings import Settings
 
 log = logging.getLogger("cadence.executor")
 STOPPED_STATES = (State.STOPPED, State.RECOVERING)
@@ -49,8 +50,8 @@ class Supervisor:
     """Owns the safety state: every change, its event and the status's state; a stop's clearing; the
     link to the controller."""
 
-    def __init__(self, kit: Kit, backend: Backend) -> None:
-        self.kit, self.backend, settings = kit, backend, kit.settings
+    def __init__(self, kit: Kit, settings: Settings, backend: Backend) -> None:
+        self.kit, self.backend, self.host = kit, backend, settings.host
         self.motion = Motion()
         self.changed = asyncio.Event()  # set at every change of state
         self.path_id: str | None = None  # the path the arm is on, or ran last: events name it
@@ -60,8 +61,12 @@ class Supervisor:
             else None
         )
         self._last_event: tuple[str, str] | None = None
-        # told of a stop latched (its reason) and of one cleared (None): the cycles keep it on disk
-        self.on_latch: Callable[[str | None], None] = lambda why: None
+        self.on_latch: Callable[[str | None], None] = lambda why: None  # ``latched_to``
+
+    def latched_to(self, keep: Callable[[str | None], None]) -> None:
+        """Tell ``keep`` of every stop latched (its reason) and every one cleared (None): the records keep
+        it on disk, so a restart comes up stopped."""
+        self.on_latch = keep
 
     @property
     def stopped(self) -> bool:
@@ -148,8 +153,7 @@ class Supervisor:
                     await asyncio.to_thread(self.backend.reconnect)
                     self.event(
                         "connected",
-                        f"reconnected to {self.kit.settings.host}; "
-                        "the robot stays stopped until `cadence robot resume`",
+                        f"reconnected to {self.host}; the robot stays stopped until `cadence robot resume`",
                     )
                 except RobotUnavailable as exc:  # right after an e-stop the controller refuses a while
                     wait_s, delay = delay, min(delay * 2, 10.0)

@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 
 @dataclass(frozen=True, slots=True)
 class TickSummary:
+    """The servo loop's timing over a run, as a person reads it in the log at the end."""
+
     period_us: int
     ticks: int
     p50_err_us: float
