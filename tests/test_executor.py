@@ -34,6 +34,7 @@ from services.executor.__main__ import Settings
 from services.executor.__main__ import main as executor_main
 from tests.support.cell import CELL, Cell, InProcessService, put
 from tests.support.executor import SPEED, TASK, cached_sets, next_of, sim_settings, store_serving, tracked
+from tests.support.paths import EXAMPLE_TASK
 
 pytestmark = pytest.mark.asyncio
 
@@ -629,22 +630,57 @@ async def test_a_declared_sensor_falling_silent_holds_the_arm_while_another_stil
     assert "no fresh distance from scanner:back (declared): holding" in said.message
 
 
-async def test_a_figures_computation_still_running_never_holds_the_executors_exit() -> None:
-    """The prefetch of figures runs at nice 19; beside busy loops one computation can take tens of seconds.
-    A pool's worker is joined at the interpreter's exit, so an executor stopped by SIGTERM then could not
-    exit (loaded run 1 of this stop's first commit: 30 s and more). The prefetch's threads are daemons."""
+async def test_figures_found_ahead_come_from_a_process_of_their_own_that_never_holds_the_exit() -> None:
+    """The prefetch finds figures in a process at nice 19 (``Finder``), the same as found in place. As a
+    thread at nice 19 it held the GIL while the scheduler gave it no CPU, and the FIFO servo thread waited
+    for it (a walk-in beside busy loops: ticks 2.3 s late, 36,000 overruns). A computation still running
+    when the executor ends is killed, not waited for: an executor stopped by SIGTERM must exit."""
+    from common.safety.separation import Figures
+    from common.trajectory.approach import approach
+    from common.trajectory.scaling import Curve
+    from services.executor.figures import Finder
+    from services.executor.settings import Settings as ExecutorSettings
+
+    task, arm = load_task(EXAMPLE_TASK), ExecutorSettings().arm()
+    path = next(iter(task.paths.values()))
+    own, h = approach(np.array(path.waypoints[0]), np.array(path.waypoints[-1]), 0.5, 1.0, task.limits, "x")
+    curve = Curve.of(h, own)
+    finder = await asyncio.to_thread(Finder, task.limits, arm)
+    try:
+        assert await asyncio.wait_for(finder.of(curve), 120) == Figures.of(curve, task.limits, arm=arm)
+        child = finder._proc
+        assert child.pid is not None and child.pid != os.getpid()
+        assert os.getpriority(os.PRIO_PROCESS, child.pid) == 19
+    finally:
+        finder.close()
+    await asyncio.to_thread(child.join, 10)
+    assert child.exitcode == -signal.SIGKILL  # killed, not asked
+
     code = (
-        "import asyncio, time\n"
-        "from services.executor.figures import _at_lowest_priority\n"
+        "import asyncio, sys\n"
+        "import numpy as np\n"
+        "from common.trajectory.approach import approach\n"
+        "from common.trajectory.scaling import Curve\n"
+        "from common.trajectory.task import load_task\n"
+        "from services.executor.figures import Finder\n"
+        "from services.executor.settings import Settings\n"
+        "from tests.support.paths import EXAMPLE_TASK\n"
         "async def main():\n"
-        "    work = _at_lowest_priority(lambda: time.sleep(60))\n"
-        "    await asyncio.sleep(0.2)\n"
+        "    task = load_task(EXAMPLE_TASK)\n"
+        "    p = next(iter(task.paths.values()))\n"
+        "    q0, q1 = np.array(p.waypoints[0]), np.array(p.waypoints[-1])\n"
+        "    own, h = approach(q0, q1, 0.001, 1.0, task.limits, 'x')\n"
+        "    finder = await asyncio.to_thread(Finder, task.limits, Settings().arm())\n"
+        "    work = asyncio.ensure_future(finder.of(Curve.of(h, own)))\n"
+        "    await asyncio.wait([work], timeout=1.0)\n"
+        "    print('pending' if not work.done() else 'done', finder._proc.pid, flush=True)\n"
         "    work.cancel()\n"
+        "    finder.close()\n"
         "asyncio.run(main())\n"
         "print('exiting', flush=True)\n"
     )
-    # a joined thread would hold the exit for its 60 s: past this timeout, which fails the test
+    # a computation waited for would hold the exit for its whole length: past this timeout, which fails
     run = [sys.executable, "-c", code]
     r = await asyncio.to_thread(subprocess.run, run, capture_output=True, text=True, timeout=50)
     assert r.returncode == 0, r.stderr
-    assert "exiting" in r.stdout
+    assert "pending" in r.stdout and "exiting" in r.stdout

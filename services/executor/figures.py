@@ -9,11 +9,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import multiprocessing
 import os
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from functools import partial
+from multiprocessing.connection import Connection
+from typing import cast
 
 import numpy as np
 
@@ -30,30 +32,49 @@ log = logging.getLogger("cadence.executor")
 FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found once, some tenths of a s)
 
 
-def _at_lowest_priority(work: Callable[[], object]) -> asyncio.Future[object]:
-    """``work`` in a thread of its own at the least priority the scheduler gives (Linux: a thread's nice
-    value is its own). A daemon: the process's exit never waits for it. A pool's worker is joined at exit,
-    and one at nice 19 beside busy loops took tens of seconds to finish its figures, after SIGTERM."""
-    loop = asyncio.get_running_loop()
-    done: asyncio.Future[object] = loop.create_future()
-
-    def settle(result: object, error: BaseException | None) -> None:
-        if not done.done():
-            done.set_exception(error) if error is not None else done.set_result(result)
-
-    def run() -> None:
-        with contextlib.suppress(OSError, AttributeError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-        result, error = None, None
+def _find(conn: Connection, limits: JointLimits, arm: Arm) -> None:
+    """The finder's process: at the least priority, the figures of each curve it is sent, until the pipe
+    closes (the executor ended, however it ended)."""
+    with contextlib.suppress(OSError):
+        os.nice(19)
+    while True:
         try:
-            result = work()
-        except BaseException as exc:  # handed to the awaiting task, as a pool would
-            error = exc
-        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nobody waits
-            loop.call_soon_threadsafe(settle, result, error)
+            curve = conn.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            conn.send((Figures.of(curve, limits, arm=arm), None))
+        except Exception as exc:  # said to the executor, which finds them again before the path runs
+            conn.send((None, repr(exc)))
 
-    threading.Thread(target=run, name="figures", daemon=True).start()
-    return done
+
+class Finder:
+    """A process of its own that finds curves' figures ahead, at the least priority, one at a time.
+
+    Not a thread: a thread of the executor's at nice 19 held the GIL while the scheduler gave it no CPU,
+    and every other thread of the process waited for it, the FIFO servo thread first (beside busy loops:
+    the servo's ticks up to 0.4-0.8 s late in a bench of the two, 2.3 s in a walk-in test, 36,000 missed
+    deadlines). At nice 0 it took the GIL from the servo every switch interval instead (late ticks up to
+    20 ms). A process shares no GIL. It is killed, never joined, when the executor ends."""
+
+    def __init__(self, limits: JointLimits, arm: Arm) -> None:
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process with a FIFO thread and Zenoh's
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_find, args=(child, limits, arm), name="cadence-figures", daemon=True)
+        self._proc.start()
+        child.close()
+
+    async def of(self, curve: Curve) -> Figures:
+        self._conn.send(curve)
+        found, error = await asyncio.to_thread(self._conn.recv)  # ends at the process's end too (EOF)
+        if error is not None:
+            raise RuntimeError(error)
+        return cast(Figures, found)
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            self._proc.kill()
+        self._conn.close()
 
 
 def _figures_key(path: PathPlan, h: np.ndarray) -> tuple[str, bytes, bytes]:
@@ -84,11 +105,14 @@ class CurveFigures:
                 return known
         found = Figures.of(curve, self.limits, arm=self.arm)
         if keep:
-            with self._lock:
-                self._kept[key] = found
-                while len(self._kept) > FIGURES_KEPT:
-                    self._kept.popitem(last=False)
+            self.keep(path, h, found)
         return found
+
+    def keep(self, path: PathPlan, h: np.ndarray, found: Figures) -> None:
+        with self._lock:
+            self._kept[_figures_key(path, h)] = found
+            while len(self._kept) > FIGURES_KEPT:
+                self._kept.popitem(last=False)
 
     def known(self, path: PathPlan, h: np.ndarray) -> bool:
         with self._lock:
@@ -96,21 +120,25 @@ class CurveFigures:
 
     async def prefetch(self, sets: SetCache, k_now: Callable[[], int], stop: asyncio.Event) -> None:
         """With separation monitoring: the figures of every path at every k, the k in force first, found
-        in a thread of its own at the lowest priority while the arm works, so that a path at a new k does
-        not wait for them (some tenths of a second each), and nothing that must be on time waits for
-        this. Again whenever the sets change."""
+        in a process of its own at the lowest priority (``Finder``) while the arm works, so that a path at
+        a new k does not wait for them (some tenths of a second each), and nothing that must be on time
+        waits for this. Again whenever the sets change."""
         if not self.on:
             return
-        while not stop.is_set():
-            sets.arrived.clear()
-            k = k_now()
-            for pid, s in list(sets.sets.items()):
-                path = sets.task.paths[pid]
-                for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
-                    h = np.array(s.solutions[i].h)
-                    if not self.known(path, h) and not stop.is_set():
-                        try:
-                            await _at_lowest_priority(partial(self.of, path, h, Curve.of(h, path)))
-                        except Exception:  # found again before the path runs, which says why it cannot
-                            log.exception("no figures ahead for '%s' at k = %d", pid, i + 1)
-            await first_of(sets.arrived.wait(), stop.wait())
+        finder = await asyncio.to_thread(Finder, self.limits, self.arm)
+        try:
+            while not stop.is_set():
+                sets.arrived.clear()
+                k = k_now()
+                for pid, s in list(sets.sets.items()):
+                    path = sets.task.paths[pid]
+                    for i in sorted(range(len(s.solutions)), key=lambda i: abs(i + 1 - k)):
+                        h = np.array(s.solutions[i].h)
+                        if not self.known(path, h) and not stop.is_set():
+                            try:
+                                self.keep(path, h, await finder.of(Curve.of(h, path)))
+                            except Exception:  # found again before the path runs, which says why not
+                                log.exception("no figures ahead for '%s' at k = %d", pid, i + 1)
+                await first_of(sets.arrived.wait(), stop.wait())
+        finally:
+            finder.close()
