@@ -65,8 +65,24 @@ class Finder:
         child.close()
 
     async def of(self, curve: Curve) -> Figures:
+        """Its figures, once the finder answers: the pipe watched by the event loop, no thread (a
+        lockstep loop runs a thread's work inline, and would wait for the finder at nice 19). EOFError:
+        the finder ended."""
         self._conn.send(curve)
-        found, error = await asyncio.to_thread(self._conn.recv)  # ends at the process's end too (EOF)
+        loop = asyncio.get_running_loop()
+        readable: asyncio.Future[None] = loop.create_future()
+        fd = self._conn.fileno()
+
+        def ready() -> None:
+            if not readable.done():
+                readable.set_result(None)
+
+        loop.add_reader(fd, ready)
+        try:
+            await readable
+        finally:
+            loop.remove_reader(fd)
+        found, error = self._conn.recv()  # all there: the finder sends each answer whole
         if error is not None:
             raise RuntimeError(error)
         return cast(Figures, found)
@@ -125,7 +141,7 @@ class CurveFigures:
         waits for this. Again whenever the sets change."""
         if not self.on:
             return
-        finder = await asyncio.to_thread(Finder, self.limits, self.arm)
+        finder = Finder(self.limits, self.arm)  # a process's start: a few ms, its imports are its own
         try:
             while not stop.is_set():
                 sets.arrived.clear()
@@ -137,6 +153,9 @@ class CurveFigures:
                         if not self.known(path, h) and not stop.is_set():
                             try:
                                 self.keep(path, h, await finder.of(Curve.of(h, path)))
+                            except (EOFError, OSError) as exc:  # the finder is gone: found in place
+                                log.error("the figures' finder ended (%r): none found ahead", exc)
+                                return
                             except Exception:  # found again before the path runs, which says why not
                                 log.exception("no figures ahead for '%s' at k = %d", pid, i + 1)
                 await first_of(sets.arrived.wait(), stop.wait())
