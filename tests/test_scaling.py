@@ -347,3 +347,27 @@ def test_a_lease_that_runs_out_makes_the_loop_take_the_planned_stop_itself_insid
             assert (finite_difference_ratios(np.array(sent)) <= 1.0 + 1e-6).all()
         pb.renew(clock[0] + 1.0)
         assert not pb.lapsed
+
+
+def test_an_arm_held_at_a_paths_start_is_sent_where_it_stands_until_the_path_advances(
+    planned: tuple[PathPlan, ParetoResult],
+) -> None:
+    """A settled arm is off a path's first point by up to the settle tolerance. Held at σ = 0 before the
+    path's first step (a person near), it is sent where it stands: pulled onto that point it crept at some
+    mm/s beside the person holding it (loaded run 11 of 55add05). Once the scale frees it, the curve, and
+    never where it stood again; at σ > 0 from the start, the curve from the first step."""
+    path, result = planned
+    curve = Curve.of(result.solutions[0].h, path)
+    start = curve.at(np.array([0.0]), order=0)[0, 0]
+    here = start + 2e-4
+    pb = Playback(curve, Ramp.hold(0.0, 0.0, 0.0), lambda q: q.copy(), hold=here)
+    assert all(np.array_equal(pb.next(), here) for _ in range(50))
+    ramp = plan_ramp(curve, pb.now.ramp, pb.t + 0.01, 1.0, LIMITS, [])
+    assert ramp is not None and pb.offer(ramp, None, pb.now)
+    after = [pb.next() for _ in range(300)]
+    first = next(i for i, q in enumerate(after) if not np.array_equal(q, here))
+    assert first > 0 and all(not np.array_equal(q, here) for q in after[first:])
+    assert pb.s > 0
+    np.testing.assert_allclose(after[-1], curve.at(np.array([pb.s]), order=0)[0, 0])
+    free = Playback(curve, Ramp.hold(0.0, 0.0, 1.0), lambda q: q.copy(), hold=here)
+    np.testing.assert_array_equal(free.next(), start)

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -34,7 +35,9 @@ FIGURES_KEPT = 256  # curves whose figures are remembered (a path at a k: found 
 
 def _find(conn: Connection, limits: JointLimits, arm: Arm) -> None:
     """The finder's process: at the least priority, the figures of each curve it is sent, until the pipe
-    closes (the executor ended, however it ended)."""
+    closes (the executor ended, however it ended). A Ctrl-C at the terminal reaches the whole process
+    group: the executor decides what it means, and the finder ends with it (no traceback of its own)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.nice(19)
     while True:

@@ -109,8 +109,9 @@ class Motions:
         # converted to the form servo takes (backend.target), touching nothing
         self.backend.prepare(own.waypoints[:1])
         start = start or self.reactions.start_ramp(own, self.carried, figures)
+        here = self.backend.target(self.backend.actual_q())  # held there until the path advances
         run = PathRun(own, curve, figures, k, start, self.backend.target, self.limits, self.kit.speed,
-                      self.reactions.arm)  # fmt: skip
+                      self.reactions.arm, here)  # fmt: skip
         self.reactions.running(run)
         settle = round(self.settings.settle_s * RATE_HZ)
         counters = self.kit.counters

@@ -134,10 +134,16 @@ class Playback:
         convert: Callable[[Array], object],
         notify: Callable[[], None] = _nothing,
         clock: Callable[[], float] = wall_monotonic,
+        hold: object | None = None,
     ) -> None:
         """``clock``: the owner's loop's (``loop.time``: the wall's monotonic clock, or a lockstep cell's
-        data time), read from the loop's thread once a step while a lease is held."""
+        data time), read from the loop's thread once a step while a lease is held. ``hold``: where the arm
+        stands as the motion begins (in the form servo takes), sent instead of the curve's first point
+        while the path has not advanced at σ = 0: a settled arm is off that point by up to the settle
+        tolerance, and pulling it there crept it at some mm/s beside a person who held it (loaded run 11
+        of 55add05, issue 53)."""
         self.now = InForce(ramp, curve)
+        self._hold, self._s0 = hold, float(ramp.at(0.0)[0])
         self.convert, self.notify, self.clock = convert, notify, clock
         self.tick = 0
         self.s = 0.0
@@ -263,6 +269,10 @@ class Playback:
             return None
         self.tick += 1
         self.s, self.sigma = s, sigma
+        if self._hold is not None:
+            if sigma <= SIGMA_EPS and s <= self._s0:  # held before the path's first step: still
+                return self._hold
+            self._hold = None
         return self.convert(self._point(s))
 
     def _point(self, s: float) -> Array:
@@ -313,9 +323,11 @@ class PathRun:
         limits: JointLimits,
         speed: float = 1.0,
         arm: Arm = BARE,
+        hold: object | None = None,
     ) -> None:
         """``speed``: playback seconds per wall second (the clock's speed), for leads given in wall time;
-        ``arm``: the robot and its tool, whose fastest point a switched curve's figures take."""
+        ``arm``: the robot and its tool, whose fastest point a switched curve's figures take; ``hold``:
+        where the arm stands, held there until the path advances (``Playback``)."""
         self.path, self.k, self.figures, self.limits, self.speed = path, k, figures, limits, speed
         self.arm = arm
         self.pending_figures: Figures | None = None  # of a switched curve not yet taken
@@ -327,7 +339,7 @@ class PathRun:
             with contextlib.suppress(RuntimeError):  # a loop already closed: nobody waits
                 loop.call_soon_threadsafe(self.changed.set)
 
-        self.playback = Playback(curve, start, convert, notify, loop.time)
+        self.playback = Playback(curve, start, convert, notify, loop.time, hold)
         self.lock = asyncio.Lock()
         self.ramps = self.ramps_refused = 0
         self.switched_at = 0.0  # the path time of the last switch taken
