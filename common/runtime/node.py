@@ -129,14 +129,11 @@ class Node:
         """Work beside ``work``, in the node's own task group: cancelled when the service ends, and its
         failure the service's, as a handler's is not (a helper says its own errors first). None, the work
         dropped, when the node does not run (its setup, its end): the caller then does without."""
-        group = self._group
-        try:
-            if group is None:
-                raise RuntimeError("not running")
-            return group.create_task(work, name=name)
-        except RuntimeError:  # not yet running, or the group already shutting down
-            work.close()
-            return None
+        if self._group is not None:
+            with contextlib.suppress(RuntimeError):  # the group already shutting down (the service ends)
+                return self._group.create_task(work, name=name)
+        work.close()
+        return None
 
     async def until_read(self, topic: Topic[Any], timeout_s: float) -> None:
         """Until a reader of one of the node's outputs is there (Zenoh drops a put nobody subscribes to
@@ -316,7 +313,6 @@ async def serve_node(node: Node) -> None:
             work = group.create_task(working(), name="work")
             group.create_task(stopping(work), name="stop")
             await ended.wait()
-            node._group = None  # what starts now would not run: its caller does without
             raise _Ended
     except BaseExceptionGroup as group_error:
         failures = [e for e in group_error.exceptions if not isinstance(e, _Ended)]
