@@ -70,13 +70,13 @@ from schemas.topology import (
 )
 from services.decision_maker import STATE_FILE
 from services.executor.persist import ExecutorStore
-from services.registry import launch_order
+from services.registry import EXECUTOR, PLANNER, Need, cell, launch_order
 
 STARTUP_TIMEOUT_S = 300.0  # wall time for every service to say it is up
 DEMO_TOLERANCE = 0.7  # the twin's (common/sim/twin.py: 0.8 by default)
 # from the registry and its graph: readers before writers, answerers before askers; the twin sends the
 # ECG, no gateway runs
-ORDER = tuple(s.name for s in launch_order() if s.name != "ecg_gateway")
+ORDER = tuple(s.name for s in launch_order() if s in cell(twin=True))
 RESTART_DELAY_S = 0.5
 STOP_TIMEOUT_S = 15.0
 
@@ -267,29 +267,30 @@ def service_env(name: str, opts: DemoOptions, endpoint: str, data: Path, epoch_n
 
 def demo_settings(opts: DemoOptions) -> dict[str, dict[str, str]]:
     """Each service's settings in the demo beyond its built-in defaults, as a deployment config's
-    ``[service]`` tables would hold them (values in TOML; a bare word is a string)."""
-    task = str(opts.task)
-    return {
-        "pareto_store": {"task": task},
-        "decision_maker": {"rr_rest_s": repr(TwinParams().rr_rest_s), "decide": opts.decide},
+    ``[service]`` tables would hold them (values in TOML; a bare word is a string): what it needs of the
+    cell (services/registry.py), given as the demo's cell has it."""
+    twin = twin_table(opts)
+    given: dict[Need, dict[str, str]] = {
+        "task": {"task": str(opts.task)},
+        "resting_rr": {"rr_rest_s": repr(TwinParams().rr_rest_s)},
+        "decide": {"decide": opts.decide},
         # a co-worker less tolerant than the twin's default: the example task's waits for the operator
         # (B2 clear, the parts) leave the arm idle part of each cycle, and the demo should show Alg. 1 at
         # work, stress first and relief after, within its first minutes
-        "operator_twin": {"twin": inline_toml(twin_table(opts))},
-        "executor": {
-            "task": task,
-            "backend": "sim",
-            "start_selection": "last",
-            # the twin walks into the shared area now and then: speed and separation monitoring, unless
-            # the twin is told to publish no distance (then nothing would free the arm)
-            "separation": "true" if twin_table(opts).get("separation", True) else "false",
-            # the twin is the cell's one source: a tracker that sees the body and measures to the arm
+        "twin": {"twin": inline_toml(twin)},
+        "strap": {},  # no strap: the twin is the cell's ECG source
+        # no person stands at a pendant: a stop (the sim's watchdog on a loaded host) resumes by itself,
+        # said in the events, rather than ending the demo's cycles until `cadence robot resume`
+        "robot": {"backend": "sim", "start_selection": "last", "resume_policy": "auto"},
+        # the twin walks into the shared area now and then: speed and separation monitoring, unless the
+        # twin is told to publish no distance (then nothing would free the arm); the twin is the cell's
+        # one source: a tracker that sees the body and measures to the arm
+        "separation": {
+            "separation": "true" if twin.get("separation", True) else "false",
             "separation_sources": TWIN_SOURCE,
-            # no person stands at a pendant: a stop (the sim's watchdog on a loaded host) resumes by itself,
-            # said in the events, rather than ending the demo's cycles until `cadence robot resume`
-            "resume_policy": "auto",
         },
     }
+    return {s.name: {k: v for need in s.needs for k, v in given[need].items()} for s in cell(twin=True)}
 
 
 def live_view(obs: Observed, opts: DemoOptions, now_s: float, procs: dict[str, Supervised]) -> Group:
@@ -323,7 +324,7 @@ def fresh_start(data: Path) -> None:
     mid-path (a real executor's restart keeps both as a stop: services/executor/persist.py)."""
     for stale in (STATE_FILE, CALIBRATION_FILE):
         (data / stale).unlink(missing_ok=True)
-    executor = ExecutorStore(data / "executor")
+    executor = ExecutorStore(data / EXECUTOR.name)
     executor.load()
     executor.forget_stop()  # an unchanged record is not written
 
@@ -365,7 +366,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
         )
         try:
             # 1. the store first: it plans what it lacks, before the operator's clock starts
-            health = aiter(bus.subscribe(HEALTH.at("pareto_store"), maxsize=1))
+            health = aiter(bus.subscribe(HEALTH.at(PLANNER.name), maxsize=1))
             with console.status("planning the task's Pareto sets (once; they are stored) …") as status:
 
                 def on_progress(pr: PlanProgress) -> None:
@@ -374,7 +375,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     )
 
                 bus.handle(PLAN_PROGRESS, _call(on_progress))
-                start("pareto_store", obs.epoch_ns)
+                start(PLANNER.name, obs.epoch_ns)
                 async with asyncio.timeout(600):
                     while (await anext(health))[1].state != "serving":
                         pass
@@ -396,7 +397,7 @@ async def run_demo(opts: DemoOptions, console: Console) -> dict:
                     all_up.set()
 
             bus.handle(HEALTH, _call(on_status))
-            for name in (n for n in ORDER if n != "pareto_store"):
+            for name in (n for n in ORDER if n != PLANNER.name):
                 start(name, epoch_ns)
             # the run's duration counts from when every service is up: on a slow or loaded machine their start
             # (imports, sessions) can take longer than a short run, which would then end before it began
@@ -458,7 +459,7 @@ def watch(bus: Bus, obs: Observed) -> None:
         ROBOT_EVENT,
         obs.watch(
             bus.key(ROBOT_EVENT.suffix),
-            lambda e: obs.on_event("executor", e.kind, e.message, e.t_ns, (e.from_state, e.to_state)),
+            lambda e: obs.on_event(EXECUTOR.name, e.kind, e.message, e.t_ns, (e.from_state, e.to_state)),
         ),
     )
 

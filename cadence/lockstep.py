@@ -45,7 +45,7 @@ from common.runtime.memory import MemoryNetwork
 from common.runtime.service import serve
 from schemas.health import ServiceStatus
 from schemas.topology import DEFAULT_CELL, HEALTH
-from services.registry import BY_NAME
+from services.registry import BY_NAME, PLANNER
 
 TICK_S = 1.0  # data time between two looks at the services and the live view
 
@@ -91,13 +91,13 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
         services[name] = asyncio.ensure_future(served)
 
     async with network.bus(DEFAULT_CELL, "demo") as bus:  # no router: nobody joins a lockstep cell
-        health = bus.subscribe(HEALTH.at("pareto_store"), maxsize=1)
+        health = bus.subscribe(HEALTH.at(PLANNER.name), maxsize=1)
         try:
             with console.status("planning the task's Pareto sets (once; they are stored) …"):
-                start("pareto_store")  # it plans what it lacks before the others start, as in the demo
+                start(PLANNER.name)  # it plans what it lacks before the others start, as in the demo
                 while (await health.receive(3600.0))[1].state != "serving":
-                    if services["pareto_store"].done():
-                        services["pareto_store"].result()
+                    if services[PLANNER.name].done():
+                        services[PLANNER.name].result()
         except asyncio.CancelledError:  # Ctrl-C while planning: no data time ran
             taking_the_interrupt(console)
             stop.set()
@@ -113,7 +113,7 @@ async def _run(opts: DemoOptions, console: Console, data: Path) -> dict[str, Any
         began = loop.time()
         obs.epoch_ns = epoch_ns + round(began * 1e9)
         for name in ORDER:
-            if name != "pareto_store":
+            if name != PLANNER.name:
                 start(name)
         cut_short_s = await _until_done(opts, console, obs, services, began)
         sets = await served_sets(bus, {p for c in obs.cycles for p in c.k_per_path}, timeout=5.0)

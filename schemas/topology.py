@@ -15,6 +15,7 @@ Everything else is derived from this table, so nothing can disagree with it:
 from __future__ import annotations
 
 import functools
+from collections.abc import Collection
 from dataclasses import dataclass, replace
 from typing import Any, Generic, Literal, TypeVar
 
@@ -234,6 +235,14 @@ TOPICS: tuple[Topic[Any], ...] = (
 )
 # a cell runs one of them: the gateway (a strap, a replay) or the operator twin
 ECG_SOURCES = tuple(p for p in ECG_SAMPLES.publishers if p in SERVICES)
+
+
+def cell_roster(alive: Collection[str]) -> list[str]:
+    """The services a cell runs, as a view of it names them: one ECG source for the cell, the one that is
+    ``alive`` (or ``ecg_gateway or operator_twin`` while neither is), and every other service."""
+    source = next((s for s in ECG_SOURCES if s in alive), " or ".join(ECG_SOURCES))
+    return list(dict.fromkeys(source if s in ECG_SOURCES else s for s in SERVICES))
+
 
 # Every message type, as one tagged union: what a reader of unknown keys accepts.
 AnyMessage = (

@@ -14,8 +14,9 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
+from schemas.topology import ECG_SOURCES
 from schemas.topology import SERVICES as GRAPH_SERVICES
 from schemas.topology import launch_order as graph_launch_order
 
@@ -23,6 +24,10 @@ if TYPE_CHECKING:
     from common.runtime.node import Node
 
 NETWORK = "AF_UNIX AF_INET AF_INET6 AF_NETLINK"  # Zenoh's sockets, and the interfaces it lists
+# What a cell is set up with that a service's settings take (cadence install and the demo fill them in):
+# the task program, the robot, the strap, the simulated person, the resting RR where no calibration is,
+# the decision's mode, the separation sources
+Need = Literal["task", "robot", "strap", "twin", "resting_rr", "decide", "separation"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,6 +40,10 @@ class Service:
     families: str = NETWORK  # ``RestrictAddressFamilies=``
     families_why: str = ""  # a comment above a family that is not obvious
     unit: bool = True  # it runs under systemd on a cell (the UR emulator stands in for a robot: no unit)
+    needs: tuple[Need, ...] = ()  # what of the cell's set-up its settings take
+    # an ECG source: a cell runs one, the gateway ("strap": a Polar H10 or a replay) or the twin ("twin")
+    ecg: Literal["", "strap", "twin"] = ""
+    plans_first: bool = False  # it plans what the cell lacks before the cell's clock starts (the store)
 
     @property
     def module_name(self) -> str:
@@ -55,21 +64,41 @@ class Service:
         return self.module().run(argv)
 
 
-SERVICES: tuple[Service, ...] = (
-    Service("ecg_gateway", "EcgGateway", "Cadence ECG gateway (a Polar H10 over BLE, or a replay)",
-            families_why="# BLE goes through BlueZ on the system D-Bus (AF_UNIX)"),
-    Service("operator_twin", "OperatorTwin",
-            "Cadence operator twin (the simulated co-worker: the ECG of a cell without a strap)",
-            families="AF_UNIX AF_INET AF_INET6"),
-    Service("hrv_analyser", "HrvAnalyser", "Cadence HRV analyser (R peaks, cleaned RR, mean RR windows)"),
-    Service("decision_maker", "DecisionMaker", "Cadence decision maker (paper Alg. 1)"),
-    Service("pareto_store", "ParetoStore", "Cadence Pareto store (NSGA-II planning, SQLite)"),
-    Service(
-        "executor",
-        "Executor",
-        "Cadence executor (500 Hz servo loop; the only service that moves the robot)",
-        realtime=True,
-        unit_extra="""\
+GATEWAY = Service(
+    "ecg_gateway",
+    "EcgGateway",
+    "Cadence ECG gateway (a Polar H10 over BLE, or a replay)",
+    families_why="# BLE goes through BlueZ on the system D-Bus (AF_UNIX)",
+    needs=("strap",),
+    ecg="strap",
+)
+TWIN = Service(
+    "operator_twin",
+    "OperatorTwin",
+    "Cadence operator twin (the simulated co-worker: the ECG of a cell without a strap)",
+    families="AF_UNIX AF_INET AF_INET6",
+    needs=("twin",),
+    ecg="twin",
+)
+ANALYSER = Service(
+    "hrv_analyser", "HrvAnalyser", "Cadence HRV analyser (R peaks, cleaned RR, mean RR windows)"
+)
+DECIDER = Service(
+    "decision_maker", "DecisionMaker", "Cadence decision maker (paper Alg. 1)", needs=("resting_rr", "decide")
+)
+STORE = Service(
+    "pareto_store",
+    "ParetoStore",
+    "Cadence Pareto store (NSGA-II planning, SQLite)",
+    needs=("task",),
+    plans_first=True,
+)
+EXECUTOR = Service(
+    "executor",
+    "Executor",
+    "Cadence executor (500 Hz servo loop; the only service that moves the robot)",
+    realtime=True,
+    unit_extra="""\
 # Real time, for the servo thread only (DESIGN §11): the unit grants the right, the thread raises itself
 # with sched_setscheduler; CPUSchedulingPolicy=fifo would make Zenoh's threads FIFO too. Every core but
 # core 0 (which takes most interrupts); on any machine with 2 or more cores. The servo thread claims the
@@ -81,10 +110,12 @@ RuntimeDirectoryPreserve=yes
 LimitRTPRIO=90
 LimitMEMLOCK=infinity
 """,
-    ),
-    Service("ur_emulator", "", "Cadence UR controller emulator (RTDE and dashboard: a robot for a cell)",
-            unit=False),
-)  # fmt: skip
+    needs=("task", "robot", "separation"),
+)
+UR_EMULATOR = Service(
+    "ur_emulator", "", "Cadence UR controller emulator (RTDE and dashboard: a robot for a cell)", unit=False
+)
+SERVICES: tuple[Service, ...] = (GATEWAY, TWIN, ANALYSER, DECIDER, STORE, EXECUTOR, UR_EMULATOR)  # fmt: skip
 
 BY_NAME = {s.name: s for s in SERVICES}
 IN_GRAPH = tuple(s for s in SERVICES if s.node)
@@ -92,6 +123,14 @@ IN_GRAPH = tuple(s for s in SERVICES if s.node)
 if {s.name for s in IN_GRAPH} != set(GRAPH_SERVICES):  # one list: a role without code, or code without one
     differ = sorted({s.name for s in IN_GRAPH} ^ set(GRAPH_SERVICES))
     raise ImportError(f"services/registry.py and the graph's services differ: {differ}")
+if {s.name for s in SERVICES if s.ecg} != set(ECG_SOURCES):  # the graph's publishers of the ECG
+    raise ImportError(f"services/registry.py's ECG sources are not the graph's: {ECG_SOURCES}")
+PLANNER = next(s for s in IN_GRAPH if s.plans_first)
+
+
+def cell(twin: bool) -> tuple[Service, ...]:
+    """The graph's services a cell runs: all but one ECG source (the twin's ECG, or the strap's)."""
+    return tuple(s for s in IN_GRAPH if s.ecg in ("", "twin" if twin else "strap"))
 
 
 def launch_order() -> tuple[Service, ...]:

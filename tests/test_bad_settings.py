@@ -64,11 +64,18 @@ def test_a_bad_value_from_the_environment_names_the_variable(
     assert "republish_s" in err
 
 
-def test_the_known_sections_are_the_services_and_the_common_tables() -> None:
-    from cadence.cli import SERVICES
-    from common.runtime.config import CONFIG_SECTIONS
+def test_the_known_sections_are_the_graphs_services_and_the_common_tables(tmp_path: Path) -> None:
+    """A table no service reads is refused, the UR emulator's too: it takes its options on its command
+    line, and a ``[ur_emulator]`` table would look read while it is not."""
+    from common.runtime.config import ConfigError, read_config
+    from services.registry import IN_GRAPH, UR_EMULATOR
 
-    assert set(CONFIG_SECTIONS) == {"cadence", "bus", *SERVICES}
+    cfg = tmp_path / "cadence.toml"
+    cfg.write_text("".join(f"[{s.name}]\n" for s in IN_GRAPH) + "[cadence]\n[bus]\n")
+    assert set(read_config(str(cfg))) == {"cadence", "bus", *(s.name for s in IN_GRAPH)}
+    cfg.write_text(f"[{UR_EMULATOR.name}]\nhost = '127.0.0.2'\n")
+    with pytest.raises(ConfigError, match=r"\[ur_emulator\]: unknown section"):
+        read_config(str(cfg))
 
 
 BAD_TASKS = [

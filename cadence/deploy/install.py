@@ -38,8 +38,9 @@ from cadence.deploy.plant import PlantForCell, load_for_cell
 from common.runtime.errors import InputError
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
 from schemas.topology import DEFAULT_CELL, ROLES, SERVICES
+from services import registry
 from services.executor.settings import SourceSettings
-from services.registry import BY_NAME, unit
+from services.registry import BY_NAME, Service, unit
 
 USER = "cadence"
 ETC = Path("/etc/cadence")
@@ -55,10 +56,10 @@ TOOLS = tuple(r.name for r in ROLES if r.kind == "tool")  # operator, separation
 
 
 def cell_services(strap: str) -> tuple[str, ...]:
-    """What a whole cell runs on one host: every service and the router, with one ECG source: the
-    operator twin for ``--strap twin``, else the gateway (the strap, or a replay)."""
-    unused = "ecg_gateway" if strap == "twin" else "operator_twin"
-    return tuple(s for s in HOSTS_ALL if s != unused)
+    """What a whole cell runs on one host: its services (one ECG source: the operator twin for ``--strap
+    twin``, else the gateway: the strap, or a replay) and the router."""
+    runs = {s.name for s in registry.cell(twin=strap == "twin")}
+    return (*(s for s in SERVICES if s in runs), "router")
 
 
 def cell_accounts(strap: str) -> tuple[str, ...]:
@@ -172,33 +173,8 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
     """``/etc/cadence/cadence.toml``: the hardware's values set, every other key commented at its default."""
     from common.runtime.bus import BusConfig
     from common.runtime.config import CommonSettings
-    from services.registry import IN_GRAPH
 
-    sim = opts.robot == "sim"
     twin = opts.strap == "twin"
-    gateway: dict[str, object] = (
-        {"source": "replay"} if opts.strap == "replay" else {"source": "polar", "strap": opts.strap}
-    )
-    task: dict[str, object] = {"task": str(TASKS / EXAMPLE_TASK.name)}
-    executor: dict[str, object] = task | (
-        {"backend": "sim"} if sim else {"backend": "ur_rtde", "host": opts.robot}
-    )
-    if opts.scanners:  # monitoring on, each source required (DESIGN §8)
-        executor |= {"separation": True, "separation_sources": list(opts.scanners)}
-    decision: dict[str, object] = {}
-    if twin:
-        from common.sim.twin import TwinParams
-
-        decision["rr_rest_s"] = TwinParams().rr_rest_s  # the twin's resting RR: no `cadence calibrate`
-    values = {"ecg_gateway": gateway, "decision_maker": decision, "pareto_store": task, "executor": executor}
-    calibrate = "# run `cadence calibrate` once per operator: it writes the calibration this reads"
-    notes = {} if twin else {"decision_maker": calibrate}
-    if not opts.scanners:
-        notes["executor"] = (
-            "# separation monitoring is off: no --scanner was given. To turn it on, declare each source\n"
-            '# (separation_sources = [{ name = "scanner:front", pose = [x, y, z, yaw], detects = "legs" }])\n'
-            "# and set separation = true; it slows the arm, the scanner's own stop is the safety function"
-        )
     head = (
         f"# Cadence, cell {bundle.cell}: written by `cadence install`"
         f" (robot: {opts.robot}; strap: {opts.strap}).\n"
@@ -214,13 +190,46 @@ def config_toml(opts: Options, bundle: Bundle) -> str:
             {"mode": "client"},
             "# each unit sets config_file to its own account (credentials/<service>.json5)",
         ),
-        *(
-            cell.settings_toml(s.name, s.settings(), values.get(s.name, {}), notes.get(s.name, ""))
-            for s in IN_GRAPH
-            if s.name != ("ecg_gateway" if twin else "operator_twin")  # one ECG source a cell
-        ),
+        *(cell.settings_toml(s.name, s.settings(), *installed(s, opts)) for s in registry.cell(twin)),
     ]
     return head + "\n" + "\n".join(sections)
+
+
+CALIBRATE = "# run `cadence calibrate` once per operator: it writes the calibration this reads"
+NO_SCANNER = (
+    "# separation monitoring is off: no --scanner was given. To turn it on, declare each source\n"
+    '# (separation_sources = [{ name = "scanner:front", pose = [x, y, z, yaw], detects = "legs" }])\n'
+    "# and set separation = true; it slows the arm, the scanner's own stop is the safety function"
+)
+
+
+def installed(service: Service, opts: Options) -> tuple[dict[str, object], str]:
+    """A service's settings that the install sets, from what it needs of the cell (services/registry.py),
+    and the note above its section."""
+    values: dict[str, object] = {}
+    notes = []
+    for need in service.needs:
+        if need == "task":
+            values["task"] = str(TASKS / EXAMPLE_TASK.name)
+        elif need == "robot" and opts.robot == "sim":
+            values["backend"] = "sim"
+        elif need == "robot":
+            values |= {"backend": "ur_rtde", "host": opts.robot}
+        elif need == "strap" and opts.strap == "replay":
+            values["source"] = "replay"
+        elif need == "strap":
+            values |= {"source": "polar", "strap": opts.strap}
+        elif need == "resting_rr" and opts.strap == "twin":
+            from common.sim.twin import TwinParams
+
+            values["rr_rest_s"] = TwinParams().rr_rest_s  # the twin's resting RR: no `cadence calibrate`
+        elif need == "resting_rr":
+            notes.append(CALIBRATE)
+        elif need == "separation" and opts.scanners:  # monitoring on, each source required (DESIGN §8)
+            values |= {"separation": True, "separation_sources": list(opts.scanners)}
+        elif need == "separation":
+            notes.append(NO_SCANNER)
+    return values, "\n".join(notes)
 
 
 def _connect(opts: Options, bundle: Bundle) -> list[str]:

@@ -30,6 +30,7 @@ from schemas import (
     Selection,
 )
 from schemas.topology import decode_any
+from services.registry import EXECUTOR
 
 
 @dataclass
@@ -91,7 +92,7 @@ def from_demo(folder: Path) -> Run:
         errors=s["errors"],
         error_times_s=s.get("error_times_s", []),
         events=s["events"],
-        sets=load_sets(folder / "data" / "executor"),
+        sets=load_sets(folder / "data" / EXECUTOR.name),
         scale=s.get("scale", []),
     )
 
@@ -177,7 +178,9 @@ def from_mcap(path: Path, sets_folder: Path | None = None) -> Run:
         elif isinstance(m, RobotEvent) and not (
             m.kind == "state" and routine_change(m.from_state, m.to_state)
         ):
-            run.events.append(event_row(t(m.t_ns), "executor", m.kind, m.message, (m.from_state, m.to_state)))
+            run.events.append(
+                event_row(t(m.t_ns), EXECUTOR.name, m.kind, m.message, (m.from_state, m.to_state))
+            )
         elif isinstance(m, ParetoSet):
             run.sets[m.path_id] = m
         elif isinstance(m, RobotState):

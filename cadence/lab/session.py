@@ -52,12 +52,11 @@ from schemas.pareto import ParetoSet
 from schemas.session import SESSION_END_RECORD, SESSION_RECORD, Condition, SessionEnd, SessionInfo, Tlx
 from schemas.topology import (
     DEFAULT_CELL,
-    ECG_SOURCES,
     OPERATOR_ERROR,
     OPERATOR_SIGNAL,
     PARETO_SET,
     ROOT,
-    SERVICES,
+    cell_roster,
     decode_any,
     encode,
 )
@@ -409,9 +408,7 @@ class Watch:
 
     def readiness(self) -> dict[str, str | None]:
         """Each check and what is wrong with it (None: fine)."""
-        missing = [s for s in SERVICES if s not in ECG_SOURCES and s not in self.statuses]
-        if not set(ECG_SOURCES) & set(self.statuses):  # a cell runs one ECG source, whichever
-            missing.append(" or ".join(ECG_SOURCES))
+        missing = [s for s in cell_roster(self.statuses) if s not in self.statuses]
         robot, w = self.robot, self.window
         return {
             "bus": self.isolation,

@@ -29,6 +29,7 @@ from schemas.decision import Reason
 from schemas.operator import ErrorKind
 from schemas.session import Condition, SessionEnd, SessionInfo
 from schemas.topology import HRV_WINDOW, OPERATOR_ERROR, ROBOT_CYCLE, SELECTION, validated
+from services.registry import EXECUTOR
 
 OBSERVE_HZ = 20.0  # how often the operator "sees" the robot's joint velocities
 WINDOW_S = 30.0
@@ -213,7 +214,7 @@ def simulate(
                 handling = op.handling_time()
                 if s.deadline is not None and handling > s.deadline:  # the executor's late error
                     then = "kept waiting" if s.on_late == "wait" else "went on without it"
-                    error(t + s.deadline, "late", "executor", f"'{s.wait_for}' late: {then}")
+                    error(t + s.deadline, "late", EXECUTOR.name, f"'{s.wait_for}' late: {then}")
                     if s.on_late == "go_on":
                         handling = s.deadline
                 idle(handling)

@@ -13,7 +13,7 @@ import msgspec
 from rich.table import Table
 
 from schemas import HrvWindow, RobotState, Selection, ServiceStatus
-from schemas.topology import ECG_SOURCES, SERVICES, decode_any
+from schemas.topology import cell_roster, decode_any
 
 WATCHED = ("health/*", "robot/state", "decision/selection", "hrv/window")  # under cadence/*/
 
@@ -69,9 +69,9 @@ class Plant:
 
 
 def services(c: CellSeen, period_s: float, now: float) -> str:
-    expected = [s for s in SERVICES if s not in ECG_SOURCES] + [" or ".join(ECG_SOURCES)]
     alive = {s for s, (at, _) in c.statuses.items() if now - at < 3 * period_s}
-    up = sum(1 for s in SERVICES if s in alive)
+    expected = cell_roster(alive)
+    up = sum(1 for s in expected if s in alive)
     wrong = [f"{s}: {st.state}" for s, (at, st) in sorted(c.statuses.items())
              if s in alive and st.state != "serving"]  # fmt: skip
     gone = [s for s in sorted(c.statuses) if s not in alive]

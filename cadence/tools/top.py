@@ -15,7 +15,7 @@ from rich.console import Group
 from rich.table import Table
 
 from schemas import HrvWindow, Selection, ServiceStatus
-from schemas.topology import ECG_SOURCES, HEALTH, SERVICES, decode_any, topic_of
+from schemas.topology import HEALTH, cell_roster, decode_any, topic_of
 from schemas.topology import key as key_of
 
 RATE_WINDOW_S = 10.0
@@ -113,10 +113,8 @@ class Top:
         services = Table(title="services (health/<service>)")
         for col in ("service", "alive", "state", "uptime [s]", "dropped", "handler errors", "detail"):
             services.add_column(col)
-        for name in SERVICES:
+        for name in cell_roster(self.statuses):
             seen = self.statuses.get(name)
-            if seen is None and name in ECG_SOURCES and set(ECG_SOURCES) & set(self.statuses):
-                continue  # the cell's ECG comes from the other source
             if seen is None:
                 services.add_row(name, "[red]no status[/red]", "", "", "", "", "")
                 continue

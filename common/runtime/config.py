@@ -24,7 +24,7 @@ T = TypeVar("T")
 
 # The tables a deployment config may have: these and a table per service. Anything else is a typo
 # (``[decisionmaker]``) that would otherwise be ignored in silence.
-CONFIG_SECTIONS = frozenset({"cadence", "bus", "ur_emulator", *SERVICES})
+CONFIG_SECTIONS = frozenset({"cadence", "bus", *SERVICES})  # the UR emulator reads no config
 
 
 class CommonSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):

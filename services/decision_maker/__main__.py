@@ -29,9 +29,10 @@ from schemas.operator import Calibration
 from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, SELECTION
 from services.decision_maker.condition import Condition, Conditions, FixedK, store_condition
 from services.decision_maker.state import Decider, DecisionRecord, MovementRule, resume
+from services.registry import DECIDER
 
 log = logging.getLogger("cadence.decision_maker")
-NAME = "decision_maker"
+NAME = DECIDER.name
 MISSED_GAP_NS = 1_000_000_000  # a window starting this long after the last answered one: some were missed
 MAX_MISSED = 64  # what the analyser keeps
 _MODE = Personal()  # the personal mode's settings as shipped (common/decision.py)

@@ -25,8 +25,9 @@ from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.topology import ECG_RR, ECG_SAMPLES
 from services.ecg_gateway.polar import PolarSource, bleak_connector
 from services.ecg_gateway.sources import AccSamples, E4Source, EcgSource, ReplaySource, RrChunk
+from services.registry import GATEWAY
 
-NAME = "ecg_gateway"
+NAME = GATEWAY.name
 LISTENER_WAIT_S = 30.0
 ACC_SILENT_S = 5.0  # ECG this far past the accelerometer's last sample: it has stopped
 log = logging.getLogger("cadence.ecg_gateway")

@@ -46,9 +46,10 @@ from services.executor.sets import SetCache
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
 from services.executor.telemetry import Snapshot, Telemetry
+from services.registry import EXECUTOR
 
 log = logging.getLogger("cadence.executor")
-NAME = "executor"
+NAME = EXECUTOR.name
 __all__ = ["Settings", "main", "run"]
 
 
@@ -76,7 +77,7 @@ class Executor(Node):
         self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
         if self.claim.core is not None:
             ctx.counters["servo_core"] = self.claim.core
-        folder = common.data_path / "executor"
+        folder = common.data_path / NAME
         # each part gets the kit and the parts it calls, never this node (services/executor/kit.py)
         self.safety = Supervisor(kit, s, self.backend)
         self.reactions = Reactions(kit, s, self.safety, task.limits, self.backend.actual_q)

@@ -34,6 +34,7 @@ from services.executor.selection import SelectionInForce
 from services.executor.sets import SetCache
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
+from services.registry import EXECUTOR
 
 log = logging.getLogger("cadence.executor")
 Again = Literal["again"]
@@ -326,7 +327,7 @@ class Cycles:
                 cycle=cycle,
                 kind="late",
                 description=f"'{step.wait_for}' not there {step.deadline:g} s after the robot came: {then}",
-                source="executor",
+                source=EXECUTOR.name,
             )
         )
         if step.on_late == "wait":

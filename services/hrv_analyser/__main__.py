@@ -28,8 +28,9 @@ from common.runtime.service import service_main
 from schemas.ecg import AccChunk, EcgChunk, RrIntervals
 from schemas.hrv import Beats, HrvWindow
 from schemas.topology import ECG_ACC, ECG_RR, ECG_SAMPLES, HRV_WINDOW, Topic
+from services.registry import ANALYSER
 
-NAME = "hrv_analyser"
+NAME = ANALYSER.name
 log = logging.getLogger("cadence.hrv_analyser")
 KEPT_WINDOWS = 64  # half an hour of 30 s windows: what a decision maker that was down may ask for
 

@@ -36,8 +36,9 @@ from schemas.topology import (
     ROBOT_CYCLE,
     ROBOT_STATE,
 )
+from services.registry import TWIN
 
-NAME = "operator_twin"
+NAME = TWIN.name
 log = logging.getLogger("cadence.operator_twin")
 STATE_AHEAD_S = 10.0
 STATE_CONFIRM = 25  # half a second of robot states

@@ -27,9 +27,10 @@ from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanSta
 from schemas.topology import PARETO_SET, PARETO_SOLUTION, key, validated
 from services.pareto_store.jobs import abandon, lower_priority, plan_job, worker_pool
 from services.pareto_store.store import SetStore
+from services.registry import STORE
 
 log = logging.getLogger("cadence.pareto_store")
-NAME = "pareto_store"
+NAME = STORE.name
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
