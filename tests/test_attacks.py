@@ -42,14 +42,14 @@ def test_a_source_over_its_rate_holds_the_arm_and_never_displaces_another() -> N
     for i in range(34_000):  # one second
         now = i / 34_000
         if i % 1700 == 0:
-            assert table.admit("scanner:front", 0.6, 0.0, 0.0, now) == ""
-        table.admit("scanner:back", 100.0, 0.0, 0.0, now)
+            assert table.receive("scanner:front", 0.6, 0.0, 0.0, now) == ""
+        table.receive("scanner:back", 100.0, 0.0, 0.0, now)
         if i % 100 == 0:
             seen.add(table.nearest(now).distance_m)
     assert seen <= {0.6, None}
     assert None in seen  # the flood held the arm
     assert table.nearest(1.0).why.startswith("'scanner:back' sends over 1000 readings a second")
-    table.admit("scanner:front", 0.6, 0.0, 0.0, 2.01)
+    table.receive("scanner:front", 0.6, 0.0, 0.0, 2.01)
     assert table.nearest(2.01).distance_m == 0.6  # a second after the flood: the honest reading
 
 
@@ -112,19 +112,19 @@ async def test_twenty_signals_at_once_while_nothing_waits_bank_nothing_and_a_wai
     signals, stop = Signals({"part_a2", "part_c2"}, early={"part_c2": 2.0}), asyncio.Event()
     for i in range(20):
         with pytest.raises(Rejected) as r:
-            signals.admit(OperatorSignal(t_ns=i, seq=i, name="part_a2", source="hmi"))
+            signals.receive(OperatorSignal(t_ns=i, seq=i, name="part_a2", source="hmi"))
         assert r.value.code == "not_waiting"
     waiting = asyncio.create_task(signals.wait("part_a2", stop, timeout_s=0.05))
     assert await waiting == "late"  # none of the twenty counts for the wait that opened after them
     waiting = asyncio.create_task(signals.wait("part_a2", stop))
     await asyncio.sleep(0)
-    signals.admit(OperatorSignal(t_ns=100, seq=0, name="part_a2", source="hmi"))
+    signals.receive(OperatorSignal(t_ns=100, seq=0, name="part_a2", source="hmi"))
     with pytest.raises(Rejected, match="its wait has its signal already"):
-        signals.admit(OperatorSignal(t_ns=101, seq=1, name="part_a2", source="hmi"))
+        signals.receive(OperatorSignal(t_ns=101, seq=1, name="part_a2", source="hmi"))
     assert await waiting == "arrived"
     # declared early: the latest signal before the wait counts for it, once
     for i in range(5):
-        signals.admit(OperatorSignal(t_ns=200 + i, seq=i, name="part_c2", source="twin"))
+        signals.receive(OperatorSignal(t_ns=200 + i, seq=i, name="part_c2", source="twin"))
     assert await signals.wait("part_c2", stop, timeout_s=0.05) == "arrived"
     assert await signals.wait("part_c2", stop, timeout_s=0.05) == "late"
     assert signals.received == {"part_a2": 1, "part_c2": 1}

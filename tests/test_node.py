@@ -410,7 +410,7 @@ async def test_a_part_put_down_is_said_again_while_the_robot_waits_and_counted_o
     waiting = asyncio.create_task(signals.wait("part_a2", stop))
     await asyncio.sleep(0)  # the robot waits now
     for m in again * 3:
-        signals.admit(m)
+        signals.receive(m)
     assert await waiting == "arrived"
     assert signals.received["part_a2"] == 1
 

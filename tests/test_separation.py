@@ -92,7 +92,7 @@ readings = st.lists(
 def test_the_nearest_fresh_reading_of_all_wins_and_ahead_or_stale_ones_never_count(
     seq: list[Reading], keep: int, declared: tuple[str, ...]
 ) -> None:
-    """Against a brute-force table: every reading admitted, alive from its arrival for max_age less its
+    """Against a brute-force table: every reading taken, alive from its arrival for max_age less its
     age. The table agrees on whether anything is fresh, and is never farther (merging a flood may only
     make it nearer); with room to keep everything it agrees exactly."""
     max_age, skew = 0.3, 0.05
@@ -101,7 +101,7 @@ def test_the_nearest_fresh_reading_of_all_wins_and_ahead_or_stale_ones_never_cou
     now = 0.0
     for source, d, stamp_age, sensor_age, step in seq:
         now += step
-        why = table.admit(source, d, stamp_age, sensor_age, now)
+        why = table.receive(source, d, stamp_age, sensor_age, now)
         age = max(stamp_age, 0.0) + sensor_age
         if stamp_age < -skew:
             assert why == "ahead"
@@ -125,10 +125,10 @@ def test_the_nearest_fresh_reading_of_all_wins_and_ahead_or_stale_ones_never_cou
 
 def test_a_far_reading_under_a_sensors_name_never_hides_its_near_one_and_a_flood_of_names_is_merged() -> None:
     table = Sources(0.3, 0.05, ("scanner:front",), keep=4, max_sources=3)
-    table.admit("scanner:front", 0.6, 0.0, 0.0, now=0.0)
+    table.receive("scanner:front", 0.6, 0.0, 0.0, now=0.0)
     for i in range(1000):  # a rogue under the scanner's own name, and under a thousand others
-        table.admit("scanner:front", 100.0, 0.0, 0.0, now=0.0001 * i)
-        table.admit(f"rogue{i}", 100.0, 0.0, 0.0, now=0.0001 * i)
+        table.receive("scanner:front", 100.0, 0.0, 0.0, now=0.0001 * i)
+        table.receive(f"rogue{i}", 100.0, 0.0, 0.0, now=0.0001 * i)
     assert len(table.readings) == 3 + 1
     assert OTHERS in table.readings  # three names, the rest merged
     assert all(len(r.kept) <= 4 for r in table.readings.values())

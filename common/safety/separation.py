@@ -245,7 +245,7 @@ class Sources:
         self.heard = True
         return ""
 
-    def admit(
+    def receive(
         self, source: str, distance_m: float, stamp_age_s: float, sensor_age_s: float, now: float
     ) -> str:
         """Take one reading: ``stamp_age_s`` is the receiver's clock minus the sender's stamp (negative: the

@@ -106,12 +106,12 @@ class Executor(Node):
 
     @on(OPERATOR_SIGNAL)
     async def on_signal(self, sig: OperatorSignal) -> Out:
-        self.cycles.signals.admit(sig)
+        self.cycles.signals.receive(sig)
         return []
 
     @on(OPERATOR_SEPARATION, arrival=True)  # every reading counts, kept per source as it comes
     def on_separation(self, sep: Separation) -> None:
-        self.reactions.admit(sep)
+        self.reactions.receive(sep)
 
     def reads(self, topic: Topic[Any]) -> bool:
         return topic.suffix != OPERATOR_SEPARATION.suffix or self.ctx.settings.separation

@@ -65,7 +65,9 @@ class Signals:
         self.came_early: dict[str, float] = {}  # name: when a signal for it came while nothing waited
         self.arrived = asyncio.Event()
 
-    def admit(self, sig: OperatorSignal) -> None:
+    def receive(self, sig: OperatorSignal) -> None:
+        """A signal as it arrives: meets the open wait, or is kept as early for a step that allows it;
+        one said again (same stamp and source) counts once, so a stuck button cannot run cycles."""
         if sig.name not in self.names:
             raise Rejected("unknown_signal", f"no step of the task waits for '{sig.name}'")
         said = (sig.t_ns, sig.source)

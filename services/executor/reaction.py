@@ -83,7 +83,7 @@ class Reactions:
 
     # --- the distance -------------------------------------------------------------------------------
 
-    def admit(self, sep: Separation) -> None:
+    def receive(self, sep: Separation) -> None:
         """A reading as it arrives, judged on this executor's clock before its content is looked at:
         refused (``Rejected``, counted) when stamped ahead of it by more than the skew bound, already too
         old, or past its source's rate; else S, the person's distance to the arm and tool at the joints
