@@ -69,7 +69,7 @@ def images_in_chromium(root: Path, page: str) -> dict:
 def test_every_image_of_a_report_and_of_a_study_loads_in_chromium(tmp_path: Path) -> None:
     from cadence.lab.analysis import analyse, write_study
     from cadence.lab.report import from_mcap, write_report
-    from cadence.lab.session import load_session
+    from cadence.lab.session_file import load_session
     from tests.support.sessions import info, write
 
     site = tmp_path / "site"

@@ -123,8 +123,8 @@ def test_the_guides_walk_through_runs_as_written_and_measures_something(tmp_path
     import os
     import signal
 
-    from cadence.lab.registry import load_plan
-    from cadence.lab.session import load_session
+    from cadence.lab.design import load_plan
+    from cadence.lab.session_file import load_session
 
     port = str(free_port())
     py = f"{sys.executable} -m cadence"

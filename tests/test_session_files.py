@@ -1,6 +1,6 @@
-"""Session files (cadence/lab/session.py) and their analysis (cadence/lab/analysis.py): the measures are taken
-between the session's start and end, a file that cannot stand for its session is refused with the reason,
-and each pair of conditions gets the Wilcoxon test scipy can give, with its method said."""
+"""Session files (cadence/lab/session_file.py) and their analysis (cadence/lab/analysis.py): the measures are
+taken between the session's start and end, a file that cannot stand for its session is refused with the
+reason, and each pair of conditions gets the Wilcoxon test scipy can give, with its method said."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cadence.lab.analysis import analyse, paired_test
-from cadence.lab.session import load_session
+from cadence.lab.session_file import load_session
 from cadence.tools.recording import Recorder
 from common.runtime.errors import InputError
 from schemas import Calibration, OperatorError

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cadence.lab.analysis import analyse, to_json
-from cadence.lab.session import load_session
+from cadence.lab.session_file import load_session
 from cadence.lab.study import Subject, motions, simulate
 from common.runtime.numeric import numeric_build
 from common.runtime.resources import SHIPPED_SETS
@@ -83,7 +83,7 @@ def the_policies_hold(sessions: list) -> None:
     import msgspec
     from scipy.stats import friedmanchisquare
 
-    from cadence.lab.registry import williams
+    from cadence.lab.design import williams
     from common.runtime.errors import InputError
 
     seqs = williams(3)

@@ -116,7 +116,7 @@ cli.group(
 )
 @arg("--seed", type=int, default=1, help="the deal of sequences to subjects (default 1)")
 def cmd_study_plan(args: argparse.Namespace) -> int:
-    from cadence.lab.registry import make_plan, write_plan
+    from cadence.lab.design import make_plan, write_plan
     from schemas.session import CONDITION_NAMES
 
     conditions = list(dict.fromkeys(args.conditions))
@@ -169,7 +169,7 @@ def cmd_study_plan(args: argparse.Namespace) -> int:
 )
 def cmd_study_analyse(args: argparse.Namespace) -> int:
     from cadence.lab.analysis import MARGINS, analyse, write_csv, write_study
-    from cadence.lab.session import load_session
+    from cadence.lab.session_file import load_session
 
     margins = {}
     for spec in args.margin:

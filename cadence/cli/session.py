@@ -102,7 +102,8 @@ def cmd_session(args: argparse.Namespace) -> int:
         tty_keys,
         yoked_k,
     )
-    from cadence.lab.session import SessionOptions, load_session, run_session, task_digest
+    from cadence.lab.session import SessionOptions, run_session
+    from cadence.lab.session_file import load_session, task_digest
     from cadence.lab.tables import session_table
     from common.runtime.config import CommonSettings
 

@@ -1,9 +1,9 @@
 """`cadence study analyse`: the paper's Table I and its tests (§IV) from session files, with what reviewers
 ask for beside them, and nothing else.
 
-Per subject and condition the measures of one session file (cadence/lab/session.py): φ, ε, the mean of the
-good windows' mean RR, that mean over the subject's RR_r, and the raw NASA-TLX when it was asked. Per
-condition their mean ± sd over subjects (Table I). Then (cadence/lab/stats.py):
+Per subject and condition the measures of one session file (cadence/lab/session_file.py): φ, ε, the mean
+of the good windows' mean RR, that mean over the subject's RR_r, and the raw NASA-TLX when it was asked.
+Per condition their mean ± sd over subjects (Table I). Then (cadence/lab/stats.py):
 
 - Friedman's test per measure over the subjects with every condition, before any pair;
 - per pair of conditions and measure a Wilcoxon signed-rank test paired by subject (exact where scipy can
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cadence.lab.session import Session
+from cadence.lab.session_file import Session
 from cadence.lab.stats import (
     Equivalence,
     Omnibus,

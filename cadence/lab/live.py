@@ -19,7 +19,7 @@ from rich.table import Table
 from common.runtime.errors import InputError
 
 if TYPE_CHECKING:
-    from cadence.lab.registry import StudyPlan
+    from cadence.lab.design import StudyPlan
     from cadence.lab.session import SessionOptions, Watch
     from schemas.session import Tlx
 
@@ -29,7 +29,7 @@ err = Console(stderr=True)
 def planned(args: argparse.Namespace) -> StudyPlan | None:
     """With --study: the subject's next session by the plan, filled into ``args`` (condition, minutes,
     training, place, the last session's end); the plan. Without: the defaults, and no plan."""
-    from cadence.lab.registry import load_plan, next_session
+    from cadence.lab.design import load_plan, next_session
     from schemas.session import CONDITION_NAMES
 
     args.period = args.previous_end_ns = None
@@ -75,8 +75,8 @@ def fresh_path(folder: Path, subject: str, condition: str) -> Path:
 
 def yoked_k(args: argparse.Namespace, plan: StudyPlan | None) -> int | None:
     """Condition y: the subject's mean k of (c), rounded, from their (c) session."""
-    from cadence.lab.registry import sessions_of
-    from cadence.lab.session import load_session
+    from cadence.lab.design import sessions_of
+    from cadence.lab.session_file import load_session
 
     if args.condition != "y":
         return None

@@ -345,7 +345,7 @@ def subject_figure(sessions: list) -> bytes:
     """One subject, one row per condition (like the paper's Fig. 6): each window's mean RR (good filled,
     held hollow) against minutes into the session, RR_r and the decision thresholds RR_s and RR_s^max,
     the selected k on the right axis (integer ticks), cycle ends as ticks along the bottom and errors as
-    red crosses. ``sessions``: cadence.lab.session.Session objects of one subject."""
+    red crosses. ``sessions``: cadence.lab.session_file.Session objects of one subject."""
     from common.decision import Params
     from schemas.session import CONDITION_NAMES
 

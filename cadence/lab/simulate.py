@@ -40,7 +40,7 @@ def simulate_study(
 
     from cadence.lab.analysis import analyse, write_study
     from cadence.lab.fit import cohort_for, fit
-    from cadence.lab.session import load_session
+    from cadence.lab.session_file import load_session
     from cadence.lab.tables import err, out, print_study
     from common.trajectory.shipped import sets_digest, shipped_or_planned
     from common.trajectory.task import load_task

@@ -16,7 +16,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from cadence.lab.session import SessionWriter, software, task_digest
+from cadence.lab.session_file import SessionWriter, software, task_digest
 from common.decision import Params, State, k_for_path, step
 from common.hrv.calibration import calibration
 from common.hrv.stream import intervals, window_message, window_stats, windows

@@ -13,7 +13,7 @@ from rich.table import Table
 if TYPE_CHECKING:
     from cadence.lab.analysis import Study
     from cadence.lab.report import Run
-    from cadence.lab.session import Session
+    from cadence.lab.session_file import Session
     from schemas.session import SessionEnd
 
 out = Console()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cadence.lab.session import SessionWriter
+from cadence.lab.session_file import SessionWriter
 from cadence.tools.recording import Recorder
 from common.trajectory.planner import content_hash
 from common.trajectory.task import parse_task

@@ -152,7 +152,7 @@ class Done:
 
 def sessions_of(plan: StudyPlan, folder: Path, sid: str) -> list[Done]:
     """The subject's closed session files in the plan's folder, by start."""
-    from cadence.lab.session import read_records
+    from cadence.lab.session_file import read_records
 
     done = []
     for path in sorted(folder.glob("*.mcap")):

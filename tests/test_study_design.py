@@ -1,4 +1,4 @@
-"""A study's plan (cadence/lab/registry.py): the Williams design's balance, the registry on disk, a subject's
+"""A study's plan (cadence/lab/design.py): the Williams design's balance, the registry on disk, a subject's
 next session from the session files, and the yoked condition's k."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from cadence.lab.registry import load_plan, make_plan, next_session, williams, write_plan
-from cadence.lab.session import Session, SessionOptions, SessionWriter, condition_parameters
+from cadence.lab.design import load_plan, make_plan, next_session, williams, write_plan
+from cadence.lab.session import SessionOptions, condition_parameters
+from cadence.lab.session_file import Session, SessionWriter
 from common.runtime.errors import InputError
 from schemas import Calibration, Selection
 from schemas.session import SessionEnd, SessionInfo
