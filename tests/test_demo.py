@@ -135,7 +135,9 @@ def test_the_live_view_explains_a_protective_stop_of_a_busy_machine() -> None:
     person does not take it for the method's doing."""
     from rich.console import Console
 
-    from cadence.demo import DemoOptions, Observed, live_view
+    from cadence.demo.observe import Observed
+    from cadence.demo.options import DemoOptions
+    from cadence.demo.view import live_view
 
     obs = Observed(epoch_ns=0)
 
@@ -439,7 +441,7 @@ def ctrl_c(
 
 def test_a_second_demo_into_the_same_folder_is_refused_unless_forced(tmp_path: Path) -> None:
     """Two demos into one folder both said "written", and one's log was lost."""
-    from cadence.demo import LOCK_FILE
+    from cadence.demo.folder import LOCK_FILE
 
     out = tmp_path / "demo"
     first = subprocess.Popen(

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
-from cadence.demo import keep_summary
+from cadence.demo.summary import keep_summary
 from common.trajectory.task import load_task
 from schemas import CycleReport, OperatorSignal, RobotEvent, RobotState, Selection, ServiceStatus
 from schemas.topology import encode
@@ -193,7 +193,7 @@ def test_the_demos_summary_goes_elsewhere_with_one_line_when_its_folder_is_full(
 async def test_the_demos_supervisor_never_starts_a_service_once_stopping_has_begun(tmp_path: Path) -> None:
     """A service that died half a second before the end was started again after the stop had passed it,
     and the demo hung until killed."""
-    from cadence.demo import Supervised
+    from cadence.demo.supervise import Supervised
 
     stopping = asyncio.Event()
     died = asyncio.Event()

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 
-from cadence.demo import Observed
+from cadence.demo.observe import Observed
 from cadence.tools.gaps import Gaps
 from schemas import CycleReport
 from tests.support.cell import CELL

@@ -1,4 +1,4 @@
-"""`cadence demo`: the whole closed loop on this machine (the work: cadence/demo.py)."""
+"""`cadence demo`: the whole closed loop on this machine (the work: cadence/demo/)."""
 
 from __future__ import annotations
 
@@ -79,7 +79,10 @@ cli = Commands()
     "scale; docs/decision.md, Decisions on real people)",
 )
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cadence.demo import ORDER, DemoOptions, NothingRan, claim, run_demo, summary_table, twin_table
+    from cadence.demo.folder import claim
+    from cadence.demo.options import ORDER, DemoOptions, twin_table
+    from cadence.demo.processes import run_demo
+    from cadence.demo.summary import NothingRan, summary_table
     from common.sim.twin import TwinParams
 
     if not args.processes:
@@ -141,7 +144,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if opts.processes:
             summary = asyncio.run(run_demo(opts, out))
         else:
-            from cadence.lockstep import run_lockstep
+            from cadence.demo.in_lockstep import run_lockstep
             from common.runtime import lockstep
 
             ceiling = opts.speed if math.isfinite(opts.speed) else None

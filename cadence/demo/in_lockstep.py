@@ -6,10 +6,10 @@ seed: the same windows, selections, cycles and errors on every host, loaded or i
 ceiling (data time never runs ahead of X times the wall time), ``--speed max`` none: as fast as the host
 allows.
 
-The process cell (``cadence demo --processes``, cadence/demo.py) runs every service as its own process,
-at ``--speed`` times the wall clock, the way systemd runs them: a busy host changes what it does (an arm
-whose samples come late moves later, a starved twin sees the robot later). It has what this one does
-not: processes to kill (``--kill``) and a router to join (``--listen``). Here the services log into
+The process cell (``cadence demo --processes``, cadence/demo/processes.py) runs every service as its own
+process, at ``--speed`` times the wall clock, the way systemd runs them: a busy host changes what it does
+(an arm whose samples come late moves later, a starved twin sees the robot later). It has what this one
+does not: processes to kill (``--kill``) and a router to join (``--listen``). Here the services log into
 ``DIR/logs/cell.log``.
 """
 
@@ -25,18 +25,11 @@ from typing import Any
 from rich.console import Console
 from rich.live import Live
 
-from cadence.demo import (
-    ORDER,
-    DemoOptions,
-    Observed,
-    demo_settings,
-    fresh_start,
-    interrupted_before_data_time,
-    live_view,
-    summarise,
-    taking_the_interrupt,
-    watch,
-)
+from cadence.demo.folder import fresh_start
+from cadence.demo.observe import Observed, watch
+from cadence.demo.options import ORDER, DemoOptions, demo_settings
+from cadence.demo.summary import interrupted_before_data_time, summarise
+from cadence.demo.view import live_view, taking_the_interrupt
 from cadence.lab.session import served_sets
 from common.runtime.bus import BusConfig
 from common.runtime.config import CommonSettings, section
