@@ -108,7 +108,7 @@ def test_good_windows_are_within_a_decision_step_of_the_annotated_nn_mean() -> N
     that holds most (`cadence bench hrv --windows` runs all five; tests/bench runs white noise at 6 dB on
     the noisiest record): no window marked good is a decision step (20 ms) off the mean of the annotated
     NN intervals, and holding is not how."""
-    from cadence.bench import bench_hrv_windows
+    from cadence.bench.hrv_windows import bench_hrv_windows
 
     scores = bench_hrv_windows(str(ECG), 130.0, ("clean", "motion"), peers=False)
     for variant, by_pipeline in scores.items():

@@ -283,7 +283,7 @@ def cross_validate(
     """Every unit of the two folders, scored under every grid point (in ``jobs`` spawned processes)."""
     from concurrent.futures import as_completed
 
-    from cadence.bench import spawned_pool
+    from cadence.bench.pool import spawned_pool
 
     rules = grid(spec)
     todo: list[tuple[str, str]] = []

@@ -25,7 +25,7 @@ from cadence.cli._common import (
 from common.runtime.resources import EXAMPLE_TASK
 
 if TYPE_CHECKING:
-    from cadence.bench import Replanning
+    from cadence.bench.planning import Replanning
 
 
 cli = Commands()
@@ -50,7 +50,7 @@ cli.group(
 @arg("--workers", type=positive_int(1), default=2, help="processes for the whole task (default 2)")
 @flags_from(add_planner_flags, task_option=True)
 def cmd_bench_plan(args: argparse.Namespace) -> int:
-    from cadence.bench import bench_plan, bench_replanning
+    from cadence.bench.planning import bench_plan, bench_replanning
 
     task = task_with_overrides(args)
     with err.status("today's planner and the fast one, path by path and the whole task …"):
@@ -136,7 +136,7 @@ def replanning_table(r: Replanning) -> None:
 @arg("--reference", type=positive_int(10), default=1500, help="reference generations (1500)")
 @flags_from(add_planner_flags, task_option=True)
 def cmd_bench_convergence(args: argparse.Namespace) -> int:
-    from cadence.bench import convergence
+    from cadence.bench.planning import convergence
     from common.trajectory.planner import DEFAULT_GENERATIONS
 
     task = task_with_overrides(args)
@@ -174,7 +174,7 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
 def cmd_bench_store(args: argparse.Namespace) -> int:
     import asyncio
 
-    from cadence.bench import StoreBench, bench_store
+    from cadence.bench.store import StoreBench, bench_store
 
     r = asyncio.run(bench_store(args.task, args.queries))
     p = StoreBench.pct
@@ -205,7 +205,7 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
 @arg("--task", default=None, metavar="TASK.toml", help="default: box_filling")
 @arg("--json", action="store_true", help="print only the JSON line")
 def cmd_bench_executor(args: argparse.Namespace) -> int:
-    from cadence.bench import bench_executor
+    from cadence.bench.servo_loop import bench_executor
     from services.executor import RobotUnavailable
 
     if not args.json:

@@ -21,9 +21,9 @@ if TYPE_CHECKING:
 
 
 def _bench_hrv_windows(args: argparse.Namespace) -> int:
-    from cadence.bench import bench_hrv_windows
     from cadence.bench.ecg_noise import variants_named
     from cadence.bench.hrv_scoring import window_table
+    from cadence.bench.hrv_windows import bench_hrv_windows
 
     variants = variants_named(args.variants)
     records = tuple(r for r in (args.records or "").split(",") if r)
@@ -120,7 +120,7 @@ def _bench_hrv_cv(args: argparse.Namespace) -> int:
     "(a few minutes)",
 )
 def cmd_bench_hrv(args: argparse.Namespace) -> int:
-    from cadence.bench import bench_hrv
+    from cadence.bench.hrv_peaks import bench_hrv
 
     if not Path(args.data).is_dir():
         raise InputError(f"{args.data}: no such folder (the annotated recordings, e.g. ../shared/data/ecg)")

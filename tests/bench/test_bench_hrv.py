@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-from cadence.bench import bench_hrv
+from cadence.bench.hrv_peaks import bench_hrv
 from tests.support.data import ECG, needs_data
 from tests.support.paths import BENCH_QUICK, DOCS
 

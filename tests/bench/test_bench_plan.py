@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from cadence.bench import bench_plan, bench_replanning
+from cadence.bench.planning import bench_plan, bench_replanning
 from common.trajectory.task import load_task
 from tests.support.paths import BENCH_QUICK, EXAMPLE_TASK
 

@@ -7,7 +7,7 @@ import asyncio
 
 import pytest
 
-from cadence.bench import StoreBench, bench_store
+from cadence.bench.store import StoreBench, bench_store
 from tests.support.paths import BENCH_QUICK, EXAMPLE_TASK
 
 pytestmark = pytest.mark.bench

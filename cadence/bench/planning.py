@@ -1,0 +1,255 @@
+"""`cadence bench plan` and `cadence bench replan`: the planner's time and front against the paper's
+baseline (a stop at every waypoint) and the naive planner, the re-planning of an edited path, and the
+front's convergence over generations."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
+from msgspec import structs
+from numpy.typing import NDArray
+
+from cadence.bench.naive import evaluate_naive
+from common.robot.ur16e import JointLimits
+from common.trajectory.planner import (
+    TrajectoryProblem,
+    evaluate,
+    hypervolume,
+    plan_path,
+)
+from common.trajectory.task import PathPlan, PlannerSettings, Task
+
+T = TypeVar("T")
+
+
+def longest_path(task: Task) -> PathPlan:
+    """Most waypoints; ties broken by the longest lower-bound time."""
+
+    def key(p: PathPlan) -> tuple[int, float]:
+        lb = np.max(np.abs(np.diff(p.waypoints, axis=0)) / task.limits.velocity, axis=1).sum()
+        return len(p.waypoints), float(lb)
+
+    return max(task.paths.values(), key=key)
+
+
+def ruckig_stop_at_every_waypoint(path: PathPlan, limits: JointLimits) -> float | None:
+    """Time of the same motion as jerk-limited time-optimal moves that stop at every waypoint (Ruckig).
+
+    None when the optional `ruckig` package is absent (`uv sync --extra bench`).
+    """
+    try:
+        from ruckig import InputParameter, Result, Ruckig, Trajectory
+    except ImportError:
+        return None
+    d = path.waypoints.shape[1]
+    otg = Ruckig(d)
+    total = 0.0
+    for a, b in zip(path.waypoints[:-1], path.waypoints[1:], strict=True):
+        inp = InputParameter(d)
+        inp.current_position = a.tolist()
+        inp.current_velocity = [0.0] * d
+        inp.current_acceleration = [0.0] * d
+        inp.target_position = b.tolist()
+        inp.target_velocity = [0.0] * d
+        inp.target_acceleration = [0.0] * d
+        inp.max_velocity = limits.velocity.tolist()
+        inp.max_acceleration = limits.acceleration.tolist()
+        inp.max_jerk = limits.jerk.tolist()
+        traj = Trajectory(d)
+        if otg.calculate(inp, traj) not in (Result.Working, Result.Finished):
+            raise RuntimeError("ruckig could not compute a segment")
+        total += traj.duration
+    return total
+
+
+def _best_time(fn: Callable[[], T], repeat: int) -> tuple[float, T]:
+    t0 = time.perf_counter()
+    out = fn()
+    best = time.perf_counter() - t0
+    for _ in range(repeat - 1):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+@dataclass(frozen=True, slots=True)
+class PlanBench:
+    path_id: str
+    n_waypoints: int
+    generations: int
+    population: int
+    plan_s: float
+    naive_plan_s: float
+    eval_ms: float
+    naive_eval_ms: float
+    hv: float
+    naive_hv: float
+    tf_exact: float
+    tf_hull: float
+    tf_ruckig: float | None
+
+    @property
+    def plan_ratio(self) -> float:
+        return self.naive_plan_s / self.plan_s
+
+    @property
+    def eval_ratio(self) -> float:
+        return self.naive_eval_ms / self.eval_ms
+
+
+def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBench:
+    """Planning time of the longest path against the straightforward evaluation, in the same run."""
+    path = longest_path(task)
+    exact = structs.replace(settings, constraints="exact")
+    plan_s, fast = _best_time(lambda: plan_path(path, task.limits, exact), repeat)
+    naive_s, slow = _best_time(lambda: plan_path(path, task.limits, exact, evaluator=evaluate_naive), 1)
+    hull = plan_path(path, task.limits, structs.replace(settings, constraints="hull"))
+
+    # One generation's evaluation, both ways, on the same population.
+    problem = TrajectoryProblem(path, task.limits, "exact", settings.kappa)
+    rng = np.random.default_rng(settings.seed)
+    pop = np.exp(rng.uniform(np.log(problem.lb), np.log(problem.ub), (settings.population, len(problem.lb))))
+    eval_s, _ = _best_time(lambda: evaluate(pop, path, task.limits, "exact"), 20)
+    naive_eval_s, _ = _best_time(lambda: evaluate_naive(pop, path, task.limits, "exact"), 3)
+
+    both = np.concatenate([fast.front, slow.front])
+    ideal, nadir = both.min(axis=0), both.max(axis=0)
+    return PlanBench(
+        path_id=path.id,
+        n_waypoints=len(path.waypoints),
+        generations=fast.generations,
+        population=settings.population,
+        plan_s=plan_s,
+        naive_plan_s=naive_s,
+        eval_ms=eval_s * 1e3,
+        naive_eval_ms=naive_eval_s * 1e3,
+        hv=hypervolume(fast.front, ideal, nadir),
+        naive_hv=hypervolume(slow.front, ideal, nadir),
+        tf_exact=fast.solutions[-1].t_f,
+        tf_hull=hull.solutions[-1].t_f,
+        tf_ruckig=ruckig_stop_at_every_waypoint(path, task.limits),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Replanning:
+    """Today's planner (pymoo's loop, one path after the other) beside the fast one, in the same run.
+
+    Hypervolumes are shares of a long reference run's (``reference_generations``, another seed) under its
+    normalisation, per path; the edit moves the middle waypoint of every path by ``edit_deg`` on every
+    joint and plans it again warm (seeded by the last set) and cold.
+    """
+
+    path_id: str
+    workers: int
+    reference_generations: int
+    path_s: float  # the longest path, fast engine
+    pymoo_path_s: float
+    task_s: float  # every path, fast engine, ``workers`` forked processes, pool start-up included
+    pymoo_task_s: float  # every path, one after the other, pymoo's loop
+    warm_s: float  # every edited path, warm, in the pool
+    hv: dict[str, float]  # path → share, fast engine, cold
+    pymoo_hv: dict[str, float]
+    warm_hv: dict[str, float]
+    edit_deg: float
+
+    @property
+    def path_ratio(self) -> float:
+        return self.pymoo_path_s / self.path_s
+
+    @property
+    def task_ratio(self) -> float:
+        return self.pymoo_task_s / self.task_s
+
+
+def _edited(path: PathPlan, deg: float) -> PathPlan:
+    wp = path.waypoints.copy()
+    wp[len(wp) // 2] += np.radians(deg)
+    return dataclasses.replace(path, waypoints=wp)
+
+
+def bench_replanning(
+    task: Task, settings: PlannerSettings, workers: int = 2, reference_generations: int = 600,
+    edit_deg: float = 4.0, repeat: int = 2,
+) -> Replanning:  # fmt: skip
+    """Issue 31's figures: one path, the whole task, a warm replan after an edit, and their fronts."""
+    from common.trajectory.pool import plan_paths
+
+    paths = list(task.paths.values())
+    longest = longest_path(task)
+    path_s, _ = _best_time(lambda: plan_path(longest, task.limits, settings), repeat)
+    pymoo_path_s, _ = _best_time(lambda: plan_path(longest, task.limits, settings, engine="pymoo"), repeat)
+    task_s, fast = _best_time(lambda: plan_paths(paths, task.limits, settings, workers), repeat)
+    pymoo_task_s, slow = _best_time(
+        lambda: {p.id: plan_path(p, task.limits, settings, engine="pymoo") for p in paths}, 1
+    )
+    edited = [_edited(p, edit_deg) for p in paths]
+    warm = {p.id: [s.h for s in fast[p.id].solutions] for p in paths}
+    warm_s, warmed = _best_time(lambda: plan_paths(edited, task.limits, settings, workers, warm), repeat)
+    long = structs.replace(settings, generations=reference_generations, seed=10_000)
+    ref = plan_paths(paths, task.limits, long, workers)
+    ref_edit = plan_paths(edited, task.limits, long, workers)
+
+    def share(front: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
+        ideal, nadir = reference.min(axis=0), reference.max(axis=0)
+        return hypervolume(front, ideal, nadir) / hypervolume(reference, ideal, nadir)
+
+    return Replanning(
+        path_id=longest.id,
+        workers=workers,
+        reference_generations=reference_generations,
+        path_s=path_s,
+        pymoo_path_s=pymoo_path_s,
+        task_s=task_s,
+        pymoo_task_s=pymoo_task_s,
+        warm_s=warm_s,
+        hv={p.id: share(fast[p.id].front, ref[p.id].front) for p in paths},
+        pymoo_hv={p.id: share(slow[p.id].front, ref[p.id].front) for p in paths},
+        warm_hv={p.id: share(warmed[p.id].front, ref_edit[p.id].front) for p in paths},
+        edit_deg=edit_deg,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Convergence:
+    """Hypervolume of default-setting runs after each checkpoint, as a share of a long run's."""
+
+    path_id: str
+    reference_generations: int
+    checkpoints: list[int]
+    shares: dict[int, list[float]]  # seed → share at each checkpoint (before the final polish)
+    final: dict[int, float]  # seed → share of the finished run (after polishing its ends)
+
+
+def convergence(
+    task: Task,
+    settings: PlannerSettings,
+    seeds: list[int],
+    reference_generations: int,
+    checkpoints: list[int],
+) -> Convergence:
+    """How the default number of generations was chosen (docs/design.md, "The planner")."""
+    path = longest_path(task)
+    ref = plan_path(
+        path, task.limits, structs.replace(settings, generations=reference_generations, seed=10_000)
+    )
+    ideal, nadir = ref.front.min(axis=0), ref.front.max(axis=0)
+    hv_ref = hypervolume(ref.front, ideal, nadir)
+    shares, final = {}, {}
+    for seed in seeds:
+        run = plan_path(
+            path,
+            task.limits,
+            structs.replace(settings, generations=max(checkpoints), seed=seed),
+            track_hypervolume=(ideal, nadir),
+        )
+        shares[seed] = [run.hypervolume_history[g - 1] / hv_ref for g in checkpoints]
+        default = plan_path(path, task.limits, structs.replace(settings, seed=seed))
+        final[seed] = hypervolume(default.front, ideal, nadir) / hv_ref
+    return Convergence(path.id, reference_generations, checkpoints, shares, final)
