@@ -158,14 +158,14 @@ class Personal:
     recent mean must go before k moves, and then k moves only that far behind it (a play: noise that
     pushed k over does not push it back at once).
 
-    Set from the behaviour they must give (DESIGN §7 states it; tests/test_personal.py plays it), not from
-    the data, whose sessions last an hour: ``ref_tau_s``, how slowly the reference follows the person's
-    recent mean, either way (two hours: a day's slow drift is followed, a stress of minutes is not);
-    ``freeze_s``, how far below the reference the recent mean must be for the person to read as stressed,
-    when the reference does not follow at all (a drift slower than ``freeze_s / ref_tau_s``, 22 ms an
-    hour, is followed; a faster fall is load, held for as long as it lasts); ``effort_tau_s``, how long
-    after a movement hold that timed out the remaining drop is taken for the effort's recovery rather than
-    for load (``reanchored``)."""
+    Set from the behaviour they must give (DESIGN §7 states it;
+    tests/services/decision_maker/test_personal.py plays it), not from the data, whose sessions last an hour:
+    ``ref_tau_s``, how slowly the reference follows the person's recent mean, either way (two hours: a day's
+    slow drift is followed, a stress of minutes is not); ``freeze_s``, how far below the reference the recent
+    mean must be for the person to read as stressed, when the reference does not follow at all (a drift
+    slower than ``freeze_s / ref_tau_s``, 22 ms an hour, is followed; a faster fall is load, held for as long
+    as it lasts); ``effort_tau_s``, how long after a movement hold that timed out the remaining drop is taken
+    for the effort's recovery rather than for load (``reanchored``)."""
 
     step_s: float = 0.015
     keep: float = 0.7

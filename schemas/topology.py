@@ -9,7 +9,7 @@ Everything else is derived from this table, so nothing can disagree with it:
 - the demo's launch order (``launch_order``);
 - the router's access control (cadence/deploy/cell.py): each account publishes only its roles' keys;
 - the zenoh-cli decoder (cadence/tools/zenoh_codec.py), which decodes each key with its own type;
-- the graph test (tests/test_graph.py), which runs every service and checks what it opened.
+- the graph test (tests/schemas/test_graph.py), which runs every service and checks what it opened.
 """
 
 from __future__ import annotations

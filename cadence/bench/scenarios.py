@@ -1,8 +1,8 @@
 """The personal mode as a controller, on made-up people whose truth is known (DESIGN §7;
-`cadence bench decide --scenarios`; tests/test_personal.py): each scenario is a sequence of 30 s windows
-played through the decision maker's own ``Decider``, as the service answers them, and summed up by the
-figures its stated behaviour is about. The real sessions (``decide.py``) say whether the mode reads people;
-these say what it does over hours, which no recording here lasts.
+`cadence bench decide --scenarios`; tests/services/decision_maker/test_personal.py): each scenario is a
+sequence of 30 s windows played through the decision maker's own ``Decider``, as the service answers
+them, and summed up by the figures its stated behaviour is about. The real sessions (``decide.py``) say
+whether the mode reads people; these say what it does over hours, which no recording here lasts.
 """
 
 from __future__ import annotations

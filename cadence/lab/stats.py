@@ -1,7 +1,7 @@
 """The statistics a within-subjects study is asked for beyond the paper's Wilcoxon tests: the omnibus test
 before the pairwise ones, the correction over them, effect sizes with confidence intervals, and an
-equivalence test. Pure functions on arrays; every one is checked in tests/test_stats.py against scipy,
-statsmodels or a published worked example, not against itself.
+equivalence test. Pure functions on arrays; every one is checked in tests/cadence/lab/test_stats.py
+against scipy, statsmodels or a published worked example, not against itself.
 
 - Friedman's test over subjects × conditions (scipy): is there any difference at all, before the pairs.
 - Holm's step-down correction of the pairwise p-values (Holm 1979): controls the family-wise error over

@@ -50,7 +50,7 @@ def test_bench_hrv_against_established_detectors() -> None:
 
 
 @needs_data
-@pytest.mark.skipif(BENCH_QUICK, reason="quick: tests/test_hrv.py scores every record's windows")
+@pytest.mark.skipif(BENCH_QUICK, reason="quick: tests/common/hrv/test_hrv.py scores every record's windows")
 def test_bench_hrv_windows_prints_cadence_and_neurokit2_per_noise_variant() -> None:
     """The window scorer's CLI on one noisy record (the whole set is `cadence bench hrv --windows`)."""
     figures, _ = bench_hrv_json("--windows", "--data", str(ECG), "--records", "105", "--variants",
@@ -58,8 +58,8 @@ def test_bench_hrv_windows_prints_cadence_and_neurokit2_per_noise_variant() -> N
     assert set(figures) == {"clean", "white6", "motion"}
     for by_pipeline in figures.values():
         ours = by_pipeline["cadence"]
-        # the held share is judged on the whole set (tests/test_hrv.py): 105, the noisiest record, alone
-        # holds 30-35 % of its windows once noise is added to it
+        # the held share is judged on the whole set (tests/common/hrv/test_hrv.py): 105, the noisiest
+        # record, alone holds 30-35 % of its windows once noise is added to it
         assert ours["p95_ms"] <= 5.0
         assert ours["over_20_ms"] == 0
         if "neurokit2" in by_pipeline:  # the same windows scored for both (it holds none)
@@ -132,7 +132,7 @@ def window_rows(figures: dict, neurokit2: bool) -> list[str]:
 def test_the_decision_guides_window_tables_are_what_bench_hrv_windows_gives() -> None:
     """docs/decision.md's windows table (NeuroKit2 in full for the clean records, as a range for the
     noisy ones) and its per-rhythm table: every figure is the analyser's on the shared records, the same
-    on any machine (the cleaning branches on no last bit: tests/test_other_machines.py)."""
+    on any machine (the cleaning branches on no last bit: tests/cadence/test_other_machines.py)."""
     figures, _ = bench_hrv_json("--windows")
     text = (DOCS / "decision.md").read_text()
     shown = table_rows(text, "rhythm). On the 10 shared records at 130 Hz")

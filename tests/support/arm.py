@@ -1,5 +1,5 @@
-"""The wrist motions of issue 52, which tests/test_geometry.py holds to their figures and
-tests/test_docs_figures.py to what docs/robot.md says of them."""
+"""The wrist motions of issue 52, which tests/common/safety/test_geometry.py holds to their figures and
+tests/cadence/test_docs_figures.py to what docs/robot.md says of them."""
 
 from __future__ import annotations
 

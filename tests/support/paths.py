@@ -79,5 +79,5 @@ def planned_once(task_file: Path, tmp_path_factory: pytest.TempPathFactory | Non
 
 README = REPO / "README.md"
 DOCS = REPO / "docs"  # the guides (mkdocs.yml)
-# what a reader is shown: every shell block of these is checked (tests/test_readme.py)
+# what a reader is shown: every shell block of these is checked (tests/cadence/test_readme.py)
 PAGES = (README, *sorted(DOCS.glob("*.md")))

@@ -59,7 +59,7 @@ def test_the_simulated_study_writes_session_files_and_analyses_them_as_a_lab_wou
     assert "subject_twin-12.png" in page
     assert "Table I" in page
 
-    # the files alone give the same study (`cadence study analyse` on them is in tests/test_lab.py)
+    # the files alone give the same study (`cadence study analyse` on them: tests/cadence/lab/test_lab.py)
     redo = json.loads(json.dumps(to_json(analyse([load_session(f) for f in files]))))
     shipped = read_shipped(SHIPPED_SETS / "box_filling.json").sets_sha256
     assert doc["sets_sha256"] == [shipped]  # the example task's sets ship: no machine plans its own

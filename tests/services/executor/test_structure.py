@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import ast
 from functools import cache
-from pathlib import Path
 
-EXECUTOR = Path(__file__).resolve().parent.parent / "services" / "executor"
+from tests.support.paths import REPO
+
+EXECUTOR = REPO / "services" / "executor"
 PACKAGE = "services.executor"
 
 

@@ -31,9 +31,9 @@ import pytest
 from cadence.cli import SERVICES, build_parser
 from common.runtime.config import CONFIG_SECTIONS, CommonSettings, ConfigError, section
 from tests.support.cell import CELL, free_port
-from tests.support.paths import PAGES, SHARED_DATA
+from tests.support.paths import PAGES, REPO, SHARED_DATA
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO
 PORT = "7447"  # the examples' router port; a free one is used in its place when they run
 
 

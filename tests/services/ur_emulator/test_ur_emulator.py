@@ -26,9 +26,9 @@ from services.executor.servo import ServoLoop
 from services.ur_emulator.server import SCRIPT_QUIET_S, take_programs
 from tests.support.cell import Cell
 from tests.support.emulator import WATCHDOG_HZ, EmulatorProcess, check_bench_executor_output, free_loopback
-from tests.support.paths import EXAMPLE_TASK
+from tests.support.paths import EXAMPLE_TASK, REPO
 
-CONTRACT = Path(__file__).parent / "data" / "ur_rtde_1.6.5_recipes.json"
+CONTRACT = REPO / "tests" / "data" / "ur_rtde_1.6.5_recipes.json"
 
 
 @pytest.fixture
@@ -440,7 +440,7 @@ def test_a_reconnect_while_the_servo_thread_sends_waits_for_its_call_and_crashes
             capture_output=True,
             text=True,
             timeout=240,
-            cwd=Path(__file__).parents[1],
+            cwd=REPO,
         )
     finally:
         emu.stop()

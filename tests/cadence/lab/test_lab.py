@@ -110,10 +110,11 @@ def test_the_guides_walk_through_runs_as_written_and_measures_something(tmp_path
     """docs/study.md's walk-through, command by command as written, in a fresh folder: the demo cell (at
     16x, not its default 8x, and with the twin publishing no distance: at 16x a loaded host cannot take a
     reading within the executor's 100 ms of data time, 6 ms of wall, and the arm rightly holds; the
-    session, not that timing, is what this tests: tests/test_walk_in.py), the plan, S01's three sessions
-    (the first trains and calibrates at rest, the second takes a TLX), the experimenter's marks and a
-    part by hand from a second terminal during the third, then the analysis (issue 56: the calibration
-    "at rest" was the twin's level at work, and (c) ran at top speed with more errors than (a)).
+    session, not that timing, is what this tests: tests/services/executor/test_walk_in.py), the plan,
+    S01's three sessions (the first trains and calibrates at rest, the second takes a TLX), the
+    experimenter's marks and a part by hand from a second terminal during the third, then the analysis (issue
+    56: the calibration "at rest" was the twin's level at work, and (c) ran at top speed with more errors
+    than (a)).
 
     What it must show: the calibration is the twin's level at rest; each condition was in force (its
     selections, the k the robot moved with); the analysis equals what the raw files give, counted here

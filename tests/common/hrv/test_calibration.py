@@ -13,8 +13,9 @@ from common.hrv.records import read_record
 from common.hrv.stream import HrvStream, Window, intervals, windows
 from schemas.operator import Calibration
 from tests.support.data import ECG, needs_data
+from tests.support.paths import SHARED_DATA
 
-GUDB = Path(__file__).resolve().parents[2] / "shared" / "data" / "gudb"
+GUDB = SHARED_DATA / "gudb"
 needs_gudb = pytest.mark.skipif(not GUDB.is_dir(), reason=f"{GUDB} is absent (the shared GUDB beats)")
 
 

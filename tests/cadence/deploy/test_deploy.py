@@ -1,6 +1,6 @@
 """deploy/: the systemd units, rendered from the registry (services/registry.py) as `cadence install` writes
 them, verify and score under a security threshold. The router's ACL is generated (cadence/deploy/cell.py)
-and tested against a real router in tests/test_cell.py."""
+and tested against a real router in tests/cadence/deploy/test_cell.py."""
 
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """The figures the guides quote are what the commands give (issue 56: a guide's table drifts from the
 code that made it unless a test holds it). The simulated study's and the fit's tables are held by
-tests/test_study.py, `cadence decide`'s example by tests/test_readme.py; here the decisions on real
-people (docs/decision.md): the order-balanced table, the counts quoted beside it, and the scenarios."""
+tests/cadence/lab/test_study.py, `cadence decide`'s example by tests/cadence/test_readme.py; here the
+decisions on real people (docs/decision.md): the order-balanced table, the counts quoted beside it, and the
+scenarios."""
 
 from __future__ import annotations
 
