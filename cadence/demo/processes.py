@@ -1,4 +1,4 @@
-"""`cadence demo`: the whole closed loop on one machine, no robot and no strap (closed-loop issue).
+"""`cadence demo --processes`: the process cell, the whole closed loop as systemd would run it.
 
 A Zenoh router on loopback (this process), then every service as its own process, configured the way
 systemd would configure it (environment variables over built-in defaults) and supervised the way systemd
