@@ -1,9 +1,12 @@
 """Every service of Cadence, declared once (dora's ``dataflow.yml``: a node's id, its code and its settings
 in one place). The graph (schemas/topology.py) says what a role reads and publishes; this says which code
-plays it: the node class, its settings, what its unit says it is, and what its unit adds to the common
-one. From it come ``cadence run``'s list, the settings ``cadence install`` writes, the systemd units
-(``unit``) and the demo's launch order (``launch_order``), so a new service is one entry here and one role
-in the graph, and a test holds the two against each other.
+plays it: the node class, its settings, what its unit says it is and adds to the common one, what of the
+cell's set-up it needs, whether it is an ECG source (a cell runs one: ``cell``) and whether it plans
+before the cell's clock starts (``PLANNER``). From it come ``cadence run``'s list, the settings ``cadence
+install`` writes and the demo hands over, the systemd units (``unit``), the demo's launch order
+(``launch_order``) and each service's ``NAME``, so a new service is one entry here and one role in the
+graph, and a test holds the two against each other. A service's name is spelled here and in the graph
+only (tests/services/executor/test_structure.py).
 
 Modules are named, not imported: ``cadence --help`` must not load the executor's servo loop or the
 planner to list what it can run.
