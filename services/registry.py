@@ -6,7 +6,7 @@ before the cell's clock starts (``PLANNER``). From it come ``cadence run``'s lis
 install`` writes and the demo hands over, the systemd units (``unit``), the demo's launch order
 (``launch_order``) and each service's ``NAME``, so a new service is one entry here and one role in the
 graph, and a test holds the two against each other. A service's name is spelled here and in the graph
-only (tests/services/executor/test_structure.py).
+only (tests/schemas/test_graph.py).
 
 Modules are named, not imported: ``cadence --help`` must not load the executor's servo loop or the
 planner to list what it can run.

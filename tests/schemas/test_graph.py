@@ -4,6 +4,7 @@ is refused at the put, and what is derived from the graph (launch order, decoder
 
 from __future__ import annotations
 
+import ast
 import asyncio
 import shutil
 from pathlib import Path
@@ -43,7 +44,7 @@ from services.operator_twin.__main__ import main as twin_main
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
 from tests.support.cell import CELL, InProcessService, put
-from tests.support.paths import EXAMPLE_TASK
+from tests.support.paths import EXAMPLE_TASK, REPO
 
 Port = tuple[str, str, str]
 
@@ -222,3 +223,21 @@ def test_the_zenoh_cli_decoder_decodes_each_key_as_the_graph_types_it() -> None:
     assert "error" in wrong
     assert wrong["key"] == f"cadence/{CELL}/decision/selection"
     assert msgspec.json.decode(decode("other/key", encode(w)))["quality"] == "good"  # by its tag alone
+
+
+def test_a_services_name_is_spelled_in_the_graph_and_the_registry_only() -> None:
+    """Everything else takes it from them (``registry.EXECUTOR.name``, ``registry.cell``,
+    ``topology.cell_roster``): a renamed or added service is one entry, not a hunt through the CLI."""
+    from services.registry import SERVICES
+
+    names = {s.name for s in SERVICES}
+    root = REPO
+    spelled = []
+    for folder in ("cadence", "common", "schemas", "services"):
+        for f in sorted((root / folder).rglob("*.py")):
+            if f.relative_to(root).as_posix() in ("schemas/topology.py", "services/registry.py"):
+                continue
+            for node in ast.walk(ast.parse(f.read_text())):
+                if isinstance(node, ast.Constant) and node.value in names:
+                    spelled.append(f"{f.relative_to(root)}:{node.lineno} {node.value}")
+    assert spelled == []

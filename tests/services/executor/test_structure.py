@@ -74,21 +74,3 @@ def test_no_class_of_the_executor_runs_over_250_lines_and_each_says_what_it_owns
                     silent.append(f"{f.name}:{node.name}")
     assert long == []
     assert silent == []
-
-
-def test_a_services_name_is_spelled_in_the_graph_and_the_registry_only() -> None:
-    """Everything else takes it from them (``registry.EXECUTOR.name``, ``registry.cell``,
-    ``topology.cell_roster``): a renamed or added service is one entry, not a hunt through the CLI."""
-    from services.registry import SERVICES
-
-    names = {s.name for s in SERVICES}
-    root = EXECUTOR.parent.parent
-    spelled = []
-    for folder in ("cadence", "common", "schemas", "services"):
-        for f in sorted((root / folder).rglob("*.py")):
-            if f.relative_to(root).as_posix() in ("schemas/topology.py", "services/registry.py"):
-                continue
-            for node in ast.walk(ast.parse(f.read_text())):
-                if isinstance(node, ast.Constant) and node.value in names:
-                    spelled.append(f"{f.relative_to(root)}:{node.lineno} {node.value}")
-    assert spelled == []
