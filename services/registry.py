@@ -118,7 +118,7 @@ LimitMEMLOCK=infinity
 UR_EMULATOR = Service(
     "ur_emulator", "", "Cadence UR controller emulator (RTDE and dashboard: a robot for a cell)", unit=False
 )
-SERVICES: tuple[Service, ...] = (GATEWAY, TWIN, ANALYSER, DECIDER, STORE, EXECUTOR, UR_EMULATOR)  # fmt: skip
+SERVICES: tuple[Service, ...] = (GATEWAY, TWIN, ANALYSER, DECIDER, STORE, EXECUTOR, UR_EMULATOR)
 
 BY_NAME = {s.name: s for s in SERVICES}
 IN_GRAPH = tuple(s for s in SERVICES if s.node)
