@@ -190,6 +190,34 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
 
 
 @cli.command(
+    "bench plant",
+    help="a plant of N synthetic cells as deployed, each its own router, behind line and plant routers",
+    description="Per N: N cells, each its own router (mTLS, its own CA and access control) and its "
+    "services' accounts putting a cell's traffic at speed 1; a line router per 10 cells and the plant's "
+    "router over them. Two phases: the cells alone, then with the plant monitor and `cadence record "
+    "--plant`. Prints the in-cell robot/state and separation p50/p99 in each phase and the shift, the "
+    "routers' CPU, what was delivered, how far behind the plant view was, and the plant recording's "
+    "bytes per cell and day. The last line is the figures as JSON.",
+)
+@arg("--cells", type=positive_int(1), action="append", metavar="N", help="cells (repeatable; default 50)")
+@arg("--seconds", type=float, default=20.0, help="each phase's length (default 20)")
+@arg("--per-line", type=positive_int(1), default=10, help="cells behind one line router (default 10)")
+def cmd_bench_plant(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cadence.bench.plant import PlantFigures, bench_plant, plant_table
+
+    figures: list[PlantFigures] = []
+    for n in args.cells or [50]:
+        with err.status(f"bench plant: {n} cells"):
+            figures.append(asyncio.run(bench_plant(n, args.seconds, args.per_line, progress=err)))
+    for table in plant_table(figures):
+        out.print(table)
+    print(json.dumps([f.to_dict() for f in figures]))
+    return 0
+
+
+@cli.command(
     "bench executor",
     help="tick timing of the 500 Hz servo loop, and the time to prepare a path's samples",
     description="Runs the executor's servo loop (pinned, SCHED_FIFO when permitted) on a backend for "

@@ -206,29 +206,48 @@ def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
 
 
 def plant_router_config(
-    cells: dict[str, str], listen: Iterable[str], tls: Tls, users_file: str, password: str
+    cells: dict[str, str],
+    listen: Iterable[str],
+    tls: Tls,
+    users_file: str,
+    password: str,
+    carries: dict[str, list[str]] | None = None,
+    upstream: Tls | None = None,
 ) -> dict[str, Any]:
-    """The plant's router: it connects to each cell's router (``cells``: name to endpoint) as ``PLANT``
-    and takes its monitors' sessions on ``listen``. The arm's state of each cell is downsampled to
-    ``UPLINK_STATE_HZ`` as it comes in, a rule per cell (one rule over ``cadence/*/robot/state`` would be
-    one budget for all of them together). Its monitors may read every cell and say nothing; a cell's link
-    may bring that cell's keys and nothing of another's."""
+    """A plant's router, or a line's: it connects to each router of ``cells`` (name to endpoint; a cell's,
+    or a line's whose link ``carries`` the keys of the cells behind it) as ``PLANT`` and takes its
+    monitors' sessions on ``listen``. The arm's state of each cell is downsampled to ``UPLINK_STATE_HZ`` as
+    it comes in, a rule per cell (one rule over ``cadence/*/robot/state`` would be one budget for all of them
+    together). Its monitors may read every cell and say nothing; a link may bring the keys of the cells it
+    carries and nothing of another's.
+
+    ``upstream``: this is a line's router, which a plant's router reads. It connects to its cells with the
+    certificate of ``upstream`` (``PLANT``'s, which the cells' routers let in) and shows the plant its own
+    (``tls``: ``identity(line, "router")``, which the plant knows the line by); the plant's link may read
+    and receive, as a monitor does, and say nothing."""
+    carries = carries or {}
+    behind = {name: carries.get(name, [name]) for name in cells}
+    readers = [{"id": PLANT_MONITOR, "cert_common_names": [PLANT_MONITOR], "usernames": [PLANT_MONITOR]}]
+    if upstream is not None:
+        readers.append({"id": PLANT, "cert_common_names": [PLANT], "usernames": [PLANT]})
     rules = [
         _allow("monitor reads", ["ingress"], READING, [f"{ROOT}/**"]),
         _allow("monitor receives", ["egress"], RECEIVING, [f"{ROOT}/**"]),
     ]
-    subjects = [{"id": PLANT_MONITOR, "cert_common_names": [PLANT_MONITOR], "usernames": [PLANT_MONITOR]}]
-    policies = [{"rules": ["monitor reads", "monitor receives"], "subjects": [PLANT_MONITOR]}]
-    for cell in cells:  # a cell's link, known by its router's certificate (the plant connects to it)
-        up, interest = f"{cell}: up", f"{cell}: interest"
+    subjects = list(readers)
+    policies = [{"rules": ["monitor reads", "monitor receives"], "subjects": [r["id"] for r in readers]}]
+    for name, held in behind.items():  # a link, known by its router's certificate (the plant connects to it)
+        up, interest = f"{name}: up", f"{name}: interest"
         rules += [
-            _allow(up, ["ingress"], [*RECEIVING, "declare_queryable"], [f"{ROOT}/{cell}/**"]),
+            _allow(up, ["ingress"], [*RECEIVING, "declare_queryable"], [f"{ROOT}/{c}/**" for c in held]),
             _allow(interest, ["egress"], READING, [f"{ROOT}/**"]),
         ]
-        subjects.append({"id": cell, "cert_common_names": [identity(cell, "router")]})
-        policies.append({"rules": [up, interest], "subjects": [cell]})
+        subjects.append({"id": name, "cert_common_names": [identity(name, "router")]})
+        policies.append({"rules": [up, interest], "subjects": [name]})
     link = _link(tls, "listen")
-    link["tls"] |= {"connect_certificate_base64": _b64(tls.cert), "connect_private_key_base64": _b64(tls.key)}
+    mine = upstream or tls
+    link["tls"] |= {"connect_certificate_base64": _b64(mine.cert),
+                    "connect_private_key_base64": _b64(mine.key)}  # fmt: skip
     return {
         "mode": "router",
         "connect": {"endpoints": list(cells.values())},
@@ -252,7 +271,8 @@ def plant_router_config(
                 "messages": ["put"],
                 "rules": [{"key_expr": f"{ROOT}/{cell}/robot/state", "freq": UPLINK_STATE_HZ}],
             }
-            for cell in cells
+            for held in behind.values()
+            for cell in held
         ],
     }
 

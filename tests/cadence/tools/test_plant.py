@@ -268,3 +268,96 @@ def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_js
     wrong = cadence("install", "--robot", "sim", "--strap", "twin", "--root", str(tmp_path / "s2"),
                     "--plant", str(out / "plant-secret.json"))  # fmt: skip
     assert wrong.returncode == 2 and "not a plant.json" in wrong.stderr, wrong.stderr
+
+
+@pytest.mark.asyncio
+async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_nothing_down(
+    tmp_path: Path,
+) -> None:
+    """Cells behind a line router, the line behind the plant's router, as `cadence bench plant` lays
+    them out (each cell its own CA, the plant's CA for the line and the plant): the plant monitor reads
+    both cells through two hops, the arm's state of each at no more than 5 Hz. A plant router that
+    allows anything, on the line's uplink, can put no distance or selection into a cell and get no
+    resume, even into a cell whose own router would let it: the line lets nothing in from its uplink but
+    reading."""
+    from cadence.bench.plant import layout
+    from cadence.deploy.cell import UPLINK_STATE_HZ
+    from schemas import Separation
+
+    lay = layout(tmp_path, 2, per_line=2)
+    (c1, c2), (line,) = lay.cells, lay.line_routers
+    cfg = lambda path: BusConfig(config_file=str(path))  # noqa: E731
+    plant_cfg = json5_of(lay.plant_router.config)
+    rogue_cfg = {**plant_cfg, "access_control": {"enabled": False}, "downsampling": [],
+                 "listen": {"endpoints": [f"tls/127.0.0.1:{free_port()}"]}}  # fmt: skip
+    state = RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
+    async with (
+        await Bus.open(cfg(lay.cell_routers[0].config), c1.name),
+        await Bus.open(cfg(lay.cell_routers[1].config), c2.name),
+        await Bus.open(cfg(line.config), "line1"),
+        await Bus.open(cfg(lay.plant_router.config), "plant"),
+        await Bus.open(cfg(c1.accounts["executor"]), c1.name) as ex1,
+        await Bus.open(cfg(c2.accounts["executor"]), c2.name) as ex2,
+        await Bus.open(cfg(lay.monitor), "plant") as watcher,
+    ):
+        got = {c1.name: 0, c2.name: 0}
+
+        def came(key: str, _: bytes) -> None:
+            got[key.split("/")[1]] += 1
+
+        watcher.subscribe_raw("cadence/*/robot/state", came)
+        async with asyncio.timeout(60):  # until the plant's reading has reached both cells, two hops down
+            while not all(got.values()):
+                put(ex1, ex1.key("robot/state"), state)
+                put(ex2, ex2.key("robot/state"), state)
+                await asyncio.sleep(0.02)
+        got = dict.fromkeys(got, 0)
+        t0 = asyncio.get_running_loop().time()
+        for _ in range(150):  # 3 s at 50 Hz from each cell
+            put(ex1, ex1.key("robot/state"), state)
+            put(ex2, ex2.key("robot/state"), state)
+            await asyncio.sleep(0.02)
+        span = asyncio.get_running_loop().time() - t0
+        async with asyncio.timeout(10):
+            while not all(got.values()):
+                await asyncio.sleep(0.05)
+        for c, n in got.items():
+            assert 1 <= n <= UPLINK_STATE_HZ * span + 2, (c, n, span)
+    # the cell's own router refuses the plant too (above); here it lets anything in, so what is proven
+    # is the line's own refusal
+    open_cell = {**json5_of(lay.cell_routers[0].config), "access_control": {"enabled": False}}
+    async with (
+        await Bus.open(config_file(tmp_path, "open-cell", open_cell), c1.name),
+        await Bus.open(cfg(line.config), "line1"),
+        await Bus.open(cfg(c1.reader), c1.name) as m1,
+        await Bus.open(cfg(c1.accounts["separation_sensor"]), c1.name) as s1,
+        await Bus.open(config_file(tmp_path, "rogue", rogue_cfg), "plant") as plant_side,
+    ):
+        seps = m1.subscribe(m1.key("operator/separation"), Separation)
+        sels = m1.subscribe(m1.key("decision/selection"), Selection)
+        await s1.until_subscribed(s1.key("operator/separation"), 30)
+        token = s1.transport.session.liveliness().declare_token(f"cadence/{c1.name}/health/separation_sensor")
+
+        async def round_trip() -> bool:
+            """A liveliness query through the line and its reply: what the plant sent before it, the
+            line and the cell have handled."""
+            get, key = plant_side.transport.session.liveliness().get, f"cadence/{c1.name}/health/**"
+            return bool(await asyncio.to_thread(lambda: list(get(key, timeout=2.0))))
+
+        async with asyncio.timeout(60):
+            while not await round_trip():
+                pass
+        far = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
+        put(plant_side, f"cadence/{c1.name}/operator/separation", far, block=True)
+        put(plant_side, f"cadence/{c1.name}/decision/selection",
+            Selection(t_ns=3, seq=9, k=15, n=15, delta=0, reason="initial"), block=True)  # fmt: skip
+        resumed = await asyncio.to_thread(
+            lambda: list(plant_side.transport.session.get(f"cadence/{c1.name}/robot/resume", timeout=2.0))
+        )
+        assert await round_trip()
+        near = Separation(t_ns=4, seq=1, distance_m=0.6, source="scanner:front")
+        put(s1, s1.key("operator/separation"), near, block=True)
+        assert (await seps.receive(10))[1] == near  # the first: the plant's 100 m never came
+        assert sels.pending == 0
+        assert all(r.err is not None for r in resumed)
+        token.undeclare()

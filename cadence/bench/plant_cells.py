@@ -1,0 +1,223 @@
+"""The synthetic cells of `cadence bench plant`, one worker process's share of them: each cell's traffic
+(``PROFILE``) put by the accounts a deployed cell's services use, each on its own session to the cell's
+own router, and read back in the cell by its monitor account, which times the arm's state and the
+separation (`python -m cadence.bench.plant_cells SPEC.json`; the bench starts it).
+
+Every message is stamped with the host's monotonic clock (``t_ns``), one clock for every process of the
+bench: a reader's age of it is its latency across the cell's router. Cells are spread over each period
+(each its own phase), as cells of a plant are: none waits on the others' burst.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import msgspec
+
+from schemas import (
+    Beats,
+    CycleReport,
+    EcgChunk,
+    HrvWindow,
+    Message,
+    RobotEvent,
+    RobotState,
+    RrIntervals,
+    Selection,
+    Separation,
+    ServiceStatus,
+)
+from schemas.topology import encode, topic_of
+
+Make = Callable[[int, int], Message]  # (seq, t_ns) → a message
+
+
+@dataclass(frozen=True, slots=True)
+class Stream:
+    """One key of a cell's traffic: how often, by which account (its publisher in the graph)."""
+
+    suffix: str
+    hz: float
+    account: str
+    make: Make
+
+
+def _state(seq: int, t: int) -> Message:
+    q = [0.1 * i + 1e-4 * (seq % 1000) for i in range(6)]
+    return RobotState(t_ns=t, seq=seq, q=q, qd=[0.05] * 6, tcp=[0.4, 0.1, 0.3, 0.0, 3.14, 0.0],
+                      path_id="pick", k=6, mode="path", state="running", separation_m=1.8)  # fmt: skip
+
+
+def _status(service: str) -> Make:
+    return lambda seq, t: ServiceStatus(t_ns=t, seq=seq, service=service, state="serving", uptime_s=seq,
+                                        counters={"received": seq, "sent": seq})  # fmt: skip
+
+
+# A cell at speed 1 (the process demo cell's keys and rates: the executor's state at 50 Hz, one scanner,
+# the strap's ECG and accelerometer as the gateway forwards them, the analyser's beats and windows, the
+# decision maker's republished selection, each service's status)
+PROFILE: tuple[Stream, ...] = (
+    Stream("robot/state", 50.0, "executor", _state),
+    Stream("operator/separation", 20.0, "separation_sensor",
+           lambda seq, t: Separation(t_ns=t, seq=seq, distance_m=1.8, source="scanner:front")),
+    Stream("ecg/samples", 130.0 / 73, "ecg_gateway",
+           lambda seq, t: EcgChunk(t_ns=t, seq=seq, fs_hz=130.0, samples_uv=[(seq * 7 + i) % 900 - 300
+                                                                             for i in range(73)])),
+    Stream("ecg/rr", 1.0, "ecg_gateway", lambda seq, t: RrIntervals(t_ns=t, seq=seq, rr_s=[0.81])),
+    Stream("hrv/beats", 1.2, "hrv_analyser",
+           lambda seq, t: Beats(t_ns=t, seq=seq, peak_t_ns=[t], rr_s=[0.81], excluded=[False])),
+    Stream("hrv/window", 0.5, "hrv_analyser",
+           lambda seq, t: HrvWindow(t_ns=t, seq=seq, start_ns=max(0, t - 30_000_000_000), end_ns=t,
+                                    mean_rr_s=0.81, n_beats=37, excluded_fraction=0.0, quality="good")),
+    Stream("decision/selection", 1.0, "decision_maker",
+           lambda seq, t: Selection(t_ns=t, seq=seq // 30, k=6, n=15, delta=0, reason="hold")),
+    Stream("robot/cycle", 0.2, "executor",
+           lambda seq, t: CycleReport(t_ns=t, seq=seq, cycle=seq, cycle_time_s=5.0, k_per_path={"pick": 6})),
+    Stream("robot/event", 0.2, "executor",
+           lambda seq, t: RobotEvent(t_ns=t, seq=seq, kind="scale", message="scale 1.0 at 1.80 m")),
+    *(Stream(f"health/{s}", 1.0, s, _status(s))
+      for s in ("ecg_gateway", "hrv_analyser", "decision_maker", "pareto_store", "executor")),
+)  # fmt: skip
+TIMED = ("robot/state", "operator/separation")  # read back in the cell and timed
+DERIVED = ("hrv/window", "robot/cycle", "robot/event")  # what a plant keeps of each one (none may be lost)
+ACCOUNTS = tuple(sorted({s.account for s in PROFILE}))
+
+
+class CellSpec(msgspec.Struct, frozen=True):
+    name: str
+    accounts: dict[str, str]  # account → its Zenoh config (a client of the cell's router)
+    reader: str  # the cell's monitor account's config
+
+
+class WorkerSpec(msgspec.Struct, frozen=True):
+    cells: list[CellSpec]
+    first: int  # this worker's first cell's index among all (for its phase in each period)
+    of: int  # all cells of the bench
+    out: str  # where the results go (JSON)
+
+
+class WorkerResult(msgspec.Struct):
+    """What one worker put and saw: how many of each key per cell, the stamps of the keys a plant keeps
+    (to find each in what the plant got), and the timed keys' latencies (µs) with their stamps."""
+
+    sent: dict[str, dict[str, int]]  # cell → suffix → how many
+    derived: dict[str, dict[str, list[int]]]  # cell → a DERIVED suffix → the t_ns of each put
+    timed: dict[str, list[tuple[int, int]]]  # suffix → [(t_ns, latency µs)]
+    lost_puts: int = 0
+
+
+def _blocks(suffix: str) -> bool:
+    topic = topic_of(f"cadence/any/{suffix}")
+    return topic is not None and topic.qos == "block"
+
+
+def _schedule(spec: WorkerSpec, t0_ns: int) -> list[tuple[int, int, int]]:
+    """The first put of each (cell, stream), its cell's phase in each stream's period: (t_ns, cell, s)."""
+    first = []
+    for c in range(len(spec.cells)):
+        for s, stream in enumerate(PROFILE):
+            period = 1e9 / stream.hz
+            phase = ((spec.first + c) / spec.of + 0.37 * s) % 1.0
+            first.append((t0_ns + int(phase * period), c, s))
+    heapq.heapify(first)
+    return first
+
+
+async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> WorkerResult:
+    """Open every cell's sessions, wait until each cell's reader is subscribed, say ready, then put the
+    profile from the start to the end the bench gives (``start``: (t0_ns, end_ns))."""
+    from common.runtime.bus import Bus, BusConfig
+
+    buses: dict[tuple[int, str], Bus] = {}
+    readers: list[Bus] = []
+    timed: dict[str, list[tuple[int, int]]] = {k: [] for k in TIMED}
+    decoders: dict[str, msgspec.msgpack.Decoder[RobotState] | msgspec.msgpack.Decoder[Separation]] = {
+        "robot/state": msgspec.msgpack.Decoder(RobotState),
+        "operator/separation": msgspec.msgpack.Decoder(Separation),
+    }
+
+    def arrived(suffix: str) -> Callable[[str, bytes], None]:
+        decode, into = decoders[suffix].decode, timed[suffix]
+
+        def on(_: str, payload: bytes) -> None:
+            now = time.monotonic_ns()
+            t = decode(payload).t_ns
+            into.append((t, (now - t) // 1000))
+
+        return on
+
+    try:
+        for c, cell in enumerate(spec.cells):
+            reader = await Bus.open(BusConfig(config_file=cell.reader), cell.name)
+            readers.append(reader)
+            for suffix in TIMED:
+                reader.subscribe_raw(reader.key(suffix), arrived(suffix))
+            for account in ACCOUNTS:
+                buses[c, account] = await Bus.open(BusConfig(config_file=cell.accounts[account]), cell.name)
+        for c, cell in enumerate(spec.cells):
+            for stream in PROFILE:
+                if stream.suffix in TIMED:
+                    await buses[c, stream.account].until_subscribed(
+                        f"cadence/{cell.name}/{stream.suffix}", 60
+                    )
+        print("ready", flush=True)
+        t0, end = await start
+        sent = {cell.name: {s.suffix: 0 for s in PROFILE} for cell in spec.cells}
+        derived: dict[str, dict[str, list[int]]] = {
+            cell.name: {k: [] for k in DERIVED} for cell in spec.cells
+        }
+        keys = [[f"cadence/{cell.name}/{s.suffix}" for s in PROFILE] for cell in spec.cells]
+        block = [_blocks(s.suffix) for s in PROFILE]  # as the services put them: the topic's QoS
+        due = _schedule(spec, t0)
+        lost = 0
+        while due:
+            t, c, s = due[0]
+            if t >= end:
+                break
+            now = time.monotonic_ns()
+            if t > now:
+                await asyncio.sleep((t - now) / 1e9)
+                continue
+            heapq.heappop(due)
+            stream, name = PROFILE[s], spec.cells[c].name
+            seq = sent[name][stream.suffix]
+            stamp = time.monotonic_ns()
+            try:
+                buses[c, stream.account].put_raw(keys[c][s], encode(stream.make(seq, stamp)), block[s])
+            except Exception:  # a put the session refused: counted, never a crash of the bench
+                lost += 1
+            sent[name][stream.suffix] = seq + 1
+            if stream.suffix in DERIVED:
+                derived[name][stream.suffix].append(stamp)
+            heapq.heappush(due, (t + int(1e9 / stream.hz), c, s))
+        await asyncio.sleep(0.5)  # the last puts' way through the cell's router
+        return WorkerResult(sent=sent, derived=derived, timed=timed, lost_puts=lost)
+    finally:
+        for bus in [*buses.values(), *readers]:
+            await bus.close()
+
+
+async def _main(spec_path: str) -> None:
+    spec = msgspec.json.decode(Path(spec_path).read_bytes(), type=WorkerSpec)
+    loop = asyncio.get_running_loop()
+    start: asyncio.Future[tuple[int, int]] = loop.create_future()
+
+    async def listen() -> None:  # one line on stdin: "t0_ns end_ns"
+        line = await asyncio.to_thread(sys.stdin.readline)
+        t0, end = (int(x) for x in line.split())
+        start.set_result((t0, end))
+
+    listener = asyncio.create_task(listen())
+    result = await drive(spec, start)
+    listener.cancel()
+    Path(spec.out).write_bytes(msgspec.json.encode(result))
+
+
+if __name__ == "__main__":
+    asyncio.run(_main(sys.argv[1]))
