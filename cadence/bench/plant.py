@@ -62,23 +62,13 @@ def _endpoint() -> str:
 
 def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
     """Every router's and account's config for a plant of ``n_cells``, as a deployment writes them: each
-    cell its own CA and its router built for a plant (``router_config(…, plant=True)``), the plant one CA
-    for its routers and monitor."""
+    cell its own CA and its router built for a plant (``router_config(…, plant=True)``), the line and
+    plant routers and the monitor as `cadence plant-router` writes them (``plant_files``)."""
     from cadence.bench.plant_cells import ACCOUNTS as PUTTERS
-    from cadence.deploy.cell import (
-        ACCOUNTS,
-        PLANT,
-        PLANT_MONITOR,
-        Tls,
-        client_config,
-        identity,
-        plant_router_config,
-        router_config,
-        to_json5,
-        users_file,
-    )
+    from cadence.deploy.cell import ACCOUNTS, PLANT, Tls, client_config, identity, router_config, to_json5
+    from cadence.deploy.cell import users_file as users_of
     from cadence.deploy.pki import issue, make_ca
-    from cadence.deploy.plant import new_secret
+    from cadence.deploy.plant import new_secret, plant_files
 
     plant = new_secret()
     here = ["127.0.0.1"]
@@ -88,15 +78,18 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
         path.write_text(to_json5(cfg, f"cadence bench plant: {name}"))
         return path
 
-    cells, cell_routers, cas = [], [], []
+    cells, cell_routers, cas = [], [], {}
+    lines: dict[str, tuple[str, list[str]]] = {}
     for i in range(n_cells):
-        name = f"line{i // per_line + 1}-cell{i % per_line + 1}"
+        line = f"line{i // per_line + 1}"
+        name = f"{line}-cell{i % per_line + 1}"
+        lines.setdefault(line, (_endpoint(), []))[1].append(name)
         ca = make_ca(name)
-        cas.append(ca.cert)
         endpoint = _endpoint()
+        cas[name] = (endpoint, ca.cert)
         passwords = {a: f"pw-{name}-{a}" for a in ACCOUNTS}
         users = folder / f"{name}.users"
-        users.write_text(users_file(name, passwords) + f"{PLANT}:{plant.password}\n")
+        users.write_text(users_of(name, passwords) + f"{PLANT}:{plant.password}\n")
         leaf = issue(ca, identity(name, "router"), name, here)
         tls = Tls(ca.cert + plant.ca.cert, leaf.cert, leaf.key)  # the plant's CA beside its own
         cfg = router_config(name, [endpoint], tls, str(users), plant=True)
@@ -108,31 +101,13 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
             configs[role] = str(write(identity(name, role), cfg))
         reader = configs.pop("monitor")
         cells.append(CellSpec(name, configs, reader))
-    monitor_password = f"pw-{PLANT_MONITOR}"
-    users = folder / "plant.users"
-    users.write_text(f"{PLANT_MONITOR}:{monitor_password}\n{PLANT}:{plant.password}\n")
-    as_plant = issue(plant.ca, PLANT, PLANT, here)  # what the cells' routers let in
-    line_routers, lines = [], {}
-    for first in range(0, n_cells, per_line):
-        line = f"line{first // per_line + 1}"
-        mine = cell_routers[first : first + per_line]
-        lines[line] = [r.name for r in mine]
-        trusted = plant.ca.cert + b"".join(cas[first : first + per_line])
-        leaf = issue(plant.ca, identity(line, "router"), line, here)  # what the plant knows the line by
-        endpoint = _endpoint()
-        cfg = plant_router_config({r.name: r.endpoint for r in mine}, [endpoint],
-                                  Tls(trusted, leaf.cert, leaf.key), str(users), plant.password,
-                                  upstream=Tls(trusted, as_plant.cert, as_plant.key))  # fmt: skip
-        line_routers.append(Router(line, write(f"{line}-router", cfg), endpoint))
-    endpoint = _endpoint()
-    cfg = plant_router_config({r.name: r.endpoint for r in line_routers}, [endpoint],
-                              Tls(plant.ca.cert, as_plant.cert, as_plant.key), str(users), plant.password,
-                              carries=lines)  # fmt: skip
-    plant_router = Router("plant", write("plant-router", cfg), endpoint)
-    leaf = issue(plant.ca, PLANT_MONITOR, PLANT, [PLANT_MONITOR])
-    tls = Tls(plant.ca.cert, leaf.cert, leaf.key)
-    monitor = write(PLANT_MONITOR, client_config(PLANT, "monitor", monitor_password, [endpoint], tls))
-    return Layout(cells, cell_routers, line_routers, plant_router, monitor)
+    plant_at = _endpoint()
+    for name, (text, _) in plant_files(plant, cas, plant_at, here, folder, lines).items():
+        (folder / name).parent.mkdir(exist_ok=True)
+        (folder / name).write_text(text)
+    line_routers = [Router(line, folder / line / "router.json5", at) for line, (at, _) in lines.items()]
+    plant_router = Router("plant", folder / "router.json5", plant_at)
+    return Layout(cells, cell_routers, line_routers, plant_router, folder / "plant-monitor.json5")
 
 
 @dataclass

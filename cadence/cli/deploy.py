@@ -116,15 +116,24 @@ def cmd_uninstall(args: argparse.Namespace) -> int:
     "nothing), users.txt, plant-monitor.json5 (`cadence plant --zenoh-config`), plant-secret.json (its "
     "CA and password, kept when run again) and plant.json, which every cell's install takes with "
     "`cadence install --plant plant.json`. Run `zenohd -c OUT/router.json5` (or `cadence router "
-    "--zenoh-config`) on the plant's host.",
+    "--zenoh-config`) on the plant's host. With --line, each line's router (OUT/LINE/router.json5, on the "
+    "line's host) reads its cells the same way and the plant's router reads the lines.",
 )
 @arg(
     "--cell",
     action="append",
     required=True,
-    metavar="NAME=ENDPOINT=CA.pem",
+    metavar="NAME=ENDPOINT=CA.pem[=LINE]",
     help="a cell: its name, its router's endpoint, its CA certificate (the cell's "
-    "/etc/cadence/credentials/ca.pem)",
+    "/etc/cadence/credentials/ca.pem), and the line whose router reads it (then every cell names one)",
+)
+@arg(
+    "--line",
+    action="append",
+    default=[],
+    metavar="NAME=ENDPOINT",
+    help="a line: where its router listens for the plant's; its files go in OUT/NAME/ (router.json5, "
+    "users.txt), and the plant's router reads the lines, not the cells",
 )
 @arg(
     "--listen",
@@ -136,22 +145,31 @@ def cmd_uninstall(args: argparse.Namespace) -> int:
 def cmd_plant_router(args: argparse.Namespace) -> int:
     import socket
 
-    from cadence.deploy.plant import load_secret, new_secret, parse_cell, plant_files
+    from cadence.deploy.plant import load_secret, new_secret, parse_cell, parse_line, plant_files
     from common.runtime.errors import InputError
     from common.runtime.storage import atomic_write
 
     out = Path(args.out).absolute()
     cells: dict[str, tuple[str, bytes]] = {}
+    lines: dict[str, tuple[str, list[str]]] = {n: (e, []) for n, e in map(parse_line, args.line)}
     for spec in args.cell:
-        name, endpoint, ca = parse_cell(spec)
+        name, endpoint, ca, line = parse_cell(spec)
+        if bool(line) != bool(lines) or (line and line not in lines):
+            named = ", ".join(lines)
+            raise InputError(
+                f"--cell {spec}: with --line, every cell names one ({named}); without, none does"
+            )
         try:
             cells[name] = (endpoint, ca.read_bytes())
         except OSError as exc:
             raise InputError(f"--cell {spec}: {ca}: {exc.strerror or exc}") from None
+        if line:
+            lines[line][1].append(name)
     secret_file = out / "plant-secret.json"
     secret = load_secret(secret_file) if secret_file.exists() else new_secret()
-    files = plant_files(secret, cells, args.listen, args.host or [socket.gethostname()], out)
+    files = plant_files(secret, cells, args.listen, args.host or [socket.gethostname()], out, lines)
     for name, (text, mode) in files.items():
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
         atomic_write(out / name, text.encode(), mode)
         print(f"wrote {out / name} ({mode:o})")
     print(f"give {out / 'plant.json'} to each cell: cadence install … --plant plant.json")

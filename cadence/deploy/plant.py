@@ -65,35 +65,82 @@ def load_for_cell(path: Path) -> PlantForCell:
     return read_secrets(path, "a plant.json from `cadence plant-router`", parse)
 
 
-def parse_cell(spec: str) -> tuple[str, str, Path]:
-    """``NAME=ENDPOINT=CA.pem``: a cell, where its router listens, and its CA certificate (its
-    ``/etc/cadence/credentials/ca.pem``)."""
+def parse_cell(spec: str) -> tuple[str, str, Path, str | None]:
+    """``NAME=ENDPOINT=CA.pem[=LINE]``: a cell, where its router listens, its CA certificate (its
+    ``/etc/cadence/credentials/ca.pem``) and the line whose router reads it (none: the plant's does)."""
     parts = spec.split("=")
-    if len(parts) != 3 or not all(parts):
-        raise InputError(f"--cell {spec!r}: expected NAME=ENDPOINT=CA.pem (e.g. c1=tls/10.0.1.5:7447=c1.pem)")
-    return parts[0], parts[1], Path(parts[2])
+    if len(parts) not in (3, 4) or not all(parts):
+        raise InputError(
+            f"--cell {spec!r}: expected NAME=ENDPOINT=CA.pem or NAME=ENDPOINT=CA.pem=LINE "
+            "(e.g. c1=tls/10.0.1.5:7447=c1.pem=line1)"
+        )
+    return parts[0], parts[1], Path(parts[2]), parts[3] if len(parts) == 4 else None
+
+
+def parse_line(spec: str) -> tuple[str, str]:
+    """``NAME=ENDPOINT``: a line, and where its router listens for the plant's."""
+    parts = spec.split("=")
+    if len(parts) != 2 or not all(parts):
+        raise InputError(f"--line {spec!r}: expected NAME=ENDPOINT (e.g. line1=tls/10.0.1.2:7448)")
+    return parts[0], parts[1]
+
+
+def _host(endpoint: str) -> str:
+    return endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
 
 
 def plant_files(
-    secret: PlantSecret, cells: dict[str, tuple[str, bytes]], listen: str, hosts: list[str], folder: Path
+    secret: PlantSecret,
+    cells: dict[str, tuple[str, bytes]],
+    listen: str,
+    hosts: list[str],
+    folder: Path,
+    lines: dict[str, tuple[str, list[str]]] | None = None,
 ) -> dict[str, tuple[str, int]]:
     """The plant router's files in ``folder``, by name, with their modes: its config and its users file,
     its monitor's credentials, ``plant.json`` for the cells and its own secret. ``cells``: name to
-    (endpoint, CA certificate)."""
+    (endpoint, CA certificate). ``lines``: name to (endpoint, its cells): each line's router, in
+    ``LINE/``, reads its cells and the plant's router reads the lines; without lines the plant's router
+    reads every cell itself."""
     leaf = issue(secret.ca, cell.PLANT, "plant", hosts)
-    trusted = secret.ca.cert + b"".join(ca for _, ca in cells.values())
-    endpoints = {c: endpoint for c, (endpoint, _) in cells.items()}
-    tls = cell.Tls(trusted, leaf.cert, leaf.key)
-    router = cell.plant_router_config(endpoints, [listen], tls, str(folder / "users.txt"), secret.password)
+    users = str(folder / "users.txt")
+    files: dict[str, tuple[str, int]] = {}
+    if lines:
+        for line, (endpoint, members) in lines.items():
+            trusted = secret.ca.cert + b"".join(cells[c][1] for c in members)
+            own = issue(secret.ca, cell.identity(line, "router"), line, [_host(endpoint)])
+            line_users = str(folder / line / "users.txt")
+            own_tls, uplink = cell.Tls(trusted, own.cert, own.key), cell.Tls(trusted, leaf.cert, leaf.key)
+            reads = {c: cells[c][0] for c in members}
+            router = cell.plant_router_config(
+                reads, [endpoint], own_tls, line_users, secret.password, upstream=uplink
+            )
+            said = f"Line {line}'s router: it reads {', '.join(members)}; the plant's router reads it."
+            files[f"{line}/router.json5"] = (cell.to_json5(router, said), 0o600)
+            files[f"{line}/users.txt"] = (f"{cell.PLANT}:{secret.password}\n", 0o600)
+        tls = cell.Tls(secret.ca.cert, leaf.cert, leaf.key)
+        endpoints = {line: endpoint for line, (endpoint, _) in lines.items()}
+        carries = {line: members for line, (_, members) in lines.items()}
+        router = cell.plant_router_config(endpoints, [listen], tls, users, secret.password, carries=carries)
+        said = f"The plant's router: it reads {', '.join(lines)}."
+    else:
+        trusted = secret.ca.cert + b"".join(ca for _, ca in cells.values())
+        endpoints = {c: endpoint for c, (endpoint, _) in cells.items()}
+        router = cell.plant_router_config(endpoints, [listen], cell.Tls(trusted, leaf.cert, leaf.key), users,
+                                          secret.password)  # fmt: skip
+        said = f"The plant's router: it reads {', '.join(cells)}."
     monitor_password = new_password()
     monitor_leaf = issue(secret.ca, cell.PLANT_MONITOR, "plant", [cell.PLANT_MONITOR])
     monitor_tls = cell.Tls(secret.ca.cert, monitor_leaf.cert, monitor_leaf.key)
     monitor = cell.client_config(cell.PLANT, "monitor", monitor_password, [listen], monitor_tls)
-    said = "The plant monitor's account: it reads every cell and says nothing."
     return {
-        "router.json5": (cell.to_json5(router, f"The plant's router: it reads {', '.join(cells)}."), 0o600),
+        **files,
+        "router.json5": (cell.to_json5(router, said), 0o600),
         "users.txt": (f"{cell.PLANT_MONITOR}:{monitor_password}\n", 0o600),
-        "plant-monitor.json5": (cell.to_json5(monitor, said), 0o600),
+        "plant-monitor.json5": (
+            cell.to_json5(monitor, "The plant monitor's account: it reads every cell and says nothing."),
+            0o600,
+        ),
         "plant.json": (secret.for_cells(), 0o644),
         "plant-secret.json": (secret.to_json(), 0o600),
     }

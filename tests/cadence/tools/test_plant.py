@@ -361,3 +361,39 @@ async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_n
         assert sels.pending == 0
         assert all(r.err is not None for r in resumed)
         token.undeclare()
+
+
+def test_plant_router_with_lines_writes_each_lines_router_and_the_plant_reads_the_lines(
+    tmp_path: Path,
+) -> None:
+    """`cadence plant-router --line`: each line's router reads its own cells (trusting their CAs and the
+    plant's) and lets the plant read it; the plant's router connects to the lines only, each line's link
+    bringing its own cells' keys. A cell that names no line, with lines given, is one line and exit 2."""
+    from cadence.deploy.cell import PLANT, identity
+    from cadence.deploy.pki import make_ca
+
+    for c in ("c1", "c2", "c3"):
+        (tmp_path / f"{c}.pem").write_bytes(make_ca(c).cert)
+    cells = [f"--cell=c1=tls/10.0.1.5:7447={tmp_path / 'c1.pem'}=l1",
+             f"--cell=c2=tls/10.0.1.6:7447={tmp_path / 'c2.pem'}=l1",
+             f"--cell=c3=tls/10.0.2.5:7447={tmp_path / 'c3.pem'}=l2"]  # fmt: skip
+    lines = ["--line", "l1=tls/10.0.1.2:7448", "--line", "l2=tls/10.0.2.2:7448"]
+    out = tmp_path / "plant"
+    run = [sys.executable, "-m", "cadence", "plant-router", *cells, *lines, "--out", str(out)]
+    r = subprocess.run(run, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    l1 = json5_of(out / "l1" / "router.json5")
+    assert l1["connect"]["endpoints"] == ["tls/10.0.1.5:7447", "tls/10.0.1.6:7447"]
+    assert l1["listen"]["endpoints"] == ["tls/10.0.1.2:7448"]
+    readers = {s["id"] for s in l1["access_control"]["subjects"] if "usernames" in s}
+    assert PLANT in readers  # the plant's uplink, read-only as a monitor
+    assert (out / "l1" / "users.txt").read_text().startswith(f"{PLANT}:")
+    plant = json5_of(out / "router.json5")
+    assert plant["connect"]["endpoints"] == ["tls/10.0.1.2:7448", "tls/10.0.2.2:7448"]
+    ups = {r["id"]: r["key_exprs"] for r in plant["access_control"]["rules"] if r["id"].endswith(": up")}
+    assert ups == {"l1: up": ["cadence/c1/**", "cadence/c2/**"], "l2: up": ["cadence/c3/**"]}
+    known = {s["id"]: s["cert_common_names"] for s in plant["access_control"]["subjects"]}
+    assert known["l1"] == [identity("l1", "router")]
+    bad = subprocess.run([*run[:-2], f"--cell=c4=tls/10.0.3.5:7447={tmp_path / 'c1.pem'}", "--out",
+                          str(tmp_path / "x")], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert bad.returncode == 2 and "every cell names one" in bad.stderr, bad.stderr
