@@ -33,6 +33,8 @@ from schemas.robot import CycleReport, RobotEvent, RobotState
 
 ROOT = "cadence"
 DEFAULT_CELL = "cell1"
+# the plant's own keys, beside every cell's (``Topic.scope``): what any cell may ask all the others
+PLANT_SCOPE = "plant"
 
 M = TypeVar("M", bound=Message)
 
@@ -56,6 +58,9 @@ class Topic(Generic[M]):
     # "message", the message itself, when its seq is its identity (a selection's survives a restart and
     # is republished as it was; a window answered again on ``hrv/window?after=`` is the one published)
     numbered: Literal["port", "message"] = "port"
+    # "cell": under cadence/<cell>/, the cell's own; "plant": under cadence/plant/, shared by the cells of
+    # a plant (sets by hash: one cell asks, any cell that has it answers), where no cell's key is
+    scope: Literal["cell", "plant"] = "cell"
 
     def __post_init__(self) -> None:
         if not self.family:
@@ -104,6 +109,9 @@ CALIBRATION_NOT_YET = "not received yet"
 PLAN_PROGRESS = Topic("pareto/progress", PlanProgress, qos="drop")
 PARETO_SET = Topic("pareto/*", ParetoSet, pattern="query")
 PARETO_SOLUTION = Topic("pareto/*/*", ParetoSolutionReply, pattern="query")
+# a set by the content hash of what it was planned from (waypoints, limits, planner settings), whichever
+# cell of the plant planned it: a store asks before it plans, and answers for every set it has
+PLANT_SETS = Topic("sets/*", ParetoSet, pattern="query", scope="plant")
 ROBOT_STATE = Topic("robot/state", RobotState, qos="drop")
 ROBOT_CYCLE = Topic("robot/cycle", CycleReport)
 ROBOT_EVENT = Topic("robot/event", RobotEvent)
@@ -143,7 +151,13 @@ class Timer:
 
 LOOKERS = (SELECTION, PARETO_SET, PARETO_SOLUTION, CELL_CLOCK)  # what tools may ask (`cadence get`)
 ROLES: tuple[Role, ...] = (
-    Role("pareto_store", "service", outputs=(PLAN_PROGRESS,), answers=(PARETO_SET, PARETO_SOLUTION)),
+    Role(
+        "pareto_store",
+        "service",
+        outputs=(PLAN_PROGRESS,),
+        answers=(PARETO_SET, PARETO_SOLUTION, PLANT_SETS),
+        asks=(PLANT_SETS,),
+    ),
     Role(
         "decision_maker",
         "service",
@@ -226,6 +240,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     PLAN_PROGRESS,
     PARETO_SET,
     PARETO_SOLUTION,
+    PLANT_SETS,
     ROBOT_STATE,
     ROBOT_CYCLE,
     ROBOT_EVENT,
@@ -269,6 +284,11 @@ AnyMessage = (
 
 def key(cell: str, suffix: str) -> str:
     return f"{ROOT}/{cell}/{suffix}"
+
+
+def key_of(topic: Topic[Any], cell: str) -> str:
+    """A topic's key expression for a cell: under the cell, or under the plant for a plant's topic."""
+    return key(PLANT_SCOPE if topic.scope == "plant" else cell, topic.suffix)
 
 
 def fill(suffix: str, chunks: tuple[str, ...]) -> str:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import msgspec
 
+from cadence.deploy.cell import publishers
 from schemas import (
     Beats,
     CycleReport,
@@ -33,19 +34,27 @@ from schemas import (
     Separation,
     ServiceStatus,
 )
-from schemas.topology import encode, topic_of
+from schemas.topology import ECG_SOURCES, cell_roster, encode, topic_of
 
 Make = Callable[[int, int], Message]  # (seq, t_ns) → a message
 
 
 @dataclass(frozen=True, slots=True)
 class Stream:
-    """One key of a cell's traffic: how often, by which account (its publisher in the graph)."""
+    """One key of a cell's traffic and how often it comes. Its account is its publisher in the graph
+    (``account``): the one a deployed cell's router lets put it."""
 
     suffix: str
     hz: float
-    account: str
     make: Make
+
+    @property
+    def account(self) -> str:
+        if self.suffix.startswith("health/"):
+            return self.suffix.removeprefix("health/")
+        topic = topic_of(f"cadence/any/{self.suffix}")
+        assert topic is not None, self.suffix
+        return min(publishers(topic) - set(ECG_SOURCES[1:]))  # a cell with a strap: the twin has no account
 
 
 def _state(seq: int, t: int) -> Message:
@@ -60,29 +69,28 @@ def _status(service: str) -> Make:
 
 
 # A cell at speed 1 (the process demo cell's keys and rates: the executor's state at 50 Hz, one scanner,
-# the strap's ECG and accelerometer as the gateway forwards them, the analyser's beats and windows, the
-# decision maker's republished selection, each service's status)
+# the strap's ECG as the gateway forwards it, the analyser's beats and windows, the decision maker's
+# republished selection, the executor's cycles and events, each service's status once a second)
 PROFILE: tuple[Stream, ...] = (
-    Stream("robot/state", 50.0, "executor", _state),
-    Stream("operator/separation", 20.0, "separation_sensor",
+    Stream("robot/state", 50.0, _state),
+    Stream("operator/separation", 20.0,
            lambda seq, t: Separation(t_ns=t, seq=seq, distance_m=1.8, source="scanner:front")),
-    Stream("ecg/samples", 130.0 / 73, "ecg_gateway",
+    Stream("ecg/samples", 130.0 / 73,
            lambda seq, t: EcgChunk(t_ns=t, seq=seq, fs_hz=130.0, samples_uv=[(seq * 7 + i) % 900 - 300
                                                                              for i in range(73)])),
-    Stream("ecg/rr", 1.0, "ecg_gateway", lambda seq, t: RrIntervals(t_ns=t, seq=seq, rr_s=[0.81])),
-    Stream("hrv/beats", 1.2, "hrv_analyser",
+    Stream("ecg/rr", 1.0, lambda seq, t: RrIntervals(t_ns=t, seq=seq, rr_s=[0.81])),
+    Stream("hrv/beats", 1.2,
            lambda seq, t: Beats(t_ns=t, seq=seq, peak_t_ns=[t], rr_s=[0.81], excluded=[False])),
-    Stream("hrv/window", 0.5, "hrv_analyser",
+    Stream("hrv/window", 0.5,
            lambda seq, t: HrvWindow(t_ns=t, seq=seq, start_ns=max(0, t - 30_000_000_000), end_ns=t,
                                     mean_rr_s=0.81, n_beats=37, excluded_fraction=0.0, quality="good")),
-    Stream("decision/selection", 1.0, "decision_maker",
+    Stream("decision/selection", 1.0,
            lambda seq, t: Selection(t_ns=t, seq=seq // 30, k=6, n=15, delta=0, reason="hold")),
-    Stream("robot/cycle", 0.2, "executor",
+    Stream("robot/cycle", 0.2,
            lambda seq, t: CycleReport(t_ns=t, seq=seq, cycle=seq, cycle_time_s=5.0, k_per_path={"pick": 6})),
-    Stream("robot/event", 0.2, "executor",
+    Stream("robot/event", 0.2,
            lambda seq, t: RobotEvent(t_ns=t, seq=seq, kind="scale", message="scale 1.0 at 1.80 m")),
-    *(Stream(f"health/{s}", 1.0, s, _status(s))
-      for s in ("ecg_gateway", "hrv_analyser", "decision_maker", "pareto_store", "executor")),
+    *(Stream(f"health/{s}", 1.0, _status(s)) for s in cell_roster([ECG_SOURCES[0]])),
 )  # fmt: skip
 TIMED = ("robot/state", "operator/separation")  # read back in the cell and timed
 DERIVED = ("hrv/window", "robot/cycle", "robot/event")  # what a plant keeps of each one (none may be lost)

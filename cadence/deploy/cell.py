@@ -32,7 +32,7 @@ from typing import Any
 
 import msgspec
 
-from schemas.topology import HEALTH, ROLES, ROOT, TOPICS, Topic
+from schemas.topology import HEALTH, PLANT_SCOPE, ROLES, ROOT, TOPICS, Topic
 
 # One account per process that joins the bus: a service's or a tool's, one per role of the graph.
 ACCOUNTS = tuple(r.name for r in ROLES if r.kind != "sim")
@@ -55,12 +55,19 @@ def askers(topic: Topic[Any]) -> set[str]:
     return set(topic.askers) & set(ACCOUNTS)
 
 
-def _acl_key(cell: str, suffix: str) -> str:
+def _acl_key(cell: str, topic: Topic[Any]) -> str:
     # A queryable is declared on the family (the store serves pareto/**), and Zenoh's ACL compares key
     # expressions by inclusion: pareto/* does not include pareto/**.
+    suffix = topic.suffix
     if "*" in suffix:
         suffix = suffix.split("*", 1)[0] + "**"
-    return f"{ROOT}/{cell}/{suffix}"
+    return f"{ROOT}/{PLANT_SCOPE if topic.scope == 'plant' else cell}/{suffix}"
+
+
+# the plant's own keys (``Topic.scope``), and what crosses a plant's links for them: a store's question
+# and its answers, never a put
+PLANT_KEYS = sorted({_acl_key("", t) for t in TOPICS if t.scope == "plant"})
+ASKING = ["query", "reply", "declare_queryable"]
 
 
 def _allow(rule_id: str, flows: list[str], messages: list[str], keys: list[str]) -> dict[str, Any]:
@@ -84,8 +91,9 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
     policies: list[dict[str, Any]] = [{"rules": [read, receive], "subjects": [who[a] for a in accounts]}]
     for name in accounts:
         health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
-        keys = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in publishers(t) and t is not HEALTH})
-        asks = sorted({_acl_key(cell, t.suffix) for t in TOPICS if name in askers(t)})
+        keys = sorted({_acl_key(cell, t) for t in TOPICS if name in publishers(t) and t is not HEALTH})
+        asks = sorted({_acl_key(cell, t) for t in TOPICS if name in askers(t)})
+        plant = sorted({_acl_key(cell, t) for t in TOPICS if t.scope == "plant" and name in askers(t)})
         own = [f"{cell}: publish {name}", f"{cell}: presence {name}"]
         rules.append(
             _allow(own[0], ["ingress"], ["put", "delete", "declare_queryable", "reply"], [*keys, health])
@@ -94,6 +102,9 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
         if asks:  # a query changes what an answerer does (robot/resume): only those the graph names ask
             own.append(f"{cell}: ask {name}")
             rules.append(_allow(own[-1], ["ingress"], ["query"], asks))
+        if plant:  # the plant's keys are no cell's: only their askers get the questions and the answers
+            own.append(f"{cell}: plant keys {name}")
+            rules.append(_allow(own[-1], ["egress"], ASKING, plant))
         policies.append({"rules": own, "subjects": [who[name]]})
     # both properties: a subject matches only a session with this certificate AND this username
     subjects = [{"id": i, "cert_common_names": [i], "usernames": [i]} for i in who.values()]
@@ -190,18 +201,23 @@ UPLINK_STATE_HZ = 5.0  # the arm's state per cell as the plant gets it (the cell
 def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
     """A cell's rules and the plant's link into it: the plant may declare what it reads (any key: its
     monitor reads every cell at once, ``cadence/*/…``) and receive the cell's keys and what the cell
-    listens to; nothing it sends is let in (no put, no reply, no query: it can say nothing about where
-    people are, select no k, resume no robot), whatever the plant router itself allows."""
+    listens to; nothing it sends under the cell's keys is let in (no put, no reply, no query: it can say
+    nothing about where people are, select no k, resume no robot), whatever the plant router itself
+    allows. Under the plant's own keys (``PLANT_KEYS``) questions and answers cross both ways: another
+    cell's store asks for a set by its hash, this one's answers (from what it stored), and the reverse;
+    a set that comes back is checked by the store that asked, as the executor checks any (never put)."""
     reads, receives, who = f"{cell}: plant reads", f"{cell}: plant receives", f"{cell}: {PLANT}"
+    shared = f"{cell}: plant keys"
     return {
         **acl,
         "rules": [
             *acl["rules"],
             _allow(reads, ["ingress"], READING, [f"{ROOT}/**"]),
             _allow(receives, ["egress"], [*RECEIVING, "declare_subscriber"], [f"{ROOT}/{cell}/**"]),
+            _allow(shared, ["ingress", "egress"], ASKING, PLANT_KEYS),
         ],
         "subjects": [*acl["subjects"], {"id": who, "cert_common_names": [PLANT], "usernames": [PLANT]}],
-        "policies": [*acl["policies"], {"rules": [reads, receives], "subjects": [who]}],
+        "policies": [*acl["policies"], {"rules": [reads, receives, shared], "subjects": [who]}],
     }
 
 
@@ -233,9 +249,12 @@ def plant_router_config(
     rules = [
         _allow("monitor reads", ["ingress"], READING, [f"{ROOT}/**"]),
         _allow("monitor receives", ["egress"], RECEIVING, [f"{ROOT}/**"]),
+        _allow("plant keys", ["ingress", "egress"], ASKING, PLANT_KEYS),  # the stores', link to link
     ]
     subjects = list(readers)
     policies = [{"rules": ["monitor reads", "monitor receives"], "subjects": [r["id"] for r in readers]}]
+    if upstream is not None:
+        policies.append({"rules": ["plant keys"], "subjects": [PLANT]})
     for name, held in behind.items():  # a link, known by its router's certificate (the plant connects to it)
         up, interest = f"{name}: up", f"{name}: interest"
         rules += [
@@ -243,7 +262,7 @@ def plant_router_config(
             _allow(interest, ["egress"], READING, [f"{ROOT}/**"]),
         ]
         subjects.append({"id": name, "cert_common_names": [identity(name, "router")]})
-        policies.append({"rules": [up, interest], "subjects": [name]})
+        policies.append({"rules": [up, interest, "plant keys"], "subjects": [name]})
     link = _link(tls, "listen")
     mine = upstream or tls
     link["tls"] |= {"connect_certificate_base64": _b64(mine.cert),

@@ -11,7 +11,7 @@ from common.robot.ur16e import JOINT_NAMES, JointLimits
 from common.runtime.errors import TrajectoryRejected
 from common.trajectory import bspline as bs
 from common.trajectory.task import PathPlan
-from schemas.pareto import MAX_PATH_S
+from schemas.pareto import MAX_PATH_S, ParetoSet
 
 WAYPOINT_TOL_RAD = 1e-9
 # Relative slack on a limit: exact maxima carry round-off of ~1e-12; a real excess is far larger.
@@ -86,3 +86,19 @@ def validated_samples(
     check_trajectory(h, path, limits, claimed_waypoints)
     _, q, _, _ = bs.sample(np.asarray(h, dtype=float), path.waypoints, path.boundary, rate_hz)
     return q
+
+
+def set_problems(s: ParetoSet, path: PathPlan, limits: JointLimits, digest: str) -> list[str]:
+    """Every reason not to serve ``s``, a set another cell answered for ``path`` (sets by hash): it must
+    name this path's content hash, carry this path's waypoints, and every solution must pass
+    the check the executor applies before any trajectory runs (``trajectory_problems``), on this
+    store's own copy of the path and limits. A hash is a claim; the trajectories are checked."""
+    if s.content_hash != digest:
+        return [f"it was planned from other inputs ({s.content_hash[:12]}…, this path's {digest[:12]}…)"]
+    problems = []
+    claimed = np.asarray(s.waypoints, dtype=float)
+    for sol in s.solutions:
+        problems += [
+            f"k = {sol.k}: {p}" for p in trajectory_problems(np.asarray(sol.h), path, limits, claimed)
+        ]
+    return problems

@@ -1,5 +1,10 @@
 """pareto_store: plans the task program's paths (in a process pool, so queries stay answered), keeps
-the sets in SQLite, and answers ``pareto/<path_id>`` and ``pareto/<path_id>/<k>`` (DESIGN §1, §3)."""
+the sets in SQLite, and answers ``pareto/<path_id>`` and ``pareto/<path_id>/<k>`` (DESIGN §1, §3).
+
+On a plant (issue 58) it first asks the other cells for a set planned from the same inputs, by its content
+hash (``cadence/plant/sets/<hash>``), and answers theirs: cells running the same task program on the same
+robot with the same limits plan it once. A set another cell answers is served only once every one of its
+trajectories passes the executor's own check on this cell's path and limits."""
 
 from __future__ import annotations
 
@@ -17,14 +22,16 @@ import msgspec
 from common.runtime.bus import QueryError, Request
 from common.runtime.clock import wall_ns
 from common.runtime.config import CommonSettings
+from common.runtime.errors import BusError
 from common.runtime.lockstep import Inline
 from common.runtime.node import Node, Out, answers, node_main
 from common.runtime.resources import EXAMPLE_TASK
 from common.runtime.service import service_main
 from common.trajectory.shipped import shipped
 from common.trajectory.task import Task, load_task
+from common.trajectory.validate import set_problems
 from schemas.pareto import ParetoSet, ParetoSolutionReply, PlanProgress, PlanState
-from schemas.topology import PARETO_SET, PARETO_SOLUTION, key, validated
+from schemas.topology import PARETO_SET, PARETO_SOLUTION, PLANT_SETS, key, validated
 from services.pareto_store.jobs import abandon, lower_priority, plan_job, worker_pool
 from services.pareto_store.store import SetStore
 from services.registry import STORE
@@ -39,6 +46,9 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # serve the sets that ship with Cadence for a path planned from the same inputs (deploy/sets/): the
     # same trajectories on every machine; false: plan every path here
     shipped_sets: bool = True
+    # ask the plant's other cells for a set planned from the same inputs before planning it (seconds to
+    # wait for their answers; 0: never ask). A cell alone gets no answer but its own, at once.
+    plant_sets_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 3.0
 
 
 def _chunks(cell: str, req: Request) -> list[str]:
@@ -89,6 +99,8 @@ class ParetoStore(Node):
         self.digests, self.sets = await asyncio.to_thread(self.store.current, self.task)
         self.shipped = await asyncio.to_thread(self.take_shipped) if self.ctx.settings.shipped_sets else []
         self.reply_seq = itertools.count()  # the replies' own sequence, apart from the progress messages'
+        if self.ctx.settings.plant_sets_s > 0:
+            self.ctx.bus.asks(PLANT_SETS)  # a port opened now, asked only for a path not stored
         # a lockstep cell's planning is done in its loop's thread: its time waits for it (lockstep.py)
         self.pool = Inline() if self.ctx.common.clock.driven else worker_pool(self.ctx.settings.workers)
 
@@ -120,11 +132,54 @@ class ParetoStore(Node):
         path_id, k = _chunks(self.ctx.common.cell, req)
         return answer_solution(self.sets, self.task, path_id, k, next(self.reply_seq))
 
+    @answers(PLANT_SETS)
+    async def on_plant_set(self, req: Request) -> ParetoSet:
+        """Another cell's store asks for a set by its content hash: one of this cell's, if it has it."""
+        digest = req.key.rsplit("/", 1)[-1]
+        found = next((s for s in self.sets.values() if s.content_hash == digest), None)
+        found = found or await asyncio.to_thread(self.store.by_hash, digest)
+        if found is None:
+            raise QueryError(f"no set planned from {digest} in this cell")
+        self.ctx.counters["sets_given"] += 1
+        return found
+
+    async def fetch(self, pid: str) -> ParetoSet | None:
+        """A set for ``pid`` from another cell of the plant, checked; None when none came or none passed."""
+        digest = self.digests[pid]
+        try:
+            replies = await self.ctx.bus.get(PLANT_SETS.at(digest), timeout=self.ctx.settings.plant_sets_s)
+        except BusError as exc:
+            log.warning("asking the plant for '%s': %s", pid, exc)
+            return None
+        for r in replies:
+            if r.message is None:
+                continue  # "not in this cell" (this store's own answer, and any cell's without it)
+            s = msgspec.structs.replace(r.message, path_id=pid)
+            problems = await asyncio.to_thread(
+                set_problems, s, self.task.paths[pid], self.task.limits, digest
+            )
+            if problems:
+                self.ctx.counters["plant_sets_refused"] += 1
+                log.warning("a set for '%s' from %s refused: %s", pid, r.key, "; ".join(problems[:3]))
+                continue
+            return validated(s)
+        return None
+
     async def stream(self) -> AsyncIterator[Out]:
         """Plans what SQLite does not hold, every path at once in the pool, saying how far it got. A
         path whose waypoints were edited starts from its last set (a warm start)."""
         yield [self.progress(pid, "stored") for pid in self.sets]
         missing = [pid for pid in self.task.paths if pid not in self.sets]
+        for pid in missing if self.ctx.settings.plant_sets_s > 0 else []:
+            if (s := await self.fetch(pid)) is None:
+                continue
+            with contextlib.suppress(sqlite3.OperationalError):  # a full disk: served all the same
+                await asyncio.to_thread(self.store.save, s)
+            self.sets[pid] = s
+            self.ctx.counters["plant_sets_taken"] += 1
+            log.info("'%s': planned elsewhere on the plant, taken by its hash", pid)
+            yield [self.progress(pid, "stored", "taken from another cell of the plant")]
+        missing = [pid for pid in missing if pid not in self.sets]
         log.info("task '%s': %d sets stored%s%s", self.task.name, len(self.sets),
                  f" ({len(self.shipped)} shipped with Cadence)" if self.shipped else "",
                  f", planning {', '.join(missing)}" if missing else "")  # fmt: skip

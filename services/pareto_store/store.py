@@ -102,6 +102,21 @@ class SetStore:
             return None
         return s if (s.path_id, s.content_hash) == (path_id, content_hash) else None
 
+    def by_hash(self, content_hash: str) -> ParetoSet | None:
+        """A set planned from the inputs ``content_hash`` names, whatever its path is called here: what
+        this store answers another cell of the plant that asks for it (``PLANT_SETS``)."""
+        rows = self._db.execute(
+            "SELECT payload FROM pareto_sets WHERE content_hash = ? ORDER BY created_ns DESC", (content_hash,)
+        ).fetchall()
+        for (payload,) in rows:
+            try:
+                s = self._decoder.decode(payload)
+            except (msgspec.ValidationError, msgspec.DecodeError):
+                continue
+            if s.content_hash == content_hash:
+                return s
+        return None
+
     def previous(self, path_id: str, content_hash: str) -> ParetoSet | None:
         """The newest set of this path planned for something else (a waypoint since edited): its
         solutions seed the new search (planner.warm_seeds). None when there is none that decodes."""

@@ -110,7 +110,7 @@ def test_the_launch_order_starts_answerers_before_askers_and_readers_before_writ
     for t in TOPICS:
         for p in t.publishers:
             for a in t.askers:
-                if ROLE[a].kind == "service" and ROLE[p].kind == "service":
+                if ROLE[a].kind == "service" and ROLE[p].kind == "service" and a != p:  # a store asks others
                     assert at[p] < at[a], f"{a} asks {t.suffix} of {p}"
     # the data flow, from its end back to its source (Zenoh drops a put nobody subscribes to yet), but the
     # decision maker asks the analyser for windows it missed, so it comes after it (and what it missed
