@@ -286,7 +286,7 @@ def key(cell: str, suffix: str) -> str:
     return f"{ROOT}/{cell}/{suffix}"
 
 
-def key_of(topic: Topic[Any], cell: str) -> str:
+def key_for(topic: Topic[Any], cell: str) -> str:
     """A topic's key expression for a cell: under the cell, or under the plant for a plant's topic."""
     return key(PLANT_SCOPE if topic.scope == "plant" else cell, topic.suffix)
 

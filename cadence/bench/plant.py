@@ -34,6 +34,7 @@ from rich.table import Table
 from cadence.bench.plant_cells import TIMED, CellSpec, WorkerResult, WorkerSpec
 
 PER_LINE = 10  # cells behind one line router
+GROUPS = ("cell routers", "line routers", "plant router", "recorder", "monitor", "workers")  # CPU, by process
 WORKERS = 2  # processes putting the cells' traffic (this host has 2 cores)
 WARM_S, GAP_S = 2.0, 4.0  # before the first phase; between them (the plant's readers connect)
 
@@ -54,10 +55,24 @@ class Layout:
     monitor: Path  # the plant monitor's account (`cadence plant`, `cadence record --plant`)
 
 
-def _endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tls/127.0.0.1:{s.getsockname()[1]}"
+class _Ports:
+    """Free ports for the routers, below the ephemeral range (32768 and up on Linux): a port found free
+    there can be taken by another router's outgoing connection before its own router listens on it."""
+
+    def __init__(self) -> None:
+        import random
+
+        self.next = random.randrange(20_000, 28_000)
+
+    def endpoint(self) -> str:
+        while True:
+            port, self.next = self.next, self.next + 1
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+            return f"tls/127.0.0.1:{port}"
 
 
 def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
@@ -72,6 +87,7 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
 
     plant = new_secret()
     here = ["127.0.0.1"]
+    ports = _Ports()
 
     def write(name: str, cfg: dict[str, object]) -> Path:
         path = folder / f"{name}.json5"
@@ -83,9 +99,9 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
     for i in range(n_cells):
         line = f"line{i // per_line + 1}"
         name = f"{line}-cell{i % per_line + 1}"
-        lines.setdefault(line, (_endpoint(), []))[1].append(name)
+        lines.setdefault(line, (ports.endpoint(), []))[1].append(name)
         ca = make_ca(name)
-        endpoint = _endpoint()
+        endpoint = ports.endpoint()
         cas[name] = (endpoint, ca.cert)
         passwords = {a: f"pw-{name}-{a}" for a in ACCOUNTS}
         users = folder / f"{name}.users"
@@ -101,7 +117,7 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
             configs[role] = str(write(identity(name, role), cfg))
         reader = configs.pop("monitor")
         cells.append(CellSpec(name, configs, reader))
-    plant_at = _endpoint()
+    plant_at = ports.endpoint()
     for name, (text, _) in plant_files(plant, cas, plant_at, here, folder, lines).items():
         (folder / name).parent.mkdir(exist_ok=True)
         (folder / name).write_text(text)
@@ -210,20 +226,24 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
             say("the cells' sessions")
             workers, outs = [], []
             share = -(-n_cells // WORKERS)
+            # the readers first, in a process of their own (the putters wait until each is subscribed)
+            specs = [WorkerSpec(lay.cells, 0, n_cells, str(folder / "readers.json"), puts=False)]
             for w in range(0, n_cells, share):
-                out = folder / f"worker{w}.json"
-                spec = WorkerSpec(lay.cells[w : w + share], w, n_cells, str(out))
-                (folder / f"worker{w}.spec.json").write_bytes(msgspec.json.encode(spec))
-                workers.append(subprocess.Popen(
-                    [sys.executable, "-m", "cadence.bench.plant_cells", str(folder / f"worker{w}.spec.json")],
-                    stdin=subprocess.PIPE, stdout=subprocess.PIPE))  # fmt: skip
-                outs.append(out)
-            procs += workers
-            for proc in workers:
+                result = str(folder / f"putter{w}.json")
+                specs.append(WorkerSpec(lay.cells[w : w + share], w, n_cells, result, reads=False))
+            for i, spec in enumerate(specs):
+                path = folder / f"worker{i}.spec.json"
+                path.write_bytes(msgspec.json.encode(spec))
+                proc = subprocess.Popen([sys.executable, "-m", "cadence.bench.plant_cells", str(path)],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)  # fmt: skip
+                procs.append(proc)
+                workers.append(proc)
+                outs.append(Path(spec.out))
                 assert proc.stdout is not None
                 line = await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 300)
                 if line.strip() != b"ready":
                     raise RuntimeError("a worker of the cells did not start (its error is above)")
+            pids["workers"] = [p.pid for p in workers]
             t0 = time.monotonic_ns() + 500_000_000
             a0 = t0 + int(WARM_S * 1e9)
             a1 = a0 + int(seconds * 1e9)
@@ -261,11 +281,11 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                 for key in plant_watch():
                     bus.subscribe_raw(key, came)
                 await _until(b0)
-                pids["recorder"] = [recorder.pid]
+                pids["recorder"], pids["monitor"] = [recorder.pid], [os.getpid()]
                 meter = Meter(pids)
                 grown = [(time.monotonic(), _size(recording))]  # the recording's growth, as it flushes
-                while time.monotonic_ns() < b1:  # the view, refreshed as `cadence plant` does
-                    await asyncio.sleep(0.25)
+                while time.monotonic_ns() < b1:  # the view, refreshed as `cadence plant` does (2 Hz)
+                    await asyncio.sleep(0.5)
                     now = time.monotonic()
                     Console(file=io.StringIO(), width=200).print(plant.view(now=now))
                     ages = [now - c.robot[0] for c in plant.cells.values() if c.robot is not None]
@@ -277,9 +297,9 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
             if recorder.returncode != 0:
                 raise RuntimeError(f"cadence record --plant: {err.decode(errors='replace').strip()}")
             results = []
-            for proc, out in zip(workers, outs, strict=True):
+            for proc, done in zip(workers, outs, strict=True):
                 await asyncio.to_thread(proc.wait, 60)
-                results.append(msgspec.json.decode(out.read_bytes(), type=WorkerResult))
+                results.append(msgspec.json.decode(done.read_bytes(), type=WorkerResult))
             return _figures(n_cells, len(lay.line_routers), seconds, results, (a0, a1, b0, b1), alone_cpu,
                             watched_cpu, plant, transit, windows, behind, recording, grown)  # fmt: skip
         finally:
@@ -367,16 +387,15 @@ def plant_table(figures: list[PlantFigures]) -> tuple[Table, Table]:
     recorder (windows, cycles, events) did not get, the stalest cell in its view, and its recording."""
     cells = Table(title="bench plant: in the cells (as each cell's monitor gets them); CPU in % of a core")
     for col in ("N", "plant readers", "robot/state ms", "separation ms", "cell routers", "lines", "plant",
-                "recorder"):  # fmt: skip
+                "recorder", "monitor", "cells' workers"):  # fmt: skip
         cells.add_column(col, justify="right")
     for f in figures:
         for name, phase in (("none", f.alone), ("monitor, recorder", f.watched)):
             lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" for k in TIMED]
-            cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu else "" for g in
-                   ("cell routers", "line routers", "plant router", "recorder")]  # fmt: skip
+            cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu else "" for g in GROUPS]
             cells.add_row(str(f.cells), name, *lat, *cpu)
         shift = [f"{f.watched.latency_ms[k][1] - f.alone.latency_ms[k][1]:+.2f}" for k in TIMED]
-        cells.add_row("", "p99 shift", *shift, "", "", "", "", end_section=True)
+        cells.add_row("", "p99 shift", *shift, *[""] * 6, end_section=True)
     plant = Table(title="bench plant: what the plant got")
     for col in ("N", "lines", "delivered in cells", "derived lost", "view behind s", "to plant p99 ms",
                 "MB / cell-day"):  # fmt: skip

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import msgspec
 
@@ -93,6 +94,7 @@ PROFILE: tuple[Stream, ...] = (
     *(Stream(f"health/{s}", 1.0, _status(s)) for s in cell_roster([ECG_SOURCES[0]])),
 )  # fmt: skip
 TIMED = ("robot/state", "operator/separation")  # read back in the cell and timed
+EARLY_NS = 1_000_000  # a put due this soon goes now (stamped when it goes): fewer wake-ups of the putters
 DERIVED = ("hrv/window", "robot/cycle", "robot/event")  # what a plant keeps of each one (none may be lost)
 ACCOUNTS = tuple(sorted({s.account for s in PROFILE}))
 
@@ -108,6 +110,9 @@ class WorkerSpec(msgspec.Struct, frozen=True):
     first: int  # this worker's first cell's index among all (for its phase in each period)
     of: int  # all cells of the bench
     out: str  # where the results go (JSON)
+    puts: bool = True  # this worker puts the cells' traffic
+    reads: bool = True  # this worker reads it back in each cell (the readers' own process: its loop
+    # is a reader's, as a service's is, not busy putting what forty other cells send)
 
 
 class WorkerResult(msgspec.Struct):
@@ -141,34 +146,41 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
     """Open every cell's sessions, wait until each cell's reader is subscribed, say ready, then put the
     profile from the start to the end the bench gives (``start``: (t0_ns, end_ns))."""
     from common.runtime.bus import Bus, BusConfig
+    from common.runtime.transport import ZenohTransport
 
     buses: dict[tuple[int, str], Bus] = {}
     readers: list[Bus] = []
+    subs: list[Any] = []  # Zenoh's subscribers, alive until the end
     timed: dict[str, list[tuple[int, int]]] = {k: [] for k in TIMED}
     decoders: dict[str, msgspec.msgpack.Decoder[RobotState] | msgspec.msgpack.Decoder[Separation]] = {
         "robot/state": msgspec.msgpack.Decoder(RobotState),
         "operator/separation": msgspec.msgpack.Decoder(Separation),
     }
 
-    def arrived(suffix: str) -> Callable[[str, bytes], None]:
+    def arrived(suffix: str) -> Callable[[Any], None]:
+        """Timed as the cell's session gets it, in Zenoh's own callback: the latency through the cell's
+        router. (A service's loop adds its own hop; fifty cells' readers share this process's loop, a
+        load no cell's service has.)"""
         decode, into = decoders[suffix].decode, timed[suffix]
 
-        def on(_: str, payload: bytes) -> None:
+        def on(sample: Any) -> None:
             now = time.monotonic_ns()
-            t = decode(payload).t_ns
+            t = decode(sample.payload.to_bytes()).t_ns
             into.append((t, (now - t) // 1000))
 
         return on
 
     try:
         for c, cell in enumerate(spec.cells):
-            reader = await Bus.open(BusConfig(config_file=cell.reader), cell.name)
-            readers.append(reader)
-            for suffix in TIMED:
-                reader.subscribe_raw(reader.key(suffix), arrived(suffix))
-            for account in ACCOUNTS:
+            if spec.reads:
+                reader = await Bus.open(BusConfig(config_file=cell.reader), cell.name)
+                readers.append(reader)
+                for suffix in TIMED:
+                    session = cast(ZenohTransport, reader.transport).session
+                    subs.append(session.declare_subscriber(reader.key(suffix), arrived(suffix)))
+            for account in ACCOUNTS if spec.puts else ():
                 buses[c, account] = await Bus.open(BusConfig(config_file=cell.accounts[account]), cell.name)
-        for c, cell in enumerate(spec.cells):
+        for c, cell in enumerate(spec.cells if spec.puts else ()):
             for stream in PROFILE:
                 if stream.suffix in TIMED:
                     await buses[c, stream.account].until_subscribed(
@@ -176,20 +188,20 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
                     )
         print("ready", flush=True)
         t0, end = await start
-        sent = {cell.name: {s.suffix: 0 for s in PROFILE} for cell in spec.cells}
-        derived: dict[str, dict[str, list[int]]] = {
-            cell.name: {k: [] for k in DERIVED} for cell in spec.cells
-        }
+        sent = {cell.name: {s.suffix: 0 for s in PROFILE} for cell in spec.cells if spec.puts}
+        derived: dict[str, dict[str, list[int]]] = {cell: {k: [] for k in DERIVED} for cell in sent}
         keys = [[f"cadence/{cell.name}/{s.suffix}" for s in PROFILE] for cell in spec.cells]
         block = [_blocks(s.suffix) for s in PROFILE]  # as the services put them: the topic's QoS
-        due = _schedule(spec, t0)
+        due = _schedule(spec, t0) if spec.puts else []
+        if not due:
+            await asyncio.sleep(max(0, end - time.monotonic_ns()) / 1e9)
         lost = 0
         while due:
             t, c, s = due[0]
             if t >= end:
                 break
             now = time.monotonic_ns()
-            if t > now:
+            if t > now + EARLY_NS:
                 await asyncio.sleep((t - now) / 1e9)
                 continue
             heapq.heappop(due)
@@ -207,6 +219,8 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
         await asyncio.sleep(0.5)  # the last puts' way through the cell's router
         return WorkerResult(sent=sent, derived=derived, timed=timed, lost_puts=lost)
     finally:
+        for sub in subs:
+            sub.undeclare()
         for bus in [*buses.values(), *readers]:
             await bus.close()
 

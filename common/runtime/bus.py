@@ -26,7 +26,7 @@ from common.runtime.clock import wall_monotonic
 from common.runtime.errors import BusError
 from common.runtime.transport import Declared, Transport, ZenohTransport, zenoh_words
 from schemas.base import Message
-from schemas.topology import ROLE, Topic, encode, key_of, may_ask, may_publish, may_subscribe, topic_of
+from schemas.topology import ROLE, Topic, encode, key_for, may_ask, may_publish, may_subscribe, topic_of
 from schemas.topology import key as topology_key
 
 M = TypeVar("M", bound=Message)
@@ -303,7 +303,7 @@ class Bus:
         self._check_open()
         if not isinstance(what, str):
             self._port(kind, what)
-            return key_of(what, self.cell), what.message
+            return key_for(what, self.cell), what.message
         if msg_type is None and kind != "publish":
             raise TypeError(f"{kind} by key expression needs msg_type")
         if self.role is not None:
@@ -319,7 +319,7 @@ class Bus:
         if "*" in topic.suffix.split("/"):
             raise ValueError(f"{topic.suffix}: a publisher needs one key; name it with .at()")
         self._port("publish", topic)
-        return Publisher(self, topic, key_of(topic, self.cell))
+        return Publisher(self, topic, key_for(topic, self.cell))
 
     def asks(self, topic: Topic[Any]) -> None:
         """Declare a query the process may send (checked against the graph now, as a publisher is), for a

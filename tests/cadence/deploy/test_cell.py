@@ -32,7 +32,7 @@ from cadence.deploy.install import Bundle, Options, cell_accounts, new_bundle, p
 from cadence.deploy.pki import common_name, issue, make_ca
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
-from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS, key_of
+from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS, key_for
 from tests.support.cell import CELL, config_file, free_port, put
 from tests.support.paths import REPO
 
@@ -54,7 +54,7 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
         }
 
     for t in TOPICS:
-        key = key_of(t, "c1").replace("*", "x")  # a plant's key (sets by hash) is under cadence/plant/
+        key = key_for(t, "c1").replace("*", "x")  # a plant's key (sets by hash) is under cadence/plant/
         if t is not HEALTH:  # health/<account>: each its own (below)
             assert allowed("publish", key) == publishers(t), t.suffix
         # the ACL names families (pareto/**), so who may ask a set may ask its members too
