@@ -35,6 +35,8 @@ RR_RESYNC_S = 3.0  # device RR whose summed beat clock strays this far from the 
 LEVEL_N, LEVEL_MIN = 30, 10  # the rhythm's level: the median of the last LEVEL_N clean intervals, once 10
 RELEVEL = 40  # intervals in a row at twice the level: a rhythm that slow is believed, and the level relearnt
 STEP_BEATS = 6  # the clean intervals on each side of a jump in rate (``rhythm_jumps``)
+RUN_BEATS = 3  # early beats in a row: a run of tachycardia, not an ectopic beat (``early_run``)
+LOOK_BACK = 100  # intervals before a window that ``early_run`` learns the rhythm from
 RHYTHM_HOLD_S = 300.0  # a jump in rate holds the windows until the rate is back, this long at most
 SPREAD_N, SPREAD_MIN = 60, 5  # the person's own spread and step: medians of the last 60 plausible intervals
 
@@ -355,7 +357,7 @@ def window_stats(
         reason = "gap"
     elif irregularity(iv.rr_s[idx[0] : idx[-1] + 1]) > rules.irregular:
         reason = "irregular"
-    elif rhythm_jumps(iv, excluded_all, gaps_s, start_s, end_s, rules.step):
+    elif rhythm_jumps(iv, excluded_all, gaps_s, start_s, end_s, rules.step) or early_run(iv, idx, rules):
         reason = "rhythm"
     elif excluded > rules.max_excluded:
         reason = "excluded"
@@ -428,6 +430,56 @@ def rhythm_jumps(
     away = float(np.median(inside)) / float(level[jumps[0]]) if inside.size else 1.0  # from before the first
     half = float(np.sqrt(step))
     return away > half or away * half < 1.0
+
+
+def early_run(iv: Intervals, idx: NDArray[np.intp], rules: Rules = RULES) -> bool:
+    """Whether a run of RUN_BEATS early beats or more reaches into the window ``idx`` (its intervals, in a
+    row): beats in a row, each closing an interval shorter than the rhythm before it by more than the
+    tolerance, the first sharply (shorter than the interval before it by that much too), the last
+    RUN_BEATS of them a run of beats (``_a_run``). The rhythm before it is the median of the last
+    STEP_BEATS intervals the cleaning kept that were not early themselves: a run is not its own baseline.
+
+    Three ectopic beats in a row are a run of tachycardia, ventricular or supraventricular (the clinical
+    definition): not sinus rhythm. Too short to move the medians ``rhythm_jumps`` compares, a run was cut
+    out as ectopic beats, or, a little early, kept as the person's own, and its window passed as sinus. A
+    lone premature beat, a couplet and bigeminy are runs of one or two; a breath shortens RR over several
+    beats, not in one. A run past twice STEP_BEATS is a rate that stays, a jump: the rhythm the next beats
+    are held to. Looks back, never past the window's end: the stream decides a window as the offline
+    pass does."""
+    if idx.size == 0:
+        return False
+    rr, first, last = iv.rr_s, int(idx[0]), int(idx[-1])
+    base: deque[float] = deque(maxlen=STEP_BEATS)
+    run = 0
+    for j in range(max(0, first - LOOK_BACK), last + 1):
+        ref = statistics.median(base) if len(base) >= STEP_BEATS // 2 else None
+        x = float(rr[j])
+        early = (
+            ref is not None
+            and MIN_RR_S <= x < (1.0 - rules.tolerance) * ref
+            and (run > 0 or (j >= 1 and float(rr[j - 1]) - x > rules.tolerance * ref))
+        )
+        run = run + 1 if early else 0
+        if run > 2 * STEP_BEATS:  # a rate that stays is a jump (``rhythm_jumps``), and the rhythm from now on
+            base.extend(float(r) for r in rr[j - STEP_BEATS + 1 : j + 1])
+            run = 0
+        elif (
+            run >= RUN_BEATS
+            and j >= first
+            and ref is not None
+            and _a_run(rr[j - RUN_BEATS + 1 : j + 1], ref, rules)
+        ):
+            return True
+        elif not early and iv.kind[j] == "ok":
+            base.append(x)
+    return False
+
+
+def _a_run(rr: NDArray[np.float64], ref: float, rules: Rules) -> bool:
+    """Whether early intervals are a run of beats, not the pieces of a false beat: together longer than
+    one interval of the rhythm, and within the tolerance of each other (a tachycardia is regular; an
+    extra beat drawn among two leaves three unlike pieces)."""
+    return float(rr.sum()) > ref and float(rr.max()) <= (1.0 + rules.tolerance) * float(rr.min())
 
 
 def noisy_exclusions(iv: Intervals, idx: NDArray[np.intp], hold_noise: float) -> int:
