@@ -7,9 +7,10 @@ the plant's router reads the lines, as `cadence plant-router` and `cadence insta
 It runs two phases of the same length: the cells alone, then with the plant monitor (`cadence plant`'s
 view, here in the bench's own process) and the plant recorder (`cadence record --plant`, a process of its
 own) reading every cell through the line and plant routers. Per phase: the arm's state and the separation
-as each cell's monitor gets them, p50/p99 (the in-cell figures a plant must not move), and the routers'
-CPU; then how far behind the plant's view ever was, whether the plant got every derived message (each
-cell's windows, cycles and events, by their stamps) and how many bytes a cell's plant recording takes a day.
+as each cell's monitor session gets them, p50/p99 (the in-cell figures a plant must not move), and each
+group of processes' CPU; then how far behind the plant's view ever was, whether the plant got every
+derived message (each cell's windows, cycles and events, by their stamps) and how many bytes a cell's
+plant recording takes a day.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+from rich.console import Console
 from rich.table import Table
 
 from cadence.bench.plant_cells import TIMED, CellSpec, WorkerResult, WorkerSpec
@@ -188,27 +190,30 @@ def _latencies(results: list[WorkerResult], since: int, until: int) -> dict[str,
     return out
 
 
-async def _start_router(router: Router) -> subprocess.Popen[bytes]:
-    proc = subprocess.Popen([sys.executable, "-m", "cadence", "router", "--zenoh-config", str(router.config)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
-    assert proc.stderr is not None
-    line = await asyncio.wait_for(asyncio.to_thread(proc.stderr.readline), 120)
-    if b"listening" not in line:
-        proc.kill()
-        raise RuntimeError(f"the router {router.name} did not start: {line.decode(errors='replace')}")
+async def _start_router(router: Router, logs: Path) -> subprocess.Popen[bytes]:
+    """`cadence router` on the router's config, once it says it listens; what it says goes to a file (a
+    pipe nobody reads would stop a router that logs)."""
+    log = logs / f"{router.name}.log"
+    with log.open("wb") as out:
+        run = [sys.executable, "-m", "cadence", "router", "--zenoh-config", str(router.config)]
+        proc = subprocess.Popen(run, stdout=subprocess.DEVNULL, stderr=out)
+    async with asyncio.timeout(120):
+        while b"listening" not in log.read_bytes():
+            if proc.poll() is not None:
+                said = log.read_text(errors="replace").strip().splitlines()[-1:]
+                raise RuntimeError(f"the router {router.name} did not start: {' '.join(said)}")
+            await asyncio.sleep(0.05)
     return proc
 
 
 async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_LINE,
-                      progress: object = None) -> PlantFigures:  # fmt: skip
+                      progress: Console | None = None) -> PlantFigures:  # fmt: skip
     """The plant above, run on this host: see the module's words."""
-    from rich.console import Console
-
     from cadence.tools.plant import Plant, plant_watch
     from common.runtime.bus import Bus, BusConfig
     from schemas.topology import decode_any
 
-    say = getattr(progress, "print", lambda *_: None)
+    say = progress.print if progress is not None else lambda *_: None
     procs: list[subprocess.Popen[bytes]] = []
     with tempfile.TemporaryDirectory(prefix="cadence-plant-") as tmp:
         folder = Path(tmp)
@@ -220,7 +225,7 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                        "plant router": [lay.plant_router]}  # fmt: skip
             pids: dict[str, list[int]] = {}
             for group, members in routers.items():
-                started = await asyncio.gather(*(_start_router(r) for r in members))
+                started = await asyncio.gather(*(_start_router(r, folder) for r in members))
                 procs += started
                 pids[group] = [p.pid for p in started]
             say("the cells' sessions")

@@ -91,9 +91,11 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
     policies: list[dict[str, Any]] = [{"rules": [read, receive], "subjects": [who[a] for a in accounts]}]
     for name in accounts:
         health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
-        keys = sorted({_acl_key(cell, t) for t in TOPICS if name in publishers(t) and t is not HEALTH})
-        asks = sorted({_acl_key(cell, t) for t in TOPICS if name in askers(t)})
-        plant = sorted({_acl_key(cell, t) for t in TOPICS if t.scope == "plant" and name in askers(t)})
+        mine = [t for t in TOPICS if t.scope == "cell"]
+        keys = sorted({_acl_key(cell, t) for t in mine if name in publishers(t) and t is not HEALTH})
+        asks = sorted({_acl_key(cell, t) for t in mine if name in askers(t)})
+        shared = [t for t in TOPICS if t.scope == "plant" and name in publishers(t) | askers(t)]
+        plant = sorted({_acl_key(cell, t) for t in shared})
         own = [f"{cell}: publish {name}", f"{cell}: presence {name}"]
         rules.append(
             _allow(own[0], ["ingress"], ["put", "delete", "declare_queryable", "reply"], [*keys, health])
@@ -102,9 +104,9 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
         if asks:  # a query changes what an answerer does (robot/resume): only those the graph names ask
             own.append(f"{cell}: ask {name}")
             rules.append(_allow(own[-1], ["ingress"], ["query"], asks))
-        if plant:  # the plant's keys are no cell's: only their askers get the questions and the answers
+        if plant:  # the plant's keys are no cell's: who asks and answers there, questions and answers only
             own.append(f"{cell}: plant keys {name}")
-            rules.append(_allow(own[-1], ["egress"], ASKING, plant))
+            rules.append(_allow(own[-1], ["ingress", "egress"], ASKING, plant))
         policies.append({"rules": own, "subjects": [who[name]]})
     # both properties: a subject matches only a session with this certificate AND this username
     subjects = [{"id": i, "cert_common_names": [i], "usernames": [i]} for i in who.values()]
@@ -240,7 +242,7 @@ def plant_router_config(
     ``upstream``: this is a line's router, which a plant's router reads. It connects to its cells with the
     certificate of ``upstream`` (``PLANT``'s, which the cells' routers let in) and shows the plant its own
     (``tls``: ``identity(line, "router")``, which the plant knows the line by); the plant's link may read
-    and receive, as a monitor does, and say nothing."""
+    and receive, as a monitor does, and say nothing under any cell's keys."""
     carries = carries or {}
     behind = {name: carries.get(name, [name]) for name in cells}
     readers = [{"id": PLANT_MONITOR, "cert_common_names": [PLANT_MONITOR], "usernames": [PLANT_MONITOR]}]
