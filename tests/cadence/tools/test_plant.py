@@ -91,6 +91,40 @@ async def test_cadence_plant_shows_two_cells_on_one_bus() -> None:
     assert "4 of 15 (initial)" in text and "9 of 15 (initial)" in text
 
 
+async def plant_reads_each_downsampled(watcher: Bus, executors: dict[str, Bus]) -> None:
+    """Each cell puts its arm's state at 50 Hz for 3 s: the plant's monitor gets every cell's, and none
+    above ``UPLINK_STATE_HZ`` (each cell its own budget). First each sends until the plant has one of it:
+    a cell's clients are not told of a plant's wildcard subscription, so a publisher cannot wait for it."""
+    from cadence.deploy.cell import UPLINK_STATE_HZ
+
+    state = RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
+    got = dict.fromkeys(executors, 0)
+
+    def came(key: str, _: bytes) -> None:
+        got[key.split("/")[1]] += 1
+
+    def put_each() -> None:
+        for ex in executors.values():
+            put(ex, ex.key("robot/state"), state)
+
+    watcher.subscribe_raw("cadence/*/robot/state", came)
+    async with asyncio.timeout(60):
+        while not all(got.values()):
+            put_each()
+            await asyncio.sleep(0.02)
+    got = dict.fromkeys(executors, 0)
+    t0 = asyncio.get_running_loop().time()
+    for _ in range(150):  # 3 s at 50 Hz from each cell
+        put_each()
+        await asyncio.sleep(0.02)
+    span = asyncio.get_running_loop().time() - t0
+    async with asyncio.timeout(10):
+        while not all(got.values()):
+            await asyncio.sleep(0.05)
+    for cell, n in got.items():
+        assert 1 <= n <= UPLINK_STATE_HZ * span + 2, (cell, n, span)
+
+
 @pytest.mark.asyncio
 async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(tmp_path: Path) -> None:
     """Two cells, each behind its own router over mTLS, and a plant router that connects to both (issue
@@ -102,7 +136,6 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         ACCOUNTS,
         PLANT,
         PLANT_MONITOR,
-        UPLINK_STATE_HZ,
         Tls,
         client_config,
         identity,
@@ -148,7 +181,6 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         return config_file(tmp_path, identity(cell, name), cfg)
 
     monitor_cfg = json5_of(tmp_path / "plant-monitor.json5")
-    state = RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
     async with (
         await Bus.open(routers[0], "c1"),
         await Bus.open(routers[1], "c2"),
@@ -157,31 +189,7 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         await Bus.open(plant, "plant"),
         await Bus.open(config_file(tmp_path, "monitor", monitor_cfg), "plant") as watcher,
     ):
-        got: dict[str, int] = {"c1": 0, "c2": 0}
-
-        def came(key: str, _: bytes) -> None:
-            got[key.split("/")[1]] += 1
-
-        watcher.subscribe_raw("cadence/*/robot/state", came)
-        # the plant's reading reaches the cells (a cell's clients are not told of a plant's wildcard
-        # subscription, so a publisher cannot wait for it): each cell sends until the plant has one of it
-        async with asyncio.timeout(60):
-            while not (got["c1"] and got["c2"]):
-                put(ex1, ex1.key("robot/state"), state)
-                put(ex2, ex2.key("robot/state"), state)
-                await asyncio.sleep(0.02)
-        got = {"c1": 0, "c2": 0}
-        t0 = asyncio.get_running_loop().time()
-        for _ in range(150):  # 3 s at 50 Hz from each cell
-            put(ex1, ex1.key("robot/state"), state)
-            put(ex2, ex2.key("robot/state"), state)
-            await asyncio.sleep(0.02)
-        span = asyncio.get_running_loop().time() - t0
-        async with asyncio.timeout(10):
-            while not (got["c1"] and got["c2"]):
-                await asyncio.sleep(0.05)
-        for c in cells:  # each cell its own budget: both come, neither above the rate
-            assert 1 <= got[c] <= UPLINK_STATE_HZ * span + 2, (c, got[c], span)
+        await plant_reads_each_downsampled(watcher, {"c1": ex1, "c2": ex2})
     # a plant router that lets anything through: the cells' routers still let nothing in from it
     async with (
         await Bus.open(routers[0], "c1"),
@@ -281,7 +289,6 @@ async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_n
     resume, even into a cell whose own router would let it: the line lets nothing in from its uplink but
     reading."""
     from cadence.bench.plant import layout
-    from cadence.deploy.cell import UPLINK_STATE_HZ
     from schemas import Separation
 
     lay = layout(tmp_path, 2, per_line=2)
@@ -290,7 +297,6 @@ async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_n
     plant_cfg = json5_of(lay.plant_router.config)
     rogue_cfg = {**plant_cfg, "access_control": {"enabled": False}, "downsampling": [],
                  "listen": {"endpoints": [f"tls/127.0.0.1:{free_port()}"]}}  # fmt: skip
-    state = RobotState(t_ns=1, seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6)
     async with (
         await Bus.open(cfg(lay.cell_routers[0].config), c1.name),
         await Bus.open(cfg(lay.cell_routers[1].config), c2.name),
@@ -300,29 +306,7 @@ async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_n
         await Bus.open(cfg(c2.accounts["executor"]), c2.name) as ex2,
         await Bus.open(cfg(lay.monitor), "plant") as watcher,
     ):
-        got = {c1.name: 0, c2.name: 0}
-
-        def came(key: str, _: bytes) -> None:
-            got[key.split("/")[1]] += 1
-
-        watcher.subscribe_raw("cadence/*/robot/state", came)
-        async with asyncio.timeout(60):  # until the plant's reading has reached both cells, two hops down
-            while not all(got.values()):
-                put(ex1, ex1.key("robot/state"), state)
-                put(ex2, ex2.key("robot/state"), state)
-                await asyncio.sleep(0.02)
-        got = dict.fromkeys(got, 0)
-        t0 = asyncio.get_running_loop().time()
-        for _ in range(150):  # 3 s at 50 Hz from each cell
-            put(ex1, ex1.key("robot/state"), state)
-            put(ex2, ex2.key("robot/state"), state)
-            await asyncio.sleep(0.02)
-        span = asyncio.get_running_loop().time() - t0
-        async with asyncio.timeout(10):
-            while not all(got.values()):
-                await asyncio.sleep(0.05)
-        for c, n in got.items():
-            assert 1 <= n <= UPLINK_STATE_HZ * span + 2, (c, n, span)
+        await plant_reads_each_downsampled(watcher, {c1.name: ex1, c2.name: ex2})
     # the cell's own router refuses the plant too (above); here it lets anything in, so what is proven
     # is the line's own refusal
     open_cell = {**json5_of(lay.cell_routers[0].config), "access_control": {"enabled": False}}
