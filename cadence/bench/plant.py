@@ -190,20 +190,22 @@ def _latencies(results: list[WorkerResult], since: int, until: int) -> dict[str,
     return out
 
 
-async def _start_router(router: Router, logs: Path) -> subprocess.Popen[bytes]:
-    """`cadence router` on the router's config, once it says it listens; what it says goes to a file (a
-    pipe nobody reads would stop a router that logs)."""
+async def _start_router(router: Router, logs: Path, procs: list[subprocess.Popen[bytes]]) -> int:
+    """`cadence router` on the router's config, once it says it listens (its pid); what it says goes to a
+    file (a pipe nobody reads would stop a router that logs). It joins ``procs`` as it starts, so that a
+    router that fails beside it is not left running."""
     log = logs / f"{router.name}.log"
     with log.open("wb") as out:
         run = [sys.executable, "-m", "cadence", "router", "--zenoh-config", str(router.config)]
         proc = subprocess.Popen(run, stdout=subprocess.DEVNULL, stderr=out)
+    procs.append(proc)
     async with asyncio.timeout(120):
         while b"listening" not in log.read_bytes():
             if proc.poll() is not None:
                 said = log.read_text(errors="replace").strip().splitlines()[-1:]
                 raise RuntimeError(f"the router {router.name} did not start: {' '.join(said)}")
             await asyncio.sleep(0.05)
-    return proc
+    return proc.pid
 
 
 async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_LINE,
@@ -225,9 +227,7 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                        "plant router": [lay.plant_router]}  # fmt: skip
             pids: dict[str, list[int]] = {}
             for group, members in routers.items():
-                started = await asyncio.gather(*(_start_router(r, folder) for r in members))
-                procs += started
-                pids[group] = [p.pid for p in started]
+                pids[group] = list(await asyncio.gather(*(_start_router(r, folder, procs) for r in members)))
             say("the cells' sessions")
             workers, outs = [], []
             share = -(-n_cells // WORKERS)
