@@ -270,7 +270,7 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                                         stderr=subprocess.PIPE)  # fmt: skip
             procs.append(recorder)
             plant, transit = Plant(), []
-            windows: dict[tuple[str, int], bool] = {}
+            windows: set[tuple[str, int]] = set()  # (cell, t_ns) of each window the monitor got
             behind = 0.0
             async with await Bus.open(BusConfig(config_file=str(lay.monitor)), "plant") as bus:
 
@@ -281,7 +281,7 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                         msg = decode_any(payload)
                         transit.append((msg.t_ns, now - msg.t_ns))
                         if key.endswith("/hrv/window"):
-                            windows[key.split("/")[1], msg.t_ns] = True
+                            windows.add((key.split("/")[1], msg.t_ns))
 
                 for key in plant_watch():
                     bus.subscribe_raw(key, came)
@@ -305,8 +305,9 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
             for proc, done in zip(workers, outs, strict=True):
                 await asyncio.to_thread(proc.wait, 60)
                 results.append(msgspec.json.decode(done.read_bytes(), type=WorkerResult))
-            return _figures(n_cells, len(lay.line_routers), seconds, results, (a0, a1, b0, b1), alone_cpu,
-                            watched_cpu, plant, transit, windows, behind, recording, grown)  # fmt: skip
+            phases = (a0, a1, b0, b1)
+            return _figures(n_cells, len(lay.line_routers), seconds, results, phases, alone_cpu, watched_cpu,
+                            len(plant.cells), transit, windows, behind, recording, grown)  # fmt: skip
         finally:
             for proc in procs:
                 if proc.poll() is None:
@@ -338,9 +339,9 @@ def _figures(
     phases: tuple[int, int, int, int],
     alone_cpu: dict[str, float],
     watched_cpu: dict[str, float],
-    plant: object,
+    cells_seen: int,
     transit: list[tuple[int, int]],
-    windows: dict[tuple[str, int], bool],
+    windows: set[tuple[str, int]],
     behind: float,
     recording: Path,
     grown: list[tuple[float, int]],
@@ -375,7 +376,7 @@ def _figures(
         delivered={k: got[k] / sent[k] if sent[k] else float("nan") for k in TIMED},
         view_behind_s=behind,
         transit_p99_ms=float(np.percentile(late, 99)) / 1e6 if late else float("nan"),
-        cells_seen=len(getattr(plant, "cells", {})),
+        cells_seen=cells_seen,
         derived_lost={
             "monitor": sum(1 for c, k, t in put if k == "hrv/window" and (c, t) not in windows),
             "recorder": len(put - recorded),

@@ -35,7 +35,7 @@ from schemas import (
     Separation,
     ServiceStatus,
 )
-from schemas.topology import ECG_SOURCES, cell_roster, encode, topic_of
+from schemas.topology import ECG_SOURCES, Topic, cell_roster, encode, topic_of
 
 Make = Callable[[int, int], Message]  # (seq, t_ns) → a message
 
@@ -50,12 +50,17 @@ class Stream:
     make: Make
 
     @property
+    def topic(self) -> Topic[Any]:
+        topic = topic_of(f"cadence/any/{self.suffix}")
+        assert topic is not None, self.suffix
+        return topic
+
+    @property
     def account(self) -> str:
         if self.suffix.startswith("health/"):
             return self.suffix.removeprefix("health/")
-        topic = topic_of(f"cadence/any/{self.suffix}")
-        assert topic is not None, self.suffix
-        return min(publishers(topic) - set(ECG_SOURCES[1:]))  # a cell with a strap: the twin has no account
+        # a cell with a strap: the twin has no account
+        return min(publishers(self.topic) - set(ECG_SOURCES[1:]))
 
 
 def _state(seq: int, t: int) -> Message:
@@ -111,8 +116,8 @@ class WorkerSpec(msgspec.Struct, frozen=True):
     of: int  # all cells of the bench
     out: str  # where the results go (JSON)
     puts: bool = True  # this worker puts the cells' traffic
-    reads: bool = True  # this worker reads it back in each cell (the readers' own process: its loop
-    # is a reader's, as a service's is, not busy putting what forty other cells send)
+    reads: bool = True  # this worker reads it back in each cell (the readers' own process: their
+    # callbacks wait on no putting of what the other cells send)
 
 
 class WorkerResult(msgspec.Struct):
@@ -123,11 +128,6 @@ class WorkerResult(msgspec.Struct):
     derived: dict[str, dict[str, list[int]]]  # cell → a DERIVED suffix → the t_ns of each put
     timed: dict[str, list[tuple[int, int]]]  # suffix → [(t_ns, latency µs)]
     lost_puts: int = 0
-
-
-def _blocks(suffix: str) -> bool:
-    topic = topic_of(f"cadence/any/{suffix}")
-    return topic is not None and topic.qos == "block"
 
 
 def _schedule(spec: WorkerSpec, t0_ns: int) -> list[tuple[int, int, int]]:
@@ -175,8 +175,8 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
             if spec.reads:
                 reader = await Bus.open(BusConfig(config_file=cell.reader), cell.name)
                 readers.append(reader)
+                session = cast(ZenohTransport, reader.transport).session
                 for suffix in TIMED:
-                    session = cast(ZenohTransport, reader.transport).session
                     subs.append(session.declare_subscriber(reader.key(suffix), arrived(suffix)))
             for account in ACCOUNTS if spec.puts else ():
                 buses[c, account] = await Bus.open(BusConfig(config_file=cell.accounts[account]), cell.name)
@@ -191,7 +191,7 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
         sent = {cell.name: {s.suffix: 0 for s in PROFILE} for cell in spec.cells if spec.puts}
         derived: dict[str, dict[str, list[int]]] = {cell: {k: [] for k in DERIVED} for cell in sent}
         keys = [[f"cadence/{cell.name}/{s.suffix}" for s in PROFILE] for cell in spec.cells]
-        block = [_blocks(s.suffix) for s in PROFILE]  # as the services put them: the topic's QoS
+        block = [s.topic.qos == "block" for s in PROFILE]  # as the services put them: the topic's QoS
         due = _schedule(spec, t0) if spec.puts else []
         if not due:
             await asyncio.sleep(max(0, end - time.monotonic_ns()) / 1e9)

@@ -89,9 +89,9 @@ def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str,
     ]
     who = {a: identity(cell, a) for a in accounts}
     policies: list[dict[str, Any]] = [{"rules": [read, receive], "subjects": [who[a] for a in accounts]}]
+    mine = [t for t in TOPICS if t.scope == "cell"]  # the plant's keys have a rule of their own
     for name in accounts:
         health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
-        mine = [t for t in TOPICS if t.scope == "cell"]
         keys = sorted({_acl_key(cell, t) for t in mine if name in publishers(t) and t is not HEALTH})
         asks = sorted({_acl_key(cell, t) for t in mine if name in askers(t)})
         shared = [t for t in TOPICS if t.scope == "plant" and name in publishers(t) | askers(t)]

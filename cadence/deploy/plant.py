@@ -118,17 +118,17 @@ def plant_files(
             said = f"Line {line}'s router: it reads {', '.join(members)}; the plant's router reads it."
             files[f"{line}/router.json5"] = (cell.to_json5(router, said), 0o600)
             files[f"{line}/users.txt"] = (f"{cell.PLANT}:{secret.password}\n", 0o600)
-        tls = cell.Tls(secret.ca.cert, leaf.cert, leaf.key)
-        endpoints = {line: endpoint for line, (endpoint, _) in lines.items()}
-        carries = {line: members for line, (_, members) in lines.items()}
-        router = cell.plant_router_config(endpoints, [listen], tls, users, secret.password, carries=carries)
-        said = f"The plant's router: it reads {', '.join(lines)}."
-    else:
+        # the lines' certificates are the plant's CA's: it trusts no cell's
+        links = {line: endpoint for line, (endpoint, _) in lines.items()}
+        carries: dict[str, list[str]] | None = {line: members for line, (_, members) in lines.items()}
+        trusted = secret.ca.cert
+    else:  # the plant's router reads every cell itself, and trusts each cell's CA
+        links = {c: endpoint for c, (endpoint, _) in cells.items()}
+        carries = None
         trusted = secret.ca.cert + b"".join(ca for _, ca in cells.values())
-        endpoints = {c: endpoint for c, (endpoint, _) in cells.items()}
-        router = cell.plant_router_config(endpoints, [listen], cell.Tls(trusted, leaf.cert, leaf.key), users,
-                                          secret.password)  # fmt: skip
-        said = f"The plant's router: it reads {', '.join(cells)}."
+    tls = cell.Tls(trusted, leaf.cert, leaf.key)
+    router = cell.plant_router_config(links, [listen], tls, users, secret.password, carries=carries)
+    said = f"The plant's router: it reads {', '.join(links)}."
     monitor_password = new_password()
     monitor_leaf = issue(secret.ca, cell.PLANT_MONITOR, "plant", [cell.PLANT_MONITOR])
     monitor_tls = cell.Tls(secret.ca.cert, monitor_leaf.cert, monitor_leaf.key)
