@@ -16,7 +16,7 @@ from rich.console import Console
 
 from cadence.tools.plant import Plant, plant_watch
 from common.runtime.bus import Bus, BusConfig
-from schemas import HrvWindow, RobotState, Selection, ServiceStatus
+from schemas import HrvWindow, RobotState, Selection, Separation, ServiceStatus
 from schemas.topology import SERVICES, encode
 from tests.support.cell import config_file, free_port, put
 
@@ -125,6 +125,40 @@ async def plant_reads_each_downsampled(watcher: Bus, executors: dict[str, Bus]) 
         assert 1 <= n <= UPLINK_STATE_HZ * span + 2, (cell, n, span)
 
 
+async def the_plant_side_cannot_act_on_the_cell(plant_side: Bus, m1: Bus, s1: Bus) -> None:
+    """A plant router that allows anything (``plant_side``, its own session) puts a far distance and a
+    selection into the cell of ``m1`` (its monitor) and ``s1`` (its separation sensor), and asks it to
+    resume: none of it arrives, no resume is answered. A liveliness query's round trip over the plant's
+    link before and after says the link is up and that what was sent before it has been handled."""
+    cell = m1.cell
+    seps = m1.subscribe(m1.key("operator/separation"), Separation)
+    sels = m1.subscribe(m1.key("decision/selection"), Selection)
+    await s1.until_subscribed(s1.key("operator/separation"), 30)
+    token = s1.transport.session.liveliness().declare_token(f"cadence/{cell}/health/separation_sensor")
+
+    async def round_trip() -> bool:
+        get, key = plant_side.transport.session.liveliness().get, f"cadence/{cell}/health/**"
+        return bool(await asyncio.to_thread(lambda: list(get(key, timeout=2.0))))
+
+    async with asyncio.timeout(60):  # the plant's link is up (or the puts below would prove nothing)
+        while not await round_trip():
+            pass
+    far = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
+    put(plant_side, f"cadence/{cell}/operator/separation", far, block=True)
+    put(plant_side, f"cadence/{cell}/decision/selection",
+        Selection(t_ns=3, seq=9, k=15, n=15, delta=0, reason="initial"), block=True)  # fmt: skip
+    resumed = await asyncio.to_thread(
+        lambda: list(plant_side.transport.session.get(f"cadence/{cell}/robot/resume", timeout=2.0))
+    )
+    assert await round_trip()
+    near = Separation(t_ns=4, seq=1, distance_m=0.6, source="scanner:front")
+    put(s1, s1.key("operator/separation"), near, block=True)
+    assert (await seps.receive(10))[1] == near  # the first: the plant's 100 m never came
+    assert sels.pending == 0
+    assert all(r.err is not None for r in resumed)  # no answer, or a refusal
+    token.undeclare()
+
+
 @pytest.mark.asyncio
 async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(tmp_path: Path) -> None:
     """Two cells, each behind its own router over mTLS, and a plant router that connects to both (issue
@@ -144,7 +178,6 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
     )
     from cadence.deploy.pki import issue, make_ca
     from cadence.deploy.plant import new_secret, plant_files
-    from schemas import Separation
 
     # each cell its own CA, the plant its own; the plant's files as `cadence plant-router` writes them
     cells = {c: f"tls/127.0.0.1:{free_port()}" for c in ("c1", "c2")}
@@ -197,34 +230,7 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         await Bus.open(account("c1", "separation_sensor", cells["c1"]), "c1") as s1,
         await Bus.open(rogue, "plant") as plant_side,
     ):
-        seps = m1.subscribe(m1.key("operator/separation"), Separation)
-        sels = m1.subscribe(m1.key("decision/selection"), Selection)
-        await s1.until_subscribed(s1.key("operator/separation"), 30)
-        token = s1.transport.session.liveliness().declare_token("cadence/c1/health/separation_sensor")
-
-        async def round_trip() -> bool:
-            """A liveliness query over the plant's link and its reply: what the plant sent before it on
-            that link, the cell's router has handled."""
-            get = plant_side.transport.session.liveliness().get
-            return bool(await asyncio.to_thread(lambda: list(get("cadence/c1/health/**", timeout=2.0))))
-
-        async with asyncio.timeout(60):  # the plant's link is up (or the puts below would prove nothing)
-            while not await round_trip():
-                pass
-        far = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
-        put(plant_side, "cadence/c1/operator/separation", far, block=True)
-        put(plant_side, "cadence/c1/decision/selection",
-            Selection(t_ns=3, seq=9, k=15, n=15, delta=0, reason="initial"), block=True)  # fmt: skip
-        resumed = await asyncio.to_thread(
-            lambda: list(plant_side.transport.session.get("cadence/c1/robot/resume", timeout=2.0))
-        )
-        assert await round_trip()
-        near = Separation(t_ns=4, seq=1, distance_m=0.6, source="scanner:front")
-        put(s1, s1.key("operator/separation"), near, block=True)
-        assert (await seps.receive(10))[1] == near  # the first: the plant's 100 m never came
-        assert sels.pending == 0
-        assert all(r.err is not None for r in resumed)  # no answer, or a refusal
-        token.undeclare()
+        await the_plant_side_cannot_act_on_the_cell(plant_side, m1, s1)
 
 
 def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_json(tmp_path: Path) -> None:
@@ -289,7 +295,6 @@ async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_n
     resume, even into a cell whose own router would let it: the line lets nothing in from its uplink but
     reading."""
     from cadence.bench.plant import layout
-    from schemas import Separation
 
     lay = layout(tmp_path, 2, per_line=2)
     (c1, c2), (line,) = lay.cells, lay.line_routers
@@ -317,34 +322,7 @@ async def test_a_line_router_between_cells_and_the_plant_passes_reading_up_and_n
         await Bus.open(cfg(c1.accounts["separation_sensor"]), c1.name) as s1,
         await Bus.open(config_file(tmp_path, "rogue", rogue_cfg), "plant") as plant_side,
     ):
-        seps = m1.subscribe(m1.key("operator/separation"), Separation)
-        sels = m1.subscribe(m1.key("decision/selection"), Selection)
-        await s1.until_subscribed(s1.key("operator/separation"), 30)
-        token = s1.transport.session.liveliness().declare_token(f"cadence/{c1.name}/health/separation_sensor")
-
-        async def round_trip() -> bool:
-            """A liveliness query through the line and its reply: what the plant sent before it, the
-            line and the cell have handled."""
-            get, key = plant_side.transport.session.liveliness().get, f"cadence/{c1.name}/health/**"
-            return bool(await asyncio.to_thread(lambda: list(get(key, timeout=2.0))))
-
-        async with asyncio.timeout(60):
-            while not await round_trip():
-                pass
-        far = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
-        put(plant_side, f"cadence/{c1.name}/operator/separation", far, block=True)
-        put(plant_side, f"cadence/{c1.name}/decision/selection",
-            Selection(t_ns=3, seq=9, k=15, n=15, delta=0, reason="initial"), block=True)  # fmt: skip
-        resumed = await asyncio.to_thread(
-            lambda: list(plant_side.transport.session.get(f"cadence/{c1.name}/robot/resume", timeout=2.0))
-        )
-        assert await round_trip()
-        near = Separation(t_ns=4, seq=1, distance_m=0.6, source="scanner:front")
-        put(s1, s1.key("operator/separation"), near, block=True)
-        assert (await seps.receive(10))[1] == near  # the first: the plant's 100 m never came
-        assert sels.pending == 0
-        assert all(r.err is not None for r in resumed)
-        token.undeclare()
+        await the_plant_side_cannot_act_on_the_cell(plant_side, m1, s1)
 
 
 def test_plant_router_with_lines_writes_each_lines_router_and_the_plant_reads_the_lines(

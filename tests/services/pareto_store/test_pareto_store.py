@@ -19,25 +19,9 @@ from services.pareto_store.__main__ import ParetoStore, Settings, main
 from services.pareto_store.jobs import plan_job
 from services.pareto_store.store import SetStore
 from tests.support.cell import CELL, Cell, InProcessService
+from tests.support.tasks import TINY as TASK
 
 pytestmark = pytest.mark.asyncio
-
-TASK = """
-[task]
-name = "tiny"
-[planner]
-population = 16
-generations = 6
-n_solutions = 5
-[[paths]]
-id = "a"
-unit = "deg"
-waypoints = [[0, -90, 90, -90, -90, 0], [30, -80, 100, -100, -90, 20], [45, -70, 95, -110, -90, 40]]
-[[paths]]
-id = "b"
-unit = "deg"
-waypoints = [[45, -70, 95, -110, -90, 40], [0, -90, 90, -90, -90, 0]]
-"""
 
 
 def start_store(task: Path, data: Path, cell: Cell) -> InProcessService:
@@ -51,13 +35,6 @@ async def serving(sub) -> ServiceStatus:
             if status.state == "serving":
                 return status
     raise AssertionError("unreachable")
-
-
-@pytest.fixture
-def task_file(tmp_path: Path) -> Path:
-    p = tmp_path / "tiny.toml"
-    p.write_text(TASK)
-    return p
 
 
 async def test_the_store_plans_answers_restarts_from_sqlite_and_never_serves_stale_sets(

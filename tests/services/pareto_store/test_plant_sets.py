@@ -18,23 +18,16 @@ from common.trajectory.task import load_task
 from common.trajectory.validate import set_problems
 from schemas import ParetoSet, ServiceStatus
 from schemas.topology import PLANT_SETS, key_for
-from services.pareto_store.__main__ import Settings, main
-from tests.services.pareto_store.test_pareto_store import TASK, serving
-from tests.support.cell import Cell, InProcessService
+from tests.services.pareto_store.test_pareto_store import serving, start_store
+from tests.support.cell import Cell
 from tests.support.paths import EXAMPLE_TASK
 
 
-def store(cell: Cell, task: Path, data: Path) -> InProcessService:
-    return cell.service("pareto_store", main, Settings(task=str(task)), data)
-
-
-async def status_of(
-    cell: Cell, task: Path, data: Path, **settings: object
-) -> tuple[ServiceStatus, ParetoSet]:
+async def status_of(cell: Cell, task: Path, data: Path) -> tuple[ServiceStatus, ParetoSet]:
     """A store's status once it serves, and its set of path a."""
     async with cell.session() as client:
         sub = client.subscribe(client.key("health/pareto_store"), ServiceStatus, maxsize=1)
-        s = store(cell, task, data)
+        s = start_store(task, data, cell)
         try:
             status = await serving(aiter(sub))
             (reply,) = await client.get(client.key("pareto/a"), ParetoSet)
@@ -48,13 +41,6 @@ def faster(s: ParetoSet, by: float) -> ParetoSet:
     """The set with every trajectory ``by`` times as fast: the same path, over the arm's limits."""
     sols = [msgspec.structs.replace(x, h=[h / by for h in x.h], t_f=x.t_f / by) for x in s.solutions]
     return msgspec.structs.replace(s, solutions=sols)
-
-
-@pytest.fixture
-def task_file(tmp_path: Path) -> Path:
-    p = tmp_path / "tiny.toml"
-    p.write_text(TASK)
-    return p
 
 
 @pytest.mark.asyncio
@@ -71,7 +57,7 @@ async def test_a_cell_takes_a_set_another_cell_planned_and_refuses_one_that_fail
     assert planned.counters.get("computed") == 2
     async with one.session() as watch:  # cell one's store runs again (from its SQLite), answering the plant
         sub = watch.subscribe(watch.key("health/pareto_store"), ServiceStatus, maxsize=1)
-        s1 = store(one, task_file, tmp_path / "one")
+        s1 = start_store(task_file, tmp_path / "one", one)
         try:
             await serving(aiter(sub))
             taken, got = await status_of(two, task_file, tmp_path / "two")
