@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import io
 import os
 import signal
 import socket
@@ -34,11 +33,13 @@ from rich.console import Console
 from rich.table import Table
 
 from cadence.bench.plant_cells import TIMED, CellSpec, WorkerResult, WorkerSpec
+from cadence.bench.plant_monitor import MonitorResult, MonitorSpec
 
 PER_LINE = 10  # cells behind one line router
 GROUPS = ("cell routers", "line routers", "plant router", "recorder", "monitor", "workers")  # CPU, by process
 WORKERS = 2  # processes putting the cells' traffic (this host has 2 cores)
 WARM_S, GAP_S = 2.0, 4.0  # before the first phase; between them (the plant's readers connect)
+ROUNDS = 3  # pairs of phases: the cells alone, then with the plant reading
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,21 +67,44 @@ class _Ports:
 
         self.next = random.randrange(20_000, 28_000)
 
-    def endpoint(self) -> str:
+    def endpoint(self, host: str = "127.0.0.1") -> str:
         while True:
             port, self.next = self.next, self.next + 1
             with socket.socket() as s:
                 try:
-                    s.bind(("127.0.0.1", port))
+                    s.bind((host, port))
                 except OSError:
                     continue
-            return f"tls/127.0.0.1:{port}"
+            return f"tls/{host}:{port}"
 
 
-def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
+def host_interface() -> tuple[str, str] | None:
+    """A network interface of this host other than loopback, with its IPv4 address, if it has one: the
+    cells' routers take the plant's links there, their uplink (``router_config``'s ``uplink``)."""
+    import fcntl
+    import struct
+
+    for _, name in socket.if_nameindex():
+        if name == "lo":
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:  # SIOCGIFADDR: fails for an interface without an IPv4 address (down, or none given)
+                packed = fcntl.ioctl(s.fileno(), 0x8915, struct.pack("256s", name.encode()[:15]))
+            except OSError:
+                continue
+        return name, socket.inet_ntoa(packed[20:24])
+    return None
+
+
+def layout(
+    folder: Path, n_cells: int, per_line: int = PER_LINE, uplink: tuple[str, str] | None = None
+) -> Layout:
     """Every router's and account's config for a plant of ``n_cells``, as a deployment writes them: each
     cell its own CA and its router built for a plant (``router_config(…, plant=True)``), the line and
-    plant routers and the monitor as `cadence plant-router` writes them (``plant_files``)."""
+    plant routers and the monitor as `cadence plant-router` writes them (``plant_files``). ``uplink``
+    (an interface and its address): each cell's router takes the plant's link there and sends the arm's
+    state on it at the plant's rate (`cadence install --uplink-interface`); the cell's own sessions come
+    over loopback."""
     from cadence.bench.plant_cells import ACCOUNTS as PUTTERS
     from cadence.deploy.cell import ACCOUNTS, PLANT, Tls, client_config, identity, router_config, to_json5
     from cadence.deploy.cell import users_file as users_of
@@ -104,13 +128,15 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
         lines.setdefault(line, (ports.endpoint(), []))[1].append(name)
         ca = make_ca(name)
         endpoint = ports.endpoint()
-        cas[name] = (endpoint, ca.cert)
+        up = ports.endpoint(uplink[1]) if uplink else endpoint
+        cas[name] = (up, ca.cert)
         passwords = {a: f"pw-{name}-{a}" for a in ACCOUNTS}
         users = folder / f"{name}.users"
         users.write_text(users_of(name, passwords) + f"{PLANT}:{plant.password}\n")
-        leaf = issue(ca, identity(name, "router"), name, here)
+        leaf = issue(ca, identity(name, "router"), name, [*here, *uplink[1:]] if uplink else here)
         tls = Tls(ca.cert + plant.ca.cert, leaf.cert, leaf.key)  # the plant's CA beside its own
-        cfg = router_config(name, [endpoint], tls, str(users), plant=True)
+        listen = sorted({endpoint, up})
+        cfg = router_config(name, listen, tls, str(users), plant=True, uplink=uplink[0] if uplink else None)
         cell_routers.append(Router(name, write(f"{name}-router", cfg), endpoint))
         configs = {}
         for role in (*PUTTERS, "monitor"):
@@ -130,9 +156,11 @@ def layout(folder: Path, n_cells: int, per_line: int = PER_LINE) -> Layout:
 
 @dataclass
 class Phase:
-    """One phase's figures: in-cell latencies (ms) per timed key, and the routers' CPU (% of one core)."""
+    """The phases of one kind, pooled: in-cell latencies (ms) per timed key, each phase's p99, and each
+    group of processes' CPU (% of one core, the phases' mean)."""
 
     latency_ms: dict[str, tuple[float, float]] = field(default_factory=dict)  # key → (p50, p99)
+    p99_by_phase: dict[str, list[float]] = field(default_factory=dict)  # key → each phase's p99, in order
     cpu: dict[str, float] = field(default_factory=dict)  # "cell routers", "line routers", "plant router", …
 
 
@@ -141,12 +169,14 @@ class PlantFigures:
     cells: int
     lines: int
     seconds: float
+    rounds: int  # pairs of phases, the cells alone then with the plant reading
+    uplink: str | None  # the interface the cells' routers sent the plant's share on (None: loopback)
     alone: Phase
     watched: Phase
     delivered: dict[str, float]  # in-cell, per timed key: received / put
     view_behind_s: float  # the stalest cell in the plant view, at any refresh of it
     transit_p99_ms: float  # a message to the plant monitor, cell to plant
-    cells_seen: int  # cells in the plant view at the end
+    cells_seen: int  # cells in the plant view, the fewest at the end of a phase
     derived_lost: dict[str, int]  # "monitor" / "recorder": derived messages put while it ran, not got
     derived_put: int
     recorded_bytes_per_cell_day: float
@@ -181,133 +211,155 @@ class Meter:
         return {g: 100.0 * (ticks[g] - before[g]) / per_s for g in self.groups}
 
 
-def _latencies(results: list[WorkerResult], since: int, until: int) -> dict[str, tuple[float, float]]:
-    out = {}
+def _phase(results: list[WorkerResult], spans: list[tuple[int, int]], cpu: list[dict[str, float]]) -> Phase:
+    """The phases of one kind (``spans``, monotonic ns) pooled, and each one's p99."""
+
+    def within(key: str, since: int, until: int) -> list[int]:
+        return [us for r in results for t, us in r.timed[key] if since <= t < until]
+
+    def ms(lat: list[int], q: float) -> float:
+        return float(np.percentile(lat, q)) / 1000 if lat else float("nan")
+
+    phase = Phase(cpu={g: float(np.mean([c[g] for c in cpu])) for g in cpu[0]})
     for key in TIMED:
-        lat = [us for r in results for t, us in r.timed[key] if since <= t < until]
-        out[key] = (float(np.percentile(lat, 50)) / 1000, float(np.percentile(lat, 99)) / 1000) if lat else (
-            float("nan"), float("nan"))  # fmt: skip
-    return out
+        each = [within(key, *span) for span in spans]
+        pooled = [us for lat in each for us in lat]
+        phase.latency_ms[key] = (ms(pooled, 50), ms(pooled, 99))
+        phase.p99_by_phase[key] = [ms(lat, 99) for lat in each]
+    return phase
 
 
-async def _start_router(router: Router, logs: Path, procs: list[subprocess.Popen[bytes]]) -> int:
-    """`cadence router` on the router's config, once it says it listens (its pid); what it says goes to a
-    file (a pipe nobody reads would stop a router that logs). It joins ``procs`` as it starts, so that a
-    router that fails beside it is not left running."""
-    log = logs / f"{router.name}.log"
-    with log.open("wb") as out:
-        run = [sys.executable, "-m", "cadence", "router", "--zenoh-config", str(router.config)]
-        proc = subprocess.Popen(run, stdout=subprocess.DEVNULL, stderr=out)
+def _start(name: str, run: list[str], logs: Path, procs: list[subprocess.Popen[bytes]], plant: bool = False,
+           talks: bool = False) -> subprocess.Popen[bytes]:  # fmt: skip
+    """A process of the bench, its errors to a file (a pipe nobody reads would stop one that logs); it
+    joins ``procs`` as it starts, so that one that fails beside it is not left running. ``plant``: at the
+    plant's priority, as docs/operations.md runs the plant's routers (`nice -n 10`) and as `cadence
+    plant` and `cadence record --plant` take it themselves. ``talks``: a worker, told when to start on
+    its input, saying it is ready on its output."""
+    from cadence.tools.plant import yield_to_cells
+
+    pipe = subprocess.PIPE if talks else subprocess.DEVNULL
+    with (logs / f"{name}.log").open("wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", *run], stdin=pipe, stdout=pipe, stderr=out,
+                                preexec_fn=yield_to_cells if plant else None)  # fmt: skip
     procs.append(proc)
-    async with asyncio.timeout(120):
-        while b"listening" not in log.read_bytes():
+    return proc
+
+
+async def _said(proc: subprocess.Popen[bytes], what: bytes, log: Path, timeout: float = 120) -> None:
+    """Until a router says ``what`` in its log; its last words if it ends first."""
+    async with asyncio.timeout(timeout):
+        while True:
+            if what in log.read_bytes():
+                return
             if proc.poll() is not None:
                 said = log.read_text(errors="replace").strip().splitlines()[-1:]
-                raise RuntimeError(f"the router {router.name} did not start: {' '.join(said)}")
+                raise RuntimeError(f"{log.stem} did not start: {' '.join(said)}")
             await asyncio.sleep(0.05)
-    return proc.pid
 
 
-async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_LINE,
+async def _ready(proc: subprocess.Popen[bytes], log: Path) -> None:
+    """Until a worker (the cells', the monitor) says it is ready on a line of its own."""
+    assert proc.stdout is not None
+    line = await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 300)
+    if line.strip() != b"ready":
+        said = log.read_text(errors="replace").strip().splitlines()[-3:]
+        raise RuntimeError(f"{log.stem} did not start: {' '.join(said)}")
+
+
+async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_LINE, rounds: int = ROUNDS,
                       progress: Console | None = None) -> PlantFigures:  # fmt: skip
     """The plant above, run on this host: see the module's words."""
-    from cadence.tools.plant import Plant, plant_watch
-    from common.runtime.bus import Bus, BusConfig
-    from schemas.topology import decode_any
-
     say = progress.print if progress is not None else lambda *_: None
     procs: list[subprocess.Popen[bytes]] = []
+    uplink = host_interface()
     with tempfile.TemporaryDirectory(prefix="cadence-plant-") as tmp:
         folder = Path(tmp)
         say(f"{n_cells} cells: certificates and configs")
-        lay = layout(folder, n_cells, per_line)
+        lay = layout(folder, n_cells, per_line, uplink)
         try:
-            say(f"{n_cells} cell routers, {len(lay.line_routers)} line routers, the plant's router")
-            routers = {"cell routers": lay.cell_routers, "line routers": lay.line_routers,
-                       "plant router": [lay.plant_router]}  # fmt: skip
+            on = uplink[0] if uplink else "loopback"
+            say(f"{n_cells} cell routers, {len(lay.line_routers)} line routers, the plant's; uplinks on {on}")
             pids: dict[str, list[int]] = {}
-            for group, members in routers.items():
-                pids[group] = list(await asyncio.gather(*(_start_router(r, folder, procs) for r in members)))
+            groups = {"cell routers": lay.cell_routers, "line routers": lay.line_routers,
+                      "plant router": [lay.plant_router]}  # fmt: skip
+            for group, members in groups.items():
+                started = [_start(r.name, ["cadence", "router", "--zenoh-config", str(r.config)], folder,
+                                        procs, plant=group != "cell routers") for r in members]  # fmt: skip
+                await asyncio.gather(*(_said(p, b"listening", folder / f"{r.name}.log")
+                                       for p, r in zip(started, members, strict=True)))  # fmt: skip
+                pids[group] = [p.pid for p in started]
             say("the cells' sessions")
             workers, outs = [], []
             share = -(-n_cells // WORKERS)
             # the readers first, in a process of their own (the putters wait until each is subscribed)
             specs = [WorkerSpec(lay.cells, 0, n_cells, str(folder / "readers.json"), puts=False)]
             for w in range(0, n_cells, share):
-                result = str(folder / f"putter{w}.json")
-                specs.append(WorkerSpec(lay.cells[w : w + share], w, n_cells, result, reads=False))
+                out = str(folder / f"putter{w}.json")
+                specs.append(WorkerSpec(lay.cells[w : w + share], w, n_cells, out, reads=False))
             for i, spec in enumerate(specs):
                 path = folder / f"worker{i}.spec.json"
                 path.write_bytes(msgspec.json.encode(spec))
-                proc = subprocess.Popen([sys.executable, "-m", "cadence.bench.plant_cells", str(path)],
-                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)  # fmt: skip
-                procs.append(proc)
+                run = ["cadence.bench.plant_cells", str(path)]
+                proc = _start(f"worker{i}", run, folder, procs, talks=True)
+                await _ready(proc, folder / f"worker{i}.log")
                 workers.append(proc)
                 outs.append(Path(spec.out))
-                assert proc.stdout is not None
-                line = await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 300)
-                if line.strip() != b"ready":
-                    raise RuntimeError("a worker of the cells did not start (its error is above)")
             pids["workers"] = [p.pid for p in workers]
+            # rounds of two phases, the cells alone then with the plant reading, a gap before each (the
+            # plant's readers start or stop in it): a host that slows down for a while slows both kinds
             t0 = time.monotonic_ns() + 500_000_000
-            a0 = t0 + int(WARM_S * 1e9)
-            a1 = a0 + int(seconds * 1e9)
-            b0 = a1 + int(GAP_S * 1e9)
-            b1 = b0 + int(seconds * 1e9)
+            spans, at = [], t0 + int(WARM_S * 1e9)
+            for _ in range(2 * rounds):
+                spans.append((at, at + int(seconds * 1e9)))
+                at = spans[-1][1] + int(GAP_S * 1e9)
+            end = spans[-1][1]
             for proc in workers:
                 assert proc.stdin is not None
-                proc.stdin.write(f"{t0} {b1}\n".encode())
+                proc.stdin.write(f"{t0} {end}\n".encode())
                 proc.stdin.flush()
-            say(f"the cells alone, {seconds:g} s")
-            await _until(a0)
-            meter = Meter(pids)
-            await _until(a1)
-            alone_cpu = meter.read()
-            say(f"with the plant monitor and recorder, {seconds:g} s")
-            recording = folder / "plant.mcap"
-            record = ["record", "--plant", "-o", str(recording), "--zenoh-config", str(lay.monitor)]
-            recorder = subprocess.Popen([sys.executable, "-m", "cadence", *record], stdout=subprocess.DEVNULL,
-                                        stderr=subprocess.PIPE)  # fmt: skip
-            procs.append(recorder)
-            plant, transit = Plant(), []
-            windows: set[tuple[str, int]] = set()  # (cell, t_ns) of each window the monitor got
-            behind = 0.0
-            async with await Bus.open(BusConfig(config_file=str(lay.monitor)), "plant") as bus:
-
-                def came(key: str, payload: bytes) -> None:
-                    now = time.monotonic_ns()
-                    plant.on(key, payload, now / 1e9)
-                    with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
-                        msg = decode_any(payload)
-                        transit.append((msg.t_ns, now - msg.t_ns))
-                        if key.endswith("/hrv/window"):
-                            windows.add((key.split("/")[1], msg.t_ns))
-
-                for key in plant_watch():
-                    bus.subscribe_raw(key, came)
-                await _until(b0)
-                pids["recorder"], pids["monitor"] = [recorder.pid], [os.getpid()]
-                meter = Meter(pids)
-                grown = [(time.monotonic(), _size(recording))]  # the recording's growth, as it flushes
-                while time.monotonic_ns() < b1:  # the view, refreshed as `cadence plant` does (2 Hz)
-                    await asyncio.sleep(0.5)
-                    now = time.monotonic()
-                    Console(file=io.StringIO(), width=200).print(plant.view(now=now))
-                    ages = [now - c.robot[0] for c in plant.cells.values() if c.robot is not None]
-                    behind = max(behind, *ages)
-                grown.append((time.monotonic(), _size(recording)))
-                watched_cpu = meter.read()
-            recorder.send_signal(signal.SIGTERM)
-            _, err = await asyncio.to_thread(recorder.communicate, timeout=60)
-            if recorder.returncode != 0:
-                raise RuntimeError(f"cadence record --plant: {err.decode(errors='replace').strip()}")
+            cpu: dict[str, list[dict[str, float]]] = {"alone": [], "watched": []}
+            seen: list[MonitorResult] = []
+            recordings: list[tuple[Path, int, int]] = []  # a phase's recording, its size at its start, end
+            for i, (since, until) in enumerate(spans):
+                kind = ("alone", "watched")[i % 2]
+                say(f"round {i // 2 + 1} of {rounds}: "
+                    + ("the cells alone" if kind == "alone" else "with the plant monitor and recorder")
+                    + f", {seconds:g} s")  # fmt: skip
+                if kind == "alone":
+                    await _until(since)
+                    meter = Meter(pids)
+                    await _until(until)
+                    cpu[kind].append(meter.read())
+                    continue
+                recording = folder / f"plant{i // 2}.mcap"
+                record = ["cadence", "record", "--plant", "-o", str(recording)]
+                record += ["--zenoh-config", str(lay.monitor)]
+                recorder = _start(f"recorder{i // 2}", record, folder, procs)
+                spec_path, result = folder / f"monitor{i // 2}.spec.json", folder / f"monitor{i // 2}.json"
+                spec_path.write_bytes(msgspec.json.encode(MonitorSpec(str(lay.monitor), until, str(result))))
+                monitor = _start(f"monitor{i // 2}", ["cadence.bench.plant_monitor", str(spec_path)], folder,
+                                 procs, talks=True)  # fmt: skip
+                await _ready(monitor, folder / f"monitor{i // 2}.log")
+                await _until(since)
+                meter = Meter({**pids, "recorder": [recorder.pid], "monitor": [monitor.pid]})
+                size0 = _size(recording)
+                await _until(until)
+                cpu[kind].append(meter.read())
+                recordings.append((recording, size0, _size(recording)))
+                recorder.send_signal(signal.SIGTERM)
+                for proc in (recorder, monitor):
+                    await asyncio.to_thread(proc.wait, 60)
+                if recorder.returncode != 0:
+                    said = (folder / f"recorder{i // 2}.log").read_text(errors="replace").strip()
+                    raise RuntimeError(f"cadence record --plant: {said}")
+                seen.append(msgspec.json.decode(result.read_bytes(), type=MonitorResult))
             results = []
             for proc, done in zip(workers, outs, strict=True):
                 await asyncio.to_thread(proc.wait, 60)
                 results.append(msgspec.json.decode(done.read_bytes(), type=WorkerResult))
-            phases = (a0, a1, b0, b1)
-            return _figures(n_cells, len(lay.line_routers), seconds, results, phases, alone_cpu, watched_cpu,
-                            len(plant.cells), transit, windows, behind, recording, grown)  # fmt: skip
+            return _figures(n_cells, len(lay.line_routers), seconds, uplink[0] if uplink else None, results,
+                            spans, cpu, seen, recordings)  # fmt: skip
         finally:
             for proc in procs:
                 if proc.poll() is None:
@@ -335,73 +387,74 @@ def _figures(
     n_cells: int,
     n_lines: int,
     seconds: float,
+    uplink: str | None,
     results: list[WorkerResult],
-    phases: tuple[int, int, int, int],
-    alone_cpu: dict[str, float],
-    watched_cpu: dict[str, float],
-    cells_seen: int,
-    transit: list[tuple[int, int]],
-    windows: set[tuple[str, int]],
-    behind: float,
-    recording: Path,
-    grown: list[tuple[float, int]],
+    spans: list[tuple[int, int]],
+    cpu: dict[str, list[dict[str, float]]],
+    seen: list[MonitorResult],
+    recordings: list[tuple[Path, int, int]],
 ) -> PlantFigures:
     from cadence.tools.recording import HEALTH_EVERY_S, read
     from schemas.topology import decode_any
 
-    a0, a1, b0, b1 = phases
+    alone, watched = spans[0::2], spans[1::2]
     sent = {k: sum(r.sent[c][k] for r in results for c in r.sent) for k in TIMED}
     got = {k: sum(len(r.timed[k]) for r in results) for k in TIMED}
     put = {(cell, key, t) for r in results for cell, keys in r.derived.items() for key, ts in keys.items()
-           for t in ts if b0 <= t < b1}  # fmt: skip
+           for t in ts if any(since <= t < until for since, until in watched)}  # fmt: skip
     recorded: set[tuple[str, str, int]] = set()
-    health: dict[str, int] = {}  # a status key: its size (kept once every HEALTH_EVERY_S)
-    for m in read(recording):
-        cell, suffix = m.key.split("/", 2)[1:]
-        recorded.add((cell, suffix, decode_any(m.data).t_ns))
-        if suffix.startswith("health/"):
-            health[m.key] = len(m.data)
-    # a day: the file's growth while the cells ran (compressed chunks, one a second), and the statuses
-    # at their thinned rate (their first, kept before that, says how big they are)
-    (t0, size0), (t1, size1) = grown
-    per_s = (size1 - size0) / (t1 - t0) + sum(health.values()) / HEALTH_EVERY_S
-    per_day = per_s * 86400 / n_cells
-    late = [dt for t, dt in transit if b0 <= t < b1]
+    per_s = []
+    for recording, size0, size1 in recordings:
+        health: dict[str, int] = {}  # a status key: its size (kept once every HEALTH_EVERY_S)
+        for m in read(recording):
+            cell, suffix = m.key.split("/", 2)[1:]
+            recorded.add((cell, suffix, decode_any(m.data).t_ns))
+            if suffix.startswith("health/"):
+                health[m.key] = len(m.data)
+        # a day: the file's growth while the cells ran (compressed chunks, one a second), and the
+        # statuses at their thinned rate (their first, kept before that, says how big they are)
+        per_s.append((size1 - size0) / seconds + sum(health.values()) / HEALTH_EVERY_S)
+    windows = {(cell, t) for s in seen for cell, t in s.windows}
+    late = [dt for s in seen for t, dt in s.transit if any(since <= t < until for since, until in watched)]
     return PlantFigures(
         cells=n_cells,
         lines=n_lines,
         seconds=seconds,
-        alone=Phase(_latencies(results, a0, a1), alone_cpu),
-        watched=Phase(_latencies(results, b0, b1), watched_cpu),
+        rounds=len(watched),
+        uplink=uplink,
+        alone=_phase(results, alone, cpu["alone"]),
+        watched=_phase(results, watched, cpu["watched"]),
         delivered={k: got[k] / sent[k] if sent[k] else float("nan") for k in TIMED},
-        view_behind_s=behind,
+        view_behind_s=max(s.behind_s for s in seen),
         transit_p99_ms=float(np.percentile(late, 99)) / 1e6 if late else float("nan"),
-        cells_seen=cells_seen,
+        cells_seen=min(s.cells_seen for s in seen),
         derived_lost={
             "monitor": sum(1 for c, k, t in put if k == "hrv/window" and (c, t) not in windows),
             "recorder": len(put - recorded),
         },
         derived_put=len(put),
-        recorded_bytes_per_cell_day=per_day,
+        recorded_bytes_per_cell_day=float(np.mean(per_s)) * 86400 / n_cells,
         lost_puts=sum(r.lost_puts for r in results),
     )
 
 
 def plant_table(figures: list[PlantFigures]) -> tuple[Table, Table]:
-    """In the cells, per phase (p50 / p99); and what the plant got: the share of the timed keys the cells'
+    """In the cells, per kind of phase (p50 / p99 pooled, and the arm's state's p99 in each phase, to see
+    how much a phase's own p99 wanders); and what the plant got: the share of the timed keys the cells'
     monitors got, the derived messages put while the plant read that its monitor (windows) and its
     recorder (windows, cycles, events) did not get, the stalest cell in its view, and its recording."""
     cells = Table(title="bench plant: in the cells (as each cell's monitor gets them); CPU in % of a core")
-    for col in ("N", "plant readers", "robot/state ms", "separation ms", "cell routers", "lines", "plant",
-                "recorder", "monitor", "cells' workers"):  # fmt: skip
+    for col in ("N", "plant readers", "robot/state ms", "separation ms", "robot/state p99 by phase",
+                "cell routers", "lines", "plant", "recorder", "monitor", "cells' workers"):  # fmt: skip
         cells.add_column(col, justify="right")
     for f in figures:
         for name, phase in (("none", f.alone), ("monitor, recorder", f.watched)):
             lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" for k in TIMED]
+            each = ", ".join(f"{p99:.1f}" for p99 in phase.p99_by_phase[TIMED[0]])
             cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu else "" for g in GROUPS]
-            cells.add_row(str(f.cells), name, *lat, *cpu)
+            cells.add_row(str(f.cells), name, *lat, each, *cpu)
         shift = [f"{f.watched.latency_ms[k][1] - f.alone.latency_ms[k][1]:+.2f}" for k in TIMED]
-        cells.add_row("", "p99 shift", *shift, *[""] * 6, end_section=True)
+        cells.add_row("", "p99 shift", *shift, *[""] * 7, end_section=True)
     plant = Table(title="bench plant: what the plant got")
     for col in ("N", "lines", "delivered in cells", "derived lost", "view behind s", "to plant p99 ms",
                 "MB / cell-day"):  # fmt: skip

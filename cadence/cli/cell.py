@@ -94,7 +94,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     action="store_true",
     help="what a plant keeps of every cell: windows, calibrations, new selections, cycles, events, errors, "
     "signals, and each service's status once a minute; no raw ECG, accelerometer, beats or RR (health "
-    "data), no arm state or separation readings",
+    "data), no arm state or separation readings; at the plant's priority (nice 10), below a cell's",
 )
 @arg("-o", "--output", required=True, metavar="FILE.mcap")
 @arg("--force", action="store_true", help="overwrite FILE.mcap if it is there (by default: refused)")
@@ -111,6 +111,10 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     if args.plant and args.keys:
         raise InputError("--plant records its own keys (every cell's derived ones): give no KEYEXPR with it")
+    if args.plant:
+        from cadence.tools.plant import yield_to_cells
+
+        yield_to_cells()
     taken = f"{args.output}: exists (a recording is evidence): give another -o, or --force to overwrite it"
     if not args.force and Path(args.output).exists():
         raise InputError(taken)  # before the bus: said at once
@@ -236,12 +240,13 @@ def add_watch_flags(p: argparse.ArgumentParser) -> None:
     description="Watches cadence/*/ (statuses, the arm's state, selections and windows; never the raw "
     "ECG): per cell how many services still send their status and any that is not serving, the robot's "
     "safety state and why, the selection in force, the operator's last window, and the age of each. "
-    "Ctrl-C ends it.",
+    "It runs at the plant's priority (nice 10), below a cell's. Ctrl-C ends it.",
 )
 @flags_from(add_watch_flags)
 def cmd_plant(args: argparse.Namespace) -> int:
-    from cadence.tools.plant import Plant, plant_watch
+    from cadence.tools.plant import Plant, plant_watch, yield_to_cells
 
+    yield_to_cells()
     plant = Plant()
     return watching(args, "plant", plant_watch(), plant.on, plant.view)
 

@@ -52,6 +52,13 @@ cli = Commands()
     "the plant's CA beside the cell's; nothing from the plant may publish, answer or ask",
 )
 @arg(
+    "--uplink-interface",
+    metavar="IFACE",
+    help="with --plant: the network interface the plant's router reaches this cell's on (e.g. eth1); "
+    "the arm's state leaves on it at 5 Hz, as the plant takes it. No host of the cell may reach the "
+    "router over it",
+)
+@arg(
     "--root",
     metavar="DIR",
     help="stage the install into DIR (as DESTDIR does: DIR/etc/cadence/…, DIR/etc/systemd/system/…, naming "
@@ -75,6 +82,8 @@ def cmd_install(args: argparse.Namespace) -> int:
         scanners = tuple(SourceSettings.parse(s) for s in args.scanner)
     except ValueError as exc:
         raise InputError(f"--scanner {exc}") from None
+    if args.uplink_interface and not args.plant:
+        raise InputError("--uplink-interface is the plant's way in: give --plant plant.json with it")
 
     opts = Options(
         robot=args.robot,
@@ -92,6 +101,7 @@ def cmd_install(args: argparse.Namespace) -> int:
         scanners=scanners,
         root=Path(args.root).absolute() if args.root else None,
         plant=Path(args.plant) if args.plant else None,
+        uplink=args.uplink_interface or None,
     )
     for line in install(opts, dry_run=args.dry_run):
         print(line)

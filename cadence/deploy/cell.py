@@ -165,10 +165,29 @@ def router_config(
     users_file: str,
     accounts: tuple[str, ...] = ACCOUNTS,
     plant: bool = False,
+    uplink: str | None = None,
 ) -> dict[str, Any]:
     """A cell's router; ``plant``: a plant's router may connect to it (``PLANT``'s identity in the users
-    file): it may read the cell, and nothing else (``with_plant``)."""
+    file): it may read the cell, and nothing else (``with_plant``).
+
+    ``uplink``: the network interface the plant reaches this router on. What leaves on it of the arm's
+    state is downsampled to ``UPLINK_STATE_HZ`` here, before it is encrypted and sent, rather than only
+    where the line's router takes it in (``plant_router_config``, which still does, for a cell without
+    this): a tenth of the arm's state on the plant's network and in the line's router. Zenoh tells links
+    apart by interface, not by who is on them: no session of the cell may reach this router over the
+    uplink's interface, or it would get the arm's state at that rate too."""
     acl = access_control(cell, accounts)
+    uplink_state = {
+        "downsampling": [
+            {
+                "id": "uplink: state",
+                "interfaces": [uplink],
+                "flows": ["egress"],
+                "messages": ["put"],
+                "rules": [{"key_expr": f"{ROOT}/{cell}/robot/state", "freq": UPLINK_STATE_HZ}],
+            }
+        ]
+    }
     return {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
@@ -190,6 +209,7 @@ def router_config(
                 }
             ]
         },
+        **(uplink_state if uplink else {}),
     }
 
 

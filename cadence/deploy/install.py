@@ -94,6 +94,9 @@ class Options:
     # a plant's router may read this cell (`--plant plant.json`, from `cadence plant-router`): the router
     # trusts the plant's CA beside the cell's and takes its password; it lets nothing in from it
     plant: Path | None = None
+    # the network interface the plant reaches the router on (`--uplink-interface`): the arm's state
+    # leaves on it at the plant's rate (``router_config``'s ``uplink``)
+    uplink: str | None = None
 
 
 @dataclass
@@ -269,6 +272,7 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
             str(users),
             cell_accounts(opts.strap),
             plant=plant is not None,
+            uplink=opts.uplink,
         )
         p.files.append(
             File(

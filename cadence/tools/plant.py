@@ -6,6 +6,8 @@ and windows; never the raw ECG."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -16,6 +18,20 @@ from schemas import HrvWindow, RobotState, Selection, ServiceStatus
 from schemas.topology import cell_roster, decode_any
 
 WATCHED = ("health/*", "robot/state", "decision/selection", "hrv/window")  # under cadence/*/
+# how much nicer than a cell's processes the plant's run (its routers, monitor and recorder): where they
+# share a host with a cell (a line's router on a cell's PC), the cell's work takes the cores first
+PLANT_NICE = 10
+
+
+def yield_to_cells() -> None:
+    """This process takes the plant's priority (``PLANT_NICE``), or keeps a lower one it already has. On
+    Linux a nice value is a thread's, and a new thread takes its maker's: each thread there now is set
+    (numpy's BLAS starts some on import), and the ones started later follow."""
+    nice = max(os.getpriority(os.PRIO_PROCESS, 0), PLANT_NICE)
+    threads = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
+    for tid in threads:
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
 
 
 def plant_watch(root: str = "cadence") -> list[str]:

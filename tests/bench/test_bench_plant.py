@@ -32,9 +32,10 @@ def test_every_key_of_the_profile_is_put_by_an_account_the_cells_router_lets_put
 
 
 def test_bench_plant_reads_every_cell_and_loses_nothing_it_keeps() -> None:
-    seconds = "5" if BENCH_QUICK else "20"
+    seconds, rounds = ("5", "1") if BENCH_QUICK else ("20", "3")
     r = subprocess.run(
-        [sys.executable, "-m", "cadence", "bench", "plant", "--cells", str(CELLS), "--seconds", seconds],
+        [sys.executable, "-m", "cadence", "bench", "plant", "--cells", str(CELLS), "--seconds", seconds,
+         "--rounds", rounds],
         capture_output=True, text=True, timeout=900,
     )  # fmt: skip
     print(r.stdout)
@@ -45,8 +46,10 @@ def test_bench_plant_reads_every_cell_and_loses_nothing_it_keeps() -> None:
     assert f["derived_put"] >= CELLS  # every cell put windows, cycles and events while the plant read
     assert f["derived_lost"] == {"monitor": 0, "recorder": 0}
     assert f["lost_puts"] == 0
+    assert f["rounds"] == int(rounds)
     for phase in ("alone", "watched"):
         for key, (p50, p99) in f[phase]["latency_ms"].items():
             assert 0 < p50 <= p99, (phase, key)
+            assert len(f[phase]["p99_by_phase"][key]) == int(rounds)
     assert f["delivered"]["operator/separation"] > 0.99  # put with QoS drop, as the sensor's adapter does
     assert f["recorded_bytes_per_cell_day"] > 0

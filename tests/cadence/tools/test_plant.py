@@ -66,6 +66,29 @@ def test_each_cell_is_a_row_with_its_services_robot_k_window_and_their_ages() ->
     assert "no cell seen yet" in render(Plant(), now=0.0)
 
 
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="threads' nice values are read in /proc")
+@pytest.mark.parametrize("before", [0, 15])
+def test_the_plants_processes_yield_to_a_cells_every_thread_of_them(before: int) -> None:
+    """`cadence plant` and `cadence record --plant` take the plant's priority: every thread, the ones a
+    library started before (numpy's BLAS does on import) and the ones started after; a process already
+    nicer keeps its own."""
+    script = f"""
+import os, threading
+from cadence.tools.plant import yield_to_cells
+os.nice({before})
+stop = threading.Event()
+early = threading.Thread(target=stop.wait); early.start()
+yield_to_cells()
+late = threading.Thread(target=stop.wait); late.start()
+print(sorted({{int(open(f"/proc/self/task/{{t}}/stat").read().rsplit(")", 1)[1].split()[16])
+              for t in os.listdir("/proc/self/task")}}))
+stop.set()
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout) == [max(before, 10)]
+
+
 @pytest.mark.asyncio
 async def test_cadence_plant_shows_two_cells_on_one_bus() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -233,11 +256,61 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         await the_plant_side_cannot_act_on_the_cell(plant_side, m1, s1)
 
 
+@pytest.mark.asyncio
+async def test_a_cells_router_sends_the_plant_its_arm_state_at_5_hz_on_the_uplink_and_the_cell_all_of_it(
+    tmp_path: Path,
+) -> None:
+    """`cadence install --plant … --uplink-interface IFACE`: the cell's router takes the plant's link on
+    this host's network interface and downsamples the arm's state there, as it leaves; the cell's own
+    sessions, on loopback, get every message. The plant's side here downsamples nothing itself (a plant
+    router with no rules at all): what it gets at 5 Hz is the cell's doing."""
+    from cadence.bench.plant import host_interface
+    from cadence.deploy.cell import ACCOUNTS, PLANT, Tls, client_config, identity, router_config, users_file
+    from cadence.deploy.pki import issue, make_ca
+    from cadence.deploy.plant import new_secret, plant_files
+
+    nic = host_interface()
+    if nic is None:
+        pytest.skip("this host has no network interface with an IPv4 address but loopback")
+    iface, address = nic
+    ca, secret = make_ca("c1"), new_secret()
+    own, up = f"tls/127.0.0.1:{free_port()}", f"tls/{address}:{free_port()}"
+    for name, (text, _) in plant_files(secret, {"c1": (up, ca.cert)}, f"tls/127.0.0.1:{free_port()}",
+                                       ["127.0.0.1"], tmp_path).items():  # fmt: skip
+        (tmp_path / name).write_text(text)
+    (tmp_path / "c1.users").write_text(
+        users_file("c1", {a: f"pw-{a}" for a in ACCOUNTS}) + f"{PLANT}:{secret.password}\n"
+    )
+    leaf = issue(ca, identity("c1", "router"), "c1", ["127.0.0.1", address])
+    tls = Tls(ca.cert + secret.ca.cert, leaf.cert, leaf.key)
+    cfg = router_config("c1", [own, up], tls, str(tmp_path / "c1.users"), plant=True, uplink=iface)
+    plain = {**json5_of(tmp_path / "router.json5"), "access_control": {"enabled": False}, "downsampling": []}
+
+    def account(name: str) -> BusConfig:
+        leaf = issue(ca, identity("c1", name), "c1", [name])
+        return config_file(tmp_path, name, client_config("c1", name, f"pw-{name}", [own],
+                                                         Tls(ca.cert, leaf.cert, leaf.key)))  # fmt: skip
+
+    async with (
+        await Bus.open(config_file(tmp_path, "c1-router", cfg), "c1"),
+        await Bus.open(account("executor"), "c1") as ex1,
+        await Bus.open(account("monitor"), "c1") as m1,
+        await Bus.open(config_file(tmp_path, "plain", plain), "plant") as plant_side,
+    ):
+        in_cell = []
+        m1.subscribe_raw(m1.key("robot/state"), lambda key, _: in_cell.append(key))
+        await ex1.until_subscribed(ex1.key("robot/state"), 30)
+        await plant_reads_each_downsampled(plant_side, {"c1": ex1})
+        # 3 s at 50 Hz and what went before the plant had one: all of it (a drop or two aside), not 15
+        assert len(in_cell) >= 140
+
+
 def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_json(tmp_path: Path) -> None:
     """`cadence plant-router` and `cadence install --plant` (issue 58): the plant's router trusts the plant's
     and every cell's CA, connects to each cell and downsamples each; plant.json holds no key; run again,
     the plant's CA is kept. A cell staged with it lets the plant in as the rules above say, trusting the
-    plant's CA beside its own. A bad --cell and a plant secret given for plant.json are one line each."""
+    plant's CA beside its own, and sends the arm's state on its uplink's interface at the plant's rate. A
+    bad --cell, a plant secret given for plant.json and an uplink without a plant are one line each."""
     from cadence.deploy.pki import make_ca
 
     def cadence(*args: str) -> subprocess.CompletedProcess[str]:
@@ -268,7 +341,7 @@ def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_js
 
     stage = tmp_path / "stage"
     r = cadence("install", "--robot", "sim", "--strap", "twin", "--cell", "c1", "--root", str(stage),
-                "--plant", str(out / "plant.json"))  # fmt: skip
+                "--plant", str(out / "plant.json"), "--uplink-interface", "eth1")  # fmt: skip
     assert r.returncode == 0, r.stderr
     creds = stage / "etc/cadence/credentials"
     assert f"plant:{given['password']}" in (creds / "users.txt").read_text().splitlines()
@@ -276,12 +349,17 @@ def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_js
     assert "c1: plant reads" in {rule["id"] for rule in cell_router["access_control"]["rules"]}
     cell_trusts = base64.b64decode(cell_router["transport"]["link"]["tls"]["root_ca_certificate_base64"])
     assert given["ca_cert"].encode() in cell_trusts
+    (up,) = cell_router["downsampling"]  # the arm's state leaves on the uplink at the plant's rate
+    assert up["interfaces"] == ["eth1"] and up["flows"] == ["egress"]
+    assert up["rules"] == [{"key_expr": "cadence/c1/robot/state", "freq": 5.0}]
 
     bad = cadence("plant-router", "--cell", "c1=tls/10.0.1.5:7447", "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "expected NAME=ENDPOINT=CA.pem" in bad.stderr, bad.stderr
     wrong = cadence("install", "--robot", "sim", "--strap", "twin", "--root", str(tmp_path / "s2"),
                     "--plant", str(out / "plant-secret.json"))  # fmt: skip
     assert wrong.returncode == 2 and "not a plant.json" in wrong.stderr, wrong.stderr
+    alone = cadence("install", "--robot", "sim", "--root", str(tmp_path / "s3"), "--uplink-interface", "eth1")
+    assert alone.returncode == 2 and "give --plant plant.json with it" in alone.stderr, alone.stderr
 
 
 @pytest.mark.asyncio
