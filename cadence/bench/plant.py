@@ -1,16 +1,19 @@
-"""`cadence bench plant --cells N`: a plant of N synthetic cells as deployed, on this host. Each cell has
-its own router (`cadence router`, mTLS, its own CA, the cell's generated access control) and its services'
-accounts, each on its own session, putting a cell's traffic at speed 1 (``plant_cells.PROFILE``: 81
-messages and 20 kB a second); every line of ``per_line`` cells has a line router that reads its cells, and
-the plant's router reads the lines, as `cadence plant-router` and `cadence install --plant` configure them.
+"""`cadence bench plant --cells N`: a plant of N cells as deployed, on this host. Each cell has its own
+router (`cadence router`, mTLS, its own CA, the cell's generated access control, the plant's link on the
+host's network interface where it has one: the uplink). The first cell is a real one, its services as
+`cadence demo --processes` runs them at speed 1, each on its own account; the others are synthetic, their
+services' accounts each on its own session putting a cell's traffic at speed 1 (``plant_cells.PROFILE``:
+81 messages and 20 kB a second). Every line of ``per_line`` cells has a line router that reads its cells,
+and the plant's router reads the lines, as `cadence plant-router` and `cadence install --plant` configure
+them; the plant's processes run at its priority (``PLANT_NICE``).
 
-It runs two phases of the same length: the cells alone, then with the plant monitor (`cadence plant`'s
-view, here in the bench's own process) and the plant recorder (`cadence record --plant`, a process of its
-own) reading every cell through the line and plant routers. Per phase: the arm's state and the separation
-as each cell's monitor session gets them, p50/p99 (the in-cell figures a plant must not move), and each
-group of processes' CPU; then how far behind the plant's view ever was, whether the plant got every
-derived message (each cell's windows, cycles and events, by their stamps) and how many bytes a cell's
-plant recording takes a day.
+It runs rounds of two phases of the same length: the cells alone, then with the plant monitor (`cadence
+plant`'s view, ``plant_monitor``) and the plant recorder (`cadence record --plant`), each a process of
+its own, reading every cell through the line and plant routers. Per kind of phase: the arm's state and
+the separation as each cell's monitor session gets them, p50/p99 pooled and each phase's p99 (the
+in-cell figures a plant must not move; the real cell's apart), and each group of processes' CPU; then
+how far behind the plant's view ever was, whether the plant got every derived message (each cell's
+windows, cycles and events, by their stamps) and how many bytes a cell's plant recording takes a day.
 """
 
 from __future__ import annotations
@@ -36,7 +39,15 @@ from cadence.bench.plant_cells import TIMED, CellSpec, WorkerResult, WorkerSpec
 from cadence.bench.plant_monitor import MonitorResult, MonitorSpec
 
 PER_LINE = 10  # cells behind one line router
-GROUPS = ("cell routers", "line routers", "plant router", "recorder", "monitor", "workers")  # CPU, by process
+GROUPS = (
+    "cell routers",
+    "line routers",
+    "plant router",
+    "recorder",
+    "monitor",
+    "workers",
+    "real cell",
+)  # CPU
 WORKERS = 2  # processes putting the cells' traffic (this host has 2 cores)
 WARM_S, GAP_S = 2.0, 4.0  # before the first phase; between them (the plant's readers connect)
 ROUNDS = 3  # pairs of phases: the cells alone, then with the plant reading
@@ -97,14 +108,18 @@ def host_interface() -> tuple[str, str] | None:
 
 
 def layout(
-    folder: Path, n_cells: int, per_line: int = PER_LINE, uplink: tuple[str, str] | None = None
+    folder: Path,
+    n_cells: int,
+    per_line: int = PER_LINE,
+    uplink: tuple[str, str] | None = None,
+    real: tuple[str, ...] = (),
 ) -> Layout:
     """Every router's and account's config for a plant of ``n_cells``, as a deployment writes them: each
     cell its own CA and its router built for a plant (``router_config(…, plant=True)``), the line and
     plant routers and the monitor as `cadence plant-router` writes them (``plant_files``). ``uplink``
     (an interface and its address): each cell's router takes the plant's link there and sends the arm's
     state on it at the plant's rate (`cadence install --uplink-interface`); the cell's own sessions come
-    over loopback."""
+    over loopback. ``real``: the first cell is a real one, these services' accounts its own."""
     from cadence.bench.plant_cells import ACCOUNTS as PUTTERS
     from cadence.deploy.cell import ACCOUNTS, PLANT, Tls, client_config, identity, router_config, to_json5
     from cadence.deploy.cell import users_file as users_of
@@ -139,12 +154,13 @@ def layout(
         cfg = router_config(name, listen, tls, str(users), plant=True, uplink=uplink[0] if uplink else None)
         cell_routers.append(Router(name, write(f"{name}-router", cfg), endpoint))
         configs = {}
-        for role in (*PUTTERS, "monitor"):
+        services = list(real) if real and i == 0 else []
+        for role in (*(services or PUTTERS), "monitor"):
             leaf = issue(ca, identity(name, role), name, [role])
             cfg = client_config(name, role, passwords[role], [endpoint], Tls(ca.cert, leaf.cert, leaf.key))
             configs[role] = str(write(identity(name, role), cfg))
         reader = configs.pop("monitor")
-        cells.append(CellSpec(name, configs, reader))
+        cells.append(CellSpec(name, configs, reader, services))
     plant_at = ports.endpoint()
     for name, (text, _) in plant_files(plant, cas, plant_at, here, folder, lines).items():
         (folder / name).parent.mkdir(exist_ok=True)
@@ -173,6 +189,9 @@ class PlantFigures:
     uplink: str | None  # the interface the cells' routers sent the plant's share on (None: loopback)
     alone: Phase
     watched: Phase
+    real_cell: str | None  # the real cell among them, if one ran: its own figures, as its monitor gets them
+    real_alone: Phase | None
+    real_watched: Phase | None
     delivered: dict[str, float]  # in-cell, per timed key: received / put
     view_behind_s: float  # the stalest cell in the plant view, at any refresh of it
     transit_p99_ms: float  # a message to the plant monitor, cell to plant
@@ -211,11 +230,13 @@ class Meter:
         return {g: 100.0 * (ticks[g] - before[g]) / per_s for g in self.groups}
 
 
-def _phase(results: list[WorkerResult], spans: list[tuple[int, int]], cpu: list[dict[str, float]]) -> Phase:
+def _phase(
+    timed: list[dict[str, list[tuple[int, int]]]], spans: list[tuple[int, int]], cpu: list[dict[str, float]]
+) -> Phase:
     """The phases of one kind (``spans``, monotonic ns) pooled, and each one's p99."""
 
     def within(key: str, since: int, until: int) -> list[int]:
-        return [us for r in results for t, us in r.timed[key] if since <= t < until]
+        return [us for each in timed for t, us in each[key] if since <= t < until]
 
     def ms(lat: list[int], q: float) -> float:
         return float(np.percentile(lat, q)) / 1000 if lat else float("nan")
@@ -230,7 +251,7 @@ def _phase(results: list[WorkerResult], spans: list[tuple[int, int]], cpu: list[
 
 
 def _start(name: str, run: list[str], logs: Path, procs: list[subprocess.Popen[bytes]], plant: bool = False,
-           talks: bool = False) -> subprocess.Popen[bytes]:  # fmt: skip
+           talks: bool = False, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:  # fmt: skip
     """A process of the bench, its errors to a file (a pipe nobody reads would stop one that logs); it
     joins ``procs`` as it starts, so that one that fails beside it is not left running. ``plant``: at the
     plant's priority, as docs/operations.md runs the plant's routers (`nice -n 10`) and as `cadence
@@ -240,10 +261,26 @@ def _start(name: str, run: list[str], logs: Path, procs: list[subprocess.Popen[b
 
     pipe = subprocess.PIPE if talks else subprocess.DEVNULL
     with (logs / f"{name}.log").open("wb") as out:
-        proc = subprocess.Popen([sys.executable, "-m", *run], stdin=pipe, stdout=pipe, stderr=out,
+        proc = subprocess.Popen([sys.executable, "-m", *run], stdin=pipe, stdout=pipe, stderr=out, env=env,
                                 preexec_fn=yield_to_cells if plant else None)  # fmt: skip
     procs.append(proc)
     return proc
+
+
+def _real_env(service: str, cell: CellSpec, folder: Path, epoch_ns: int) -> dict[str, str]:
+    """A real cell's service as `cadence demo --processes` configures it at speed 1 (the operator twin
+    its ECG and its separation, the simulated UR16e, the shipped sets), on its own account of the cell's
+    router as a deployed cell's units give it (``CADENCE_BUS_CONFIG_FILE``)."""
+    from cadence.demo.options import DemoOptions
+    from cadence.demo.processes import service_env
+    from cadence.demo.supervise import PARENT_ENV
+
+    data = folder / f"{cell.name}-data"
+    data.mkdir(exist_ok=True)
+    env = service_env(service, DemoOptions(speed=1.0), "", data, epoch_ns)
+    del env["CADENCE_BUS_CONNECT"]
+    own = {"CADENCE_CADENCE_CELL": cell.name, "CADENCE_BUS_CONFIG_FILE": cell.accounts[service]}
+    return env | own | {PARENT_ENV: str(os.getpid())}
 
 
 async def _said(proc: subprocess.Popen[bytes], what: bytes, log: Path, timeout: float = 120) -> None:
@@ -268,15 +305,17 @@ async def _ready(proc: subprocess.Popen[bytes], log: Path) -> None:
 
 
 async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_LINE, rounds: int = ROUNDS,
-                      progress: Console | None = None) -> PlantFigures:  # fmt: skip
+                      real: bool = True, progress: Console | None = None) -> PlantFigures:  # fmt: skip
     """The plant above, run on this host: see the module's words."""
+    from cadence.demo.options import ORDER
+
     say = progress.print if progress is not None else lambda *_: None
     procs: list[subprocess.Popen[bytes]] = []
     uplink = host_interface()
     with tempfile.TemporaryDirectory(prefix="cadence-plant-") as tmp:
         folder = Path(tmp)
         say(f"{n_cells} cells: certificates and configs")
-        lay = layout(folder, n_cells, per_line, uplink)
+        lay = layout(folder, n_cells, per_line, uplink, ORDER if real else ())
         try:
             on = uplink[0] if uplink else "loopback"
             say(f"{n_cells} cell routers, {len(lay.line_routers)} line routers, the plant's; uplinks on {on}")
@@ -289,14 +328,24 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                 await asyncio.gather(*(_said(p, b"listening", folder / f"{r.name}.log")
                                        for p, r in zip(started, members, strict=True)))  # fmt: skip
                 pids[group] = [p.pid for p in started]
+            if real:
+                say(f"the real cell {lay.cells[0].name}: {', '.join(ORDER)}")
+                cell, epoch = lay.cells[0], time.time_ns()
+                envs = {s: _real_env(s, cell, folder, epoch) for s in ORDER}
+                started = [
+                    _start(f"{cell.name}-{s}", [f"services.{s}"], folder, procs, env=envs[s]) for s in ORDER
+                ]
+                pids["real cell"] = [p.pid for p in started]
             say("the cells' sessions")
             workers, outs = [], []
-            share = -(-n_cells // WORKERS)
-            # the readers first, in a process of their own (the putters wait until each is subscribed)
+            synthetic = [c for c in lay.cells if not c.services]
+            share = -(-len(synthetic) // WORKERS)
+            # the readers first, in a process of their own (the putters wait until each is subscribed;
+            # the readers, until every service of the real cell serves)
             specs = [WorkerSpec(lay.cells, 0, n_cells, str(folder / "readers.json"), puts=False)]
-            for w in range(0, n_cells, share):
+            for w in range(0, len(synthetic), share):
                 out = str(folder / f"putter{w}.json")
-                specs.append(WorkerSpec(lay.cells[w : w + share], w, n_cells, out, reads=False))
+                specs.append(WorkerSpec(synthetic[w : w + share], w, len(synthetic), out, reads=False))
             for i, spec in enumerate(specs):
                 path = folder / f"worker{i}.spec.json"
                 path.write_bytes(msgspec.json.encode(spec))
@@ -398,10 +447,19 @@ def _figures(
     from schemas.topology import decode_any
 
     alone, watched = spans[0::2], spans[1::2]
+
+    def while_read(t: int) -> bool:
+        return any(since <= t < until for since, until in watched)
+
     sent = {k: sum(r.sent[c][k] for r in results for c in r.sent) for k in TIMED}
     got = {k: sum(len(r.timed[k]) for r in results) for k in TIMED}
     put = {(cell, key, t) for r in results for cell, keys in r.derived.items() for key, ts in keys.items()
-           for t in ts if any(since <= t < until for since, until in watched)}  # fmt: skip
+           for t in ts if while_read(t)}  # fmt: skip
+    # a real cell's: what its monitor session got while the plant read (its stamps are the data clock's)
+    put |= {(cell, key, t) for r in results for cell, keys in r.real_derived.items()
+            for key, pairs in keys.items() for t, came in pairs if while_read(came)}  # fmt: skip
+    real_cell = next((cell for r in results for cell in r.real_derived), None)
+    real_timed = [r.real_timed for r in results if r.real_derived]
     recorded: set[tuple[str, str, int]] = set()
     per_s = []
     for recording, size0, size1 in recordings:
@@ -415,15 +473,18 @@ def _figures(
         # statuses at their thinned rate (their first, kept before that, says how big they are)
         per_s.append((size1 - size0) / seconds + sum(health.values()) / HEALTH_EVERY_S)
     windows = {(cell, t) for s in seen for cell, t in s.windows}
-    late = [dt for s in seen for t, dt in s.transit if any(since <= t < until for since, until in watched)]
+    late = [dt for s in seen for t, dt in s.transit if while_read(t)]
     return PlantFigures(
         cells=n_cells,
         lines=n_lines,
         seconds=seconds,
         rounds=len(watched),
         uplink=uplink,
-        alone=_phase(results, alone, cpu["alone"]),
-        watched=_phase(results, watched, cpu["watched"]),
+        alone=_phase([r.timed for r in results], alone, cpu["alone"]),
+        watched=_phase([r.timed for r in results], watched, cpu["watched"]),
+        real_cell=real_cell,
+        real_alone=_phase(real_timed, alone, cpu["alone"]) if real_cell else None,
+        real_watched=_phase(real_timed, watched, cpu["watched"]) if real_cell else None,
         delivered={k: got[k] / sent[k] if sent[k] else float("nan") for k in TIMED},
         view_behind_s=max(s.behind_s for s in seen),
         transit_p99_ms=float(np.percentile(late, 99)) / 1e6 if late else float("nan"),
@@ -445,16 +506,21 @@ def plant_table(figures: list[PlantFigures]) -> tuple[Table, Table]:
     recorder (windows, cycles, events) did not get, the stalest cell in its view, and its recording."""
     cells = Table(title="bench plant: in the cells (as each cell's monitor gets them); CPU in % of a core")
     for col in ("N", "plant readers", "robot/state ms", "separation ms", "robot/state p99 by phase",
-                "cell routers", "lines", "plant", "recorder", "monitor", "cells' workers"):  # fmt: skip
+                "cell routers", "lines", "plant", "recorder", "monitor", "cells' workers",
+                "real cell"):  # fmt: skip
         cells.add_column(col, justify="right")
     for f in figures:
-        for name, phase in (("none", f.alone), ("monitor, recorder", f.watched)):
-            lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" for k in TIMED]
-            each = ", ".join(f"{p99:.1f}" for p99 in phase.p99_by_phase[TIMED[0]])
-            cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu else "" for g in GROUPS]
-            cells.add_row(str(f.cells), name, *lat, each, *cpu)
-        shift = [f"{f.watched.latency_ms[k][1] - f.alone.latency_ms[k][1]:+.2f}" for k in TIMED]
-        cells.add_row("", "p99 shift", *shift, *[""] * 7, end_section=True)
+        pairs = [("", f.alone, f.watched)]
+        if f.real_alone is not None and f.real_watched is not None:
+            pairs.append(("real cell: ", f.real_alone, f.real_watched))  # its CPU is a column of the above
+        for who, alone, watched in pairs:
+            for name, phase in ((f"{who}none", alone), (f"{who}monitor, recorder", watched)):
+                lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" for k in TIMED]
+                each = ", ".join(f"{p99:.1f}" for p99 in phase.p99_by_phase[TIMED[0]])
+                cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu and not who else "" for g in GROUPS]
+                cells.add_row(str(f.cells), name, *lat, each, *cpu)
+            shift = [f"{watched.latency_ms[k][1] - alone.latency_ms[k][1]:+.2f}" for k in TIMED]
+            cells.add_row("", f"{who}p99 shift", *shift, *[""] * 8, end_section=True)
     plant = Table(title="bench plant: what the plant got")
     for col in ("N", "lines", "delivered in cells", "derived lost", "view behind s", "to plant p99 ms",
                 "MB / cell-day"):  # fmt: skip

@@ -35,7 +35,7 @@ from schemas import (
     Separation,
     ServiceStatus,
 )
-from schemas.topology import ECG_SOURCES, Topic, cell_roster, encode, topic_of
+from schemas.topology import ECG_SOURCES, Topic, cell_roster, decode_any, encode, topic_of
 
 Make = Callable[[int, int], Message]  # (seq, t_ns) → a message
 
@@ -108,6 +108,9 @@ class CellSpec(msgspec.Struct, frozen=True):
     name: str
     accounts: dict[str, str]  # account → its Zenoh config (a client of the cell's router)
     reader: str  # the cell's monitor account's config
+    # a real cell: its services, each a process of its own (the bench starts them), not a profile put
+    # by a worker; its messages are stamped on the data clock, which at speed 1 is the wall's
+    services: list[str] = []
 
 
 class WorkerSpec(msgspec.Struct, frozen=True):
@@ -122,12 +125,16 @@ class WorkerSpec(msgspec.Struct, frozen=True):
 
 class WorkerResult(msgspec.Struct):
     """What one worker put and saw: how many of each key per cell, the stamps of the keys a plant keeps
-    (to find each in what the plant got), and the timed keys' latencies (µs) with their stamps."""
+    (to find each in what the plant got), and the timed keys' latencies (µs) with their stamps. Of a
+    real cell, what its monitor session saw: the timed keys' latencies with when each came (monotonic),
+    and the stamp of each derived message with when it came."""
 
     sent: dict[str, dict[str, int]]  # cell → suffix → how many
     derived: dict[str, dict[str, list[int]]]  # cell → a DERIVED suffix → the t_ns of each put
     timed: dict[str, list[tuple[int, int]]]  # suffix → [(t_ns, latency µs)]
     lost_puts: int = 0
+    real_timed: dict[str, list[tuple[int, int]]] = {}  # suffix → [(came, monotonic ns; latency µs)]
+    real_derived: dict[str, dict[str, list[tuple[int, int]]]] = {}  # cell → suffix → [(t_ns, came)]
 
 
 def _schedule(spec: WorkerSpec, t0_ns: int) -> list[tuple[int, int, int]]:
@@ -170,14 +177,52 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
 
         return on
 
+    real_timed: dict[str, list[tuple[int, int]]] = {k: [] for k in TIMED}
+    real_derived: dict[str, dict[str, list[tuple[int, int]]]] = {}
+
+    def real(cell: str, suffix: str) -> Callable[[Any], None]:
+        """A real cell's message as its monitor session gets it: a timed key's latency on the wall clock
+        (the data clock at speed 1), a derived one's stamp; each with when it came."""
+
+        def on(sample: Any) -> None:
+            came, wall = time.monotonic_ns(), time.time_ns()
+            msg = decode_any(sample.payload.to_bytes())
+            if suffix in TIMED:
+                real_timed[suffix].append((came, (wall - msg.t_ns) // 1000))
+            else:
+                real_derived[cell][suffix].append((msg.t_ns, came))
+
+        return on
+
+    async def alive(session: Any, cell: CellSpec) -> None:
+        """Until every service of a real cell has its presence on the bus (they start beside the bench:
+        imports, sessions, the store's sets). Its monitor subscribes only then: subscribed before a
+        service of the cell's router came up, it got nothing that service put (zenoh 1.10, mTLS and
+        the cell's rules; a subscription declared after came right)."""
+        get = session.liveliness().get
+        async with asyncio.timeout(300):
+            while True:
+                replies = await asyncio.to_thread(
+                    lambda: list(get(f"cadence/{cell.name}/health/*", timeout=2))
+                )
+                if {str(r.ok.key_expr).rsplit("/", 1)[1] for r in replies if r.ok} >= set(cell.services):
+                    return
+                await asyncio.sleep(0.5)
+
     try:
         for c, cell in enumerate(spec.cells):
             if spec.reads:
                 reader = await Bus.open(BusConfig(config_file=cell.reader), cell.name)
                 readers.append(reader)
                 session = cast(ZenohTransport, reader.transport).session
-                for suffix in TIMED:
-                    subs.append(session.declare_subscriber(reader.key(suffix), arrived(suffix)))
+                if cell.services:
+                    await alive(session, cell)
+                    real_derived[cell.name] = {k: [] for k in DERIVED}
+                    for suffix in (*TIMED, *DERIVED):
+                        subs.append(session.declare_subscriber(reader.key(suffix), real(cell.name, suffix)))
+                else:
+                    for suffix in TIMED:
+                        subs.append(session.declare_subscriber(reader.key(suffix), arrived(suffix)))
             for account in ACCOUNTS if spec.puts else ():
                 buses[c, account] = await Bus.open(BusConfig(config_file=cell.accounts[account]), cell.name)
         for c, cell in enumerate(spec.cells if spec.puts else ()):
@@ -217,7 +262,8 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
                 derived[name][stream.suffix].append(stamp)
             heapq.heappush(due, (t + int(1e9 / stream.hz), c, s))
         await asyncio.sleep(0.5)  # the last puts' way through the cell's router
-        return WorkerResult(sent=sent, derived=derived, timed=timed, lost_puts=lost)
+        return WorkerResult(sent=sent, derived=derived, timed=timed, lost_puts=lost, real_timed=real_timed,
+                            real_derived=real_derived)  # fmt: skip
     finally:
         for sub in subs:
             sub.undeclare()

@@ -191,13 +191,15 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
 
 @cli.command(
     "bench plant",
-    help="a plant of N synthetic cells as deployed, each its own router, behind line and plant routers",
+    help="a plant of N cells as deployed (one real), each its own router, behind line and plant routers",
     description="Per N: N cells, each its own router (mTLS, its own CA and access control) and its "
     "services' accounts putting a cell's traffic at speed 1; a line router per 10 cells and the plant's "
-    "router over them; the cells' routers send the plant its share on this host's network interface "
-    "when it has one. Rounds of two phases: the cells alone, then with the plant monitor and `cadence "
-    "record --plant` (the plant's processes at its priority, nice 10). Prints the in-cell robot/state "
-    "and separation p50/p99 of each kind of phase and the shift, each phase's p99, every process "
+    "router over them; the first cell a real one (its services as `cadence demo --processes` runs them, "
+    "at speed 1, on its own accounts); the cells' routers send the plant its share on this host's "
+    "network interface when it has one. Rounds of two phases: the cells alone, then with the plant "
+    "monitor and `cadence record --plant` (the plant's processes at its priority, nice 10). Prints the "
+    "in-cell robot/state and separation p50/p99 of each kind of phase and the shift (the real cell's "
+    "apart), each phase's p99, every process "
     "group's CPU, what was delivered, how far behind the plant view was, and the plant recording's "
     "bytes per cell and day. The last line is the figures as JSON.",
 )
@@ -205,6 +207,7 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
 @arg("--seconds", type=float, default=20.0, help="each phase's length (default 20)")
 @arg("--per-line", type=positive_int(1), default=10, help="cells behind one line router (default 10)")
 @arg("--rounds", type=positive_int(1), default=3, help="pairs of phases, alone then read (default 3)")
+@arg("--no-real-cell", action="store_true", help="every cell synthetic (by default the first is a real one)")
 def cmd_bench_plant(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -215,9 +218,11 @@ def cmd_bench_plant(args: argparse.Namespace) -> int:
     figures: list[PlantFigures] = []
     for n in args.cells or [50]:
         with err.status(f"bench plant: {n} cells"):
-            run = bench_plant(n, args.seconds, args.per_line, args.rounds, progress=err)
+            run = bench_plant(
+                n, args.seconds, args.per_line, args.rounds, not args.no_real_cell, progress=err
+            )
             figures.append(asyncio.run(run))
-    wide = Console(width=max(out.width, 150))  # eleven columns: narrower, each folds to nothing
+    wide = Console(width=max(out.width, 150))  # twelve columns: narrower, each folds to nothing
     for table in plant_table(figures):
         wide.print(table)
     print(json.dumps([f.to_dict() for f in figures]))

@@ -1,5 +1,5 @@
-"""`cadence bench plant` (issue 58): N synthetic cells as deployed (each its own router and CA, its
-services' accounts), behind line routers and the plant's, read by the plant monitor and `cadence record
+"""`cadence bench plant` (issue 58): N cells as deployed (each its own router and CA, its services'
+accounts; the first a real one, the rest synthetic), behind line routers and the plant's, read by the plant monitor and `cadence record
 --plant`. The benchmark prints its figures; this asserts what must hold on any host, loaded or not: every
 cell seen by the plant, nothing the plant keeps lost, the in-cell traffic delivered, the timed keys timed
 in both phases. The timings themselves are figures (docs/operations.md), not assertions."""
@@ -43,11 +43,12 @@ def test_bench_plant_reads_every_cell_and_loses_nothing_it_keeps() -> None:
     (f,) = json.loads(r.stdout.strip().splitlines()[-1])
     assert f["cells"] == CELLS and f["cells_seen"] == CELLS
     assert f["lines"] == -(-CELLS // 10)
-    assert f["derived_put"] >= CELLS  # every cell put windows, cycles and events while the plant read
+    assert f["derived_put"] >= CELLS  # the cells put windows, cycles and events while the plant read
     assert f["derived_lost"] == {"monitor": 0, "recorder": 0}
     assert f["lost_puts"] == 0
     assert f["rounds"] == int(rounds)
-    for phase in ("alone", "watched"):
+    assert f["real_cell"] == "line1-cell1"  # a real cell among them: its services, its own figures
+    for phase in ("alone", "watched", "real_alone", "real_watched"):
         for key, (p50, p99) in f[phase]["latency_ms"].items():
             assert 0 < p50 <= p99, (phase, key)
             assert len(f[phase]["p99_by_phase"][key]) == int(rounds)

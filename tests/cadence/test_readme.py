@@ -121,6 +121,8 @@ def check_command(tokens: list[str], variables: dict[str, str]) -> None:
                 variables[var] = value
         if words[:1] == ["sudo"]:
             words = words[1:]
+        if words[:2] == ["nice", "-n"]:  # a priority, then the command itself
+            words = words[3:]
         if words[-1:] == ["&"]:
             words = words[:-1]
         expanded: list[str] = []
