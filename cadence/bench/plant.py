@@ -50,6 +50,7 @@ GROUPS = (
 )  # CPU
 WORKERS = 2  # processes putting the cells' traffic (this host has 2 cores)
 WARM_S, GAP_S = 2.0, 4.0  # before the first phase; between them (the plant's readers connect)
+LINGER_S = 1.0  # the plant's readers after a phase: what was put in it is on its way through two hops
 ROUNDS = 3  # pairs of phases: the cells alone, then with the plant reading
 
 
@@ -386,7 +387,8 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                 record += ["--zenoh-config", str(lay.monitor)]
                 recorder = _start(f"recorder{i // 2}", record, folder, procs)
                 spec_path, result = folder / f"monitor{i // 2}.spec.json", folder / f"monitor{i // 2}.json"
-                spec_path.write_bytes(msgspec.json.encode(MonitorSpec(str(lay.monitor), until, str(result))))
+                linger = until + int(LINGER_S * 1e9)
+                spec_path.write_bytes(msgspec.json.encode(MonitorSpec(str(lay.monitor), linger, str(result))))
                 monitor = _start(f"monitor{i // 2}", ["cadence.bench.plant_monitor", str(spec_path)], folder,
                                  procs, talks=True)  # fmt: skip
                 await _ready(monitor, folder / f"monitor{i // 2}.log")
@@ -396,6 +398,7 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                 await _until(until)
                 cpu[kind].append(meter.read())
                 recordings.append((recording, size0, _size(recording)))
+                await _until(linger)
                 recorder.send_signal(signal.SIGTERM)
                 for proc in (recorder, monitor):
                     await asyncio.to_thread(proc.wait, 60)
