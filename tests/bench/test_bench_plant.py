@@ -1,8 +1,9 @@
 """`cadence bench plant` (issue 58): N cells as deployed (each its own router and CA, its services'
-accounts; the first a real one, the rest synthetic), behind line routers and the plant's, read by the plant monitor and `cadence record
---plant`. The benchmark prints its figures; this asserts what must hold on any host, loaded or not: every
-cell seen by the plant, nothing the plant keeps lost, the in-cell traffic delivered, the timed keys timed
-in both phases. The timings themselves are figures (docs/operations.md), not assertions."""
+accounts; the first a real one, the rest synthetic), behind line routers and the plant's, read by the
+plant monitor and `cadence record --plant`. The benchmark prints its figures; this asserts what must hold
+on any host, loaded or not: every cell seen by the plant, nothing the plant keeps lost, the in-cell
+traffic delivered, the timed keys timed in both phases. The timings themselves are figures
+(docs/operations.md), not assertions."""
 
 from __future__ import annotations
 
