@@ -196,9 +196,8 @@ async def drive(spec: WorkerSpec, start: asyncio.Future[tuple[int, int]]) -> Wor
 
     async def alive(session: Any, cell: CellSpec) -> None:
         """Until every service of a real cell has its presence on the bus (they start beside the bench:
-        imports, sessions, the store's sets). Its monitor subscribes only then: subscribed before a
-        service of the cell's router came up, it got nothing that service put (zenoh 1.10, mTLS and
-        the cell's rules; a subscription declared after came right)."""
+        imports, sessions, the store's sets): the phases are timed from a cell that runs, and its monitor
+        subscribes to a cell whose services are there."""
         get = session.liveliness().get
         async with asyncio.timeout(300):
             while True:
