@@ -39,15 +39,8 @@ from cadence.bench.plant_cells import TIMED, CellSpec, WorkerResult, WorkerSpec
 from cadence.bench.plant_monitor import MonitorResult, MonitorSpec
 
 PER_LINE = 10  # cells behind one line router
-GROUPS = (
-    "cell routers",
-    "line routers",
-    "plant router",
-    "recorder",
-    "monitor",
-    "workers",
-    "real cell",
-)  # CPU
+# CPU, by group of processes
+GROUPS = ("cell routers", "line routers", "plant router", "recorder", "monitor", "workers", "real cell")
 WORKERS = 2  # processes putting the cells' traffic (this host has 2 cores)
 WARM_S, GAP_S = 2.0, 4.0  # before the first phase; between them (the plant's readers connect)
 LINGER_S = 1.0  # the plant's readers after a phase: what was put in it is on its way through two hops
@@ -234,7 +227,8 @@ class Meter:
 def _phase(
     timed: list[dict[str, list[tuple[int, int]]]], spans: list[tuple[int, int]], cpu: list[dict[str, float]]
 ) -> Phase:
-    """The phases of one kind (``spans``, monotonic ns) pooled, and each one's p99."""
+    """The phases of one kind (``spans``, monotonic ns) pooled, and each one's p99; ``cpu``, each phase's
+    reading (none for the real cell: its services' CPU is a group of the plant's)."""
 
     def within(key: str, since: int, until: int) -> list[int]:
         return [us for each in timed for t, us in each[key] if since <= t < until]
@@ -242,7 +236,7 @@ def _phase(
     def ms(lat: list[int], q: float) -> float:
         return float(np.percentile(lat, q)) / 1000 if lat else float("nan")
 
-    phase = Phase(cpu={g: float(np.mean([c[g] for c in cpu])) for g in cpu[0]})
+    phase = Phase(cpu={g: float(np.mean([c[g] for c in cpu])) for g in cpu[0]} if cpu else {})
     for key in TIMED:
         each = [within(key, *span) for span in spans]
         pooled = [us for lat in each for us in lat]
@@ -342,7 +336,7 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
             synthetic = [c for c in lay.cells if not c.services]
             share = -(-len(synthetic) // WORKERS)
             # the readers first, in a process of their own (the putters wait until each is subscribed;
-            # the readers, until every service of the real cell serves)
+            # the readers, until every service of the real cell is on the bus)
             specs = [WorkerSpec(lay.cells, 0, n_cells, str(folder / "readers.json"), puts=False)]
             for w in range(0, len(synthetic), share):
                 out = str(folder / f"putter{w}.json")
@@ -486,8 +480,8 @@ def _figures(
         alone=_phase([r.timed for r in results], alone, cpu["alone"]),
         watched=_phase([r.timed for r in results], watched, cpu["watched"]),
         real_cell=real_cell,
-        real_alone=_phase(real_timed, alone, cpu["alone"]) if real_cell else None,
-        real_watched=_phase(real_timed, watched, cpu["watched"]) if real_cell else None,
+        real_alone=_phase(real_timed, alone, []) if real_cell else None,
+        real_watched=_phase(real_timed, watched, []) if real_cell else None,
         delivered={k: got[k] / sent[k] if sent[k] else float("nan") for k in TIMED},
         view_behind_s=max(s.behind_s for s in seen),
         transit_p99_ms=float(np.percentile(late, 99)) / 1e6 if late else float("nan"),
@@ -515,12 +509,12 @@ def plant_table(figures: list[PlantFigures]) -> tuple[Table, Table]:
     for f in figures:
         pairs = [("", f.alone, f.watched)]
         if f.real_alone is not None and f.real_watched is not None:
-            pairs.append(("real cell: ", f.real_alone, f.real_watched))  # its CPU is a column of the above
+            pairs.append(("real cell: ", f.real_alone, f.real_watched))  # its CPU: a column of the above
         for who, alone, watched in pairs:
             for name, phase in ((f"{who}none", alone), (f"{who}monitor, recorder", watched)):
                 lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" for k in TIMED]
                 each = ", ".join(f"{p99:.1f}" for p99 in phase.p99_by_phase[TIMED[0]])
-                cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu and not who else "" for g in GROUPS]
+                cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu else "" for g in GROUPS]
                 cells.add_row(str(f.cells), name, *lat, each, *cpu)
             shift = [f"{watched.latency_ms[k][1] - alone.latency_ms[k][1]:+.2f}" for k in TIMED]
             cells.add_row("", f"{who}p99 shift", *shift, *[""] * 8, end_section=True)

@@ -186,3 +186,14 @@ def config_file(tmp: Path, name: str, cfg: dict) -> BusConfig:
     p = tmp / f"{name}.json5"
     p.write_text(json.dumps(cfg))
     return BusConfig(config_file=str(p))
+
+
+def account_file(tmp: Path, ca, cell: str, name: str, password: str, at: list[str]) -> BusConfig:
+    """An account of ``cell`` as `cadence install` writes it: its certificate from the cell's CA (``ca``,
+    a ``cadence.deploy.pki.Pem``), its password, the router's endpoints ``at``."""
+    from cadence.deploy.cell import Tls, client_config, identity
+    from cadence.deploy.pki import issue
+
+    leaf = issue(ca, identity(cell, name), cell, [name])
+    cfg = client_config(cell, name, password, at, Tls(ca.cert, leaf.cert, leaf.key))
+    return config_file(tmp, identity(cell, name), cfg)

@@ -33,7 +33,7 @@ from cadence.deploy.pki import common_name, issue, make_ca
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
 from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS, key_for
-from tests.support.cell import CELL, config_file, free_port, put
+from tests.support.cell import CELL, account_file, config_file, free_port, put
 from tests.support.paths import REPO
 
 
@@ -227,9 +227,7 @@ async def test_one_cells_sensor_cannot_say_where_people_are_in_another_on_a_shar
     router = config_file(tmp_path, "router", cfg)
 
     def account(cell: str, name: str) -> BusConfig:
-        c = issue(ca, identity(cell, name), cell, [name])
-        conf = client_config(cell, name, passwords[cell][name], endpoint, Tls(ca.cert, c.cert, c.key))
-        return config_file(tmp_path, identity(cell, name), conf)
+        return account_file(tmp_path, ca, cell, name, passwords[cell][name], endpoint)
 
     theirs = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:front")
     own = Separation(t_ns=3, seq=1, distance_m=0.6, source="scanner:front")

@@ -18,7 +18,7 @@ from cadence.tools.plant import Plant, plant_watch
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, RobotState, Selection, Separation, ServiceStatus
 from schemas.topology import SERVICES, encode
-from tests.support.cell import config_file, free_port, put
+from tests.support.cell import account_file, config_file, free_port, put
 
 
 def json5_of(path: Path) -> dict:
@@ -194,7 +194,6 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
         PLANT,
         PLANT_MONITOR,
         Tls,
-        client_config,
         identity,
         router_config,
         users_file,
@@ -232,9 +231,7 @@ async def test_a_plant_router_reads_each_cell_downsampled_and_cannot_act_on_one(
     assert all(r["flows"] == ["egress"] for r in acl["rules"] if r["id"] in mine and "put" in r["messages"])
 
     def account(cell: str, name: str, at: str) -> BusConfig:
-        leaf = issue(cas[cell], identity(cell, name), cell, [name])
-        cfg = client_config(cell, name, f"pw-{name}", [at], Tls(cas[cell].cert, leaf.cert, leaf.key))
-        return config_file(tmp_path, identity(cell, name), cfg)
+        return account_file(tmp_path, cas[cell], cell, name, f"pw-{name}", [at])
 
     monitor_cfg = json5_of(tmp_path / "plant-monitor.json5")
     async with (
@@ -265,7 +262,7 @@ async def test_a_cells_router_sends_the_plant_its_arm_state_at_5_hz_on_the_uplin
     sessions, on loopback, get every message. The plant's side here downsamples nothing itself (a plant
     router with no rules at all): what it gets at 5 Hz is the cell's doing."""
     from cadence.bench.plant import host_interface
-    from cadence.deploy.cell import ACCOUNTS, PLANT, Tls, client_config, identity, router_config, users_file
+    from cadence.deploy.cell import ACCOUNTS, PLANT, Tls, identity, router_config, users_file
     from cadence.deploy.pki import issue, make_ca
     from cadence.deploy.plant import new_secret, plant_files
 
@@ -287,9 +284,7 @@ async def test_a_cells_router_sends_the_plant_its_arm_state_at_5_hz_on_the_uplin
     plain = {**json5_of(tmp_path / "router.json5"), "access_control": {"enabled": False}, "downsampling": []}
 
     def account(name: str) -> BusConfig:
-        leaf = issue(ca, identity("c1", name), "c1", [name])
-        return config_file(tmp_path, name, client_config("c1", name, f"pw-{name}", [own],
-                                                         Tls(ca.cert, leaf.cert, leaf.key)))  # fmt: skip
+        return account_file(tmp_path, ca, "c1", name, f"pw-{name}", [own])
 
     async with (
         await Bus.open(config_file(tmp_path, "c1-router", cfg), "c1"),
