@@ -382,7 +382,8 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                 recorder = _start(f"recorder{i // 2}", record, folder, procs)
                 spec_path, result = folder / f"monitor{i // 2}.spec.json", folder / f"monitor{i // 2}.json"
                 linger = until + int(LINGER_S * 1e9)
-                spec_path.write_bytes(msgspec.json.encode(MonitorSpec(str(lay.monitor), linger, str(result))))
+                watch = MonitorSpec(str(lay.monitor), until, linger, str(result))
+                spec_path.write_bytes(msgspec.json.encode(watch))
                 monitor = _start(f"monitor{i // 2}", ["cadence.bench.plant_monitor", str(spec_path)], folder,
                                  procs, talks=True)  # fmt: skip
                 await _ready(monitor, folder / f"monitor{i // 2}.log")

@@ -21,7 +21,8 @@ REFRESH_S = 0.5  # `cadence plant`'s redraw
 
 class MonitorSpec(msgspec.Struct, frozen=True):
     config: str  # the plant monitor's account (a client of the plant's router)
-    until_ns: int  # monotonic: when it stops
+    phase_end_ns: int  # monotonic: the end of the phase it watches (the cells may stop putting there)
+    until_ns: int  # monotonic: when it stops (after the phase: what was put in it is still on its way)
     out: str  # where its result goes (JSON)
 
 
@@ -59,8 +60,9 @@ async def watch(spec: MonitorSpec) -> MonitorResult:
             await asyncio.sleep(REFRESH_S)
             now = time.monotonic()
             Console(file=io.StringIO(), width=200).print(plant.view(now=now))
-            ages = [now - c.robot[0] for c in plant.cells.values() if c.robot is not None]
-            behind = max([behind, *ages])
+            if now * 1e9 < spec.phase_end_ns:  # after it, the last round's cells have stopped
+                ages = [now - c.robot[0] for c in plant.cells.values() if c.robot is not None]
+                behind = max([behind, *ages])
     return MonitorResult(transit, windows, behind, len(plant.cells))
 
 

@@ -171,9 +171,10 @@ def router_config(
     file): it may read the cell, and nothing else (``with_plant``).
 
     ``uplink``: the network interface the plant reaches this router on. What leaves on it of the arm's
-    state is downsampled to ``UPLINK_STATE_HZ`` here, before it is encrypted and sent, rather than only
-    where the line's router takes it in (``plant_router_config``, which still does, for a cell without
-    this): a tenth of the arm's state on the plant's network and in the line's router. Zenoh tells links
+    state is downsampled here, before it is encrypted and sent, rather than only where the line's router
+    takes it in (``plant_router_config``, which still caps it at ``UPLINK_STATE_HZ``, for a cell without
+    this): a tenth of the arm's state on the plant's network and in the line's router. It leaves at
+    ``UPLINK_SENT_HZ``, under the line's cap, so that the cap lets every one of them in. Zenoh tells links
     apart by interface, not by who is on them: no session of the cell may reach this router over the
     uplink's interface, or it would get the arm's state at that rate too."""
     acl = access_control(cell, accounts)
@@ -184,7 +185,7 @@ def router_config(
                 "interfaces": [uplink],
                 "flows": ["egress"],
                 "messages": ["put"],
-                "rules": [{"key_expr": f"{ROOT}/{cell}/robot/state", "freq": UPLINK_STATE_HZ}],
+                "rules": [{"key_expr": f"{ROOT}/{cell}/robot/state", "freq": UPLINK_SENT_HZ}],
             }
         ]
     }
@@ -218,6 +219,12 @@ def router_config(
 PLANT = "plant"  # the plant router's identity on every cell's router (certificate CN and username)
 PLANT_MONITOR = identity(PLANT, "monitor")  # who reads the plant (`cadence plant`, `cadence record --plant`)
 UPLINK_STATE_HZ = 5.0  # the arm's state per cell as the plant gets it (the cell's own is 50 Hz or more)
+# what a cell's uplink sends of it. A cap passes a message that comes at least 1/freq after the last one
+# it passed, as its router gets to it; a second cap at the same rate drops each one that the way between
+# them brought a little early (a line's router at the plant's priority, on a busy host, takes what waited
+# in a bunch), and the plant's view of that cell skips to the next: 0.4 s and more between two. Sent at
+# 4.5 Hz (every 240 ms of a 50 Hz state), a message may come up to 40 ms early to the line's 5 Hz cap.
+UPLINK_SENT_HZ = 4.5
 
 
 def with_plant(acl: dict[str, Any], cell: str) -> dict[str, Any]:
@@ -254,10 +261,11 @@ def plant_router_config(
 ) -> dict[str, Any]:
     """A plant's router, or a line's: it connects to each router of ``cells`` (name to endpoint; a cell's,
     or a line's whose link ``carries`` the keys of the cells behind it) as ``PLANT`` and takes its
-    monitors' sessions on ``listen``. The arm's state of each cell is downsampled to ``UPLINK_STATE_HZ`` as
-    it comes in, a rule per cell (one rule over ``cadence/*/robot/state`` would be one budget for all of them
-    together). Its monitors may read every cell and say nothing; a link may bring the keys of the cells it
-    carries and nothing of another's.
+    monitors' sessions on ``listen``. The arm's state of each cell it connects to is downsampled to
+    ``UPLINK_STATE_HZ`` as it comes in, a rule per cell (one rule over ``cadence/*/robot/state`` would be one
+    budget for all of them together); of the cells a line carries, the line's router did that, and a
+    second cap would drop what came early (``UPLINK_SENT_HZ``). Its monitors may read every cell and say
+    nothing; a link may bring the keys of the cells it carries and nothing of another's.
 
     ``upstream``: this is a line's router, which a plant's router reads. It connects to its cells with the
     certificate of ``upstream`` (``PLANT``'s, which the cells' routers let in) and shows the plant its own
@@ -312,8 +320,8 @@ def plant_router_config(
                 "messages": ["put"],
                 "rules": [{"key_expr": f"{ROOT}/{cell}/robot/state", "freq": UPLINK_STATE_HZ}],
             }
-            for held in behind.values()
-            for cell in held
+            for cell in cells
+            if cell not in carries
         ],
     }
 

@@ -344,9 +344,9 @@ def test_plant_router_writes_the_plants_files_and_a_cells_install_takes_plant_js
     assert "c1: plant reads" in {rule["id"] for rule in cell_router["access_control"]["rules"]}
     cell_trusts = base64.b64decode(cell_router["transport"]["link"]["tls"]["root_ca_certificate_base64"])
     assert given["ca_cert"].encode() in cell_trusts
-    (up,) = cell_router["downsampling"]  # the arm's state leaves on the uplink at the plant's rate
+    (up,) = cell_router["downsampling"]  # the arm's state leaves on the uplink under the line's cap
     assert up["interfaces"] == ["eth1"] and up["flows"] == ["egress"]
-    assert up["rules"] == [{"key_expr": "cadence/c1/robot/state", "freq": 5.0}]
+    assert up["rules"] == [{"key_expr": "cadence/c1/robot/state", "freq": 4.5}]
 
     bad = cadence("plant-router", "--cell", "c1=tls/10.0.1.5:7447", "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "expected NAME=ENDPOINT=CA.pem" in bad.stderr, bad.stderr
@@ -423,7 +423,10 @@ def test_plant_router_with_lines_writes_each_lines_router_and_the_plant_reads_th
     readers = {s["id"] for s in l1["access_control"]["subjects"] if "usernames" in s}
     assert PLANT in readers  # the plant's uplink, read-only as a monitor
     assert (out / "l1" / "users.txt").read_text().startswith(f"{PLANT}:")
+    capped = [(d["rules"][0]["key_expr"], d["rules"][0]["freq"]) for d in l1["downsampling"]]
+    assert capped == [("cadence/c1/robot/state", 5.0), ("cadence/c2/robot/state", 5.0)]
     plant = json5_of(out / "router.json5")
+    assert plant["downsampling"] == []  # the lines capped their cells: a second cap drops what came early
     assert plant["connect"]["endpoints"] == ["tls/10.0.1.2:7448", "tls/10.0.2.2:7448"]
     ups = {r["id"]: r["key_exprs"] for r in plant["access_control"]["rules"] if r["id"].endswith(": up")}
     assert ups == {"l1: up": ["cadence/c1/**", "cadence/c2/**"], "l2: up": ["cadence/c3/**"]}
