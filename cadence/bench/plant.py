@@ -45,6 +45,7 @@ WORKERS = 2  # processes putting the cells' traffic (this host has 2 cores)
 WARM_S, GAP_S = 2.0, 4.0  # before the first phase; between them (the plant's readers connect)
 LINGER_S = 1.0  # the plant's readers after a phase: what was put in it is on its way through two hops
 ROUNDS = 3  # pairs of phases: the cells alone, then with the plant reading
+WAKE = "host wake"  # a phase's figures of ``wake_probe``, beside the timed keys'
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,7 +167,8 @@ def layout(
 
 @dataclass
 class Phase:
-    """The phases of one kind, pooled: in-cell latencies (ms) per timed key, each phase's p99, and each
+    """The phases of one kind, pooled: in-cell latencies (ms) per timed key, and the host's own delay in
+    waking a thread (``WAKE``: how late ``wake_probe`` woke, where it ran), each phase's p99, and each
     group of processes' CPU (% of one core, the phases' mean)."""
 
     latency_ms: dict[str, tuple[float, float]] = field(default_factory=dict)  # key → (p50, p99)
@@ -225,19 +227,22 @@ class Meter:
 
 
 def _phase(
-    timed: list[dict[str, list[tuple[int, int]]]], spans: list[tuple[int, int]], cpu: list[dict[str, float]]
+    timed: list[dict[str, list[tuple[int, int]]]],
+    spans: list[tuple[int, int]],
+    cpu: list[dict[str, float]],
+    keys: tuple[str, ...] = TIMED,
 ) -> Phase:
     """The phases of one kind (``spans``, monotonic ns) pooled, and each one's p99; ``cpu``, each phase's
     reading (none for the real cell: its services' CPU is a group of the plant's)."""
 
     def within(key: str, since: int, until: int) -> list[int]:
-        return [us for each in timed for t, us in each[key] if since <= t < until]
+        return [us for each in timed for t, us in each.get(key, ()) if since <= t < until]
 
     def ms(lat: list[int], q: float) -> float:
         return float(np.percentile(lat, q)) / 1000 if lat else float("nan")
 
     phase = Phase(cpu={g: float(np.mean([c[g] for c in cpu])) for g in cpu[0]} if cpu else {})
-    for key in TIMED:
+    for key in keys:
         each = [within(key, *span) for span in spans]
         pooled = [us for lat in each for us in lat]
         phase.latency_ms[key] = (ms(pooled, 50), ms(pooled, 99))
@@ -358,6 +363,8 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
                 spans.append((at, at + int(seconds * 1e9)))
                 at = spans[-1][1] + int(GAP_S * 1e9)
             end = spans[-1][1]
+            woke = folder / "wake.json"
+            probe = _start("wake_probe", ["cadence.bench.wake_probe", str(end), str(woke)], folder, procs)
             for proc in workers:
                 assert proc.stdin is not None
                 proc.stdin.write(f"{t0} {end}\n".encode())
@@ -405,8 +412,10 @@ async def bench_plant(n_cells: int, seconds: float = 10.0, per_line: int = PER_L
             for proc, done in zip(workers, outs, strict=True):
                 await asyncio.to_thread(proc.wait, 60)
                 results.append(msgspec.json.decode(done.read_bytes(), type=WorkerResult))
+            await asyncio.to_thread(probe.wait, 60)
+            wake = msgspec.json.decode(woke.read_bytes(), type=list[tuple[int, int]])
             return _figures(n_cells, len(lay.line_routers), seconds, uplink[0] if uplink else None, results,
-                            spans, cpu, seen, recordings)  # fmt: skip
+                            spans, cpu, seen, recordings, wake)  # fmt: skip
         finally:
             for proc in procs:
                 if proc.poll() is None:
@@ -440,6 +449,7 @@ def _figures(
     cpu: dict[str, list[dict[str, float]]],
     seen: list[MonitorResult],
     recordings: list[tuple[Path, int, int]],
+    wake: list[tuple[int, int]],
 ) -> PlantFigures:
     from cadence.tools.recording import HEALTH_EVERY_S, read
     from schemas.topology import decode_any
@@ -457,6 +467,7 @@ def _figures(
     put |= {(cell, key, t) for r in results for cell, keys in r.real_derived.items()
             for key, pairs in keys.items() for t, came in pairs if while_read(came)}  # fmt: skip
     real_cell = next((cell for r in results for cell in r.real_derived), None)
+    timed = [r.timed for r in results]
     real_timed = [r.real_timed for r in results if r.real_derived]
     recorded: set[tuple[str, str, int]] = set()
     per_s = []
@@ -478,8 +489,8 @@ def _figures(
         seconds=seconds,
         rounds=len(watched),
         uplink=uplink,
-        alone=_phase([r.timed for r in results], alone, cpu["alone"]),
-        watched=_phase([r.timed for r in results], watched, cpu["watched"]),
+        alone=_phase([*timed, {WAKE: wake}], alone, cpu["alone"], (*TIMED, WAKE)),
+        watched=_phase([*timed, {WAKE: wake}], watched, cpu["watched"], (*TIMED, WAKE)),
         real_cell=real_cell,
         real_alone=_phase(real_timed, alone, []) if real_cell else None,
         real_watched=_phase(real_timed, watched, []) if real_cell else None,
@@ -499,11 +510,13 @@ def _figures(
 
 def plant_table(figures: list[PlantFigures]) -> tuple[Table, Table]:
     """In the cells, per kind of phase (p50 / p99 pooled, and the arm's state's p99 in each phase, to see
-    how much a phase's own p99 wanders); and what the plant got: the share of the timed keys the cells'
+    how much a phase's own p99 wanders), beside how late a thread of the host woke in the same phases (each
+    phase's p99 after the arm's state's); and what the plant got: the share of the timed keys the cells'
     monitors got, the derived messages put while the plant read that its monitor (windows) and its
     recorder (windows, cycles, events) did not get, the stalest cell in its view, and its recording."""
     cells = Table(title="bench plant: in the cells (as each cell's monitor gets them); CPU in % of a core")
-    for col in ("N", "plant readers", "robot/state ms", "separation ms", "robot/state p99 by phase",
+    for col in ("N", "plant readers", "robot/state ms", "separation ms", "host wake ms",
+                "p99 by phase: robot/state; host wake",
                 "cell routers", "lines", "plant", "recorder", "monitor", "cells' workers",
                 "real cell"):  # fmt: skip
         cells.add_column(col, justify="right")
@@ -513,11 +526,14 @@ def plant_table(figures: list[PlantFigures]) -> tuple[Table, Table]:
             pairs.append(("real cell: ", f.real_alone, f.real_watched))  # its CPU: a column of the above
         for who, alone, watched in pairs:
             for name, phase in ((f"{who}none", alone), (f"{who}monitor, recorder", watched)):
-                lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" for k in TIMED]
-                each = ", ".join(f"{p99:.1f}" for p99 in phase.p99_by_phase[TIMED[0]])
+                lat = [f"{phase.latency_ms[k][0]:.2f} / {phase.latency_ms[k][1]:.2f}" if k in phase.latency_ms
+                       else "" for k in (*TIMED, WAKE)]  # fmt: skip
+                each = "; ".join(", ".join(f"{p99:.1f}" for p99 in phase.p99_by_phase[k])
+                                 for k in (TIMED[0], WAKE) if k in phase.p99_by_phase)  # fmt: skip
                 cpu = [f"{phase.cpu[g]:.1f}" if g in phase.cpu else "" for g in GROUPS]
                 cells.add_row(str(f.cells), name, *lat, each, *cpu)
-            shift = [f"{watched.latency_ms[k][1] - alone.latency_ms[k][1]:+.2f}" for k in TIMED]
+            shift = [f"{watched.latency_ms[k][1] - alone.latency_ms[k][1]:+.2f}" if k in alone.latency_ms
+                     else "" for k in (*TIMED, WAKE)]  # fmt: skip
             cells.add_row("", f"{who}p99 shift", *shift, *[""] * 8, end_section=True)
     plant = Table(title="bench plant: what the plant got")
     for col in ("N", "lines", "delivered in cells", "derived lost", "view behind s", "to plant p99 ms",

@@ -199,9 +199,9 @@ def cmd_bench_store(args: argparse.Namespace) -> int:
     "network interface when it has one. Rounds of two phases: the cells alone, then with the plant "
     "monitor and `cadence record --plant` (the plant's processes at its priority, nice 10). Prints the "
     "in-cell robot/state and separation p50/p99 of each kind of phase and the shift (the real cell's "
-    "apart), each phase's p99, every process "
-    "group's CPU, what was delivered, how far behind the plant view was, and the plant recording's "
-    "bytes per cell and day. The last line is the figures as JSON.",
+    "apart), beside how late a thread of the host woke in the same phases (the host's own delay), "
+    "each phase's p99, every process group's CPU, what was delivered, how far behind the plant view "
+    "was, and the plant recording's bytes per cell and day. The last line is the figures as JSON.",
 )
 @arg("--cells", type=positive_int(1), action="append", metavar="N", help="cells (repeatable; default 50)")
 @arg("--seconds", type=float, default=20.0, help="each phase's length (default 20)")
@@ -222,7 +222,7 @@ def cmd_bench_plant(args: argparse.Namespace) -> int:
                 n, args.seconds, args.per_line, args.rounds, not args.no_real_cell, progress=err
             )
             figures.append(asyncio.run(run))
-    wide = Console(width=max(out.width, 150))  # twelve columns: narrower, each folds to nothing
+    wide = Console(width=max(out.width, 170))  # thirteen columns: narrower, each folds to nothing
     for table in plant_table(figures):
         wide.print(table)
     print(json.dumps([f.to_dict() for f in figures]))
