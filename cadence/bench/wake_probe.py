@@ -2,8 +2,8 @@
 and notes how late it woke (`python -m cadence.bench.wake_probe UNTIL_NS OUT.json`; the bench starts
 it). A message through a cell's router waits for a core at least twice (the router, the reader) and
 often more; on a host whose threads wait milliseconds for one, that is the tail of the in-cell latency
-whatever the mesh does. So the bench prints this beside it, phase by phase, as the servo loop's bench
-prints cyclictest's beside its own (a fixed number says nothing of a shared host).
+whatever the mesh does. So the bench prints this beside it, phase by phase: on a shared host, the
+latencies are judged against this host's own delay in the same run, not against a fixed number.
 """
 
 from __future__ import annotations
