@@ -5,6 +5,8 @@ with their parent."""
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 import json
 import os
 import signal
@@ -472,3 +474,67 @@ def test_an_install_on_a_host_without_systemd_stops_before_it_writes_anything(tm
         install(Options(robot="sim", strap="twin", prefix=tmp_path / "opt"))
     assert Path("/etc/cadence").exists() == before
     assert not (tmp_path / "opt").exists()
+
+
+POUR = """
+import asyncio, sys
+from common.runtime.bus import Bus, BusConfig
+async def pour(config, cell, suffix):
+    async with await Bus.open(BusConfig(config_file=config), cell) as bus:
+        while True:
+            bus.put_raw(bus.key(suffix), bytes(100_000), True)
+            await asyncio.sleep(0.02)
+asyncio.run(pour(*sys.argv[1:]))
+"""  # a service of the cell that connects and sends much (5 MB/s at block QoS, as a plant's reads are)
+
+
+@pytest.mark.asyncio
+async def test_services_that_connect_and_send_much_hold_up_no_separation_in_the_cell(tmp_path: Path) -> None:
+    """The cell's router, as `cadence router` runs it, goes on carrying the separation while two services
+    connect and put 100 kB messages at block QoS. A restarting service, `cadence top` or a plant's link
+    connects at any time. A router that runs every task on one thread (Zenoh's ``ZENOH_RUNTIME`` with
+    each pool handed over to ``app``: a quarter less CPU under `cadence bench plant`) stopped routing
+    for 5 s at such a moment, the separation with it, and the arm would have held: this fails that way."""
+    ca = make_ca(CELL)
+    passwords = {a: f"pw-{a}" for a in ACCOUNTS}
+    (tmp_path / "users.txt").write_text(users_file(CELL, passwords))
+    own = f"tls/127.0.0.1:{free_port()}"
+    leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
+    cfg = router_config(CELL, [own], Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt"))
+    router_file = config_file(tmp_path, "router", cfg).config_file
+    account = {a: account_file(tmp_path, ca, CELL, a, passwords[a], [own]) for a in ACCOUNTS}
+    run = [sys.executable, "-m", "cadence", "router", "--zenoh-config", str(router_file)]
+    procs = [subprocess.Popen(run, stderr=subprocess.PIPE, text=True)]
+    try:
+        assert procs[0].stderr is not None and "listening" in procs[0].stderr.readline()
+        async with (
+            await Bus.open(account["separation_sensor"], CELL) as sensor,
+            await Bus.open(account["monitor"], CELL) as monitor,
+        ):
+            came: list[float] = []  # when each separation came to the cell's monitor
+            poured: list[str] = []
+            seps = monitor.key("operator/separation")
+            monitor.subscribe_raw(seps, lambda *_: came.append(time.monotonic()))
+            for suffix in ("robot/cycle", "hrv/window"):
+                monitor.subscribe_raw(monitor.key(suffix), lambda key, _: poured.append(key))
+            await sensor.until_subscribed(seps, 30)
+            t0, seq = time.monotonic(), 0
+            for name, suffix in (("executor", "robot/cycle"), ("hrv_analyser", "hrv/window")):
+                pour = [sys.executable, "-c", POUR, str(account[name].config_file), CELL, suffix]
+                procs.append(subprocess.Popen(pour))
+            while time.monotonic() < t0 + 8.0:  # they start, connect and send meanwhile
+                put(
+                    sensor,
+                    seps,
+                    Separation(t_ns=time.time_ns(), seq=seq, distance_m=2.0, source="scanner:front"),
+                )
+                seq += 1
+                await asyncio.sleep(0.05)
+            came.append(time.monotonic())  # a separation that never came after the last one counts too
+        assert len(set(poured)) == 2  # both services were on the bus and sent
+        gaps = [b - a for a, b in itertools.pairwise(came)]
+        assert len(came) > 100 and max(gaps) < 1.0, max(gaps)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait(10)
