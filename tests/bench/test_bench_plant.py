@@ -33,7 +33,7 @@ def test_every_key_of_the_profile_is_put_by_an_account_the_cells_router_lets_put
 
 
 def test_bench_plant_reads_every_cell_and_loses_nothing_it_keeps() -> None:
-    seconds, rounds = ("5", "1") if BENCH_QUICK else ("20", "3")
+    seconds, rounds = ("3", "1") if BENCH_QUICK else ("20", "3")
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "bench", "plant", "--cells", str(CELLS), "--seconds", seconds,
          "--rounds", rounds],
