@@ -89,19 +89,21 @@ def test_a_cell_with_a_strap_gives_the_twin_no_account_at_all() -> None:
     assert "c1-operator_twin" in {a for p in twin["policies"] for a in p["subjects"]}
 
 
+def cell_router(tmp: Path, ca, passwords: dict[str, str], endpoint: list[str]) -> BusConfig:
+    """The cell's router as `cadence install` writes it: its users file, its certificate from the cell's CA
+    (``ca``, a ``cadence.deploy.pki.Pem``), listening on ``endpoint``."""
+    (tmp / "users.txt").write_text(users_file(CELL, passwords))
+    leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
+    cfg = router_config(CELL, endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp / "users.txt"))
+    return config_file(tmp, "router", cfg)
+
+
 @pytest.mark.asyncio
 async def test_the_router_requires_the_cells_certificate_and_the_accounts_own_keys(tmp_path: Path) -> None:
     ca = make_ca(CELL)
     passwords = {a: f"pw-{a}" for a in ACCOUNTS}
-    (tmp_path / "users.txt").write_text(users_file(CELL, passwords))
-    port = free_port()
-    endpoint = [f"tls/127.0.0.1:{port}"]
-    leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
-    router = config_file(
-        tmp_path,
-        "router",
-        router_config(CELL, endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt")),
-    )
+    endpoint = [f"tls/127.0.0.1:{free_port()}"]
+    router = cell_router(tmp_path, ca, passwords, endpoint)
     certs = {a: issue(ca, identity(CELL, a), CELL, [a]) for a in ACCOUNTS}
     assert common_name(certs["executor"].cert) == f"{CELL}-executor"
 
@@ -497,11 +499,8 @@ async def test_services_that_connect_and_send_much_hold_up_no_separation_in_the_
     for 5 s at such a moment, the separation with it, and the arm would have held: this fails that way."""
     ca = make_ca(CELL)
     passwords = {a: f"pw-{a}" for a in ACCOUNTS}
-    (tmp_path / "users.txt").write_text(users_file(CELL, passwords))
     own = f"tls/127.0.0.1:{free_port()}"
-    leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
-    cfg = router_config(CELL, [own], Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt"))
-    router_file = config_file(tmp_path, "router", cfg).config_file
+    router_file = cell_router(tmp_path, ca, passwords, [own]).config_file
     account = {a: account_file(tmp_path, ca, CELL, a, passwords[a], [own]) for a in ACCOUNTS}
     run = [sys.executable, "-m", "cadence", "router", "--zenoh-config", str(router_file)]
     procs = [subprocess.Popen(run, stderr=subprocess.PIPE, text=True)]
