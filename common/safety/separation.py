@@ -25,7 +25,10 @@ clock twice over: by the sender's stamp (``now − t_ns + age_s``) and by arriva
 ``max_age_s`` from the moment it came, less the age it came with), so neither a sender's clock that runs
 ahead nor a late relay makes a reading live longer. A stamp ahead of the receiver's clock by more than the
 cell's skew bound is refused, not clamped. A source declared in the settings that has no fresh reading
-holds the arm even while others speak: a scanner that died is not a scanner that sees nobody.
+holds the arm even while others speak: a scanner that died is not a scanner that sees nobody. Any other
+source falling silent is not forgotten either: its person stays where last seen (``Sources``) until a
+fresh reading of it says otherwise. A source's rate is judged before its readings'
+age, so a flood that saturates the receiver is seen as a flood (a hold), not as stale readings.
 
 S, C and the arm's speed are the cell's (common/safety/geometry.py): S the person's distance to the arm
 and its tool, C the source's own by ISO 13855, v_r the fastest point of arm and tool. ``Sources`` keeps
@@ -152,11 +155,14 @@ OTHERS = "(others)"  # where readings of sources past ``max_sources`` are kept, 
 @dataclass(slots=True)
 class _Readings:
     """One source's fresh readings that can still be the nearest: (fresh until, distance), fresh until
-    rising, distance rising (a reading farther than a later-expiring one can never be the nearest)."""
+    rising, distance rising (a reading farther than a later-expiring one can never be the nearest); and
+    the last one seen once none is fresh (``last``), which no silence ever forgets."""
 
     kept: deque[tuple[float, float]] = field(default_factory=deque)
+    last: tuple[float, float] | None = None  # the latest-expiring reading gone stale: where last seen
 
     def add(self, until: float, distance: float, keep: int) -> None:
+        self.last = None  # a fresh reading of the source says where its person is now
         if any(u >= until and d <= distance for u, d in self.kept):
             return  # one as near that lives as long: this one never wins
         kept = deque((u, d) for u, d in self.kept if not (u <= until and d >= distance))
@@ -169,8 +175,9 @@ class _Readings:
         self.kept = kept
 
     def nearest(self, now: float) -> float | None:
+        """The nearest fresh distance, None when none is fresh (``last`` then says where last seen)."""
         while self.kept and self.kept[0][0] < now:
-            self.kept.popleft()
+            self.last = self.kept.popleft()
         return self.kept[0][1] if self.kept else None
 
 
@@ -178,7 +185,7 @@ class _Readings:
 class Nearest:
     distance_m: float | None  # None: hold the arm
     source: str  # whose reading it is, or what holds the arm
-    why: str = ""  # when None: why, in words
+    why: str = ""  # when None: why, in words; with a distance: why it is one assumed, not read
 
 
 class Sources:
@@ -187,10 +194,21 @@ class Sources:
 
     ``declared``: sources that must each have a fresh reading, or the arm holds. ``keep`` bounds what one
     source keeps and ``max_sources`` how many names are told apart; past either, readings are merged on the
-    safe side (the nearer distance, the longer life), never dropped. A source that sends more than
-    ``max_rate_hz`` readings in a second is flooding: what it sends past that is not looked at (a flood
-    must not cost the others their turn), and it holds the arm until a second after its last reading past
-    the rate, for a reading it sent and was not looked at may have been the near one."""
+    safe side (the nearer distance, the longer life), never dropped.
+
+    Rate before age: a source that sends more than ``max_rate_hz`` readings in a second is flooding,
+    whatever the age or the stamp of what it sends (a flood that saturates the receiver arrives stale, and
+    counted as stale it once went unseen while the arm ran): what it sends past that is not looked at (a
+    flood must not cost the others their turn), and it holds the arm until a second after its last reading
+    past the rate, for a reading it sent and was not looked at may have been the near one.
+
+    Silence never frees the arm: a source whose readings all went stale is not forgotten. Its person stays
+    where last seen until a fresh reading of the same source says otherwise; so a near person whose
+    sensor's readings stop arriving in time (a flood on another source, a saturated host) keeps the arm
+    held while a far source speaks on. (Not walked in from there at v_h: a source the cell relies on is
+    declared, and a declared source's silence holds the arm at once; one nobody declared only ever adds a
+    nearer person, and walking its last one in would hold the arm for good once it is gone.) With no fresh
+    reading at all the arm holds, whatever was last seen."""
 
     def __init__(
         self,
@@ -214,12 +232,8 @@ class Sources:
 
     def judge(self, source: str, stamp_age_s: float, sensor_age_s: float, now: float) -> str:
         """What a reading's envelope says before its content is looked at: "" to look at it, else why not:
-        "ahead" (stamped ahead of the receiver's clock by more than the skew), "stale" (too old already),
-        "flood" (its source is past its rate this second)."""
-        if stamp_age_s < -self.skew_s:
-            return "ahead"
-        if max(stamp_age_s, 0.0) + sensor_age_s >= self.max_age_s:
-            return "stale"
+        "flood" (its source is past its rate this second: judged first, every reading counts toward it),
+        "ahead" (stamped ahead of the receiver's clock by more than the skew), "stale" (too old already)."""
         name = self.name(source)
         if len(self.rates) > 4 * self.max_sources:  # names judged and never kept (a flood of names)
             self.rates = {k: v for k, v in self.rates.items() if k in self.readings}
@@ -230,6 +244,10 @@ class Sources:
         if n + 1 > self.max_rate_hz:
             self.flooding[name] = now + 1.0
             return "flood"
+        if stamp_age_s < -self.skew_s:
+            return "ahead"
+        if max(stamp_age_s, 0.0) + sensor_age_s >= self.max_age_s:
+            return "stale"
         return ""
 
     def take(
@@ -262,25 +280,24 @@ class Sources:
         if self.flooding:
             name = next(iter(self.flooding))
             return Nearest(None, name, f"'{name}' sends over {self.max_rate_hz:g} readings a second")
-        best: tuple[float, str] | None = None
+        fresh: list[Nearest] = []
+        last_seen: list[Nearest] = []  # silent sources' people, where last seen
         silent = []
-        for name, readings in list(self.readings.items()):
+        for name, readings in self.readings.items():
             d = readings.nearest(now)
-            if d is None:
-                if name in self.declared:
-                    silent.append(name)
-                else:
-                    del self.readings[name]  # heard again, it is tracked again
-                    self.rates.pop(name, None)
-                continue
-            if best is None or d < best[0]:
-                best = (d, name)
+            if d is not None:
+                fresh.append(Nearest(d, name))
+            elif name in self.declared:
+                silent.append(name)
+            elif readings.last is not None:
+                why = f"where last seen: no fresh reading from '{name}' for {now - readings.last[0]:.1f} s"
+                last_seen.append(Nearest(readings.last[1], name, why))
         if silent:
             return Nearest(None, silent[0], f"no fresh distance from {', '.join(silent)} (declared)")
-        if best is None:
+        if not fresh:  # a person last seen far, alone, frees nothing: nothing fresh is a hold
             old = f"the last separation is over {self.max_age_s:.2f} s old"
             return Nearest(None, "", old if self.heard else "no separation yet")
-        return Nearest(best[0], best[1])
+        return min(fresh + last_seen, key=lambda n: n.distance_m or 0.0)
 
 
 class Adoption:

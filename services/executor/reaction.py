@@ -85,8 +85,9 @@ class Reactions:
 
     def receive(self, sep: Separation) -> None:
         """A reading as it arrives, judged on this executor's clock before its content is looked at:
-        refused (``Rejected``, counted) when stamped ahead of it by more than the skew bound, already too
-        old, or past its source's rate; else S, the person's distance to the arm and tool at the joints
+        refused (``Rejected``, counted) when past its source's rate (judged first: a flood that saturates
+        this loop arrives stale, and must still be seen as a flood), stamped ahead of it by more than the
+        skew bound, or already too old; else S, the person's distance to the arm and tool at the joints
         now (common/safety/geometry.py), kept less the source's C."""
         stamp_age = self.clock.loop_s((self.clock.now_ns() - sep.t_ns) / 1e9)
         now = monotonic()
@@ -254,6 +255,8 @@ class Reactions:
         else:
             zone = "full" if sigma >= 1.0 else "hold" if sigma <= 0.0 else "reduced"
             text = f"a person at {self.shown_m():.2f} m ({nearest.source}): scale {sigma:.2f}"
+            if nearest.why:  # a silent source's person, where last seen
+                text += f" ({nearest.why})"
         folded = self.zones.update(zone, monotonic())
         if folded is None:
             return

@@ -4,9 +4,17 @@ backend's settings, and the next message of a kind."""
 from __future__ import annotations
 
 import asyncio
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
-from common.runtime.bus import Bus
+from common.runtime.bus import Bus, BusConfig
 from common.trajectory.task import load_task
 from schemas import (
     ParetoSet,
@@ -19,7 +27,7 @@ from services.executor.__main__ import Settings
 from services.executor.settings import SourceSettings
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
-from tests.support.cell import Cell, InProcessService
+from tests.support.cell import CELL, Cell, InProcessService, free_port
 from tests.support.paths import planned_once
 
 TASK = """
@@ -87,8 +95,6 @@ async def store_serving(
     """A store serving ``task`` in the cell ``where`` (or on the Zenoh endpoint ``where``), from
     ``planned`` (a store's SQLite file), by default the task's sets as planned once per test run: the
     store serves stored sets at once (tests of planning are elsewhere)."""
-    import shutil
-
     data.mkdir(parents=True, exist_ok=True)
     shutil.copy(planned or planned_once(task), data / "pareto.sqlite")
     health = aiter(bus.subscribe(bus.key("health/pareto_store"), ServiceStatus, maxsize=1))
@@ -155,3 +161,77 @@ async def next_while_busy(sub, busy, quiet_s: float = 60.0, limit_s: float = 900
         return got.result()[1]
     finally:
         got.cancel()
+
+
+@dataclass(frozen=True)
+class Processes:
+    """The store and the executor as processes of their own, and the router this test holds."""
+
+    bus: Bus
+    endpoint: str
+    procs: tuple[subprocess.Popen[bytes], ...]  # the store, the executor
+
+    @property
+    def executor(self) -> subprocess.Popen[bytes]:
+        return self.procs[1]
+
+
+SERVICES = ("pareto_store", "executor")
+
+
+@asynccontextmanager
+async def executor_processes(
+    tmp_path: Path, sets: Path, executor_env: dict[str, str]
+) -> AsyncIterator[Processes]:
+    """The example task's store (from its planned ``sets``) and executor, each a process on the wall clock
+    connected to a Zenoh router this test opens (nothing in lockstep: what a timing rests on is the host's),
+    the executor starting at k = 15 with no operator, at FIFO where the host grants it, with
+    ``executor_env`` added. At the end each gets SIGCONT (one a test left stopped takes its signal) and
+    SIGTERM; one still running 30 s later is aborted, its threads' stacks written to its log, and the test
+    fails; at a failure, the tail of each log is printed beside it."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    data = tmp_path / "data"
+    data.mkdir()
+    shutil.copy(sets, data / "pareto.sqlite")
+    env = {**os.environ, "CADENCE_BUS_CONNECT": f"['{endpoint}']", "CADENCE_DATA_DIR": str(data),
+           "CADENCE_CADENCE_CELL": CELL}  # fmt: skip
+    executor = {
+        **env,
+        "CADENCE_EXECUTOR_START_SELECTION": "initial",
+        "CADENCE_EXECUTOR_INITIAL_K": "15",
+        "CADENCE_EXECUTOR_WAIT_FOR_SIGNALS": "false",
+        "CADENCE_EXECUTOR_FIFO_PRIORITY": "80" if os.geteuid() == 0 else "0",  # as its unit grants
+        # the host's core locks (no lock dir of its own): an executor of another test, or of a suite
+        # beside this one, holds its core, and this one's FIFO thread takes another (loaded run 3, issue 53)
+        **executor_env,
+    }
+    procs: list[subprocess.Popen[bytes]] = []
+    failed, hung = False, []
+    try:
+        async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), CELL) as bus:
+            for name, e in zip(SERVICES, (env, executor), strict=True):
+                log = (tmp_path / f"{name}.log").open("wb")
+                run = [sys.executable, "-X", "faulthandler", "-m", f"services.{name}"]  # stacks at SIGABRT
+                procs.append(subprocess.Popen(run, env=e, stdout=log, stderr=subprocess.STDOUT))
+            yield Processes(bus, endpoint, tuple(procs))
+    except BaseException:
+        failed = True
+        raise
+    finally:
+        alive = [p.poll() is None for p in procs]  # before the stop: had a service died?
+        for p in procs:
+            p.send_signal(signal.SIGCONT)
+            p.terminate()
+        for name, p in zip(SERVICES, procs, strict=False):
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:  # its threads' stacks to its log (faulthandler), then gone
+                hung.append(name)
+                p.send_signal(signal.SIGABRT)
+                p.wait(30)
+        if failed or hung:  # what the services said, beside the failure
+            print(f"still running at the failure (store, executor): {alive}")
+            for name in SERVICES:
+                said = (tmp_path / f"{name}.log").read_text()[-8000:]
+                print(f"--- {name}.log (the last 8000 characters)\n{said}")
+    assert not hung, f"{hung} did not exit within 30 s of SIGTERM (the stacks above)"

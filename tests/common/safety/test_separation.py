@@ -93,11 +93,13 @@ def test_the_nearest_fresh_reading_of_all_wins_and_ahead_or_stale_ones_never_cou
     seq: list[Reading], keep: int, declared: tuple[str, ...]
 ) -> None:
     """Against a brute-force table: every reading taken, alive from its arrival for max_age less its
-    age. The table agrees on whether anything is fresh, and is never farther (merging a flood may only
-    make it nearer); with room to keep everything it agrees exactly."""
+    age; a source with none alive stays where its latest-expiring reading put it (silence frees nothing),
+    and with nothing alive at all, or a declared source silent, the arm holds. The table agrees on whether
+    it holds, and is never farther (merging a flood may only make it nearer); with room to keep
+    everything it agrees exactly."""
     max_age, skew = 0.3, 0.05
     table = Sources(max_age, skew, declared, keep=keep)
-    alive: list[tuple[str, float, float]] = []  # source, fresh until, distance
+    taken: list[tuple[str, float, float]] = []  # source, fresh until, distance
     now = 0.0
     for source, d, stamp_age, sensor_age, step in seq:
         now += step
@@ -109,14 +111,20 @@ def test_the_nearest_fresh_reading_of_all_wins_and_ahead_or_stale_ones_never_cou
             assert why == "stale"
         else:
             assert why == ""
-            alive.append((source, now + max_age - age, d))
-        fresh = [(s, dd) for s, u, dd in alive if u >= now]
+            taken.append((source, now + max_age - age, d))
+        fresh = [(s, dd) for s, u, dd in taken if u >= now]
         nearest = table.nearest(now)
         silent = [s for s in declared if s not in {s for s, _ in fresh}]
         if silent or not fresh:
             assert nearest.distance_m is None, (silent, fresh)
             continue
-        best = min(dd for _, dd in fresh)
+        last_seen = []
+        for s in {s for s, _, _ in taken} - {s for s, _ in fresh}:
+            _, nearer = max(
+                (u, -dd) for ss, u, dd in taken if ss == s
+            )  # the latest-expiring, nearer of a tie
+            last_seen.append(-nearer)
+        best = min([dd for _, dd in fresh] + last_seen)
         assert nearest.distance_m is not None
         assert nearest.distance_m <= best
         if keep >= len(seq):

@@ -14,7 +14,7 @@ import pytest
 from common.runtime.bus import Bus
 from common.runtime.memory import MemoryNetwork, serving
 from common.runtime.node import Rejected
-from common.safety.separation import Sources
+from common.safety.separation import Nearest, Sources
 from schemas import OperatorSignal, Selection, Separation
 from schemas.topology import OPERATOR_SEPARATION, encode
 from services.executor.__main__ import Executor
@@ -51,6 +51,48 @@ def test_a_source_over_its_rate_holds_the_arm_and_never_displaces_another() -> N
     assert table.nearest(1.0).why.startswith("'scanner:back' sends over 1000 readings a second")
     table.receive("scanner:front", 0.6, 0.0, 0.0, 2.01)
     assert table.nearest(2.01).distance_m == 0.6  # a second after the flood: the honest reading
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_a_flood_that_arrives_stale_is_still_a_flood_and_holds_the_arm() -> None:
+    """Rate before age: a flood that saturates the receiver reaches it old (316k readings a second were
+    0.3 s old on arrival, counted stale, and the arm ran on the honest far reading). Every reading counts
+    toward its source's rate, whatever its age or stamp, and past the rate the arm holds."""
+    table = Sources(0.3, 0.05, ("scanner:front",), max_rate_hz=1000)
+    table.receive("scanner:front", 5.0, 0.0, 0.0, 0.0)
+    ages = [0.5, -3600.0] * 2500  # one second of readings, stale and an hour ahead
+    whys = {table.receive("scanner:back", 100.0, age, 0.0, i / 5000) for i, age in enumerate(ages)}
+    assert whys == {"stale", "ahead", "flood"}
+    table.receive("scanner:front", 5.0, 0.0, 0.0, 0.5)
+    assert table.nearest(0.5).distance_m is None
+    assert table.nearest(0.5).why.startswith("'scanner:back' sends over 1000 readings a second")
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_silence_never_frees_the_arm_a_near_person_unheard_stays_where_last_seen() -> None:
+    """A person seen at 1.5 m by a source nobody declared, whose readings then stop arriving in time (a
+    flood on another source, a saturated host): once forgotten, as if they had left, while a far source
+    spoke on. They stay where last seen until a fresh reading of the same source says otherwise; with no
+    fresh reading at all the arm holds, whatever was last seen."""
+    table = Sources(0.3, 0.05, ("twin",))
+    table.receive("twin", 6.0, 0.0, 0.0, 0.0)
+    table.receive("camera:side", 1.5, 0.0, 0.0, 0.0)
+    for i in range(1, 100):  # the twin at 6 m every 50 ms; the camera's readings all come too old
+        now = 0.05 * i
+        table.receive("twin", 6.0, 0.0, 0.0, now)
+        assert table.receive("camera:side", 1.0, 0.4, 0.0, now) == "stale"  # (nearer, but not looked at)
+        assert table.nearest(now).distance_m == 1.5
+        assert table.nearest(now).source == "camera:side"
+    assert table.nearest(4.9).why == "where last seen: no fresh reading from 'camera:side' for 4.6 s"
+    table.receive("camera:side", 4.0, 0.0, 0.0, 5.0)  # the same source, fresh: the person walked off
+    assert table.nearest(5.0) == Nearest(4.0, "camera:side")
+    table.receive("twin", 6.0, 0.0, 0.0, 5.2)
+    assert table.nearest(5.4) == Nearest(4.0, "camera:side", table.nearest(5.4).why)  # where last seen
+    table.receive("twin", 6.0, 0.0, 0.0, 5.4)
+    table.receive("camera:side", 3.0, 0.0, 0.0, 5.4)
+    table.receive("scanner:rogue", 100.0, 0.0, 0.0, 5.4)  # a far one, of another name, frees nothing
+    assert table.nearest(5.6).distance_m == 3.0
+    assert table.nearest(6.0).distance_m is None  # nothing fresh: a hold, not the 3 m last seen
 
 
 async def test_a_flood_on_one_source_never_pushes_anothers_reading_out_of_the_executors_input(

@@ -37,7 +37,6 @@ import asyncio
 import math
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -48,7 +47,6 @@ import numpy as np
 import pytest
 
 from common.robot.ur16e import UR16E
-from common.runtime.bus import Bus, BusConfig
 from common.safety.geometry import Arm
 from common.safety.separation import Figures, Ssm
 from common.trajectory.planner import content_hash
@@ -58,7 +56,7 @@ from schemas import RobotEvent, RobotState, Separation, ServiceStatus
 from schemas.topology import encode
 from services.executor.settings import Settings as ExecutorSettings
 from services.pareto_store.store import SetStore
-from tests.support.cell import CELL, free_port
+from tests.support.executor import executor_processes
 from tests.support.paths import EXAMPLE_TASK
 
 V_H = 1.6  # ISO 13855's walking speed
@@ -69,6 +67,7 @@ STALL_FAST_M_S, STALL_UNTIL_X = 0.5, 1.6
 STALL_TRIES = 3  # a stall that met an arm the watchdog had just stopped is tried again, walk and all
 PERIOD_S = 0.05  # the tracker's rate: 20 Hz
 SOURCE = '[{ name = "tracker", detects = "body" }]'  # it sees the body: C = 0.85 m (ISO 13855)
+WATCHED = {"CADENCE_EXECUTOR_SEPARATION": "true", "CADENCE_EXECUTOR_SEPARATION_SOURCES": SOURCE}
 
 
 ONE_S = 2 * (FAR - NEAR) / V_H + STAND_S + OUT_S  # one walk: in, standing, out, far
@@ -181,36 +180,15 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
     settings = ExecutorSettings()
     arm, tr = settings.arm(), sum(settings.reaction_parts(0.05).values())
     c, z = 0.85, settings.uncertainty_m
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    data = tmp_path / "data"
-    (data).mkdir()
-    shutil.copy(example_sets, data / "pareto.sqlite")
-    env = {**os.environ, "CADENCE_BUS_CONNECT": f"['{endpoint}']", "CADENCE_DATA_DIR": str(data),
-           "CADENCE_CADENCE_CELL": CELL}  # fmt: skip
-    executor_env = {
-        **env,
-        "CADENCE_EXECUTOR_SEPARATION": "true",
-        "CADENCE_EXECUTOR_SEPARATION_SOURCES": SOURCE,
-        "CADENCE_EXECUTOR_START_SELECTION": "initial",
-        "CADENCE_EXECUTOR_INITIAL_K": "15",
-        "CADENCE_EXECUTOR_WAIT_FOR_SIGNALS": "false",
-        "CADENCE_EXECUTOR_FIFO_PRIORITY": "80" if os.geteuid() == 0 else "0",  # as its unit grants
-        # the host's core locks (no lock dir of its own): an executor of another test, or of a suite
-        # beside this one, holds its core, and this one's FIFO thread takes another (loaded run 3, issue 53)
-    }
     load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
-    procs: list[subprocess.Popen[bytes]] = []
     states: list[tuple[float, RobotState]] = []
     told: list[float] = []  # when the tracker said where the person was (wall s)
     try:
-        async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), CELL) as bus:
+        async with executor_processes(tmp_path, example_sets, WATCHED) as cell:
+            bus = cell.bus
             sub = bus.subscribe(bus.key("robot/state"), RobotState, maxsize=100_000)
             health = bus.subscribe(bus.key("health/executor"), ServiceStatus, maxsize=10_000)
             key = bus.key("operator/separation")
-            for name, e in (("pareto_store", env), ("executor", executor_env)):
-                log = (tmp_path / f"{name}.log").open("wb")
-                run = [sys.executable, "-X", "faulthandler", "-m", f"services.{name}"]  # stacks at SIGABRT
-                procs.append(subprocess.Popen(run, env=e, stdout=log, stderr=subprocess.STDOUT))
             await bus.until_subscribed(key, 120)
 
             def tell(x: float) -> None:
@@ -245,7 +223,7 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
                 tracker.cancel()
                 start = time.time()
                 resumed = (FAR - STALL_UNTIL_X) / V_H  # when the stall ends: the person at STALL_UNTIL_X
-                starving = asyncio.create_task(starve(procs[1].pid, start + resumed)) if stall else None
+                starving = asyncio.create_task(starve(cell.executor.pid, start + resumed)) if stall else None
                 tracker = asyncio.create_task(track(start))
                 walk: list[tuple[float, RobotState]] = []
                 async with asyncio.timeout(walks * ONE_S + 60):
@@ -267,27 +245,9 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
             while health.pending:
                 counters = (await health.receive(1))[1].counters
     finally:
-        alive = [p.poll() is None for p in procs]  # before the stop: had a service died?
-        for p in procs:
-            p.send_signal(signal.SIGCONT)  # one the failure left stopped takes its SIGTERM
-            p.terminate()
-        hung = []
-        for name, p in zip(("pareto_store", "executor"), procs, strict=False):
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:  # its threads' stacks to its log (faulthandler), then gone
-                hung.append(name)
-                p.send_signal(signal.SIGABRT)
-                p.wait(30)
         for p in load:
             p.kill()
             p.wait()
-        if sys.exc_info()[0] is not None or hung:  # what the services said, beside the failure
-            print(f"still running at the failure (store, executor): {alive}")
-            for name in ("pareto_store", "executor"):
-                said = (tmp_path / f"{name}.log").read_text()[-8000:]
-                print(f"--- {name}.log (the last 8000 characters)\n{said}")
-    assert not hung, f"{hung} did not exit within 30 s of SIGTERM (the stacks above)"
     margins, literal, reach, held_near, at = [], [], [], 0, []
     for i, (t, s) in enumerate(states):
         q, v = np.array(s.q), speed(arm, s)
