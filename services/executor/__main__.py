@@ -104,7 +104,11 @@ class Executor(Node):
             raise Rejected("ahead", f"a selection stamped {ahead_s:.3f} s ahead of the executor's clock")
         self.chosen.select(sel)
 
-    @on(OPERATOR_SIGNAL)
+    def about_now(self, sig: OperatorSignal) -> None:
+        """On arrival, before the queue: a signal stamped outside its admission window is refused."""
+        self.cycles.signals.admit(sig, self.ctx.common.clock.now_ns())
+
+    @on(OPERATOR_SIGNAL, screen="about_now")
     async def on_signal(self, sig: OperatorSignal) -> Out:
         self.cycles.signals.receive(sig)
         return []

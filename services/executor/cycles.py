@@ -53,9 +53,17 @@ class Signals:
 
     KEPT = 32  # stamps remembered per name, to know a copy when it comes again
 
-    def __init__(self, names: set[str], early: dict[str, float] | None = None) -> None:
-        """``early``: per name, how long before its wait opens a signal still counts (loop seconds)."""
+    def __init__(
+        self,
+        names: set[str],
+        early: dict[str, float] | None = None,
+        max_age_s: float = 60.0,
+        skew_s: float = 0.05,
+    ) -> None:
+        """``early``: per name, how long before its wait opens a signal still counts (loop seconds).
+        ``max_age_s`` and ``skew_s``: the admission window of a stamp (data seconds, ``admit``)."""
         self.names, self.early = names, early or {}
+        self.max_age_s, self.skew_s = max_age_s, skew_s
         self.received: Counter[str] = Counter()  # signals that met a wait
         self.seen: dict[str, deque[tuple[int, str | None]]] = {
             name: deque(maxlen=self.KEPT) for name in names
@@ -64,6 +72,18 @@ class Signals:
         self.met = False  # the open wait has its signal
         self.came_early: dict[str, float] = {}  # name: when a signal for it came while nothing waited
         self.arrived = asyncio.Event()
+
+    def admit(self, sig: OperatorSignal, now_ns: int) -> None:
+        """On arrival, before any queue: a signal is a fact about now. One stamped more than ``max_age_s``
+        before the receiver's clock (``stale``) or ahead of it by more than the skew bound (``ahead``) is
+        refused and counted: a press stamped a day ago, or an hour ahead, once ended an open wait."""
+        age_s, who = (now_ns - sig.t_ns) / 1e9, f"'{sig.name}' from {sig.source or 'unnamed'}"
+        if age_s < -self.skew_s:
+            raise Rejected("ahead", f"{who} stamped {-age_s:.3f} s ahead of the executor's clock (the cell's "
+                           f"skew bound is {self.skew_s:g} s)")  # fmt: skip
+        if age_s > self.max_age_s:
+            raise Rejected("stale", f"{who} stamped {age_s:.1f} s ago (signal_max_age_s is "
+                           f"{self.max_age_s:g} s): about another moment")  # fmt: skip
 
     def receive(self, sig: OperatorSignal) -> None:
         """A signal as it arrives: meets the open wait, or is kept as early for a step that allows it;
@@ -149,7 +169,8 @@ class Cycles:
         self.say_files = kit.note("files")
         self.signals = Signals({s.wait_for for s in task.cycle if s.wait_for is not None},
                                {s.wait_for: self.clock.loop_s(s.early) for s in task.cycle
-                                if s.wait_for is not None and s.early is not None})  # fmt: skip
+                                if s.wait_for is not None and s.early is not None},
+                               settings.signal_max_age_s, kit.clock_skew_s)  # fmt: skip
         self.waiting_for: str | None = None
         self.cut_short: int | None = None  # the cycle a restart cut short, said when the cycles start
         self.latched: str | None = None  # a stop the last run latched and nobody resumed: why

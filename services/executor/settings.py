@@ -95,6 +95,8 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     state_rate_hz: Annotated[float, _range(1.0, 500.0)] = 50.0  # robot/state, wall clock
     query_timeout_s: Annotated[float, _range(0.1, 60.0)] = 2.0
     wait_for_signals: bool = True  # false: `wait_for` steps pass at once (no operator on the bus)
+    # a signal stamped longer ago than this (data s) is about another moment: refused, as one from the future
+    signal_max_age_s: Annotated[float, _range(1.0, 3600.0)] = 60.0
     cycles: Annotated[int, _range(0, 10**9)] = 0  # stop after this many cycles; 0: run until stopped
     sim_start_deg: list[Annotated[float, _range(-360.0, 360.0)]] | None = None  # sim: pose at start
     # A new selection during a path re-times the rest of it with the new solution (continuous to the

@@ -43,6 +43,9 @@ log = logging.getLogger("cadence.operator_twin")
 STATE_AHEAD_S = 10.0
 STATE_CONFIRM = 25  # half a second of robot states
 SIGNAL_AGAIN_S = 1.0  # a part put down is said again this often (data time) while the robot waits for it
+# … stamped anew once its stamp is this old: the executor refuses a signal older than its signal_max_age_s
+# (60 s by default), and a part that still lies there is a fact about now
+SIGNAL_RESTAMP_S = 20.0
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -93,13 +96,16 @@ class OperatorTwin(Node):
 
     def still_there(self, t: float, waiting_for: str | None) -> Out:
         """A signal is state, not an event (DESIGN §9): a part the robot still waits for is said again,
-        with the time it was put down (the same signal: the executor counts it once), so one lost on the
-        way (a receiver stopped for a while) is not lost for good. A part the robot no longer waits for
+        with the time it was put down (the same signal: the executor counts it once; anew once that is
+        ``SIGNAL_RESTAMP_S`` old), so one lost on the way (a receiver stopped for a while) is not lost for
+        good. A part the robot no longer waits for
         is not said again."""
         self.placed = {name: v for name, v in self.placed.items() if name == waiting_for}
         out: list[Message] = []
         for name, (when, said) in self.placed.items():
             if t - said >= SIGNAL_AGAIN_S:
+                if t - when >= SIGNAL_RESTAMP_S:  # still there now: a signal is a fact about now
+                    when = t
                 self.placed[name] = (when, t)
                 out.append(OperatorSignal(t_ns=self.ns(when), seq=0, name=name, source="twin"))
         return out

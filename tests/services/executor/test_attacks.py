@@ -16,7 +16,7 @@ from common.runtime.memory import MemoryNetwork, serving
 from common.runtime.node import Rejected
 from common.safety.separation import Nearest, Sources
 from schemas import OperatorSignal, Selection, Separation
-from schemas.topology import OPERATOR_SEPARATION, encode
+from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, encode
 from services.executor.__main__ import Executor
 from services.executor.cycles import Signals
 from tests.support.cell import now_ns
@@ -170,6 +170,33 @@ async def test_twenty_signals_at_once_while_nothing_waits_bank_nothing_and_a_wai
     assert await signals.wait("part_c2", stop, timeout_s=0.05) == "arrived"
     assert await signals.wait("part_c2", stop, timeout_s=0.05) == "late"
     assert signals.received == {"part_a2": 1, "part_c2": 1}
+
+
+async def test_a_signal_stamped_a_day_ago_or_an_hour_ahead_is_refused_on_arrival_and_ends_no_wait(
+    tmp_path: Path, task_file: Path
+) -> None:
+    """A signal is a fact about now: one stamped a day ago and one an hour ahead each ended an open wait.
+    Refused on arrival (before the queue), counted as ``stale`` and ``ahead``; one stamped now passes."""
+    async with serving(Executor, sim_settings(task_file, signal_max_age_s=60.0), tmp_path) as run:
+        key = run.test.key(OPERATOR_SIGNAL.suffix)
+        await run.test.until_subscribed(key, 10)
+        taken: list[OperatorSignal] = []
+        run.node.cycles.signals.receive = taken.append  # type: ignore[method-assign]  (what passed)
+        t = now_ns()
+        for stamp in (t - 86_400 * S, t + 3600 * S, t - 61 * S, t + 60 * S, now_ns()):
+            run.test.put_raw(key, encode(OperatorSignal(t_ns=stamp, seq=0, name="part", source="hmi")))
+        await run.network.settle()
+        rejected = run.node.ctx.bus.rejected
+        assert (rejected[(key, "stale")], rejected[(key, "ahead")]) == (2, 2)
+        assert len(taken) == 1 and abs(taken[0].t_ns - t) < 60 * S
+    signals, stop = Signals({"part"}, max_age_s=60.0, skew_s=0.05), asyncio.Event()
+    waiting = asyncio.create_task(signals.wait("part", stop, timeout_s=0.2))
+    await asyncio.sleep(0)
+    for stamp in (t - 86_400 * S, t + 3600 * S):
+        sig = OperatorSignal(t_ns=stamp, seq=0, name="part", source="hmi")
+        with pytest.raises(Rejected):
+            signals.admit(sig, t)
+    assert await waiting == "late"
 
 
 async def test_a_payload_nested_50000_maps_deep_is_a_counted_decode_error_logged_once(

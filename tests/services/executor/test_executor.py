@@ -81,7 +81,7 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
                     block=True,
                 )
             # a part put down each cycle: its own stamp (a copy of one already counted counts nothing)
-            part = OperatorSignal(t_ns=c + 1, seq=c, name="part")
+            part = OperatorSignal(t_ns=cell.now_ns(), seq=c, name="part")
             put(bus, bus.key("operator/signal"), part, block=True)
             reports.append(await next_of(cycles))
         await asyncio.wait_for(ex.task, 15)  # three cycles, then it ends by itself
@@ -131,7 +131,8 @@ async def test_a_part_not_there_by_its_deadline_is_a_late_error_and_the_task_say
         if on_late == "wait":
             assert "kept waiting" in late.description
             await next_of(states, lambda s: s.mode == "waiting" and s.t_ns > late.t_ns)  # still waits
-            put(bus, bus.key("operator/signal"), OperatorSignal(t_ns=1, seq=0, name="part"), block=True)
+            put(bus, bus.key("operator/signal"), OperatorSignal(t_ns=cell.now_ns(), seq=0, name="part"),
+                block=True)  # fmt: skip
         else:
             assert "went on without it" in late.description
         report = await next_of(cycles)
