@@ -39,6 +39,9 @@ class RobotState(Message, frozen=True, tag="robot.state.v1"):
     # the separation it was chosen for (speed and separation monitoring; None when it is off)
     scale: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 1.0
     separation_m: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] | None = None
+    # the seq of the selection in force at the executor: a decision maker numbers its next one after it, so
+    # that one restarted without its state, or one whose seq a rogue took, is never locked out
+    selection_seq: NonNegInt | None = None
 
 
 class CycleReport(Message, frozen=True, tag="robot.cycle.v1"):

@@ -161,7 +161,7 @@ ROLES: tuple[Role, ...] = (
     Role(
         "decision_maker",
         "service",
-        inputs=(HRV_WINDOW, CALIBRATION),
+        inputs=(HRV_WINDOW, CALIBRATION, ROBOT_STATE),  # robot/state: the seq in force, to number after it
         outputs=(SELECTION,),
         answers=(SELECTION, DECISION_CONDITION),
         asks=(HRV_WINDOW,),  # the windows it missed while it was down (the analyser keeps its last ones)

@@ -26,7 +26,8 @@ from schemas.base import Message, RrSeconds
 from schemas.decision import MAX_N, Selection
 from schemas.hrv import HrvWindow
 from schemas.operator import Calibration
-from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, SELECTION
+from schemas.robot import RobotState
+from schemas.topology import CALIBRATION, DECISION_CONDITION, HRV_WINDOW, ROBOT_STATE, SELECTION
 from services.decision_maker.condition import Condition, Conditions, FixedK, store_condition
 from services.decision_maker.state import Decider, DecisionRecord, MovementRule, resume
 from services.registry import DECIDER
@@ -106,8 +107,33 @@ class DecisionMaker(Node):
         self.apply(self.conditions.current, self.ctx.common.clock.now_ns())
 
     def apply(self, c: Condition, t_ns: int) -> None:
-        seq = self.decider.record.seq if self.decider.record is not None else 0
+        """A fixed condition's selection is numbered after every one published (DESIGN §8)."""
+        seq = self.decider.next_seq()
         self.ctx.state = self.conditions.apply(c, t_ns, self.decider.params is not None, seq)
+        if self.conditions.fixed is not None:
+            self.decider.issued = max(self.decider.issued, seq)
+
+    @on(ROBOT_STATE, maxsize=1)  # the latest only
+    async def on_state(self, s: RobotState) -> Out:
+        """The seq of the selection in force at the executor. One past every selection this decider
+        published is not its own (its state file moved aside, or a rogue with its account): its current
+        selection is said again at once, numbered after it and stamped now, so that the executor holds this
+        decider's k again, not from its next window on."""
+        if s.selection_seq is None:
+            return []
+        self.decider.applied = s.selection_seq
+        if s.selection_seq <= self.decider.issued or self.selection is None:
+            return []
+        self.ctx.counters["renumbered"] += 1
+        log.warning("the executor holds a selection numbered %d, past this decider's %d: said again as %d",
+                    s.selection_seq, self.decider.issued, self.decider.next_seq())  # fmt: skip
+        now = self.ctx.common.clock.now_ns()
+        if self.conditions.fixed is not None:
+            self.apply(self.conditions.current, now)
+        elif self.decider.record is not None:
+            record = msgspec.structs.replace(self.decider.record, seq=self.decider.next_seq(), t_ns=now)
+            await self.adopt(record)
+        return await self.current()
 
     async def adopt(self, record: DecisionRecord) -> None:
         """Persisted before it is announced, so what is published is what a restart resumes. A disk that
@@ -199,10 +225,14 @@ class DecisionMaker(Node):
     @on(CALIBRATION)
     async def on_calibration(self, cal: Calibration) -> Out:
         out: Out = []
-        if (record := self.decider.calibrated(cal, cal.t_ns)) is not None:
+        # stamped now at the oldest: a calibration stored a while ago decides now, and the executor refuses
+        # a selection stamped more than its period before the one in force
+        if (
+            record := self.decider.calibrated(cal, max(cal.t_ns, self.ctx.common.clock.now_ns()))
+        ) is not None:
             log.info("calibration for %s: RR_r = %.3f s", cal.subject, cal.rr_rest_s)
             await self.adopt(record)
-            self.apply(self.conditions.current, cal.t_ns)
+            self.apply(self.conditions.current, record.t_ns)
             out = await self.current()
         self.conditions.calibrations_seen.append(cal.t_ns)  # once in force: a session's (c) starts from it
         return out

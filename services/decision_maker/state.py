@@ -115,6 +115,14 @@ class Decider:
         self.params: Params | None = None
         self.skew_s = skew_s
         self.line = self.new_line()
+        self.issued = 0  # the highest seq this decider has published (a fixed condition's included)
+        self.applied = 0  # the seq of the selection in force at the executor, as its robot/state says
+
+    def next_seq(self) -> int:
+        """The next selection's seq: after every one this decider published and the one in force at the
+        executor (DESIGN §8). A restart whose state file was moved aside resumes after the executor's, not
+        from 1; and one a rogue with this account took is passed at once."""
+        return max(self.record.seq if self.record is not None else 0, self.issued, self.applied) + 1
 
     def new_line(self) -> TimeLine:
         return TimeLine(WINDOW_AHEAD_S, duplicate_s=WINDOW_DUPLICATE_S, skew_s=self.skew_s)
@@ -152,7 +160,7 @@ class Decider:
     def starting(self, cal: Calibration, t_ns: int) -> DecisionRecord:
         """Alg. 1 at its initial k on ``cal`` (a session of condition (c) starts there again)."""
         initial = State.initial(params_of(cal, self.n))
-        seq = self.record.seq + 1 if self.record is not None else 1
+        seq = self.next_seq()
         if cal.posture == "working" and cal.movement_mg is not None:  # the task's own level
             movement = baseline_of(cal.movement_mg, cal.movement_sd_mg)
         elif self.record is not None and same_calibration(self.record.calibration, cal):
@@ -215,7 +223,7 @@ class Decider:
             k=r.state.k,
             rr_prev=str(r.state.rr_prev),
             last_end_ns=w.end_ns,
-            seq=rec.seq + 1,
+            seq=self.next_seq(),
             delta=r.delta,
             reason=r.reason,
             t_ns=w.end_ns,
@@ -233,6 +241,7 @@ class Decider:
     def commit(self, record: DecisionRecord, resumed: bool = False) -> None:
         fresh = self.record is None or not same_calibration(self.record.calibration, record.calibration)
         self.record, self.params = record, params_of(record.calibration, self.n)
+        self.issued = max(self.issued, record.seq)
         if fresh:
             self.line = self.new_line()
             if resumed and record.last_end_ns >= 0:

@@ -131,9 +131,10 @@ class Executor(Node):
 
     def snapshot(self) -> Snapshot:
         """What the parts say of the arm now, for robot/state."""
-        r = self.reactions
+        r, sel = self.reactions, self.chosen.selection
         return Snapshot(self.safety.motion, self.safety.path_id, self.chosen.k, self.cycles.waiting_for,
-                        r.scale_now(), r.shown_m() if r.on else None)  # fmt: skip
+                        r.scale_now(), r.shown_m() if r.on else None,
+                        sel.seq if sel is not None else None)  # fmt: skip
 
     @every
     async def state(self) -> Out:

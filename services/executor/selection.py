@@ -1,7 +1,8 @@
 """The selection in force (DESIGN §8): the one holder of the decision maker's k in the executor, of the k the
-arm runs at, and of a switch within a path. A selection is a sequence: one no newer than the newest
-applied is refused. At start the current one is asked for (selections are state, DESIGN §11), and where
-the decision maker cannot be reached, ``start_selection`` says what stands in for it.
+arm runs at, and of a switch within a path. A selection is a sequence: one is new only when its seq is
+greater than the one in force, by no more than a bounded step, and its stamp not older than the one in
+force by more than a period (``admit``). At start the current one is asked for (selections are state,
+DESIGN §11), and where the decision maker cannot be reached, ``start_selection`` says what stands in for it.
 """
 
 from __future__ import annotations
@@ -25,6 +26,34 @@ from services.executor.sets import SetCache
 from services.executor.settings import Settings
 
 log = logging.getLogger("cadence.executor")
+SEQ_STEP = 16  # a selection's seq may pass the one in force by this, and one more per second of its stamp
+
+
+def admit(sel: Selection, cur: Selection | None, period_s: float) -> bool:
+    """Whether ``sel`` is a new decision over ``cur`` (False: the current one said again, nothing to do);
+    ``Rejected`` when it must not stand. New only when its seq is greater *and* its stamp is not older than
+    the one in force by more than ``period_s`` (a decision may be stamped a little before one a rogue
+    stamped ahead: the end of its window), and its seq passes the one in force by at most ``SEQ_STEP`` and
+    one more per second between their stamps: an honest decision maker numbers one selection per window.
+    Either alone let a rogue with the decision maker's account lock it out: seq 2⁶³−1 at a current stamp
+    made every honest one after it stale, a stamp 40 ms ahead refused the next honest decision, and one
+    stamped an hour ago, at 10 Hz, held its k most of the time uncounted."""
+    if cur is None:
+        return True
+    if (sel.seq, sel.t_ns, sel.k, sel.n) == (cur.seq, cur.t_ns, cur.k, cur.n):
+        return False  # said again while it holds
+    was = f"the one applied (k = {cur.k}, seq {cur.seq})"
+    if sel.seq <= cur.seq:
+        raise Rejected("stale", f"a selection (k = {sel.k}, seq {sel.seq}) numbered no later than {was}")
+    behind_s = (cur.t_ns - sel.t_ns) / 1e9
+    if behind_s > period_s:
+        raise Rejected("stale", f"a selection (k = {sel.k}, seq {sel.seq}) stamped {behind_s:.3f} s before "
+                       f"{was}: over {period_s:g} s")  # fmt: skip
+    step = SEQ_STEP + max(0, sel.t_ns - cur.t_ns) // 1_000_000_000
+    if sel.seq - cur.seq > step:
+        raise Rejected("jump", f"a selection (k = {sel.k}, seq {sel.seq}) numbered {sel.seq - cur.seq} past "
+                       f"{was}: at most {step} for the time between their stamps")  # fmt: skip
+    return True
 
 
 class SelectionInForce:
@@ -49,18 +78,11 @@ class SelectionInForce:
         self.switching: asyncio.Task[None] | None = None  # in the node's task group (Kit.start_soon)
 
     def select(self, sel: Selection) -> None:
-        """A selection is a sequence (DESIGN §8): one that is no newer than the newest applied, by its seq
-        and by its stamp both, is refused (``Rejected``, counted as ``stale``): a captured selection
-        replayed, or a copy of the current one with another k. Either alone may go back legitimately (a
-        fixed condition is numbered with the decider's last seq, a calibration restarts the stamps from
-        its own), never both. The decision maker's republishing of the current one is no new decision."""
-        cur = self.selection
-        if cur is not None and sel.seq <= cur.seq and sel.t_ns <= cur.t_ns:
-            if (sel.seq, sel.t_ns, sel.k, sel.n) == (cur.seq, cur.t_ns, cur.k, cur.n):
-                return  # said again while it holds
-            older = f"{(cur.t_ns - sel.t_ns) / 1e9:.3f} s older"
-            raise Rejected("stale", f"a selection (k = {sel.k}, seq {sel.seq}) no newer than the one applied "
-                           f"(k = {cur.k}, seq {cur.seq}): {older}")  # fmt: skip
+        """A selection is a sequence (DESIGN §8, ``admit``): what it refuses is counted (``stale``,
+        ``jump``) and logged at most once per 10 s. The decision maker's republishing of the current one is
+        no new decision."""
+        if not admit(sel, self.selection, self.settings.selection_period_s):
+            return
         self.selection = sel
         self.changed.set()
         self.records.received(sel)

@@ -87,6 +87,9 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     start_selection: Literal["wait", "last", "initial"] | None = None
     last_selection_max_age_s: Annotated[float, _range(0.0, 86400.0)] = 300.0
     initial_k: Annotated[int, _range(1, MAX_N)] = 8  # start_selection = "initial" (Alg. 1's k0 for N = 15)
+    # the decision maker's period (a window): a selection stamped more than this before the one in force
+    # is refused, however its seq is numbered
+    selection_period_s: Annotated[float, _range(0.1, 3600.0)] = 30.0
     # A stop is latched until `cadence robot resume`; "auto" (sim only) resumes after auto_resume_s,
     # doubling, at most auto_resume_per_hour times an hour.
     resume_policy: Literal["manual", "auto"] = "manual"

@@ -27,6 +27,7 @@ class Snapshot:
     waiting_for: str | None
     scale: float  # σ now
     separation_m: float | None  # S of the nearest reading, as a person reads it; None when not watched
+    selection_seq: int | None = None  # the seq of the selection in force: the decision maker numbers after it
 
 
 class Telemetry:
@@ -68,5 +69,6 @@ class Telemetry:
             reason=m.reason[:4000],
             scale=min(1.0, max(0.0, float(now.scale))),
             separation_m=None if near is None else min(100.0, round(float(near), 4)),  # to 0.1 mm: S − C + C
+            selection_seq=now.selection_seq,
         )
         return [*pressed, state]

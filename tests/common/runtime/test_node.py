@@ -132,6 +132,7 @@ async def test_the_node_served_on_the_bus_in_memory_answers_windows_queries_and_
         ("publish", "decision/condition"),
         ("subscribe", "hrv/window"),
         ("subscribe", "operator/calibration"),
+        ("subscribe", "robot/state"),  # the seq of the selection in force, to number after it
         ("publish", "health/*"),
         ("ask", "hrv/window"),  # the windows it missed, from the analyser (at start and after a gap)
     }

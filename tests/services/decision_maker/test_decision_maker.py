@@ -12,9 +12,10 @@ import msgspec
 import pytest
 
 from common.decision import Params
-from schemas import Calibration, HrvWindow, Selection
+from schemas import Calibration, HrvWindow, RobotState, Selection
 from schemas.topology import AnyMessage
 from services.decision_maker.__main__ import Settings, main
+from services.decision_maker.state import STATE_FILE
 from tests.support.cell import Cell, InProcessService, now_ns, put
 from tests.support.decisions import answer, expected, window
 
@@ -254,3 +255,50 @@ async def test_the_personal_mode_resumes_its_state_after_a_restart(tmp_path: Pat
         want.append(s.k)
     assert got == want
     assert got[0] > got[3] < got[5]  # steps down under load and back up after it
+
+
+def applied(seq: int) -> RobotState:
+    """The executor's state, saying the seq of the selection in force there."""
+    return RobotState(t_ns=now_ns(), seq=0, q=[0.0] * 6, qd=[0.0] * 6, tcp=[0.0] * 6, selection_seq=seq)
+
+
+async def renumbered(sub, seq: int) -> Selection:
+    """The first selection not numbered ``seq`` (past the republishing of the one that is)."""
+    async with asyncio.timeout(10):
+        async for _, sel in sub:
+            if sel.seq != seq:
+                return sel
+    raise AssertionError("unreachable")
+
+
+async def test_a_seq_in_force_past_its_own_is_passed_at_once_and_a_restart_without_state_numbers_after_it(
+    tmp_path: Path, cell: Cell
+) -> None:
+    """Issue 74: a rogue with this account took the seq in force (the executor's robot/state says which), or
+    the state file was moved aside and the decider restarted from seq 1, which the executor refused for
+    good. It says its current selection again at once, numbered after the seq in force and stamped now;
+    its next decision is numbered after that."""
+    settings = Settings(rr_rest_s=0.85, republish_s=0.2)
+    async with cell.session() as bus:
+        sub = aiter(bus.subscribe(bus.key("decision/selection"), Selection))
+        svc = start_decider(tmp_path, cell, settings)
+        first = await first_selection(sub)
+        put(bus, bus.key("robot/state"), applied(first.seq), block=True)  # its own: nothing to do
+        w = window(0, 0.85)
+        decided = await answer(bus, sub, w)
+        assert decided.seq == first.seq + 1
+        put(bus, bus.key("robot/state"), applied(decided.seq + 7), block=True)  # a rogue's, in force
+        again = await renumbered(sub, decided.seq)
+        assert (again.seq, again.k, again.reason) == (decided.seq + 8, decided.k, decided.reason)
+        assert again.t_ns > decided.t_ns
+        assert (await answer(bus, sub, window(1, 0.85))).seq == decided.seq + 9
+        await svc.close()
+
+        (tmp_path / STATE_FILE).unlink()  # moved aside: the decider starts from nothing
+        svc = start_decider(tmp_path, cell, settings)
+        restarted = await first_selection(sub)
+        assert restarted.seq == 1  # it cannot know yet
+        put(bus, bus.key("robot/state"), applied(decided.seq + 9), block=True)
+        again = await renumbered(sub, 1)
+        assert (again.seq, again.k) == (decided.seq + 10, restarted.k)
+        await svc.close()

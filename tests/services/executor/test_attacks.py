@@ -140,14 +140,46 @@ async def test_a_replayed_selection_is_refused_and_counted_and_a_republished_one
         with pytest.raises(Rejected):  # its seq and stamp with another k: not the decision maker's
             ex.on_selection(msgspec.structs.replace(current, k=15))
         assert ex.chosen.selection == current
-        fixed = Selection(t_ns=t - 5 * S, seq=52, k=1, n=15, delta=0, reason="fixed")  # the same seq, later
+        fixed = Selection(t_ns=t - 5 * S, seq=53, k=1, n=15, delta=0, reason="fixed")  # numbered after it
         ex.on_selection(fixed)
         assert ex.chosen.selection == fixed
         calibrated = Selection(
-            t_ns=t - S, seq=53, k=8, n=15, delta=0, reason="initial"
-        )  # older stamp, new seq
+            t_ns=t - 6 * S, seq=54, k=8, n=15, delta=0, reason="initial"
+        )  # a second before
         ex.on_selection(calibrated)
         assert ex.chosen.selection == calibrated
+
+
+async def test_a_rogue_seq_or_stamp_never_locks_the_decision_maker_out(
+    tmp_path: Path, task_file: Path
+) -> None:
+    """As the decision maker's account (issue 74): seq 2⁶³−1 at a current stamp once made every honest
+    selection after it stale; a stamp 40 ms ahead refused the next honest decision ("27.4 s older"); one
+    stamped an hour ago at 10 Hz held its k in 306 of 343 states, uncounted. Each is refused and counted,
+    or passed by the honest decision maker's next selection, numbered after the seq in force."""
+    async with serving(Executor, sim_settings(task_file), tmp_path) as run:
+        ex = run.node
+        t = now_ns()
+        honest = Selection(t_ns=t - 30 * S, seq=52, k=8, n=15, delta=-1, reason="stress")
+        ex.on_selection(honest)
+        with pytest.raises(Rejected) as r:
+            ex.on_selection(Selection(t_ns=t, seq=2**63 - 1, k=1, n=15, delta=0, reason="hold"))
+        assert r.value.code == "jump"
+        for i in range(36_000 // 100):  # an hour-old stamp, at 10 Hz, numbered on and on
+            with pytest.raises(Rejected) as r:
+                ex.on_selection(
+                    Selection(t_ns=t - 3600 * S + i, seq=53 + i, k=1, n=15, delta=0, reason="hold")
+                )
+            assert r.value.code == "stale"
+        assert ex.chosen.selection == honest
+        ahead = Selection(t_ns=t + 40_000_000, seq=60, k=1, n=15, delta=0, reason="hold")  # in the skew bound
+        ex.on_selection(ahead)  # a rogue's that passes: the ACL's to stop, not the sequence's
+        # the honest decision maker's next: stamped at its window's end, before the rogue's stamp
+        nxt = Selection(t_ns=t - 2 * S, seq=61, k=9, n=15, delta=1, reason="rest")
+        ex.on_selection(nxt)
+        assert ex.chosen.selection == nxt
+        state = ex.telemetry.snapshot()
+        assert state.selection_seq == 61  # what the decision maker numbers after
 
 
 async def test_twenty_signals_at_once_while_nothing_waits_bank_nothing_and_a_wait_takes_one() -> None:

@@ -77,7 +77,7 @@ async def test_cycles_with_operator_signals_and_a_selection_taking_effect_at_a_p
                 put(
                     bus,
                     bus.key("decision/selection"),
-                    Selection(t_ns=1, seq=0, k=5, n=5, delta=3, reason="rest", window_end_ns=1),
+                    Selection(t_ns=1, seq=1, k=5, n=5, delta=3, reason="rest", window_end_ns=1),
                     block=True,
                 )
             # a part put down each cycle: its own stamp (a copy of one already counted counts nothing)
