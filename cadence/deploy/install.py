@@ -229,7 +229,8 @@ def installed(service: Service, opts: Options) -> tuple[dict[str, object], str]:
         elif need == "resting_rr":
             notes.append(CALIBRATE)
         elif need == "separation" and opts.scanners:  # monitoring on, each source required (DESIGN §8)
-            values |= {"separation": True, "separation_sources": list(opts.scanners)}
+            values |= {"separation": True, "separation_sources": list(opts.scanners),
+                       "separation_undeclared": "refuse"}  # fmt: skip
         elif need == "separation":
             notes.append(NO_SCANNER)
     return values, "\n".join(notes)

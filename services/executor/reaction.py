@@ -69,6 +69,7 @@ class Reactions:
         self.ssm = Ssm(s.human_speed_m_s, sum(self.reaction_parts.values()), s.stop_time_s, 0.0,
                        s.uncertainty_m, s.separation_max_age_s)  # fmt: skip
         self.arm, self.sensors = s.arm(), s.sensors()
+        self.refuse_undeclared = s.separation_undeclared == "refuse"
         self.sources = Sources(s.separation_max_age_s, kit.clock_skew_s, tuple(self.sensors),
                                max_rate_hz=s.separation_max_rate_hz)  # fmt: skip
         self._body: tuple[bytes, Body] | None = None  # the arm's body at the joints it was last found for
@@ -85,10 +86,14 @@ class Reactions:
 
     def receive(self, sep: Separation) -> None:
         """A reading as it arrives, judged on this executor's clock before its content is looked at:
-        refused (``Rejected``, counted) when past its source's rate (judged first: a flood that saturates
-        this loop arrives stale, and must still be seen as a flood), stamped ahead of it by more than the
-        skew bound, or already too old; else S, the person's distance to the arm and tool at the joints
-        now (common/safety/geometry.py), kept less the source's C."""
+        refused (``Rejected``, counted) when its source is not declared and the cell refuses such, when
+        past its source's rate (judged before its age: a flood that saturates this loop arrives stale, and
+        must still be seen as a flood), stamped ahead of it by more than the skew bound, or already too
+        old; else S, the person's distance to the arm and tool at the joints now
+        (common/safety/geometry.py), kept less the source's C."""
+        if self.refuse_undeclared and sep.source not in self.sensors:
+            raise Rejected("undeclared", f"'{sep.source}' is no source of this cell (separation_sources), "
+                           'and separation_undeclared = "refuse"')  # fmt: skip
         stamp_age = self.clock.loop_s((self.clock.now_ns() - sep.t_ns) / 1e9)
         now = monotonic()
         why = self.sources.judge(sep.source, stamp_age, sep.age_s, now)

@@ -116,6 +116,10 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # at the floor (the largest C) and gives ranges from itself. Monitoring on with none is refused.
     separation_sources: list[SourceName | SourceSettings] = []
     separation_max_rate_hz: Annotated[float, _range(1.0, 100_000.0)] = 1000.0  # per source; past it: a hold
+    # a reading from a source not declared above: "use" it (the nearest still wins: a simulated cell, a
+    # sensor being tried), or "refuse" it, counted (an installed cell: `cadence install` writes it, so that
+    # only the declared scanners, each on its own account, say where people are)
+    separation_undeclared: Literal["use", "refuse"] = "use"
     # where the robot's base stands in the cell frame (x, y, z m, yaw °), and its tool and payload as
     # spheres in the flange frame (x, y, z, r m): the distance and the top speed are to and of these too
     robot_base: PoseRow = (0.0, 0.0, 0.0, 0.0)

@@ -376,6 +376,7 @@ def test_scanners_given_to_the_install_turn_monitoring_on_and_the_config_says_so
     text = config_toml(opts, new_bundle(opts))
     executor = msgspec.convert(tomllib.loads(text)["executor"], ExecutorSettings)
     assert executor.separation
+    assert executor.separation_undeclared == "refuse"  # only the declared scanners say where people are
     sensors = executor.sensors()
     assert (sensors["scanner:front"].intrusion_m, sensors["cam"].intrusion_m) == (pytest.approx(1.08), 0.85)
     assert sensors["scanner:front"].pose.x == 1.5

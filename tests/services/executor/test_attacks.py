@@ -95,6 +95,28 @@ def test_silence_never_frees_the_arm_a_near_person_unheard_stays_where_last_seen
     assert table.nearest(6.0).distance_m is None  # nothing fresh: a hold, not the 3 m last seen
 
 
+async def test_an_installed_cell_refuses_a_source_it_does_not_declare(
+    tmp_path: Path, task_file: Path
+) -> None:
+    """``separation_undeclared = "refuse"`` (what `cadence install --scanner` writes): a reading under a
+    name the cell does not declare is refused and counted, however near or far it says; the declared one
+    is the nearest. A simulated cell's default takes it."""
+    for policy, nearest in (("refuse", 2.0), ("use", 0.5)):
+        # readings live 5 s: the point is whose they are, not how fast this host delivers them
+        settings = sim_settings(task_file, separation=True, separation_sources=tracked("scanner:front"),
+                                separation_undeclared=policy, separation_max_age_s=5.0)  # fmt: skip
+        async with serving(Executor, settings, tmp_path / policy) as run:
+            key = run.test.key(OPERATOR_SEPARATION.suffix)
+            await run.test.until_subscribed(key, 10)
+            for source, d in (("scanner:front", 2.0), ("camera:rogue", 0.5)):
+                sep = Separation(t_ns=now_ns(), seq=0, distance_m=d, source=source, to_robot=True)
+                run.test.put_raw(key, encode(sep))
+            await run.network.settle()
+            run.node.reactions.look_distance()
+            assert run.node.reactions.shown_m() == pytest.approx(nearest)
+            assert run.node.ctx.bus.rejected.get((key, "undeclared"), 0) == (policy == "refuse")
+
+
 async def test_a_flood_on_one_source_never_pushes_anothers_reading_out_of_the_executors_input(
     tmp_path: Path, task_file: Path
 ) -> None:
