@@ -61,6 +61,9 @@ class Topic(Generic[M]):
     # "cell": under cadence/<cell>/, the cell's own; "plant": under cadence/plant/, shared by the cells of
     # a plant (sets by hash: one cell asks, any cell that has it answers), where no cell's key is
     scope: Literal["cell", "plant"] = "cell"
+    # each member is one account's (``operator/separation/<chunk>``: a declared sensor's own key): the ACL
+    # grants a member to its own account only (cadence/deploy/cell.py), never the family to a role
+    owned: bool = False
 
     def __post_init__(self) -> None:
         if not self.family:
@@ -100,6 +103,22 @@ OPERATOR_ERROR = Topic("operator/error", OperatorError)
 # the nearest person's distance, for the executor's speed and separation monitoring
 # (common/safety/separation.py)
 OPERATOR_SEPARATION = Topic("operator/separation", Separation, qos="drop")
+# … a declared sensor's own key, ``operator/separation/<source_chunk(source)>``: on an installed cell only
+# that sensor's account may put it, and the executor takes there only readings under that source's name
+OPERATOR_SEPARATION_OF = Topic("operator/separation/*", Separation, qos="drop", owned=True)
+
+
+def source_chunk(source: str) -> str:
+    """A separation source's name as a key chunk and an account's name: what is not a letter, a digit or
+    '_' becomes '_' (``scanner:front`` → ``scanner_front``)."""
+    return "".join(c if c.isascii() and (c.isalnum() or c == "_") else "_" for c in source)
+
+
+def sensor_account(source: str) -> str:
+    """The bus account of a declared separation source (`cadence install --scanner`)."""
+    return f"sensor_{source_chunk(source)}"
+
+
 SELECTION = Topic("decision/selection", Selection, numbered="message")
 # the study condition in force (`cadence session`): mode=fixed;k=a|b|<k> or mode=adaptive (Alg. 1 from the
 # initial k); the reply is the selection it starts with, stamped with the data time it took effect
@@ -179,7 +198,7 @@ ROLES: tuple[Role, ...] = (
     Role(
         "executor",
         "service",
-        inputs=(SELECTION, OPERATOR_SIGNAL, OPERATOR_SEPARATION),
+        inputs=(SELECTION, OPERATOR_SIGNAL, OPERATOR_SEPARATION, OPERATOR_SEPARATION_OF),
         outputs=(ROBOT_STATE, ROBOT_CYCLE, ROBOT_EVENT, OPERATOR_SIGNAL, OPERATOR_ERROR),
         answers=(ROBOT_RESUME,),
         asks=(SELECTION, PARETO_SET),
@@ -203,7 +222,13 @@ ROLES: tuple[Role, ...] = (
     ),
     # a cell's safety laser scanners or cameras (`cadence separation`): the only account that may say where
     # people are, beside the twin on a simulated cell; an HMI's operator account cannot free the arm
-    Role("separation_sensor", "tool", reads_all=True, outputs=(OPERATOR_SEPARATION,), asks=(CELL_CLOCK,)),
+    Role(
+        "separation_sensor",
+        "tool",
+        reads_all=True,
+        outputs=(OPERATOR_SEPARATION, OPERATOR_SEPARATION_OF),
+        asks=(CELL_CLOCK,),
+    ),
     Role("monitor", "tool", reads_all=True, asks=LOOKERS),
     # `cadence demo`: the simulated cell's router and its clock
     Role("demo", "sim", reads_all=True, answers=(CELL_CLOCK,), asks=LOOKERS),
@@ -235,6 +260,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     OPERATOR_SIGNAL,
     OPERATOR_ERROR,
     OPERATOR_SEPARATION,
+    OPERATOR_SEPARATION_OF,
     SELECTION,
     DECISION_CONDITION,
     PLAN_PROGRESS,

@@ -15,7 +15,7 @@ from cadence.tools.say import cell_clock, checked, separation_line, tell
 from common.runtime.errors import InputError
 from schemas.base import Message
 from schemas.operator import OperatorError, OperatorSignal
-from schemas.topology import OPERATOR_ERROR, OPERATOR_SEPARATION, OPERATOR_SIGNAL, Topic
+from schemas.topology import OPERATOR_ERROR, OPERATOR_SEPARATION_OF, OPERATOR_SIGNAL, Topic, source_chunk
 
 cli = Commands()
 M = TypeVar("M", bound=Message)
@@ -112,9 +112,10 @@ def cmd_signal(args: argparse.Namespace) -> int:
     "executor from the source's pose in its config (an undeclared source's frame is the cell's: its "
     "origin is the robot's base unless the config moves it). A bad line (not decimal numbers, not UTF-8, "
     "over 256 bytes) is reported with its number and skipped. Pipe a driver into it: `scanner-driver | "
-    "cadence separation - --source scanner:front`. On a deployed cell it joins as the separation_sensor "
-    "account, the only one the router lets publish distances: --zenoh-config "
-    "/etc/cadence/credentials/separation_sensor.json5.",
+    "cadence separation - --source scanner:front`. It publishes on the source's own key, "
+    "operator/separation/<source> (scanner:front → scanner_front). On a deployed cell it joins as that "
+    "scanner's account, the only one the router lets publish there: --zenoh-config "
+    "/etc/cadence/credentials/sensor_scanner_front.json5.",
 )
 @arg("distance", metavar="DISTANCE|X,Y[,Z]|-", help="metres (a point with --points), or - for stdin lines")
 @arg(
@@ -146,7 +147,8 @@ def cmd_separation(args: argparse.Namespace) -> int:
     if args.distance != "-":
         value = args.distance.replace(",", " ") if args.points else args.distance
         one = lambda t: separation_line(value, args.source, 0, t, form)  # noqa: E731
-        return _tell_once(args, OPERATOR_SEPARATION, one, role="separation_sensor")
+        own = OPERATOR_SEPARATION_OF.at(source_chunk(args.source))  # the source's own key (its account's)
+        return _tell_once(args, own, one, role="separation_sensor")
 
     async def relay() -> int:
         async with await Bus.open(joining(args), args.cell, role="separation_sensor") as bus:

@@ -32,7 +32,17 @@ from typing import Any
 
 import msgspec
 
-from schemas.topology import HEALTH, PLANT_SCOPE, ROLES, ROOT, TOPICS, Topic
+from schemas.topology import (
+    HEALTH,
+    OPERATOR_SEPARATION_OF,
+    PLANT_SCOPE,
+    ROLES,
+    ROOT,
+    TOPICS,
+    Topic,
+    sensor_account,
+    source_chunk,
+)
 
 # One account per process that joins the bus: a service's or a tool's, one per role of the graph.
 ACCOUNTS = tuple(r.name for r in ROLES if r.kind != "sim")
@@ -78,21 +88,33 @@ READING = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_qu
 RECEIVING = ["put", "delete", "reply", "liveliness_token"]
 
 
-def access_control(cell: str, accounts: tuple[str, ...] = ACCOUNTS) -> dict[str, Any]:
+def access_control(
+    cell: str, accounts: tuple[str, ...] = ACCOUNTS, sensors: tuple[str, ...] = ()
+) -> dict[str, Any]:
     """The router's ``access_control`` section: default deny, every rule derived from the graph, for the
-    ``accounts`` this cell runs."""
+    ``accounts`` this cell runs; and an account for each of its declared separation ``sensors`` (source
+    names, `cadence install --scanner`), which may put on that source's own key and nothing else: so a
+    reading that comes on a declared source's key comes from that source's account (the executor takes
+    it there only under that source's name)."""
     everything = [f"{ROOT}/{cell}/**"]
     read, receive = f"{cell}: read", f"{cell}: receive"
     rules = [
         _allow(read, ["ingress", "egress"], READING, everything),
         _allow(receive, ["egress"], [*RECEIVING, "query", "declare_queryable"], everything),
     ]
-    who = {a: identity(cell, a) for a in accounts}
-    policies: list[dict[str, Any]] = [{"rules": [read, receive], "subjects": [who[a] for a in accounts]}]
+    own_keys = {sensor_account(s): f"{ROOT}/{cell}/{OPERATOR_SEPARATION_OF.at(source_chunk(s)).suffix}"
+                for s in sensors}  # fmt: skip
+    who = {a: identity(cell, a) for a in (*accounts, *own_keys)}
+    policies: list[dict[str, Any]] = [{"rules": [read, receive], "subjects": list(who.values())}]
     mine = [t for t in TOPICS if t.scope == "cell"]  # the plant's keys have a rule of their own
+    for name, key in own_keys.items():
+        rules.append(_allow(f"{cell}: publish {name}", ["ingress"], ["put"], [key]))
+        policies.append({"rules": [f"{cell}: publish {name}"], "subjects": [who[name]]})
     for name in accounts:
         health = f"{ROOT}/{cell}/health/{name}"  # its own: health/** would let it speak for the others
-        keys = sorted({_acl_key(cell, t) for t in mine if name in publishers(t) and t is not HEALTH})
+        # an owned family's members are their own accounts' (above), never a role's
+        keys = sorted({_acl_key(cell, t) for t in mine if name in publishers(t) and t is not HEALTH
+                       and not t.owned})  # fmt: skip
         asks = sorted({_acl_key(cell, t) for t in mine if name in askers(t)})
         shared = [t for t in TOPICS if t.scope == "plant" and name in publishers(t) | askers(t)]
         plant = sorted({_acl_key(cell, t) for t in shared})
@@ -166,9 +188,12 @@ def router_config(
     accounts: tuple[str, ...] = ACCOUNTS,
     plant: bool = False,
     uplink: str | None = None,
+    sensors: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """A cell's router; ``plant``: a plant's router may connect to it (``PLANT``'s identity in the users
     file): it may read the cell, and nothing else (``with_plant``).
+
+    ``sensors``: the cell's declared separation sources, an account each (``access_control``).
 
     ``uplink``: the network interface the plant reaches this router on. What leaves on it of the arm's
     state is downsampled here, before it is encrypted and sent, rather than only where the line's router
@@ -177,7 +202,7 @@ def router_config(
     ``UPLINK_SENT_HZ``, under the line's cap, so that the cap lets every one of them in. Zenoh tells links
     apart by interface, not by who is on them: no session of the cell may reach this router over the
     uplink's interface, or it would get the arm's state at that rate too."""
-    acl = access_control(cell, accounts)
+    acl = access_control(cell, accounts, sensors)
     uplink_state = {
         "downsampling": [
             {
@@ -205,7 +230,7 @@ def router_config(
                     "id": "separation first",
                     "messages": ["put"],
                     "flows": ["ingress", "egress"],
-                    "key_exprs": [f"{ROOT}/{cell}/operator/separation"],
+                    "key_exprs": [f"{ROOT}/{cell}/operator/separation/**"],  # each source's key too
                     "overwrite": {"priority": "interactive_high", "express": True},
                 }
             ]

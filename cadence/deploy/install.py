@@ -37,7 +37,7 @@ from cadence.deploy.pki import Pem, issue, load_ca, make_ca, new_password, read_
 from cadence.deploy.plant import PlantForCell, load_for_cell
 from common.runtime.errors import InputError
 from common.runtime.resources import DEPLOY, EXAMPLE_TASK
-from schemas.topology import DEFAULT_CELL, ROLES, SERVICES
+from schemas.topology import DEFAULT_CELL, ROLES, SERVICES, sensor_account
 from services import registry
 from services.executor.settings import SourceSettings
 from services.registry import BY_NAME, Service, unit
@@ -154,7 +154,10 @@ class Bundle:
                 port=int(raw["port"]),
                 ca=Pem(raw["ca_cert"].encode(), raw["ca_key"].encode()),
                 # an account added since the bundle was made gets its password now (the bundle is rewritten)
-                passwords={a: str(raw["passwords"].get(a) or new_password()) for a in cell.ACCOUNTS},
+                passwords={
+                    **{a: str(p) for a, p in raw["passwords"].items()},  # the declared sources' too
+                    **{a: str(raw["passwords"].get(a) or new_password()) for a in cell.ACCOUNTS},
+                },
             )
             load_ca(bundle.ca)
             return bundle
@@ -162,13 +165,32 @@ class Bundle:
         return read_secrets(path, "a cell bundle from `cadence install`", parse, InstallError)
 
 
+def sensor_accounts(opts: Options) -> dict[str, str]:
+    """The bus account of each declared separation source (``--scanner``), by source name; two that would
+    share an account (``scanner:front`` and ``scanner_front``) are refused."""
+    accounts = {s.name: sensor_account(s.name) for s in opts.scanners}
+    if len(set(accounts.values())) < len(accounts):
+        raise InstallError(f"--scanner: {', '.join(accounts)} would share a bus account (its key chunk: "
+                           "what is not a letter, a digit or '_' reads as '_'): name them apart")  # fmt: skip
+    return accounts
+
+
+def with_sensors(bundle: Bundle, opts: Options) -> Bundle:
+    """The bundle with a password for each declared source's account it has none for yet."""
+    new = {a: new_password() for a in sensor_accounts(opts).values() if a not in bundle.passwords}
+    return replace(bundle, passwords={**bundle.passwords, **new}) if new else bundle
+
+
 def new_bundle(opts: Options) -> Bundle:
-    return Bundle(
-        cell=opts.cell_name,
-        router_host=opts.router_host or socket.gethostname(),
-        port=opts.port,
-        ca=make_ca(opts.cell_name),
-        passwords={a: new_password() for a in cell.ACCOUNTS},
+    return with_sensors(
+        Bundle(
+            cell=opts.cell_name,
+            router_host=opts.router_host or socket.gethostname(),
+            port=opts.port,
+            ca=make_ca(opts.cell_name),
+            passwords={a: new_password() for a in cell.ACCOUNTS},
+        ),
+        opts,
     )
 
 
@@ -242,6 +264,7 @@ def _connect(opts: Options, bundle: Bundle) -> list[str]:
 
 
 def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Plan:
+    bundle = with_sensors(bundle, opts)  # a source declared since: its account's password, kept in the bundle
     p = Plan()
     p.dirs += [
         (ETC, 0o750, "root", USER),
@@ -274,6 +297,7 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
             cell_accounts(opts.strap),
             plant=plant is not None,
             uplink=opts.uplink,
+            sensors=tuple(sensor_accounts(opts)),
         )
         p.files.append(
             File(
@@ -284,9 +308,10 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
                 secret=True,
             )
         )
-    # this host's accounts: its services, and the tools' (root reads those)
+    # this host's accounts: its services, and the tools' and the declared sources' (root reads those)
     accounts = [s for s in opts.services if s in SERVICES]
-    for account in [*accounts, *TOOLS]:
+    sensors = list(sensor_accounts(opts).values())
+    for account in [*accounts, *TOOLS, *sensors]:
         leaf = issue(bundle.ca, cell.identity(bundle.cell, account), bundle.cell, [account])
         cfg = cell.client_config(
             bundle.cell,
@@ -295,7 +320,7 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
             _connect(opts, bundle),
             cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
         )
-        tool = account in TOOLS
+        tool = account in TOOLS or account in sensors
         p.files.append(
             File(
                 CREDS / f"{account}.json5",

@@ -20,7 +20,15 @@ from common.runtime.errors import BusError, InputError
 from common.safety.geometry import Pose
 from schemas.base import Message
 from schemas.operator import Separation
-from schemas.topology import CELL_CLOCK, DEFAULT_CELL, OPERATOR_SEPARATION, AnyMessage, Topic, validated
+from schemas.topology import (
+    CELL_CLOCK,
+    DEFAULT_CELL,
+    OPERATOR_SEPARATION_OF,
+    AnyMessage,
+    Topic,
+    source_chunk,
+    validated,
+)
 
 M = TypeVar("M", bound=Message)
 
@@ -124,7 +132,7 @@ async def relay_separations(
     once, stamped on the cell's clock; a bad line is said with its number and skipped. The number of bad
     lines."""
     bad = 0
-    pub = bus.publisher(OPERATOR_SEPARATION)
+    pub = bus.publisher(OPERATOR_SEPARATION_OF.at(source_chunk(source)))  # its own key (its account's)
     clock = await cell_clock(bus)  # a simulated cell's time runs at its own speed
     n = 0
     # the loop stays free meanwhile

@@ -36,21 +36,30 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 _INPUT, _ANSWER, _TIMER = "_cadence_input", "_cadence_answer", "_cadence_timer"
 _MAXSIZE, _ARRIVAL, _SCREEN = "_cadence_maxsize", "_cadence_arrival", "_cadence_screen"
+_KEYED = "_cadence_keyed"
 
 
 def on(
-    topic: Topic[Any], maxsize: int = 256, arrival: bool = False, screen: str | None = None
+    topic: Topic[Any],
+    maxsize: int = 256,
+    arrival: bool = False,
+    screen: str | None = None,
+    keyed: bool = False,
 ) -> Callable[[F], F]:
     """Mark ``async def handler(self, msg) -> Out`` as the node's reader of ``topic``; ``maxsize``
     messages wait for it before the oldest is dropped (``Bus.handle``). With ``arrival``, a plain
     ``def handler(self, msg) -> None`` takes each message as it arrives, with no queue (``Bus.take``):
     for input judged and kept per sender at once, that no flood may push out of a queue. ``screen`` names
     a plain method ``(msg) -> None`` run on arrival, before the queue: what it refuses (``Rejected``)
-    never takes a place in the queue (a window from the future, before any query it would make)."""
+    never takes a place in the queue (a window from the future, before any query it would make).
+    ``keyed`` (arrival only): ``def handler(self, key, msg)``, for a family whose key says who sent it."""
 
     def mark(fn: F) -> F:
         if arrival == inspect.iscoroutinefunction(fn):
             raise TypeError(f"{fn.__name__}: an arrival handler is a plain function, a queued one async")
+        if keyed and not arrival:
+            raise TypeError(f"{fn.__name__}: only an arrival handler takes the key")
+        setattr(fn, _KEYED, keyed)
         setattr(fn, _INPUT, topic)
         setattr(fn, _MAXSIZE, maxsize)
         setattr(fn, _ARRIVAL, arrival)
@@ -244,12 +253,13 @@ async def serve_node(node: Node) -> None:
 
         return handle
 
-    def judged(fn: Callable[[Any], None]) -> Callable[[str, Any], bool]:
+    def judged(fn: Callable[..., None]) -> Callable[[str, Any], bool]:
         """A plain method run on arrival (an arrival handler, a screen): False, counted, when it refused."""
+        keyed = getattr(fn, _KEYED, False)
 
         def judge(key: str, msg: Any) -> bool:
             try:
-                fn(msg)
+                fn(key, msg) if keyed else fn(msg)
             except Rejected as r:
                 bus.reject(key, r.code, r.detail)
                 return False

@@ -31,7 +31,15 @@ from common.trajectory.task import load_task
 from schemas.decision import Selection
 from schemas.operator import OperatorSignal, Separation
 from schemas.robot import RobotEvent
-from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, ROBOT_RESUME, SELECTION, Topic
+from schemas.topology import (
+    OPERATOR_SEPARATION,
+    OPERATOR_SEPARATION_OF,
+    OPERATOR_SIGNAL,
+    ROBOT_RESUME,
+    SELECTION,
+    Topic,
+    source_chunk,
+)
 from services.executor.backends import backend_for
 from services.executor.cycles import Cycles
 from services.executor.figures import CurveFigures
@@ -115,10 +123,18 @@ class Executor(Node):
 
     @on(OPERATOR_SEPARATION, arrival=True)  # every reading counts, kept per source as it comes
     def on_separation(self, sep: Separation) -> None:
-        self.reactions.receive(sep)
+        self.reactions.receive(sep, own_key=False)
+
+    @on(OPERATOR_SEPARATION_OF, arrival=True, keyed=True)  # a source's own key: its account's alone
+    def on_separation_of(self, key: str, sep: Separation) -> None:
+        chunk = key.rsplit("/", 1)[-1]
+        if chunk != source_chunk(sep.source):
+            raise Rejected("impostor", f"a reading under '{sep.source}' on {key}: the key of another source")
+        self.reactions.receive(sep, own_key=True)
 
     def reads(self, topic: Topic[Any]) -> bool:
-        return topic.suffix != OPERATOR_SEPARATION.suffix or self.ctx.settings.separation
+        watched = topic.family in (OPERATOR_SEPARATION.family, OPERATOR_SEPARATION_OF.family)
+        return not watched or self.ctx.settings.separation
 
     @every
     async def scale(self) -> Out:

@@ -84,16 +84,22 @@ class Reactions:
 
     # --- the distance -------------------------------------------------------------------------------
 
-    def receive(self, sep: Separation) -> None:
+    def receive(self, sep: Separation, own_key: bool = True) -> None:
         """A reading as it arrives, judged on this executor's clock before its content is looked at:
-        refused (``Rejected``, counted) when its source is not declared and the cell refuses such, when
-        past its source's rate (judged before its age: a flood that saturates this loop arrives stale, and
-        must still be seen as a flood), stamped ahead of it by more than the skew bound, or already too
-        old; else S, the person's distance to the arm and tool at the joints now
-        (common/safety/geometry.py), kept less the source's C."""
+        ``own_key``: it came on its source's own key (``operator/separation/<source>``), which on an
+        installed cell only that source's account may put. Refused (``Rejected``, counted) on an installed
+        cell (``separation_undeclared = "refuse"``) when its source is not declared or it came on the
+        shared key, where any sensor's account may say anything; everywhere when past its source's rate
+        (judged before its age: a flood that saturates this loop arrives stale, and must still be seen as a
+        flood), stamped ahead of it by more than the skew bound, or already too old; else S, the person's
+        distance to the arm and tool at the joints now (common/safety/geometry.py), kept less the
+        source's C."""
         if self.refuse_undeclared and sep.source not in self.sensors:
             raise Rejected("undeclared", f"'{sep.source}' is no source of this cell (separation_sources), "
                            'and separation_undeclared = "refuse"')  # fmt: skip
+        if self.refuse_undeclared and not own_key:
+            raise Rejected("shared_key", f"'{sep.source}' on operator/separation: an installed cell takes "
+                           "a source's readings on its own key only")  # fmt: skip
         stamp_age = self.clock.loop_s((self.clock.now_ns() - sep.t_ns) / 1e9)
         now = monotonic()
         why = self.sources.judge(sep.source, stamp_age, sep.age_s, now)

@@ -134,7 +134,7 @@ async def test_a_sensor_adapter_pipes_distances_in_and_a_bad_line_is_named_and_s
     from schemas import Separation
 
     async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as cell:
-        heard = cell.subscribe(cell.key("operator/separation"), Separation)
+        heard = cell.subscribe(cell.key("operator/separation/scanner_front"), Separation)  # its own key
         relay = ["separation", "-", "--source", "scanner:front", "--connect", endpoint]
         proc = subprocess.Popen([sys.executable, "-m", "cadence", *relay], stdin=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)  # fmt: skip
@@ -166,7 +166,7 @@ async def test_the_sensor_adapter_skips_a_bad_byte_a_huge_line_and_an_underscore
     from schemas import Separation
 
     async with await Bus.open(BusConfig(listen=[endpoint]), CELL) as cell:
-        heard = cell.subscribe(cell.key("operator/separation"), Separation)
+        heard = cell.subscribe(cell.key("operator/separation/scanner_front"), Separation)  # its own key
         relay = ["separation", "-", "--source", "scanner:front", "--connect", endpoint]
         proc = subprocess.Popen([sys.executable, "-m", "cadence", *relay], stdin=subprocess.PIPE,
                                 stderr=subprocess.PIPE)  # fmt: skip

@@ -35,6 +35,7 @@ from cadence.deploy.pki import common_name, issue, make_ca
 from common.runtime.bus import Bus, BusConfig
 from schemas import HrvWindow, OperatorSignal, Selection, Separation, ServiceStatus
 from schemas.topology import HEALTH, OPERATOR_SIGNAL, SELECTION, SERVICES, TOPICS, key_for
+from services.executor.settings import SourceSettings
 from tests.support.cell import CELL, account_file, config_file, free_port, put
 from tests.support.paths import REPO
 
@@ -61,7 +62,9 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
             assert allowed("plant keys", key) == publishers(t) | askers(t) == {"pareto_store"}, t.suffix
             assert allowed("publish", key) == allowed("ask", key) == set(), t.suffix
             continue
-        if t is not HEALTH:  # health/<account>: each its own (below)
+        if t.owned:  # each member its own account's (a declared sensor's key: below), never a role's
+            assert allowed("publish", key) == set(), t.suffix
+        elif t is not HEALTH:  # health/<account>: each its own (below)
             assert allowed("publish", key) == publishers(t), t.suffix
         # the ACL names families (pareto/**), so who may ask a set may ask its members too
         assert askers(t) <= allowed("ask", key), t.suffix
@@ -78,6 +81,49 @@ def test_every_topic_has_exactly_its_publishers_and_its_askers_in_the_acl() -> N
     assert allowed("publish", "cadence/c1/operator/separation") == {"separation_sensor", "operator_twin"}
     for service in SERVICES:  # each speaks for its own health, and for no one else's
         assert allowed("publish", f"cadence/c1/health/{service}") == {service}
+
+
+@pytest.mark.asyncio
+async def test_one_scanners_account_cannot_speak_as_another_declared_source(tmp_path: Path) -> None:
+    """Each declared source its own account (`cadence install --scanner`), which may put on that source's
+    own key and nowhere else (issue 74: one account spoke for every scanner, so any adapter could keep a
+    dead scanner heard). On a real router with the install's files: scanner:front's account puts under
+    scanner:back's key, and on the shared key, and then on its own; the monitor's first message is its
+    own, put last: the router dropped the other two."""
+    scanners = (
+        SourceSettings.parse("scanner:front:0,0,0:legs"),
+        SourceSettings.parse("scanner:back:2,0,180:legs"),
+    )
+    opts = Options(robot="sim", strap="twin", scanners=scanners)
+    bundle = new_bundle(opts)
+    ca, passwords = bundle.ca, bundle.passwords
+    assert {"sensor_scanner_front", "sensor_scanner_back"} <= set(passwords)
+    files = {f.path.name: f.text for f in plan(opts, bundle).files}
+    assert "sensor_scanner_front.json5" in files and "sensor_scanner_back.json5" in files
+    endpoint = [f"tls/127.0.0.1:{free_port()}"]
+    (tmp_path / "users.txt").write_text(users_file(CELL, passwords))
+    leaf = issue(ca, identity(CELL, "router"), CELL, ["127.0.0.1"])
+    cfg = router_config(CELL, endpoint, Tls(ca.cert, leaf.cert, leaf.key), str(tmp_path / "users.txt"),
+                        sensors=("scanner:front", "scanner:back"))  # fmt: skip
+    router = config_file(tmp_path, "router", cfg)
+
+    def account(name: str) -> BusConfig:
+        return account_file(tmp_path, ca, CELL, name, passwords[name], endpoint)
+
+    back = Separation(t_ns=3, seq=0, distance_m=100.0, source="scanner:back")
+    front = Separation(t_ns=3, seq=1, distance_m=0.6, source="scanner:front")
+    async with (
+        await Bus.open(router, CELL),
+        await Bus.open(account("monitor"), CELL) as monitor,
+        await Bus.open(account("sensor_scanner_front"), CELL) as sensor,
+    ):
+        seen = monitor.subscribe(monitor.key("operator/separation/**"), Separation)
+        await sensor.until_subscribed(sensor.key("operator/separation/scanner_front"), 10)
+        put(sensor, sensor.key("operator/separation/scanner_back"), back, block=True)  # another's key
+        put(sensor, sensor.key("operator/separation"), back, block=True)  # the shared key: not its own
+        put(sensor, sensor.key("operator/separation/scanner_front"), front, block=True)
+        assert (await seen.receive(10))[1] == front
+        assert seen.pending == 0
 
 
 def test_a_cell_with_a_strap_gives_the_twin_no_account_at_all() -> None:

@@ -16,7 +16,13 @@ from common.runtime.memory import MemoryNetwork, serving
 from common.runtime.node import Rejected
 from common.safety.separation import Nearest, Sources
 from schemas import OperatorSignal, Selection, Separation
-from schemas.topology import OPERATOR_SEPARATION, OPERATOR_SIGNAL, encode
+from schemas.topology import (
+    OPERATOR_SEPARATION,
+    OPERATOR_SEPARATION_OF,
+    OPERATOR_SIGNAL,
+    encode,
+    source_chunk,
+)
 from services.executor.__main__ import Executor
 from services.executor.cycles import Signals
 from tests.support.cell import now_ns
@@ -99,8 +105,11 @@ async def test_an_installed_cell_refuses_a_source_it_does_not_declare(
     tmp_path: Path, task_file: Path
 ) -> None:
     """``separation_undeclared = "refuse"`` (what `cadence install --scanner` writes): a reading under a
-    name the cell does not declare is refused and counted, however near or far it says; the declared one
-    is the nearest. A simulated cell's default takes it."""
+    name the cell does not declare is refused and counted, however near or far it says, and so is a
+    declared one's on the shared key (where any sensor's account may put): a source's readings count on
+    its own key only, which the router lets its account alone put. A simulated cell's default takes
+    both. A reading on one source's key under another's name is never taken."""
+    SOURCES = ("scanner:front", "camera:rogue")
     for policy, nearest in (("refuse", 2.0), ("use", 0.5)):
         # readings live 5 s: the point is whose they are, not how fast this host delivers them
         settings = sim_settings(task_file, separation=True, separation_sources=tracked("scanner:front"),
@@ -108,13 +117,26 @@ async def test_an_installed_cell_refuses_a_source_it_does_not_declare(
         async with serving(Executor, settings, tmp_path / policy) as run:
             key = run.test.key(OPERATOR_SEPARATION.suffix)
             await run.test.until_subscribed(key, 10)
+            own = {s: run.test.key(OPERATOR_SEPARATION_OF.at(source_chunk(s)).suffix) for s in SOURCES}
+            for k in own.values():
+                await run.test.until_subscribed(k, 10)
             for source, d in (("scanner:front", 2.0), ("camera:rogue", 0.5)):
                 sep = Separation(t_ns=now_ns(), seq=0, distance_m=d, source=source, to_robot=True)
-                run.test.put_raw(key, encode(sep))
+                run.test.put_raw(own[source], encode(sep))  # each on its own key
+                run.test.put_raw(key, encode(sep))  # and on the shared one, which any sensor may put
             await run.network.settle()
             run.node.reactions.look_distance()
             assert run.node.reactions.shown_m() == pytest.approx(nearest)
-            assert run.node.ctx.bus.rejected.get((key, "undeclared"), 0) == (policy == "refuse")
+            rejected = run.node.ctx.bus.rejected
+            refused = policy == "refuse"
+            assert rejected.get((own["camera:rogue"], "undeclared"), 0) == refused
+            assert rejected.get((key, "undeclared"), 0) == refused
+            assert rejected.get((key, "shared_key"), 0) == refused  # the declared one, on the shared key
+            # one sensor's key with another's name: never taken, installed or not
+            sep = Separation(t_ns=now_ns(), seq=0, distance_m=0.1, source="scanner:front", to_robot=True)
+            run.test.put_raw(own["camera:rogue"], encode(sep))
+            await run.network.settle()
+            assert rejected[(own["camera:rogue"], "impostor")] == 1
 
 
 async def test_a_flood_on_one_source_never_pushes_anothers_reading_out_of_the_executors_input(
