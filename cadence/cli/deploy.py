@@ -68,10 +68,14 @@ cli = Commands()
     "--scanner",
     action="append",
     default=[],
-    metavar="NAME:X,Y,YAW:KIND",
-    help="a separation source (repeat for each): its pose in the cell frame and what it detects (hand, "
-    "arm, body, legs, legs@HEIGHT_M), e.g. scanner:front:1.5,0,180:legs@0.3; given, the executor's "
-    "separation monitoring is on and requires each",
+    metavar="NAME:POSE:KIND[,OPTION=V]",
+    help="a separation source (repeat for each): its pose in the cell frame (X,Y,YAW; X,Y,Z,YAW; or "
+    "X,Y,Z,ROLL,PITCH,YAW, m and degrees: a ceiling camera looking down has a pitch of 90) and what it "
+    "detects (hand, arm, body, legs, legs@HEIGHT_M, beam: a single beam), with the options resolution=MM, "
+    "height=M and c=M (a C of its own), e.g. scanner:front:1.5,0,180:legs@0.3 or "
+    "cam:top:0,0,3,0,90,0:hand,resolution=14. Checked as the executor checks it at start (ISO 13855's C; "
+    "a hand sensor needs its resolution). Given, the executor's separation monitoring is on, requires "
+    "each, and takes no other; each gets its own bus account (sensor_<name>)",
 )
 def cmd_install(args: argparse.Namespace) -> int:
     from cadence.deploy.install import Options, install

@@ -30,7 +30,8 @@ C (ISO 13855 §6, the table in DESIGN §8):
 - arm (40 < d ≤ 70 mm): C = 850 mm, the reach of an arm past the field;
 - body (d > 70 mm, a multi-beam curtain or a sensor that sees the trunk): C = 850 mm;
 - legs (a scanner's plane parallel to the floor at height H): C = 1200 − 0.4 H mm, at least 850 mm
-  (H at most 1000 mm, and at least 15 (d − 50) mm for its resolution to see an ankle).
+  (H at most 1000 mm, and at least 15 (d − 50) mm for its resolution to see an ankle);
+- beam (a single beam, ISO 13855 §6.3's single-beam case): C = 1200 mm.
 A declared C below that is refused: a smaller C is a person's arm reaching past the sensor unseen.
 """
 
@@ -46,7 +47,7 @@ from numpy.typing import NDArray
 from common.robot.ur16e import frames
 
 Array = NDArray[np.float64]
-Detects = Literal["hand", "arm", "body", "legs"]
+Detects = Literal["hand", "arm", "body", "legs", "beam"]
 
 # the capsule around each segment between DH origins: base → shoulder (the column), shoulder → elbow (the
 # upper arm, offset by the shoulder offset), elbow → wrist 1 (the forearm), then the wrists
@@ -63,6 +64,8 @@ def intrusion_iso13855(detects: Detects, resolution_mm: float | None = None, hei
         return max(0.0, 8.0 * (resolution_mm - 14.0)) / 1000.0
     if detects in ("arm", "body"):
         return 0.85
+    if detects == "beam":  # a single beam: a person may reach over or under it
+        return 1.2
     if height_m > 1.0:
         raise ValueError(f"a scanner's plane at {height_m:g} m does not see legs (ISO 13855: H ≤ 1.0 m)")
     if resolution_mm is not None and height_m * 1000.0 < 15.0 * (resolution_mm - 50.0):
@@ -73,16 +76,28 @@ def intrusion_iso13855(detects: Detects, resolution_mm: float | None = None, hei
 
 @dataclass(frozen=True, slots=True)
 class Pose:
-    """A placement in the cell frame: a translation (m) and a yaw about z (degrees)."""
+    """A placement in the cell frame: a translation (m) and a yaw about z (degrees); for a sensor that does
+    not stand level (a camera on a ceiling looking down), a pitch and a roll too: the rotation is
+    Rz(yaw) Ry(pitch) Rx(roll), so a pitch of 90° turns the sensor's x axis straight down."""
 
     x: float = 0.0
     y: float = 0.0
     z: float = 0.0
     yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
 
     def matrix(self) -> Array:
         c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
-        return np.array([[c, -s, 0, self.x], [s, c, 0, self.y], [0, 0, 1, self.z], [0, 0, 0, 1.0]])
+        m = np.array([[c, -s, 0, self.x], [s, c, 0, self.y], [0, 0, 1, self.z], [0, 0, 0, 1.0]])
+        if self.pitch_deg or self.roll_deg:
+            cp, sp = math.cos(math.radians(self.pitch_deg)), math.sin(math.radians(self.pitch_deg))
+            cr, sr = math.cos(math.radians(self.roll_deg)), math.sin(math.radians(self.roll_deg))
+            tilt = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array(
+                [[1, 0, 0], [0, cr, -sr], [0, sr, cr]]
+            )
+            m[:3, :3] = m[:3, :3] @ tilt
+        return m
 
     def place(self, points: Array) -> Array:
         """Points (n, 3) given in this pose's frame, in the frame it is placed in."""

@@ -32,31 +32,74 @@ class SourceSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 
     name: SourceName
     pose: PoseRow = (0.0, 0.0, 0.0, 0.0)  # in the cell frame: x, y, z (m), yaw (°)
-    detects: Detects = "legs"  # hand, arm, body, legs: ISO 13855's C follows
+    detects: Detects = "legs"  # hand, arm, body, legs, beam (a single one): ISO 13855's C follows
     resolution_mm: Annotated[float, _range(1.0, 500.0)] | None = None
-    height_m: Annotated[float, _range(0.0, 3.0)] = 0.0  # legs: the scan plane above the floor (H)
+    # legs: the scan plane above the floor (H); 0: the pose's z, with which it must agree when both are given
+    height_m: Annotated[float, _range(0.0, 3.0)] = 0.0
     intrusion_m: Annotated[float, _range(0.0, 3.0)] | None = None  # a C of its own, never below ISO 13855's
     to_robot: bool = False  # its plain distances are measured to the arm already (else: from the sensor)
+    pitch_deg: Annotated[float, _range(-180.0, 180.0)] = 0.0  # a sensor not level: 90 looks straight down
+    roll_deg: Annotated[float, _range(-180.0, 180.0)] = 0.0
 
     @classmethod
     def parse(cls, text: str) -> SourceSettings:
-        """``NAME:X,Y,YAW:KIND`` as `cadence install --scanner` takes it (the name may hold colons): the
-        pose in the cell frame (m, m, degrees), KIND one of hand, arm, body, legs, a scanner's plane
-        height after ``@`` (``legs@0.3``). ValueError says what is wrong."""
+        """``NAME:POSE:KIND[,OPTION=VALUE…]`` as `cadence install --scanner` takes it (the name may hold
+        colons). POSE in the cell frame: ``X,Y,YAW``, ``X,Y,Z,YAW`` or ``X,Y,Z,ROLL,PITCH,YAW`` (m, degrees);
+        KIND one of hand, arm, body, legs, beam, a scanner's plane height after ``@`` (``legs@0.3``); the
+        options ``resolution`` (mm), ``height`` (m), ``c`` (m: a C of its own). Checked as the executor
+        checks it at start (``sensor``): ValueError says what is wrong, in one line."""
         name, pose, kind = text.rsplit(":", 2) if text.count(":") >= 2 else (text, "", "")
         if not (name and pose and kind):
-            raise ValueError(
-                f"expected NAME:X,Y,YAW:KIND (e.g. scanner:front:1.2,0,180:legs@0.3), got {text!r}"
-            )
+            raise ValueError(f"expected NAME:X,Y,YAW:KIND (e.g. scanner:front:1.2,0,180:legs@0.3, or "
+                             f"cam:top:0,0,3,0,90,0:hand,resolution=14), got {text!r}")  # fmt: skip
+        kind, *options = kind.split(",")
         detects, _, height = kind.partition("@")
+        fields: dict[str, object] = {"name": name, "detects": detects, "height_m": float(height or 0)}
         try:
-            x, y, yaw = (float(v) for v in pose.split(","))
-            return msgspec.convert(
-                {"name": name, "pose": [x, y, 0.0, yaw], "detects": detects, "height_m": float(height or 0)},
-                cls,
-            )
-        except (ValueError, msgspec.ValidationError) as exc:
+            v = [float(x) for x in pose.split(",")]
+            if len(v) not in (3, 4, 6):
+                raise ValueError(f"a pose is X,Y,YAW, X,Y,Z,YAW or X,Y,Z,ROLL,PITCH,YAW, got {pose!r}")
+            x, y, z = v[0], v[1], v[2] if len(v) > 3 else 0.0
+            fields |= {"pose": [x, y, z, v[-1]]}
+            if len(v) == 6:
+                fields |= {"roll_deg": v[3], "pitch_deg": v[4]}
+            for option in options:
+                key, _, value = option.partition("=")
+                if key not in OPTIONS or not value:
+                    raise ValueError(
+                        f"unknown option {option!r} (expected {', '.join(f'{k}=' for k in OPTIONS)})"
+                    )
+                fields[OPTIONS[key]] = float(value)
+            src = msgspec.convert(fields, cls)
+            src.sensor()
+            return src
+        except (ValueError, msgspec.ValidationError, ConfigError) as exc:
             raise ValueError(f"{text!r}: {exc}") from None
+
+    def sensor(self) -> Sensor:
+        """The source as separation monitoring sees it, with its C by ISO 13855; ``ConfigError`` naming it
+        for a C below the standard's, a plane height that disagrees with the pose's z, or what ISO 13855
+        cannot say (a hand sensor with no resolution of 40 mm or finer, a leg scanner over 1 m)."""
+        where = f"[executor] separation_sources '{self.name}'"
+        x, y, z, yaw = self.pose
+        height = self.height_m or z
+        if self.detects == "legs" and self.height_m and z and abs(self.height_m - z) > 1e-3:
+            raise ConfigError(f"{where}: height_m = {self.height_m:g} m, but its pose stands at z = {z:g} m: "
+                              "a leg scanner's plane is at its own height (give one of them)")  # fmt: skip
+        try:
+            iso = intrusion_iso13855(self.detects, self.resolution_mm, height)
+        except ValueError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        c = iso if self.intrusion_m is None else self.intrusion_m
+        if c < iso - 1e-9:
+            raise ConfigError(
+                f"{where}: intrusion_m = {c:g} m is below ISO 13855's C = {iso:.3f} m for a sensor that "
+                f"detects {self.detects}" + (f" at {height:g} m" if self.detects == "legs" else "")
+            )
+        return Sensor(self.name, Pose(x, y, z, yaw, self.pitch_deg, self.roll_deg), c, self.to_robot)
+
+
+OPTIONS = {"resolution": "resolution_mm", "height": "height_m", "c": "intrusion_m"}  # --scanner's options
 
 
 class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -162,21 +205,9 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         out: dict[str, Sensor] = {}
         for entry in self.separation_sources:
             src = SourceSettings(entry) if isinstance(entry, str) else entry
-            where = f"[executor] separation_sources '{src.name}'"
             if src.name in out:
-                raise ConfigError(f"{where} is declared twice")
-            try:
-                iso = intrusion_iso13855(src.detects, src.resolution_mm, src.height_m)
-            except ValueError as exc:
-                raise ConfigError(f"{where}: {exc}") from None
-            c = iso if src.intrusion_m is None else src.intrusion_m
-            if c < iso - 1e-9:
-                raise ConfigError(
-                    f"{where}: intrusion_m = {c:g} m is below ISO 13855's C = {iso:.3f} m for a sensor that "
-                    f"detects {src.detects}" + (f" at {src.height_m:g} m" if src.detects == "legs" else "")
-                )
-            x, y, z, yaw = src.pose
-            out[src.name] = Sensor(src.name, Pose(x, y, z, yaw), c, src.to_robot)
+                raise ConfigError(f"[executor] separation_sources '{src.name}' is declared twice")
+            out[src.name] = src.sensor()
         if self.separation and not out:
             raise ConfigError(
                 "[executor] separation = true needs separation_sources: declare each scanner or camera "

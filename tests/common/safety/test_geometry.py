@@ -176,6 +176,35 @@ def test_a_bare_name_is_a_scanner_at_the_base_seeing_legs_at_the_floor_and_a_lar
         SourceSettings.parse("scanner")
 
 
+def test_a_ceiling_camera_looking_down_is_placed_by_its_pitch_and_a_single_beam_has_c_1200_mm() -> None:
+    """A full pose (issue 74: poses were yaw only, so a camera on the ceiling could not be placed): at 3 m,
+    pitched 90°, its x axis points at the floor, and a point 2 m along it stands 1 m above the floor."""
+    cam = SourceSettings.parse("cam:top:1,0,3,0,90,0:hand,resolution=14").sensor()
+    assert np.allclose(cam.pose.place(np.array([[2.0, 0.0, 0.0]])), [[1.0, 0.0, 1.0]])
+    assert cam.intrusion_m == 0.0
+    rolled = SourceSettings.parse("cam:side:0,0,1,90,0,0:body").sensor()  # rolled: its y axis points up
+    assert np.allclose(rolled.pose.place(np.array([[0.0, 1.0, 0.0]])), [[0.0, 0.0, 2.0]])
+    assert np.allclose(cam.pose.local(cam.pose.place(np.array([[0.3, -0.2, 0.5]]))), [[0.3, -0.2, 0.5]])
+    assert SourceSettings.parse("beam:door:2,0,90:beam").sensor().intrusion_m == pytest.approx(1.2)
+
+
+@pytest.mark.parametrize(
+    ("scanner", "says"),
+    [
+        ("cam:0,0,3,0,90,0:hand", "a sensor that detects hands needs a resolution"),  # which it cannot say
+        ("front:1,0,0:legs@1.5", "does not see legs"),
+        ("front:1,0,0.3,0:legs,height=0.5", "height_m = 0.5 m, but its pose stands at z = 0.3 m"),
+        ("front:1,0,0:legs,c=0.9", "below ISO 13855's C = 1.200 m"),
+        ("front:1,0,0:legs,range=3", "unknown option 'range=3'"),
+        ("front:1,0:legs", "a pose is X,Y,YAW"),
+    ],
+)
+def test_install_refuses_a_scanner_the_executor_would_refuse_in_one_line(scanner: str, says: str) -> None:
+    with pytest.raises(ValueError) as e:
+        SourceSettings.parse(scanner)
+    assert says in str(e.value) and "\n" not in str(e.value)
+
+
 def test_monitoring_on_with_no_declared_source_is_refused_at_start_in_one_line() -> None:
     r = subprocess.run(
         [sys.executable, "-m", "services.executor"],
