@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import signal
 import time
 import tomllib
+from collections.abc import Coroutine
 from pathlib import Path
-from types import FrameType
+from typing import Any, TypeVar
 
 import msgspec
 
@@ -17,7 +19,24 @@ from cadence.cli._common import Commands, arg, err, out, positive_float, speed
 from common.runtime.errors import InputError
 from common.runtime.resources import EXAMPLE_TASK
 
+T = TypeVar("T")
+
 cli = Commands()
+
+
+async def ended_by_sigterm(main: Coroutine[Any, Any, T]) -> T:
+    """``main``, which SIGTERM (a process manager, a closed terminal, `kill PID`) cancels as Ctrl-C does
+    (asyncio's runner cancels the main task): what ran is kept. Whatever SIGINT's disposition: a background
+    job of a non-interactive shell has SIGINT ignored, and a SIGTERM forwarded to that handler did nothing
+    (the demo ran 72–156 s on to its end)."""
+    loop, task = asyncio.get_running_loop(), asyncio.current_task()
+    assert task is not None
+    loop.add_signal_handler(signal.SIGTERM, task.cancel)
+    try:
+        return await main
+    finally:
+        with contextlib.suppress(RuntimeError, ValueError):  # the loop closing, or not the main thread
+            loop.remove_signal_handler(signal.SIGTERM)
 
 
 @cli.command(
@@ -132,23 +151,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     load_task(opts.task)
     t0 = time.monotonic()
 
-    def as_ctrl_c(_: int, frame: FrameType | None) -> None:
-        """SIGTERM (a process manager, a closed terminal) ends the demo as Ctrl-C does: what ran is kept."""
-        handler = signal.getsignal(signal.SIGINT)
-        if callable(handler):
-            handler(signal.SIGINT, frame)
-
     lock = claim(opts.out, args.force)
-    before = signal.signal(signal.SIGTERM, as_ctrl_c)
+    before = signal.getsignal(signal.SIGTERM)
     try:
         if opts.processes:
-            summary = asyncio.run(run_demo(opts, out))
+            summary = asyncio.run(ended_by_sigterm(run_demo(opts, out)))
         else:
             from cadence.demo.in_lockstep import run_lockstep
             from common.runtime import lockstep
 
             ceiling = opts.speed if math.isfinite(opts.speed) else None
-            summary = lockstep.run(run_lockstep(opts, out), ceiling)
+            summary = lockstep.run(ended_by_sigterm(run_lockstep(opts, out)), ceiling)
     except NothingRan as exc:
         err.print(f"cadence: {exc}", markup=False, highlight=False, soft_wrap=True)
         return 130

@@ -18,3 +18,9 @@ def as_in_a_terminal() -> None:
     the background, without job control, ignores SIGINT, and so do its children: a test run from one
     (CI, a script with ``&``) would send a Ctrl-C that its demo, rightly, never sees."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def as_in_the_background() -> None:
+    """A child's SIGINT as a non-interactive shell's background job has it (``cadence demo … &`` in a
+    script): ignored, by POSIX rule (``preexec_fn``). SIGTERM must still end it as Ctrl-C would."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -17,7 +17,7 @@ import pytest
 from common.runtime.resources import EXAMPLE_TASK
 from services.executor.persist import ExecutorStore
 from tests.support.cell import CELL
-from tests.support.cli import as_in_a_terminal
+from tests.support.cli import as_in_a_terminal, as_in_the_background
 
 KILL_HRV, KILL_DECISION = 150.0, 260.0
 
@@ -331,8 +331,10 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
 ) -> None:
     """`cadence demo`, the lockstep cell at its default ceiling: Ctrl-C reaches the one process, which
     stops every service, then writes the summary and the report of what ran, as the process cell does.
-    SIGTERM (a process manager, a closed terminal) is taken as Ctrl-C; a second Ctrl-C while it stops
-    is said and does not cut the summary or the report off (once: a summary and no report)."""
+    SIGTERM (a process manager, a closed terminal, `kill PID`) is taken as Ctrl-C, here with SIGINT
+    ignored as a script's background job has it (`cadence demo … &`: the SIGTERM was once forwarded to
+    that ignored handler, and swallowed); a second Ctrl-C while it stops is said and does not cut the
+    summary or the report off (once: a summary and no report)."""
     import shutil
 
     out = tmp_path / "demo"
@@ -340,7 +342,8 @@ def test_ctrl_c_cuts_the_lockstep_demo_short_and_it_still_summarises_and_reports
     shutil.copy(example_sets, out / "data" / "pareto.sqlite")  # planned once per test run
     # an hour of data time at most 8× (at least 450 s of wall): still going when the test, however
     # loaded the host, has seen what it waits for
-    proc = demo_in_a_terminal("--duration", "3600", "--speed", "8", "--out", str(out))
+    background = signals == ("SIGTERM",)
+    proc = demo_in_a_terminal("--duration", "3600", "--speed", "8", "--out", str(out), background=background)
     try:
         # a decided window (the second comes after the first cycle's end): each service has said something
         until_logged(proc, out, "decision_maker: window to", 2, "a decided window")
@@ -395,12 +398,13 @@ def test_a_bad_task_file_is_refused_before_any_cell_starts(tmp_path: Path) -> No
         assert line.startswith(f"cadence: error: {bad}: (syntax): Expected ']'")
 
 
-def demo_in_a_terminal(*args: str) -> subprocess.Popen[str]:
-    """`cadence demo ARGS --no-live` as a terminal's foreground job runs it, what it says piped."""
+def demo_in_a_terminal(*args: str, background: bool = False) -> subprocess.Popen[str]:
+    """`cadence demo ARGS --no-live` as a terminal's foreground job runs it (or, ``background``, as a
+    script's ``&`` does: SIGINT ignored), what it says piped."""
     return subprocess.Popen(
         [sys.executable, "-m", "cadence", "demo", *args, "--no-live"],
-        start_new_session=True, preexec_fn=as_in_a_terminal, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True,
+        start_new_session=True, preexec_fn=as_in_the_background if background else as_in_a_terminal,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
 
 
