@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,17 +54,25 @@ class _Token:
         pass
 
 
+TEST_HISTORY = 100_000  # the puts ``serving`` keeps for a test to read (``NodeRun.outputs``)
+
+
 @dataclass
 class MemoryNetwork:
-    """What the buses of one process share: who subscribes and who answers, and every put, in order."""
+    """What the buses of one process share: who subscribes and who answers, and, for a test that asks for
+    it (``history``: how many), the latest puts in order (``sent``). None by default: the lockstep demo
+    runs on this network for hours, and it once kept every message it carried (126 MB per data hour)."""
 
+    history: int = 0
     subscribers: list[_Entry] = field(default_factory=list)
     queryables: list[_Entry] = field(default_factory=list)
-    sent: list[tuple[str, bytes]] = field(default_factory=list)
-    senders: list[str | None] = field(default_factory=list)  # the role that sent each of ``sent``
     changed: asyncio.Event = field(default_factory=asyncio.Event)  # set at each declaration and put
     in_flight: int = 0  # deliveries scheduled and not yet made
     buses: list[Bus] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.sent: deque[tuple[str, bytes]] = deque(maxlen=self.history)
+        self.senders: deque[str | None] = deque(maxlen=self.history)  # the role that sent each of ``sent``
 
     def bus(self, cell: str = DEFAULT_CELL, role: str | None = None) -> Bus:
         """A bus on this network, for ``role`` (None: a session that speaks for nobody, a test's)."""
@@ -202,7 +211,7 @@ async def serving(
 ) -> AsyncIterator[NodeRun]:
     """``cls`` served as its service serves it (``serve_node``: the declared ports, the timers, the work),
     on the in-memory bus; stopped, its work ended and ``close`` run at the end."""
-    network = MemoryNetwork()
+    network = MemoryNetwork(history=TEST_HISTORY)
     bus = network.bus(cell, cls.role)
     ctx = ServiceContext(cls.role, bus, CommonSettings(cell=cell, data_dir=str(data_dir), **common),
                          settings, asyncio.Event())  # fmt: skip

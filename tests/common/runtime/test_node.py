@@ -19,7 +19,7 @@ from common.runtime.memory import MemoryNetwork, run_node, serving
 from common.runtime.node import Node, Rejected, check, every, node_main, on
 from common.runtime.service import ServiceContext, serve
 from schemas import Calibration, HrvWindow, Selection
-from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION
+from schemas.topology import CALIBRATION, HRV_WINDOW, ROBOT_STATE, SELECTION, decode_any
 from services.decision_maker.__main__ import DecisionMaker, Settings
 from services.hrv_analyser.__main__ import HrvAnalyser
 from services.hrv_analyser.__main__ import Settings as AnalyserSettings
@@ -205,7 +205,7 @@ async def test_a_replay_waits_for_its_reader_sends_every_chunk_and_then_stops_it
     csv = tmp_path / "ecg.csv"
     t = np.arange(0, 20, 1 / 130)
     np.savetxt(csv, np.c_[t, 1000 * np.exp(-(((t % 0.8) - 0.4) ** 2) / 2e-4)], delimiter=",")
-    network, stop = MemoryNetwork(), asyncio.Event()
+    network, stop = MemoryNetwork(history=1000), asyncio.Event()
     service = network.bus(role="ecg_gateway")
     common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
     task = asyncio.ensure_future(
@@ -319,7 +319,7 @@ async def test_the_gateway_replays_the_polar_export_with_its_accelerometer_or_sa
         acc_record=str(polar / "Polar_H10_55354125_20210516_080900_ACC.txt") if with_acc else None,
         speed=50.0,  # 3 s: its status comes while it runs
     )
-    network, stop = MemoryNetwork(), asyncio.Event()
+    network, stop = MemoryNetwork(history=1000), asyncio.Event()
     service = network.bus(role="ecg_gateway")
     common = CommonSettings(data_dir=str(tmp_path), status_period_s=0.1)
     task = asyncio.ensure_future(
@@ -608,3 +608,20 @@ async def test_work_started_beside_a_nodes_own_is_in_its_task_group_ends_with_it
     with pytest.raises(ValueError, match="the helper's own"):
         async with serving(Helped, settings, tmp_path / "failing"):
             await asyncio.wait_for(began.wait(), 10)
+
+
+@pytest.mark.asyncio
+async def test_the_in_memory_network_keeps_no_history_unless_a_test_asks_and_then_a_bounded_one() -> None:
+    """The lockstep demo runs on this network for hours: it once kept every message it carried (126 MB
+    per data hour of a 6-hour demo). By default nothing is kept; a test that reads what was put asks for
+    the latest N."""
+    for history, kept in ((0, 0), (10, 10)):
+        network = MemoryNetwork(history=history)
+        async with network.bus(role="decision_maker") as bus:
+            out = bus.publisher(SELECTION)
+            for i in range(1000):
+                out.put(Selection(t_ns=i + 1, seq=i + 1, k=8, n=15, delta=0, reason="hold"))
+            await network.settle()
+        assert len(network.sent) == len(network.senders) == kept
+        if kept:
+            assert [decode_any(p).seq for _, p in network.sent] == list(range(991, 1001))  # the latest
