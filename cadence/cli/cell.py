@@ -44,8 +44,10 @@ M = TypeVar("M", bound=Message)
 @arg("service", choices=sorted(SERVICES))
 @arg("args", nargs=argparse.REMAINDER, help="the service's options (--config, --data-dir, --cell)")
 def cmd_run(args: argparse.Namespace) -> int:
+    from common.runtime.lifetime import name_this_thread
     from services.registry import BY_NAME
 
+    name_this_thread(args.service)  # its process's main thread, as `top -H` shows it (the servo's: servo)
     return BY_NAME[args.service].run(args.args)
 
 

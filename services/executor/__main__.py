@@ -24,6 +24,7 @@ from typing import Any
 from common.runtime.bus import Request
 from common.runtime.config import CommonSettings
 from common.runtime.errors import ConfigError
+from common.runtime.lifetime import name_this_thread
 from common.runtime.node import Node, Out, Rejected, answers, every, node_main, on
 from common.runtime.service import service_main
 from common.safety.states import Event
@@ -85,6 +86,16 @@ class Executor(Node):
         self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
         if self.claim.core is not None:
             ctx.counters["servo_core"] = self.claim.core
+        self.loop.start()  # its set-up now: what it could not get is known before the arm is reached
+        if missing := "; ".join(self.loop.warnings):
+            if (s.realtime or ("required" if s.backend == "ur_rtde" else "optional")) == "required":
+                self.claim.release()
+                self.loop.close()
+                robot = " with a real robot" if s.backend == "ur_rtde" else ""
+                raise ConfigError(f"[executor] the servo loop cannot run in real time{robot}: {missing} "
+                                  '(realtime = "required")')  # fmt: skip
+            log.warning("the servo loop is not real-time: %s", missing)
+            ctx.detail = f"servo not real-time: {missing}"
         folder = common.data_path / NAME
         # each part gets the kit and the parts it calls, never this node (services/executor/kit.py)
         self.safety = Supervisor(kit, s, self.backend)
@@ -160,9 +171,6 @@ class Executor(Node):
         if not await self.safety.connect():
             return
         self.connected = True
-        self.loop.start()
-        for w in self.loop.warnings:
-            log.warning("%s", w)
         k_now = lambda: self.chosen.selection.k if self.chosen.selection is not None else 1  # noqa: E731
         stop = self.ctx.stop
         # beside the cycles, in the node's task group: each says its own errors; they end with the service
@@ -214,4 +222,5 @@ def run(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    name_this_thread(NAME)  # the event loop's thread, beside the servo's (`top -H`): its own process
     sys.exit(run())

@@ -70,6 +70,15 @@ def claim_core(candidates: Iterable[int], lock_dir: Path, explicit: int | None =
     return CoreClaim(
         None,
         None,
-        f"{cores} already serve other executors (locks in {lock_dir}){why}: the servo thread runs unpinned "
-        "and at normal priority",
+        f"{cores} already serve other executors ({_owners(lock_dir, order)}locks in {lock_dir}){why}: the "
+        "servo thread runs unpinned and at normal priority",
     )
+
+
+def _owners(lock_dir: Path, cores: Iterable[int]) -> str:
+    """The processes that hold the cores' locks, as each wrote its pid: whom to stop for a core."""
+    pids = set()
+    for core in cores:
+        with contextlib.suppress(OSError, ValueError):
+            pids.add(int((lock_dir / f"servo-core-{core}.lock").read_text().split()[0]))
+    return f"pid {', '.join(str(p) for p in sorted(pids))}; " if pids else ""

@@ -41,6 +41,7 @@ from typing import Literal, Protocol, cast
 
 import numpy as np
 
+from common.runtime.lifetime import name_this_thread
 from services.executor.cores import CoreClaim, claim_core, default_lock_dir
 from services.executor.playback import Samples
 from services.executor.settings import Settings
@@ -219,6 +220,7 @@ class ServoLoop:
                 self.index = -1
 
     def _setup(self) -> None:
+        name_this_thread("servo")
         if self.core is not None:
             try:
                 os.sched_setaffinity(0, {self.core})
@@ -366,9 +368,13 @@ def servo_for(
         return LockstepServo(backend), CoreClaim(None, None)
     s = settings
     claim = claim_core(os.sched_getaffinity(0), Path(s.lock_dir or default_lock_dir()), s.servo_core)
-    if claim.note:
-        log.warning("%s", claim.note)
     fifo = s.fifo_priority if claim.core is not None else 0
     loop = ServoLoop(backend, core=claim.core, fifo_priority=fifo, lock_memory=s.lock_memory, speed=speed,
                      spin_us=s.spin_us, overrun_limit=s.overrun_limit, realtime=realtime)  # fmt: skip
+    if claim.core is None:  # no core of its own: no FIFO either (two FIFO threads would share a core)
+        loop.warnings.append(claim.note)
+    elif s.fifo_priority == 0:
+        loop.warnings.append("fifo_priority = 0: the servo thread runs at normal priority (set it, 1–99)")
+    if not s.lock_memory:
+        loop.warnings.append("lock_memory = false: the servo loop's memory may be paged out (set it true)")
     return loop, claim

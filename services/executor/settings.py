@@ -116,6 +116,10 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     lock_dir: str | None = None  # where executors claim cores (default /run/cadence)
     fifo_priority: Annotated[int, _range(0, 99)] = 80  # 0: no SCHED_FIFO
     lock_memory: bool = True
+    # the servo loop without SCHED_FIFO, locked memory or a core of its own: "required" refuses to start,
+    # in one line saying which and how to grant it; "optional" runs on and says so (the log, `cadence top`).
+    # Default: required with a real robot (ur_rtde), optional on the sim
+    realtime: Literal["required", "optional"] | None = None
     spin_us: Annotated[int, _range(0, 1900)] = 400
     overrun_limit: Annotated[int, _range(1, 1000)] = 5  # this many overruns in a row stop the robot
     stop_deceleration: Annotated[float, _range(0.5, 40.0)] = 4.0  # rad/s², SIGTERM and overrun stops

@@ -413,6 +413,7 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
                 backend="ur_rtde",
                 host=emu.host,
                 fifo_priority=0,
+                realtime="optional",
                 overrun_limit=RUN,
                 wait_for_signals=False,
                 start_selection="initial",

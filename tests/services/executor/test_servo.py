@@ -235,3 +235,53 @@ def test_a_lock_file_it_cannot_open_is_skipped_and_said_not_a_crash(tmp_path: Pa
     assert none.core is None
     assert "skipped" in none.note
     assert "unpinned" in none.note
+
+
+def test_the_servo_thread_carries_its_name_for_the_os(samples: np.ndarray) -> None:
+    """`top -H` tells the loops apart: the servo thread is `servo` to the OS, not the interpreter's name."""
+    loop = ServoLoop(SimBackend(samples[0]), fifo_priority=0, lock_memory=False)
+    loop.start()
+    try:
+        tid = loop._thread.native_id
+        assert Path(f"/proc/self/task/{tid}/comm").read_text().strip() == "servo"
+    finally:
+        loop.close()
+
+
+@pytest.mark.parametrize(
+    ("changes", "says"),
+    [
+        ({"fifo_priority": 0}, "fifo_priority = 0: the servo thread runs at normal priority"),
+        ({"lock_memory": False}, "lock_memory = false"),
+        ({"every_core_taken": True}, "already serve other executors (pid {pid}"),  # this test's own
+    ],
+)
+def test_with_a_real_robot_a_servo_loop_that_cannot_be_real_time_refuses_to_start_in_one_line(
+    tmp_path: Path, changes: dict, says: str
+) -> None:
+    """No silent downgrade (issue 73): with ur_rtde (or realtime = "required"), an executor whose servo
+    loop would run without SCHED_FIFO, locked memory or a core of its own refuses to start, in one line
+    saying which and how to grant it; nothing reaches for the robot (its host is no controller here). The
+    sim runs on and says so in its status."""
+    import os
+    import subprocess
+    import sys
+
+    from services.executor.cores import claim_core
+
+    held = []
+    if changes.pop("every_core_taken", False):  # another executor holds every core this one may use
+        held = [claim_core([c], tmp_path) for c in os.sched_getaffinity(0)]
+    env = {**os.environ, "CADENCE_EXECUTOR_BACKEND": "ur_rtde", "CADENCE_EXECUTOR_HOST": "127.0.0.9",
+           "CADENCE_EXECUTOR_LOCK_DIR": str(tmp_path), "CADENCE_DATA_DIR": str(tmp_path / "data"),
+           **{f"CADENCE_EXECUTOR_{k.upper()}": str(v).lower() for k, v in changes.items()}}  # fmt: skip
+    try:
+        run = [sys.executable, "-m", "services.executor"]
+        r = subprocess.run(run, env=env, capture_output=True, text=True, timeout=120)
+    finally:
+        for claim in held:
+            claim.release()
+    assert r.returncode == 2, r.stderr
+    (said,) = [line for line in r.stderr.splitlines() if "error" in line]  # one line
+    assert "the servo loop cannot run in real time with a real robot" in said
+    assert says.format(pid=os.getpid()) in said

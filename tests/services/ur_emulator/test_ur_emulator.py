@@ -221,6 +221,7 @@ async def test_the_executor_runs_a_whole_cycle_of_the_example_task_through_the_r
                 backend="ur_rtde",
                 host=emu.host,
                 fifo_priority=0,
+                realtime="optional",
                 cycles=1,
                 wait_for_signals=False,
                 watchdog_hz=WATCHDOG_HZ,
@@ -277,6 +278,7 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
             backend="ur_rtde",
             host=host,
             fifo_priority=0,
+            realtime="optional",
             overrun_limit=CALM,
             wait_for_signals=False,
             start_selection="initial",
@@ -333,8 +335,8 @@ async def test_a_button_on_a_digital_input_is_the_signal_its_task_step_names(
             cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
             states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
             settings = Settings(
-                task=str(task_file), backend="ur_rtde", host=emu.host, fifo_priority=0, overrun_limit=CALM,
-                cycles=1, watchdog_hz=WATCHDOG_HZ, start_selection="initial", initial_k=1,
+                task=str(task_file), backend="ur_rtde", host=emu.host, fifo_priority=0, realtime="optional",
+                overrun_limit=CALM, cycles=1, watchdog_hz=WATCHDOG_HZ, start_selection="initial", initial_k=1,
             )  # fmt: skip
             ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
             operator = asyncio.ensure_future(operator_resumes(bus))
@@ -398,9 +400,9 @@ async def test_after_an_emergency_stop_the_executor_reconnects_with_back_off_and
         store = await store_serving(bus, EXAMPLE_TASK, tmp_path / "store", cell, example_sets)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        settings = Settings(backend="ur_rtde", host=host, fifo_priority=0, overrun_limit=CALM,
-                            wait_for_signals=False, start_selection="initial", initial_k=1,
-                            watchdog_hz=WATCHDOG_HZ)  # fmt: skip
+        settings = Settings(backend="ur_rtde", host=host, fifo_priority=0, realtime="optional",
+                            overrun_limit=CALM, wait_for_signals=False, start_selection="initial",
+                            initial_k=1, watchdog_hz=WATCHDOG_HZ)  # fmt: skip
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex")
         try:
             await next_of(states, lambda s: s.mode == "moving", timeout=60)
