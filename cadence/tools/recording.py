@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -162,9 +164,19 @@ class Recorder:
         if not self.closed:
             self._guard(self._writer.flush)
 
+    def _finish(self) -> None:
+        self._writer.finish()
+        self._file.flush()
+        try:
+            os.fsync(self._file.fileno())
+        except OSError as exc:
+            if exc.errno != errno.EINVAL:  # a pipe or a terminal has nothing to sync; a disk may refuse it
+                raise
+
     def close(self) -> None:
-        if self.failed is None:
-            self._guard(self._writer.finish)
+        if self.failed is None:  # the footer and what the file object holds, on the disk: a disk that fills
+            # at the close refuses this flush, not the close after it (once: "written", rc 0, no footer)
+            self._guard(self._finish)
         self.closed = True
         with contextlib.suppress(OSError):  # a full disk: what was flushed stays readable
             self._file.close()

@@ -271,6 +271,24 @@ def test_a_recording_on_a_filling_disk_ends_with_one_line_and_stays_readable(dis
     assert "ends without its footer" in notes[0]
 
 
+def test_a_recording_whose_disk_refuses_the_close_says_so_with_what_is_readable() -> None:
+    """`cadence record` on a disk that filled at the close printed "4522 messages written", exited 0, and
+    left a file with no footer: what the file object still held went to the disk in its close, whose
+    refusal was swallowed. The footer and that tail are now flushed and synced inside the close's guard.
+    /dev/full refuses every write that reaches it, as a disk full by the close does: a few messages stay
+    in the writer's and the file's buffers until then."""
+    from cadence.tools.recording import Recorder
+
+    rec = Recorder(Path("/dev/full"))
+    for i in range(20):
+        rec.write(f"cadence/{CELL}/decision/selection", encode(Selection(t_ns=i + 1, seq=i, k=3, n=15,
+                  delta=0, reason="hold")), log_time_ns=i + 1)  # fmt: skip
+    assert rec.failed is None  # nothing reached the disk yet
+    rec.close()
+    assert rec.failed is not None and "No space left on device" in rec.failed
+    assert rec.on_disk == 0 < rec.count == 20  # nothing readable: said, not "20 written"
+
+
 def test_a_report_onto_a_full_disk_is_one_line_naming_the_folder(disk: Disk, tmp_path: Path) -> None:
     from tests.support.sessions import write_run
 
