@@ -41,7 +41,7 @@ from tests.support.executor import Processes, executor_processes
 SOURCES = '[{ name = "tracker", detects = "body" }]'
 WATCHED = {"CADENCE_EXECUTOR_SEPARATION": "true", "CADENCE_EXECUTOR_SEPARATION_SOURCES": SOURCES}
 FAR, NEAR, HEIGHT, PERIOD_S = 6.0, 1.5, 1.0, 0.05
-FLOOD_S = 4.0
+FLOOD_S = 2.5
 FLOOD_AGE_S = 0.5  # stale on arrival on any host, as a flood that saturates the executor arrives
 SEEN_S = 1.5  # the flood seen and the arm's ramp to rest played: T_r and T_s with a loaded host's room
 REFUSED = "rejected/operator/separation/"
@@ -175,7 +175,7 @@ async def test_a_flood_holds_the_arm_while_it_lasts_and_a_near_person_stays_held
             seen = time.time()
             held = await cell.until("the person at 1.5 m holds the arm", cell.held_for_the_person, 60)
             start, end = await cell.flood(FLOOD_S)
-            stay = time.time() + 2.0  # the person stays two seconds past the flood
+            stay = time.time() + 1.0  # the person stays a second past the flood
             while time.time() < stay:
                 await cell.next()
             cell.camera, cell.may_run, left = FAR, True, time.time()
