@@ -265,6 +265,7 @@ def _connect(opts: Options, bundle: Bundle) -> list[str]:
 
 def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Plan:
     bundle = with_sensors(bundle, opts)  # a source declared since: its account's password, kept in the bundle
+    sensors = sensor_accounts(opts)  # source: account
     p = Plan()
     p.dirs += [
         (ETC, 0o750, "root", USER),
@@ -297,7 +298,7 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
             cell_accounts(opts.strap),
             plant=plant is not None,
             uplink=opts.uplink,
-            sensors=tuple(sensor_accounts(opts)),
+            sensors=tuple(sensors),
         )
         p.files.append(
             File(
@@ -310,8 +311,7 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
         )
     # this host's accounts: its services, and the tools' and the declared sources' (root reads those)
     accounts = [s for s in opts.services if s in SERVICES]
-    sensors = list(sensor_accounts(opts).values())
-    for account in [*accounts, *TOOLS, *sensors]:
+    for account in [*accounts, *TOOLS, *sensors.values()]:
         leaf = issue(bundle.ca, cell.identity(bundle.cell, account), bundle.cell, [account])
         cfg = cell.client_config(
             bundle.cell,
@@ -320,7 +320,7 @@ def plan(opts: Options, bundle: Bundle, plant: PlantForCell | None = None) -> Pl
             _connect(opts, bundle),
             cell.Tls(bundle.ca.cert, leaf.cert, leaf.key),
         )
-        tool = account in TOOLS or account in sensors
+        tool = account in TOOLS or account in sensors.values()
         p.files.append(
             File(
                 CREDS / f"{account}.json5",

@@ -1,5 +1,6 @@
 """The wrist motions of issue 52, which tests/common/safety/test_geometry.py holds to their figures and
-tests/cadence/test_docs_figures.py to what docs/robot.md says of them."""
+tests/cadence/test_docs_figures.py to what docs/robot.md says of them; and the arm's speed at a state
+sample, which the wall-clock tests (walk-in, flood) judge a moving arm by."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from common.robot.ur16e import N_JOINTS
 from common.safety.geometry import Arm, Tool
+from schemas import RobotState
 
 DT, OMEGA = 0.002, math.radians(180.0)  # one controller step, at 180°/s
 
@@ -27,3 +29,9 @@ def wrist_speeds() -> dict[str, float]:
         "turn_flange": Arm().top_speed(turn, DT),
         "turn_tip": Arm(tool=Tool.of([[0.0, 0.0, 0.2, 0.0]])).top_speed(turn, DT),
     }
+
+
+def speed(arm: Arm, s: RobotState) -> float:
+    """The speed of the arm's (and tool's) fastest point at a sample, m/s."""
+    q, qd = np.array(s.q), np.array(s.qd)
+    return arm.top_speed(np.stack([q, q + qd * 1e-3]), 1e-3)

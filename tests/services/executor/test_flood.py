@@ -29,13 +29,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from common.safety.geometry import Arm
 from schemas import RobotEvent, RobotState, Separation, ServiceStatus
 from schemas.topology import encode
 from services.executor.settings import Settings as ExecutorSettings
+from tests.support.arm import speed
 from tests.support.executor import Processes, executor_processes
 
 SOURCES = '[{ name = "tracker", detects = "body" }]'
@@ -49,12 +48,7 @@ FLOODS = REFUSED + "flood"
 MOVING = 1e-3  # m/s: the arm's fastest point
 
 
-def speed(arm: Arm, s: RobotState) -> float:
-    q, qd = np.array(s.q), np.array(s.qd)
-    return arm.top_speed(np.stack([q, q + qd * 1e-3]), 1e-3)
-
-
-class Cell:
+class Watcher:
     """The test's side of the cell: the tracker and the camera, the arm's states as they come (with the
     wall time each came at), and a resume after each of the watchdog's stops while the arm may run."""
 
@@ -150,7 +144,7 @@ async def test_a_flood_holds_the_arm_while_it_lasts_and_a_near_person_stays_held
     tmp_path: Path, example_sets: Path
 ) -> None:
     async with executor_processes(tmp_path, example_sets, WATCHED) as processes:
-        cell = Cell(processes)
+        cell = Watcher(processes)
         await cell.bus.until_subscribed(cell.key, 120)
         tracker = asyncio.create_task(cell.track())
         try:

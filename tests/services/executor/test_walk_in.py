@@ -56,6 +56,7 @@ from schemas import RobotEvent, RobotState, Separation, ServiceStatus
 from schemas.topology import encode
 from services.executor.settings import Settings as ExecutorSettings
 from services.pareto_store.store import SetStore
+from tests.support.arm import speed
 from tests.support.executor import executor_processes
 from tests.support.paths import EXAMPLE_TASK
 
@@ -105,12 +106,6 @@ def figures_at_top_k(db: Path) -> tuple[Figures, dict[str, Figures]]:
     for f in each.values():
         worst = worst.worst(f)
     return worst, each
-
-
-def speed(arm: Arm, s: RobotState) -> float:
-    """The speed of the arm's (and tool's) fastest point at a sample, m/s."""
-    q, qd = np.array(s.q), np.array(s.qd)
-    return arm.top_speed(np.stack([q, q + qd * 1e-3]), 1e-3)
 
 
 def row(arm: Arm, t: float, s: RobotState, walks: int) -> str:
