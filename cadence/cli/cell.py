@@ -284,7 +284,7 @@ def watching(
     from rich.live import Live
 
     from common.runtime.bus import Bus
-    from common.runtime.service import first_of
+    from common.runtime.clock import first_of
 
     async def go() -> int:
         stop = stop_on_signals()

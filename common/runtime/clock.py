@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable
 from dataclasses import dataclass
 
 
@@ -75,3 +76,16 @@ def wall_monotonic() -> float:
     """The wall's monotonic seconds: how long the host took (a computation, a rate limit on logs, a
     service's uptime), whatever clock the data runs on."""
     return time.monotonic()
+
+
+async def first_of(*aws: Awaitable[object]) -> None:
+    """Wait for the first of ``aws`` to finish (an event, a sleep, a stop); the others are cancelled.
+    The first one's exception, if it raised, is raised."""
+    tasks = [asyncio.ensure_future(a) for a in aws]
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for t in tasks:
+            t.cancel()
+    for t in done:
+        t.result()

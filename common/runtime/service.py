@@ -23,7 +23,7 @@ import signal
 import socket
 import sys
 from collections import Counter
-from collections.abc import Awaitable, Callable, Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -171,19 +171,6 @@ async def _periodic(ctx: ServiceContext) -> None:
         if wd is not None:
             sd_notify("WATCHDOG=1")
         await pause(min(ctx.common.status_period_s, wd or ctx.common.status_period_s, 1.0))
-
-
-async def first_of(*aws: Awaitable[object]) -> None:
-    """Wait for the first of ``aws`` to finish (an event, a sleep, a stop); the others are cancelled.
-    The first one's exception, if it raised, is raised."""
-    tasks = [asyncio.ensure_future(a) for a in aws]
-    try:
-        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for t in tasks:
-            t.cancel()
-    for t in done:
-        t.result()
 
 
 def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[], None]) -> None:

@@ -16,10 +16,9 @@ from typing import Literal
 import numpy as np
 
 from common.decision import k_for_path
-from common.runtime.clock import monotonic, pause
+from common.runtime.clock import first_of, monotonic, pause
 from common.runtime.errors import TrajectoryRejected
 from common.runtime.node import Rejected
-from common.runtime.service import first_of
 from common.safety.separation import Figures
 from common.safety.states import Event, IllegalTransition, State
 from common.trajectory.scaling import Curve, resume_at

@@ -21,7 +21,7 @@ from typing import cast
 import numpy as np
 
 from common.robot.ur16e import JointLimits
-from common.runtime.service import first_of
+from common.runtime.clock import first_of
 from common.safety.geometry import Arm
 from common.safety.separation import Figures
 from common.trajectory.scaling import Curve

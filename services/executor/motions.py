@@ -105,12 +105,12 @@ class Motions:
         """One motion on the servo loop, a task's path or the slow move to its start: at the scale the
         person's distance allows, under the lease on it and the controller's watchdog. ``start``: the
         scale of a path going on from within (``resumed``)."""
-        # prepare() arms a controller's watchdog, here, outside the loop; each step's target is then only
-        # converted to the form servo takes (backend.target), touching nothing
+        # prepare() arms a controller's watchdog, here, outside the loop (a servo process: there, before the
+        # motion); each step's target is then only converted to the form servo takes, touching nothing
         self.backend.prepare(own.waypoints[:1])
         start = start or self.reactions.start_ramp(own, self.carried, figures)
-        here = self.backend.target(self.backend.actual_q())  # held there until the path advances
-        run = PathRun(own, curve, figures, k, start, self.backend.target, self.limits, self.kit.speed,
+        here = self.backend.actual_q()  # held there until the path advances
+        run = PathRun(own, curve, figures, k, start, self.servo.playback, self.limits, self.kit.speed,
                       self.reactions.arm, here)  # fmt: skip
         self.reactions.running(run)
         settle = round(self.settings.settle_s * RATE_HZ)

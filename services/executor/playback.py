@@ -1,18 +1,20 @@
 """The path in progress: what the servo loop sends, one controller step at a time
-(services/executor/servo.py), and the one owner of what it plays (``PathRun``) on the event loop.
+(services/executor/servo.py), in the servo's own process (services/executor/servo_process.py) or thread,
+and the one owner of what it plays (``PathRun``) on the event loop.
 
 ``Samples``: targets computed before the motion (the tests' and the benchmarks' fixed motions).
 ``Playback``: a path's curve at path time s(t), under a time scale that another thread may change while
 it runs (common/trajectory/scaling.py).
 
-The other thread (the path's owner, ``PathRun`` below) talks to the loop through one
-latest-wins mailbox, as the UR driver's scaled trajectory controller takes a new goal from one realtime
-buffer: an ``Offer`` says what is to follow the state in force, a new ``Ramp`` of the scale from a
-controller step still ahead and a new curve (a switch of solution) from a path time still ahead, and it
-names the ``InForce`` state it was planned from. The loop reads the mailbox once a step. An offer planned
-from the state still in force is adopted, whole; one planned from another (the loop took a change
-meanwhile) or too late for its step is dropped and counted (``missed``), never applied late: the owner
-plans again. A newer offer replaces an older one, so an offer carries what is still pending that it keeps.
+The owner (``PathRun`` below, in another thread or, through a mirror, in another process) talks to the
+loop through one latest-wins mailbox, as the UR driver's scaled trajectory controller takes a new goal
+from one realtime buffer: an ``Offer`` says what is to follow the state in force, a new ``Ramp`` of the
+scale from a controller step still ahead and a new curve (a switch of solution) from a path time still
+ahead, and it names the ``InForce`` state it was planned from. The loop reads the mailbox once a step. An
+offer planned from the state still in force is adopted, whole; one planned from another (the loop took a
+change meanwhile) or too late for its step is dropped and counted (``missed``), never applied late: the
+owner plans again. A newer offer replaces an older one, so an offer carries what is still pending that it
+keeps.
 
 The loop says what it did with each offer, and when a pending change took effect or was dropped, through
 ``notify`` (the owner's wake-up, once per change: not per step). A switch carries the highest scale it may
@@ -37,24 +39,16 @@ import asyncio
 import contextlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from common.robot.ur16e import JointLimits
-from common.runtime.clock import monotonic, wall_monotonic
-from common.runtime.service import first_of
+from common.runtime.clock import first_of, monotonic, wall_monotonic
 from common.safety.geometry import Arm
 from common.safety.separation import BARE, Figures
-from common.trajectory.scaling import (
-    DT,
-    LIMIT_RTOL,
-    Curve,
-    Ramp,
-    plan_ramp,
-    ramp_ratio,
-    switch_curve,
-)
+from common.trajectory.scaling import DT, LIMIT_RTOL, Curve, Ramp, plan_ramp, ramp_ratio, switch_curve
 from common.trajectory.task import PathPlan
 
 Array = NDArray[np.float64]
@@ -122,6 +116,41 @@ class Offer:
 
 def _nothing() -> None:
     pass
+
+
+class Owned(Protocol):
+    """A playback as its owner (``PathRun``) sees it: a ``Playback`` in the servo's thread, or its mirror
+    beside a servo process (services/executor/remote.py). Read on the owner's loop; ``now`` changes only
+    when the loop says so (``notify``)."""
+
+    now: InForce
+    mailbox: Offer | None
+    fallback: Offer | None
+    stop_s: float
+    began: tuple[Ramp, float] | None
+    lapses: int
+    unchecked: int
+
+    @property
+    def t(self) -> float: ...
+    @property
+    def s(self) -> float: ...
+    @property
+    def sigma(self) -> float: ...
+    @property
+    def finished(self) -> bool: ...
+    @property
+    def curve(self) -> Curve: ...
+    def offer(
+        self, ramp: Ramp | None = None, switch: Switch | None = None, base: InForce | None = None
+    ) -> bool: ...
+    def renew(self, until: float) -> None: ...
+    def settled(self, offer: Offer | None = None) -> bool: ...
+    def state(self) -> Ramp: ...
+
+
+# the servo's playback of a curve: (curve, start, notify, the owner's clock, the joints to hold at first)
+MakePlayback = Callable[[Curve, Ramp, Callable[[], None], Callable[[], float], object | None], Owned]
 
 
 class Playback:
@@ -299,7 +328,7 @@ Scale = Callable[[Figures], float]  # the σ the person's distance allows now, f
 
 
 class PathRun:
-    """The path in progress's one owner (STYLE 15): the playback the servo loop plays (above), the ramps
+    """The path in progress's one owner (STYLE 15): the playback the servo loop plays, the ramps
     of the time scale and the switch of solution offered to it, and the path's SSM figures
     (common/safety/separation.py ``Figures``: top link speed and longest stop of the curve being played,
     and of a switched one while it is pending).
@@ -319,7 +348,7 @@ class PathRun:
         figures: Figures,
         k: int,
         start: Ramp,
-        convert: Callable[[np.ndarray], object],
+        make: MakePlayback,
         limits: JointLimits,
         speed: float = 1.0,
         arm: Arm = BARE,
@@ -327,7 +356,8 @@ class PathRun:
     ) -> None:
         """``speed``: playback seconds per wall second (the clock's speed), for leads given in wall time;
         ``arm``: the robot and its tool, whose fastest point a switched curve's figures take; ``hold``:
-        where the arm stands, held there until the path advances (``Playback``)."""
+        where the arm stands (joints), held there until the path advances (``Playback``); ``make``: the
+        servo's playback of it (``Servo.playback``: in its thread, or a mirror of one in its process)."""
         self.path, self.k, self.figures, self.limits, self.speed = path, k, figures, limits, speed
         self.arm = arm
         self.pending_figures: Figures | None = None  # of a switched curve not yet taken
@@ -335,11 +365,11 @@ class PathRun:
         self.ended = asyncio.Event()
         loop = asyncio.get_running_loop()
 
-        def notify() -> None:  # from the servo thread, once per change
+        def notify() -> None:  # from the servo's thread (or the loop's own, a process's), once per change
             with contextlib.suppress(RuntimeError):  # a loop already closed: nobody waits
                 loop.call_soon_threadsafe(self.changed.set)
 
-        self.playback = Playback(curve, start, convert, notify, loop.time, hold)
+        self.playback: Owned = make(curve, start, notify, loop.time, hold)
         self.lock = asyncio.Lock()
         self.ramps = self.ramps_refused = 0
         self.switched_at = 0.0  # the path time of the last switch taken

@@ -12,8 +12,7 @@ import logging
 from collections.abc import AsyncIterator, Callable
 from functools import partial
 
-from common.runtime.clock import pause
-from common.runtime.service import first_of
+from common.runtime.clock import first_of, pause
 from common.safety.states import Event, State
 from schemas.decision import Selection
 from services.executor.kit import Kit, Safety

@@ -33,21 +33,24 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Protocol, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from common.runtime.lifetime import name_this_thread
+from common.trajectory.scaling import Curve, Ramp
 from services.executor.cores import CoreClaim, claim_core, default_lock_dir
-from services.executor.playback import Samples
+from services.executor.playback import Owned, Playback, Samples
 from services.executor.settings import Settings
 from services.executor.timing import TickSummary, summarise
 
 log = logging.getLogger("cadence.executor")
+Array = NDArray[np.float64]
 PERIOD_NS = 2_000_000  # 500 Hz: one e-Series controller step
 MCL_CURRENT, MCL_FUTURE = 1, 2
 PR_SET_TIMERSLACK = 29
@@ -59,6 +62,20 @@ class ServoBackend(Protocol):
     def servo(self, target: object) -> bool: ...  # False: the arm refused (protective stop, lost link)
     def brake(self) -> bool: ...  # one step of a decelerating stop; True once at rest
     def settled(self, target: object) -> bool: ...
+    def target(self, q: Array) -> object: ...  # joints in the form servo takes
+
+
+def playback_on(
+    backend: ServoBackend,
+    curve: Curve,
+    ramp: Ramp,
+    notify: Callable[[], None],
+    clock: Callable[[], float],
+    hold: object | None,
+) -> Playback:
+    """A path's playback, its targets (and the joints ``hold``) in the form ``backend`` servos."""
+    convert = backend.target
+    return Playback(curve, ramp, convert, notify, clock, None if hold is None else convert(cast(Array, hold)))
 
 
 Outcome = Literal["done", "stopped", "fault", "overruns"]
@@ -82,6 +99,13 @@ class Source(Protocol):
     @property
     def done(self) -> bool: ...
     def next(self) -> object | None: ...
+
+
+def source_of(targets: Sequence[object] | Source | Owned) -> Source:
+    """What a loop plays: a playback as it is (in this process, it is one), a list of targets in order."""
+    if hasattr(targets, "next"):
+        return cast(Source, targets)
+    return Samples(cast(Sequence[object], targets))
 
 
 @dataclass(slots=True)
@@ -148,7 +172,10 @@ class ServoLoop:
         ring: int = 1 << 17,
         overrun_limit: int = 5,
         realtime: bool = True,
+        between: Callable[[], None] | None = None,
     ) -> None:
+        """``between``: called once a tick after its steps were sent (a servo process serves its mailbox
+        there: services/executor/servo_process.py)."""
         if speed <= 1.0:
             self.steps, self.period_ns = 1, round(PERIOD_NS / speed)
         else:
@@ -159,6 +186,7 @@ class ServoLoop:
         self.spin_ns = spin_us * 1000
         self.overrun_limit = overrun_limit
         self.realtime = realtime
+        self.between = between
         self.errors_ns = np.zeros(ring, dtype=np.int64)  # |late| per tick, ns: a ring
         self.ticks = 0  # since the last reset
         self.overruns = 0
@@ -173,12 +201,17 @@ class ServoLoop:
         self._thread.start()
         self._ready.wait()
 
-    def run(self, targets: Sequence[object] | Source, settle_ticks: int = 0) -> Future[MotionResult]:
+    def playback(
+        self, curve: Curve, ramp: Ramp, notify: Callable[[], None], clock: Callable[[], float], hold: object
+    ) -> Playback:
+        """A path's playback on this loop's backend (``PathRun``'s ``make``)."""
+        return playback_on(self.backend, curve, ramp, notify, clock, hold)
+
+    def run(self, targets: Sequence[object] | Source | Owned, settle_ticks: int = 0) -> Future[MotionResult]:
         """Queue one motion: the targets (a list, one per sample, or a playback), then up to
         ``settle_ticks`` ticks holding the last one until the backend says the arm has settled on it."""
         fut: Future[MotionResult] = Future()
-        source = targets if hasattr(targets, "next") else Samples(targets)
-        self._jobs.put(_Job(cast(Source, source), settle_ticks, fut))
+        self._jobs.put(_Job(source_of(targets), settle_ticks, fut))
         return fut
 
     def request_stop(self) -> None:
@@ -199,14 +232,14 @@ class ServoLoop:
     # --- the thread -------------------------------------------------------------------------------
 
     def _main(self) -> None:
-        self._setup()
+        self.setup()
         self._ready.set()
         while (job := self._jobs.get()) is not None:
             gc.collect()
             gc.freeze()
             gc.disable()
             try:
-                result = self._servo(job.source, job.settle_ticks)
+                result = self.play(job.source, job.settle_ticks)
             except BaseException as exc:  # the future carries it to the service
                 if job.future.set_running_or_notify_cancel():
                     job.future.set_exception(exc)
@@ -219,7 +252,9 @@ class ServoLoop:
                 gc.unfreeze()
                 self.index = -1
 
-    def _setup(self) -> None:
+    def setup(self) -> None:
+        """The calling thread becomes the servo's: its name, core, priority and locked memory (the loop's
+        own thread, or a servo process's only one). What it could not get goes into ``warnings``."""
         name_this_thread("servo")
         if self.core is not None:
             try:
@@ -242,8 +277,10 @@ class ServoLoop:
                 f"memory not locked ({os.strerror(ctypes.get_errno())}); grant LimitMEMLOCK= in the unit"
             )
 
-    def _servo(self, source: Source, settle_ticks: int) -> MotionResult:
+    def play(self, source: Source, settle_ticks: int) -> MotionResult:
+        """One motion, in the calling thread (the servo's: after ``setup``)."""
         errors, ring = self.errors_ns, self.errors_ns.size
+        between = self.between
         motion = _Motion(self, source, settle_ticks)
         period, spin, steps, limit = self.period_ns, self.spin_ns, self.steps, self.overrun_limit
         clock, sleep = time.perf_counter_ns, time.sleep
@@ -269,6 +306,8 @@ class ServoLoop:
                 break
             if step == AT_REST:
                 break
+            if between is not None:
+                between()
             if clock() > deadline + period:
                 overruns += 1
                 run_of_overruns += 1
@@ -292,8 +331,11 @@ class Servo(Protocol):
     warnings: list[str]
 
     def start(self) -> None: ...
+    def playback(
+        self, curve: Curve, ramp: Ramp, notify: Callable[[], None], clock: Callable[[], float], hold: object
+    ) -> Owned: ...
     def run(
-        self, targets: Sequence[object] | Source, settle_ticks: int = 0
+        self, targets: Sequence[object] | Source | Owned, settle_ticks: int = 0
     ) -> Future[MotionResult] | asyncio.Future[MotionResult]: ...
     def request_stop(self) -> None: ...
     def close(self) -> None: ...
@@ -319,9 +361,16 @@ class LockstepServo:
     def start(self) -> None:
         pass
 
-    def run(self, targets: Sequence[object] | Source, settle_ticks: int = 0) -> asyncio.Future[MotionResult]:
-        source = targets if hasattr(targets, "next") else Samples(targets)
-        return asyncio.ensure_future(self._motion(cast(Source, source), settle_ticks))
+    def playback(
+        self, curve: Curve, ramp: Ramp, notify: Callable[[], None], clock: Callable[[], float], hold: object
+    ) -> Playback:
+        """A path's playback on this loop's backend (``PathRun``'s ``make``)."""
+        return playback_on(self.backend, curve, ramp, notify, clock, hold)
+
+    def run(
+        self, targets: Sequence[object] | Source | Owned, settle_ticks: int = 0
+    ) -> asyncio.Future[MotionResult]:
+        return asyncio.ensure_future(self._motion(source_of(targets), settle_ticks))
 
     def request_stop(self) -> None:
         self._stop = True

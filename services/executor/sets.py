@@ -15,8 +15,7 @@ import msgspec
 import numpy as np
 
 from common.runtime.bus import Bus
-from common.runtime.clock import pause
-from common.runtime.service import first_of
+from common.runtime.clock import first_of, pause
 from common.runtime.storage import atomic_write, load_checked
 from common.trajectory.planner import content_hash
 from common.trajectory.task import Task

@@ -15,8 +15,7 @@ from collections import deque
 from collections.abc import Callable
 
 from common.runtime.bus import QueryError
-from common.runtime.clock import monotonic, pause
-from common.runtime.service import first_of
+from common.runtime.clock import first_of, monotonic, pause
 from common.safety.states import Event, Motion, State, transition
 from schemas.robot import EventKind, RobotEvent
 from services.executor.backends import Backend, RobotUnavailable
