@@ -41,7 +41,7 @@ from schemas.topology import (
     Topic,
     source_chunk,
 )
-from services.executor.backends import backend_for
+from services.executor.backends import Backend, backend_for
 from services.executor.cycles import Cycles
 from services.executor.figures import CurveFigures
 from services.executor.kit import Kit
@@ -49,8 +49,9 @@ from services.executor.motions import Motions
 from services.executor.persist import ExecutorStore
 from services.executor.reaction import Reactions
 from services.executor.records import Records
+from services.executor.remote import RemoteBackend, ServoProcess
 from services.executor.selection import SelectionInForce
-from services.executor.servo import servo_for
+from services.executor.servo import Servo, claim_for, servo_for
 from services.executor.sets import SetCache
 from services.executor.settings import Settings
 from services.executor.supervisor import Supervisor
@@ -81,12 +82,26 @@ class Executor(Node):
         kit = Kit(common.clock, speed, common.clock_skew_s, ctx.counters, ctx.stop, self.publish, ctx.note,
                   set_state, self.start_soon)  # fmt: skip
         task = load_task(s.task)
-        # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
-        self.backend = backend_for(s, task, math.inf if driven else speed)
-        self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
+        self.backend: Backend
+        self.loop: Servo
+        if s.servo == "process" and not driven:  # the loop, its path and the robot: a process of their own
+            self.claim, fifo, warnings = claim_for(s)
+            proc = ServoProcess(s, speed, self.claim.core, fifo, self.servo_died)
+            self.loop, self.backend = proc, RemoteBackend(proc)
+            proc.warnings = warnings
+            try:
+                proc.start()
+            except Exception:
+                self.claim.release()
+                raise
+            proc.warnings = warnings + proc.warnings
+            self.backend = RemoteBackend(proc)  # its name and clock as the process found them
+        else:  # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
+            self.backend = backend_for(s, task, math.inf if driven else speed)
+            self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
+            self.loop.start()  # its set-up now: what it could not get is known before the arm is reached
         if self.claim.core is not None:
             ctx.counters["servo_core"] = self.claim.core
-        self.loop.start()  # its set-up now: what it could not get is known before the arm is reached
         if missing := "; ".join(self.loop.warnings):
             if (s.realtime or ("required" if s.backend == "ur_rtde" else "optional")) == "required":
                 self.claim.release()
@@ -115,6 +130,13 @@ class Executor(Node):
         self.telemetry = Telemetry(kit, self.backend, task, self.snapshot)
         self.cycles.load()
         self.connected = False
+
+    def servo_died(self, why: str) -> None:
+        """The servo process died between motions: a protective stop, latched (one in motion ends the
+        motion as a fault, which the cycles latch)."""
+        self.ctx.counters["servo_deaths"] += 1
+        self.safety.event("protective_stop", why, self.safety.path_id)
+        self.safety.fire(Event.FAULT, why)
 
     @on(SELECTION, arrival=True)  # judged as it comes: a replayed flood cannot push a new one out of a queue
     def on_selection(self, sel: Selection) -> None:

@@ -489,8 +489,9 @@ class UrRtdeBackend:
             io.disconnect()
 
 
-def backend_for(settings: Settings, task: Task, speed: float) -> Backend:
-    """The configured backend, not yet connected; a setting it cannot take is a ConfigError at start."""
+def backend_for(settings: Settings, task: Task, speed: float, q0: Sequence[float] | None = None) -> Backend:
+    """The configured backend, not yet connected; a setting it cannot take is a ConfigError at start.
+    ``q0``: where a sim arm stands (a servo process restarted: where the last one left it)."""
     if settings.backend == "ur_rtde":
         if speed != 1.0:
             raise ConfigError(f"[executor] backend: a real controller runs at speed 1, not {speed}")
@@ -506,15 +507,17 @@ def backend_for(settings: Settings, task: Task, speed: float) -> Backend:
         except ValueError as exc:
             raise ConfigError(f"[executor] {exc}") from None
     first = next(s.move for s in task.cycle if s.move is not None)
-    q0 = (
-        np.radians(settings.sim_start_deg)
+    start = (
+        np.asarray(q0, dtype=float)
+        if q0 is not None
+        else np.radians(settings.sim_start_deg)
         if settings.sim_start_deg is not None
         else task.paths[first].waypoints[0]
     )
-    if len(q0) != 6:
-        raise ConfigError(f"[executor] sim_start_deg: 6 joint angles, got {len(q0)}")
+    if len(start) != 6:
+        raise ConfigError(f"[executor] sim_start_deg: 6 joint angles, got {len(start)}")
     return SimBackend(
-        q0,
+        start,
         lookahead=settings.lookahead_s,
         gain=settings.gain,
         stop_deceleration=settings.stop_deceleration,

@@ -122,7 +122,7 @@ class Motions:
             self.reactions.ended(run)
             counters["ramps"] += run.ramps
             counters["ramps_refused"] += run.ramps_refused
-            counters["lease_lapses"] += run.playback.lapses
+            counters["lease_lapses"] += run.playback.lapses - run.lapses_counted
             counters["unchecked_stops"] += run.playback.unchecked
             self.carried = run.playback.state()
         await asyncio.to_thread(self.backend.motion_ended)

@@ -200,6 +200,11 @@ class Playback:
         return self.finished
 
     @property
+    def seen(self) -> Offer | None:
+        """The last offer the loop read from the mailbox (adopted or dropped)."""
+        return self._seen
+
+    @property
     def t(self) -> float:
         return self.tick * DT
 
@@ -372,6 +377,7 @@ class PathRun:
         self.playback: Owned = make(curve, start, notify, loop.time, hold)
         self.lock = asyncio.Lock()
         self.ramps = self.ramps_refused = 0
+        self.lapses_counted = 0  # of the playback's lapses, those in the executor's counters already
         self.switched_at = 0.0  # the path time of the last switch taken
         self.plan_s = 0.2  # how long planning a switch takes (wall s, smoothed): the switch point's lead
 

@@ -197,6 +197,9 @@ class Reactions:
 
     async def _look(self) -> None:
         r, a = self.run, self.adoption
+        if r is not None and (lapsed := r.playback.lapses - r.lapses_counted):  # counted as soon as seen
+            self.kit.counters["lease_lapses"] += lapsed
+            r.lapses_counted += lapsed
         if r is None or r is not self.offered_on:  # a ramp offered on a path that ended never plays
             a.dropped()
         ramp, at = (r.playback.began if r is not None else None) or (None, None)

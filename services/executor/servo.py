@@ -323,12 +323,17 @@ class ServoLoop:
 
 
 class Servo(Protocol):
-    """What the executor drives: the 500 Hz thread (``ServoLoop``), or a lockstep cell's task."""
+    """What the executor drives: the 500 Hz loop in a process of its own (services/executor/remote.py
+    ``ServoProcess``) or a thread (``ServoLoop``), or a lockstep cell's task."""
 
-    index: int
-    ticks: int
-    overruns: int
     warnings: list[str]
+
+    @property
+    def index(self) -> int: ...
+    @property
+    def ticks(self) -> int: ...
+    @property
+    def overruns(self) -> int: ...
 
     def start(self) -> None: ...
     def playback(
@@ -416,14 +421,23 @@ def servo_for(
     if lockstep:
         return LockstepServo(backend), CoreClaim(None, None)
     s = settings
-    claim = claim_core(os.sched_getaffinity(0), Path(s.lock_dir or default_lock_dir()), s.servo_core)
-    fifo = s.fifo_priority if claim.core is not None else 0
+    claim, fifo, warnings = claim_for(s)
     loop = ServoLoop(backend, core=claim.core, fifo_priority=fifo, lock_memory=s.lock_memory, speed=speed,
                      spin_us=s.spin_us, overrun_limit=s.overrun_limit, realtime=realtime)  # fmt: skip
-    if claim.core is None:  # no core of its own: no FIFO either (two FIFO threads would share a core)
-        loop.warnings.append(claim.note)
-    elif s.fifo_priority == 0:
-        loop.warnings.append("fifo_priority = 0: the servo thread runs at normal priority (set it, 1–99)")
-    if not s.lock_memory:
-        loop.warnings.append("lock_memory = false: the servo loop's memory may be paged out (set it true)")
+    loop.warnings += warnings
     return loop, claim
+
+
+def claim_for(s: Settings) -> tuple[CoreClaim, int, list[str]]:
+    """A core for the servo (cores.py), the FIFO priority it may take there, and what it goes without:
+    FIFO only on a core of its own, so that two executors on one host never share a core at FIFO."""
+    claim = claim_core(os.sched_getaffinity(0), Path(s.lock_dir or default_lock_dir()), s.servo_core)
+    fifo = s.fifo_priority if claim.core is not None else 0
+    warnings = []
+    if claim.core is None:  # no core of its own: no FIFO either (two FIFO threads would share a core)
+        warnings.append(claim.note)
+    elif s.fifo_priority == 0:
+        warnings.append("fifo_priority = 0: the servo runs at normal priority (set it, 1–99)")
+    if not s.lock_memory:
+        warnings.append("lock_memory = false: the servo loop's memory may be paged out (set it true)")
+    return claim, fifo, warnings

@@ -120,6 +120,10 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # in one line saying which and how to grant it; "optional" runs on and says so (the log, `cadence top`).
     # Default: required with a real robot (ur_rtde), optional on the sim
     realtime: Literal["required", "optional"] | None = None
+    # where the 500 Hz loop, the path it plays and the backend run: a process of their own, which no thread
+    # of the executor can starve through the GIL (services/executor/servo_process.py); or a thread of the
+    # executor (a host where a process cannot be started: no memfd)
+    servo: Literal["process", "thread"] = "process"
     spin_us: Annotated[int, _range(0, 1900)] = 400
     overrun_limit: Annotated[int, _range(1, 1000)] = 5  # this many overruns in a row stop the robot
     stop_deceleration: Annotated[float, _range(0.5, 40.0)] = 4.0  # rad/s², SIGTERM and overrun stops

@@ -251,7 +251,7 @@ def test_the_servo_thread_carries_its_name_for_the_os(samples: np.ndarray) -> No
 @pytest.mark.parametrize(
     ("changes", "says"),
     [
-        ({"fifo_priority": 0}, "fifo_priority = 0: the servo thread runs at normal priority"),
+        ({"fifo_priority": 0}, "fifo_priority = 0: the servo runs at normal priority"),
         ({"lock_memory": False}, "lock_memory = false"),
         ({"every_core_taken": True}, "already serve other executors (pid {pid}"),  # this test's own
     ],

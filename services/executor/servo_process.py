@@ -1,0 +1,330 @@
+"""The servo process (DESIGN §8): the 500 Hz loop, the path it plays and the robot's backend, alone in a
+process of its own, single-threaded, on its core at SCHED_FIFO with its memory locked.
+
+Why a process: a thread is not real-time while another thread of its process runs. The GIL has no
+priority inheritance, so a FIFO servo thread waits for whatever ordinary thread of the executor holds it,
+and a loaded host deschedules that one: 77 % of ticks overran beside one busy thread, and a reading took
+up to 1.5 s to reach the arm (issue 73). Here no other thread exists to hold it.
+
+It talks to its executor through shared memory only (``Channel``, common/runtime/mailbox.py), and never
+waits for it: commands come through a ring read between ticks (a path's curves, an offer of a ramp or a
+switch, the stop kept ready, a call into the backend), the lease and a stop through a latest-wins block,
+and it writes back the arm's state every tick, what it did with each offer as it does it (``events``),
+and the calls' answers (``replies``). The lease lives here: when the executor's renewals stop (a stalled or
+dead executor, a starved event loop), the playback takes the stop kept ready by itself (playback.py).
+The executor supervises it (services/executor/remote.py): a death here is a latched protective stop.
+
+It imports what a tick needs: no Zenoh, no scipy, and no thread of numpy's (OPENBLAS_NUM_THREADS=1).
+Started as ``python -m services.executor.servo_process FD WAKE`` with its configuration pickled on stdin:
+FD a memfd of ``Channel.SIZE`` bytes, WAKE a pipe's write end (a byte there wakes the executor's loop).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import mmap
+import os
+import pickle
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from common.runtime.mailbox import Latest, Ring
+from common.trajectory.task import load_task
+from services.executor.backends import Backend, backend_for
+from services.executor.playback import InForce, Offer, Playback, Samples, Switch
+from services.executor.servo import MotionResult, ServoLoop, Source, playback_on
+from services.executor.settings import Settings
+
+IDLE_S = 0.001  # between motions the mailbox is read this often
+SLOW_EVERY = 25  # ticks: the fault, the inputs and the tool's pose are read at 20 Hz during a motion
+# what the executor may call on the backend through the mailbox (the rest is state, or the loop's own)
+CALLS = frozenset(
+    {"connect", "close", "reconnect", "reset_fault", "prepare", "motion_ended", "move_j", "set_gripper"}
+)
+
+
+class Channel:
+    """The shared memory's layout, the same on both sides: ``ctrl`` (the executor's: stop, lease until,
+    renewals), ``state`` (the servo's, rewritten every tick), and three rings."""
+
+    CTRL, STATE, FAULT_BYTES = 3, 32, 1024
+    RINGS: ClassVar[dict[str, int]] = {"cmd": 4 << 20, "events": 1 << 20, "replies": 1 << 20}
+    # state's values by name (``q``, ``qd``, ``tcp`` are 6 wide)
+    AT: ClassVar[dict[str, int]] = {"run": 0, "index": 1, "ticks": 2, "overruns": 3, "t": 4, "s": 5,
+                                    "sigma": 6, "inputs": 7, "lost": 8, "beat": 9, "moving": 10, "q": 11,
+                                    "qd": 17, "tcp": 23}  # fmt: skip
+    # the blocks and rings, each rounded up to 8 bytes, in whole pages
+    SIZE = (
+        (Latest.nbytes(CTRL) + Latest.nbytes(STATE, FAULT_BYTES) + sum(RINGS.values()) + 8192) // 4096 * 4096
+    )
+
+    def __init__(self, buf: memoryview) -> None:
+        at = 0
+
+        def take(n: int) -> memoryview:
+            nonlocal at
+            part, at = buf[at : at + n], (at + n + 7) // 8 * 8
+            return part
+
+        self.ctrl = Latest(take(Latest.nbytes(self.CTRL)), self.CTRL)
+        self.state = Latest(take(Latest.nbytes(self.STATE, self.FAULT_BYTES)), self.STATE, self.FAULT_BYTES)
+        self.cmd, self.events, self.replies = (Ring(take(n)) for n in self.RINGS.values())
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    """What the servo process is started with (pickled on its stdin)."""
+
+    settings: Settings
+    speed: float
+    core: int | None
+    fifo_priority: int
+    q0: tuple[float, ...] | None = None  # a sim arm restarted where the last one stood
+
+
+Ref = tuple[int, Any]  # (tag, the object itself the first time it crosses, else None)
+
+
+class Server:
+    """Serves the executor between ticks and while idle: its commands in, the arm's state and the
+    playback's changes out."""
+
+    def __init__(self, ch: Channel, backend: Backend, loop: ServoLoop, wake: int) -> None:
+        self.ch, self.backend, self.loop, self.wake = ch, backend, loop, wake
+        self.parent = os.getppid()
+        self.objs: dict[int, Any] = {}  # tag → the executor's curve, ramp or switch
+        self.tags: dict[int, int] = {}  # id(object) → its tag
+        self.made = 0  # tags of objects made here (a lapse's unchecked stop): negative
+        self.pb: Playback | None = None
+        self.run_id = 0
+        self.version = 0  # counts the playback's InForce replacements
+        self.in_force: InForce | None = None
+        self.offer: tuple[Offer, int] | None = None  # the last offer put in the mailbox, and its number
+        self.seen_seq = 0
+        self.renewals = 0.0
+        self.next_run: tuple[int, Source, int] | None = None
+        self.ticks = 0
+        self.exiting = False
+        self._fault = ""
+        self.crash = ""  # what the backend raised inside a tick: the fault from then on
+
+    # --- objects that cross -------------------------------------------------------------------------
+
+    def obj(self, ref: Ref | None) -> Any:
+        if ref is None:
+            return None
+        tag, o = ref
+        if o is not None:
+            self.objs[tag], self.tags[id(o)] = o, tag
+        return self.objs[tag]
+
+    def switch(self, ref: Ref | None) -> Switch | None:
+        """A switch crosses as (s, its curve's ref, max σ): its curve is then the same object as a curve's."""
+        if ref is None:
+            return None
+        tag, parts = ref
+        if parts is not None:
+            sw = Switch(parts[0], self.obj(parts[1]), parts[2])
+            self.objs[tag], self.tags[id(sw)] = sw, tag
+        return self.objs[tag]
+
+    def ref(self, o: object | None) -> Ref | None:
+        if o is None:
+            return None
+        tag = self.tags.get(id(o))
+        if tag is not None:
+            return tag, None
+        self.made -= 1
+        self.objs[self.made], self.tags[id(o)] = o, self.made
+        return self.made, o
+
+    # --- the executor's commands ----------------------------------------------------------------------
+
+    def handle(self, m: tuple[Any, ...]) -> None:
+        kind = m[0]
+        if kind == "call":
+            _, n, name, args = m
+            try:
+                if name not in CALLS:
+                    raise ValueError(f"the servo process takes no call '{name}'")
+                answer: tuple[Any, ...] = (n, True, getattr(self.backend, name)(*args))
+            except Exception as exc:  # the executor raises it where it called
+                answer = (n, False, exc)
+            self.reply(answer)
+        elif kind == "summary":
+            self.reply((m[1], True, self.loop.summary()))
+        elif kind == "run":
+            self.begin(*m[1:])
+        elif kind == "offer" and self.pb is not None:
+            _, seq, version, ramp, switch = m
+            offer = Offer(self.base(version), self.obj(ramp), self.switch(switch))
+            self.offer, self.pb.mailbox = (offer, seq), offer
+        elif kind == "fallback" and self.pb is not None:
+            _, version, ramp = m
+            self.pb.fallback = Offer(self.base(version), ramp=self.obj(ramp))
+        elif kind == "stop_s" and self.pb is not None:
+            self.pb.stop_s = m[1]
+        elif kind == "exit":
+            self.exiting = True
+
+    def reply(self, answer: tuple[Any, ...]) -> None:
+        try:
+            ok = self.ch.replies.put(answer)
+        except Exception as exc:  # an answer that does not pickle: its words do
+            ok = self.ch.replies.put((answer[0], False, RuntimeError(f"{answer[2]!r}: {exc}")))
+        if ok:
+            self._wake()
+
+    def base(self, version: int) -> InForce:
+        """The state an offer was planned from: the one in force if its version is current, else one that
+        is never in force (the playback then drops the offer, as it would a stale one)."""
+        pb = self.pb
+        assert pb is not None
+        return pb.now if version == self.version else InForce(pb.now.ramp, pb.now.curve)
+
+    def begin(self, run_id: int, spec: tuple[Any, ...], settle: int, stop_s: float) -> None:
+        self.objs.clear()
+        self.tags.clear()
+        self.run_id, self.version, self.offer, self.seen_seq = run_id, 0, None, 0
+        source: Source
+        if spec[0] == "path":
+            _, curve, ramp, hold = spec
+            clock = time.monotonic  # the host's: the executor's loop's too
+            pb = self.pb = playback_on(
+                self.backend, self.obj(curve), self.obj(ramp), self.changed, clock, hold
+            )
+            pb.stop_s = stop_s
+            self.in_force = pb.now
+            source = pb
+        else:
+            target = self.backend.target
+            source = Samples([target(np.asarray(row, dtype=float)) for row in spec[1]])
+        self.next_run = (run_id, source, settle)
+
+    # --- what goes back -------------------------------------------------------------------------------
+
+    def _wake(self) -> None:
+        with contextlib.suppress(BlockingIOError, BrokenPipeError):  # a byte is there, or nobody reads
+            os.write(self.wake, b"\0")
+
+    def changed(self) -> None:
+        """The playback's notification (once per change, from inside a tick): its state, by tags."""
+        pb = self.pb
+        if pb is None:
+            return
+        if pb.now is not self.in_force:
+            self.version, self.in_force = self.version + 1, pb.now
+        if self.offer is not None and pb.seen is self.offer[0]:
+            self.seen_seq = self.offer[1]
+        now, began = pb.now, pb.began
+        self.ch.events.put(("state", self.run_id, self.version, self.ref(now.ramp), self.ref(now.curve),
+                            self.ref(now.pending_ramp), self.ref(now.pending_switch), self.seen_seq,
+                            None if began is None else (self.ref(began[0]), began[1]), pb.finished,
+                            pb.lapses, pb.unchecked, pb.lapsed, pb.t, pb.s, pb.sigma))  # fmt: skip
+        self._wake()
+
+    def publish(self, slow: bool) -> None:
+        st, at, b, loop = self.ch.state, Channel.AT, self.backend, self.loop
+        v = st.view
+        v[at["run"]], v[at["index"]], v[at["ticks"]] = self.run_id, loop.index, loop.ticks
+        v[at["overruns"]], v[at["beat"]], v[at["moving"]] = (
+            loop.overruns,
+            time.monotonic(),
+            self.pb is not None,
+        )
+        pb = self.pb
+        if pb is not None:
+            v[at["t"]], v[at["s"]], v[at["sigma"]] = pb.t, pb.s, pb.sigma
+        v[at["q"] : at["q"] + 6] = b.actual_q()
+        v[at["qd"] : at["qd"] + 6] = b.actual_qd()
+        text = None
+        if slow:
+            v[at["tcp"] : at["tcp"] + 6] = b.tcp_pose()
+            v[at["inputs"]], v[at["lost"]] = b.digital_inputs(), b.link_lost()
+            if (fault := self.crash or b.fault()) != self._fault:
+                self._fault, text = fault, fault.encode()
+        st.write(text)
+
+    # --- the loop -------------------------------------------------------------------------------------
+
+    def serve(self) -> None:
+        """Between two ticks (``ServoLoop.between``), and while idle."""
+        self.ticks += 1
+        ctrl = self.ch.ctrl.read()
+        if ctrl is not None:
+            stop, lease, renewals = ctrl[0]
+            if stop:
+                self.loop.request_stop()
+            if renewals != self.renewals and self.pb is not None:
+                self.renewals = renewals
+                self.pb.renew(lease)
+        for _ in range(8):  # a few a tick: a burst waits for the next ticks, never the tick
+            m = self.ch.cmd.get()
+            if m is None:
+                break
+            self.handle(m)
+        if self.ticks % 50 == 0 and os.getppid() != self.parent:  # the executor is gone: stop, then end
+            self.loop.request_stop()
+            self.exiting = True
+        self.publish(slow=self.pb is None or self.ticks % SLOW_EVERY == 0)
+
+    def run(self) -> None:
+        while not self.exiting:
+            self.serve()
+            if self.next_run is None:
+                time.sleep(IDLE_S)
+                continue
+            run_id, source, settle = self.next_run
+            self.next_run = None
+            try:
+                result = self.loop.play(source, settle)
+            except Exception as exc:  # the backend raised inside a tick: a fault, said
+                result = MotionResult("fault", 0, 0, 0)
+                self.crash = f"the servo process: {exc!r}"
+            self.changed()  # the playback's last word: where it ended
+            self.pb = None
+            self.loop.index = -1
+            self.ch.events.put(("result", run_id, result))
+            self._wake()
+
+
+def main(argv: list[str]) -> int:
+    # a terminal's Ctrl-C or systemd's SIGTERM to the unit's group is the executor's to answer: it stops
+    # the arm through here, and then ends this process
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    fd, wake = int(argv[1]), int(argv[2])
+    config: Config = pickle.loads(sys.stdin.buffer.read())
+    ch = Channel(memoryview(mmap.mmap(fd, Channel.SIZE)))
+    s = config.settings
+    backend = backend_for(s, load_task(s.task), config.speed, config.q0)
+    loop = ServoLoop(backend, core=config.core, fifo_priority=config.fifo_priority, lock_memory=s.lock_memory,
+                     speed=config.speed, spin_us=s.spin_us, overrun_limit=s.overrun_limit,
+                     realtime=backend.realtime)  # fmt: skip
+    server = Server(ch, backend, loop, wake)
+    loop.between = server.serve
+    loop.setup()
+    threads = (
+        len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else threading.active_count()
+    )
+    server.publish(slow=True)
+    server.reply((0, True, {"warnings": loop.warnings, "name": backend.name, "realtime": backend.realtime,
+                            "threads": threads, "pid": os.getpid()}))  # fmt: skip
+    try:
+        server.run()
+    finally:
+        try:
+            backend.close()
+        except Exception as exc:  # said by the executor's close, which waits for nothing more
+            print(f"servo process: closing the {backend.name} backend: {exc}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
