@@ -216,6 +216,80 @@ class RemotePlayback:
         self.notify()
 
 
+class Mailbox:
+    """The executor's end of the shared memory (servo_process.py ``Channel``): commands put, the stop and
+    the lease written, the state read, and the answer to a call awaited (the one wait, a worker's)."""
+
+    def __init__(self, ch: Channel, ended: Callable[[], str | None]) -> None:
+        """``ended``: None while the servo process runs, else how it ended."""
+        self.ch, self.ended = ch, ended
+        self._put = threading.Lock()  # one writer at a time
+        self._call = threading.Lock()  # one call in flight
+        self._numbers = itertools.count(1)
+        self.renewals, self.stop = 0, 0.0
+
+    def number(self) -> int:
+        return next(self._numbers)
+
+    def put(self, m: tuple[Any, ...]) -> None:
+        with self._put:
+            ok = self.ch.cmd.put(m)
+        if not ok:
+            raise RobotUnavailable(
+                f"the servo process reads no commands ({self.ended() or 'its mailbox is full'})"
+            )
+
+    def ctrl(self, until: float | None = None) -> None:
+        """The stop flag and the lease (``until``: a renewal), latest wins."""
+        with self._put:
+            v = self.ch.ctrl.view
+            if until is not None:
+                v[1], self.renewals = until, self.renewals + 1
+            v[0], v[2] = self.stop, self.renewals
+            self.ch.ctrl.write()
+
+    def answer(self, n: int, within_s: float, what: str) -> Any:
+        deadline = time.monotonic() + within_s
+        while True:
+            r = self.ch.replies.get()
+            if r is None:
+                if (how := self.ended()) is not None:
+                    raise RobotUnavailable(f"the servo process ended before it answered {what}: {how}")
+                if time.monotonic() > deadline:
+                    raise RobotUnavailable(f"the servo process did not answer {what} within {within_s:g} s")
+                time.sleep(POLL_S)
+                continue
+            number, ok, value = r
+            if number != n:  # the answer to a call that gave up waiting
+                continue
+            if ok:
+                return value
+            raise value
+
+    def call(self, kind: str, *args: object, within_s: float = CALL_S) -> Any:
+        """``kind`` "summary", or a call into the backend (``("call", name, *args)``), answered."""
+        with self._call:
+            n = self.number()
+            self.put((kind, n, *args))
+            return self.answer(n, within_s, f"'{args[0] if args else kind}'")
+
+    def values(self) -> NDArray[np.float64] | None:
+        got = self.ch.state.read()
+        return None if got is None else got[0]
+
+    def value(self, name: str) -> float:
+        v = self.values()
+        return 0.0 if v is None else float(v[Channel.AT[name]])
+
+    def live(self, run_id: int) -> tuple[float, float, float] | None:
+        """(t, s, σ) of the run now, while the servo plays it."""
+        v = self.values()
+        at = Channel.AT
+        if v is None or int(v[at["run"]]) != run_id or not v[at["moving"]]:
+            return None
+        return float(v[at["t"]]), float(v[at["s"]]), float(v[at["sigma"]])
+
+
 class ServoProcess:
     """The servo process as the executor drives it (servo.py's ``Servo``), started, watched and
     restarted here. ``on_death``: called on the executor's loop with why, when it dies between motions
@@ -245,12 +319,8 @@ class ServoProcess:
         self.died = ""  # why the last one ended unasked: a latched fault until a person's resume
         self.deaths = 0
         self.restarting: threading.Thread | None = None
-        self._put = threading.Lock()  # the mailbox has one writer at a time
-        self._call = threading.Lock()  # one call in flight
-        self._numbers = itertools.count(1)
+        self.mail = Mailbox(self.ch, self.ended)
         self._runs: dict[int, tuple[Future[MotionResult], RemotePlayback | None]] = {}
-        self._renewals = 0
-        self._stop = 0.0
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closing = False
 
@@ -258,7 +328,7 @@ class ServoProcess:
 
     def _spawn(self, q0: Sequence[float] | None) -> None:
         self.mm[:] = bytes(Channel.SIZE)  # a fresh mailbox: nothing of the last one's
-        self._renewals, self._stop = 0, 0.0
+        self.mail.renewals = 0
         config = Config(self.settings, self.speed, self.core, self.fifo_priority,
                         None if q0 is None else tuple(float(x) for x in q0))  # fmt: skip
         cmd = [sys.executable, "-m", "services.executor.servo_process", str(self.fd), str(self.wake_w)]
@@ -268,7 +338,7 @@ class ServoProcess:
         proc.stdin.write(pickle.dumps(config))
         proc.stdin.close()
         self.proc = proc
-        ready = self._answer(0, START_S, "to start")
+        ready = self.mail.answer(0, START_S, "to start")
         self.info, self.warnings = ready, list(ready["warnings"])
 
     def start(self) -> None:
@@ -302,7 +372,7 @@ class ServoProcess:
         why = f"the servo process died ({said(proc.wait())})"
         self.died, self.deaths = why, self.deaths + 1
         log.error("%s: the arm is stopped; resume after checking the cell", why)
-        values = self._values()
+        values = self.mail.values()
         q0 = None if values is None else values[Channel.AT["q"] : Channel.AT["q"] + 6]
         in_flight = bool(self._runs)
         for run_id, (fut, pb) in list(self._runs.items()):
@@ -344,59 +414,29 @@ class ServoProcess:
         for fd in (self.wake_r, self.wake_w):
             os.close(fd)
 
-    # --- the mailbox ----------------------------------------------------------------------------------
+    def ended(self) -> str | None:
+        proc = self.proc
+        return "not started" if proc is None else None if proc.poll() is None else said(proc.returncode)
 
     def put(self, m: tuple[Any, ...]) -> None:
-        with self._put:
-            ok = self.ch.cmd.put(m)
-        if not ok:
-            raise RobotUnavailable(
-                f"the servo process reads no commands ({self.died or 'its mailbox is full'})"
-            )
-
-    def _ctrl(self, until: float | None = None) -> None:
-        with self._put:
-            v = self.ch.ctrl.view
-            if until is not None:
-                v[1], self._renewals = until, self._renewals + 1
-            v[0], v[2] = self._stop, self._renewals
-            self.ch.ctrl.write()
+        self.mail.put(m)
 
     def renew(self, until: float) -> None:
-        self._ctrl(until)
+        self.mail.ctrl(until)
 
     def request_stop(self) -> None:
-        self._stop = 1.0
-        self._ctrl()
-
-    def _answer(self, n: int, within_s: float, what: str) -> Any:
-        deadline = time.monotonic() + within_s
-        while True:
-            r = self.ch.replies.get()
-            if r is None:
-                proc = self.proc
-                if proc is None or proc.poll() is not None:
-                    rc = "" if proc is None else f": {said(proc.returncode)}"
-                    raise RobotUnavailable(f"the servo process ended before it answered {what}{rc}")
-                if time.monotonic() > deadline:
-                    raise RobotUnavailable(f"the servo process did not answer {what} within {within_s:g} s")
-                time.sleep(POLL_S)
-                continue
-            number, ok, value = r
-            if number != n:  # the answer to a call that gave up waiting
-                continue
-            if ok:
-                return value
-            raise value
+        self.mail.stop = 1.0
+        self.mail.ctrl()
 
     def call(self, name: str, *args: object, within_s: float = CALL_S) -> Any:
-        """A call into the backend in the servo process, its answer awaited (from a worker thread)."""
+        """A call into the backend in the servo process, its answer awaited (from a worker thread; one
+        made while it restarts waits for the new one)."""
         if self.restarting is not None and self.restarting.is_alive():
             self.restarting.join(START_S)
-        with self._call:
-            n = next(self._numbers)
-            self.put(("call", n, name, args))
-            return self._answer(n, within_s, f"'{name}'")
+        return self.mail.call("call", name, args, within_s=within_s)
+
+    def live(self, run_id: int) -> tuple[float, float, float] | None:
+        return self.mail.live(run_id)
 
     def _drain(self) -> None:
         """On the executor's loop, woken by the servo's byte: every event since the last."""
@@ -419,33 +459,17 @@ class ServoProcess:
 
     # --- Servo ----------------------------------------------------------------------------------------
 
-    def _values(self) -> NDArray[np.float64] | None:
-        got = self.ch.state.read()
-        return None if got is None else got[0]
-
-    def value(self, name: str) -> float:
-        v = self._values()
-        return 0.0 if v is None else float(v[Channel.AT[name]])
-
-    def live(self, run_id: int) -> tuple[float, float, float] | None:
-        """(t, s, σ) of the run now, while the servo plays it."""
-        v = self._values()
-        at = Channel.AT
-        if v is None or int(v[at["run"]]) != run_id or not v[at["moving"]]:
-            return None
-        return float(v[at["t"]]), float(v[at["s"]]), float(v[at["sigma"]])
-
     @property
     def index(self) -> int:
-        return int(self.value("index"))
+        return int(self.mail.value("index"))
 
     @property
     def ticks(self) -> int:
-        return int(self.value("ticks"))
+        return int(self.mail.value("ticks"))
 
     @property
     def overruns(self) -> int:
-        return int(self.value("overruns"))
+        return int(self.mail.value("overruns"))
 
     def playback(
         self, curve: Curve, ramp: Ramp, notify: Callable[[], None], clock: Callable[[], float], hold: object
@@ -461,7 +485,7 @@ class ServoProcess:
         if self.died:
             fut.set_result(MotionResult("fault", 0, 0, 0))
             return fut
-        n = next(self._numbers)
+        n = self.mail.number()
         pb = targets if isinstance(targets, RemotePlayback) else None
         if pb is not None:
             spec, stop_s = pb.begin(n), pb.stop_s
@@ -478,10 +502,7 @@ class ServoProcess:
 
     def summary(self) -> TickSummary:
         try:
-            with self._call:
-                n = next(self._numbers)
-                self.put(("summary", n))
-                return cast(TickSummary, self._answer(n, 5.0, "for its timing"))
+            return cast(TickSummary, self.mail.call("summary", within_s=5.0))
         except RobotUnavailable:
             return summarise(np.zeros(0, dtype=np.int64), self.ticks, self.overruns, 2_000_000)
 
@@ -497,7 +518,7 @@ class RemoteBackend:
         self.realtime = bool(proc.info.get("realtime", False))
 
     def _six(self, name: str) -> Array:
-        v = self.proc._values()
+        v = self.proc.mail.values()
         at = Channel.AT[name]
         return np.zeros(6) if v is None else v[at : at + 6].copy()
 
@@ -517,10 +538,10 @@ class RemoteBackend:
         return "" if got is None else got[1]
 
     def link_lost(self) -> bool:
-        return bool(self.proc.died) or bool(self.proc.value("lost"))
+        return bool(self.proc.died) or bool(self.proc.mail.value("lost"))
 
     def digital_inputs(self) -> int:
-        return int(self.proc.value("inputs"))
+        return int(self.proc.mail.value("inputs"))
 
     def target(self, q: Array) -> object:
         return q

@@ -41,7 +41,9 @@ def stall(
     """The machine stalls (as a loaded VM does) while ``on["stall"]``: every servo call takes 20 ms.
     ``calls``: from the start, for that many servo calls (``on["left"]`` counts them down).
     ``realtime``: the arm is paced as a controller paces a real one, so overruns stop it (the sim's own
-    time is the samples sent, and nothing stops it)."""
+    time is the samples sent, and nothing stops it). The stall is patched into this process, so the
+    executors of these tests run their servo loop as a thread of it (``servo = "thread"``): the servo
+    process's own timing is tested in test_servo_process.py and on the wall clock (test_walk_in.py)."""
     import time
 
     on: dict[str, Any] = {"stall": calls is not None, "left": calls or 0}
@@ -70,7 +72,7 @@ async def stalling(cell: Cell, task_file: Path, tmp_path: Path, **changes: objec
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = sim_settings(task_file, overrun_limit=RUN, initial_k=2, **changes)
+        settings = sim_settings(task_file, overrun_limit=RUN, initial_k=2, servo="thread", **changes)
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         clearing: list[asyncio.Task[None]] = []
         try:
@@ -172,7 +174,7 @@ async def test_a_latched_stop_outlives_a_restart_until_a_person_resumes(
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         states = aiter(bus.subscribe(bus.key("robot/state"), RobotState, maxsize=10_000))
-        settings = sim_settings(task_file, overrun_limit=RUN, cycles=0, initial_k=2)
+        settings = sim_settings(task_file, overrun_limit=RUN, cycles=0, initial_k=2, servo="thread")
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         await next_of(states, lambda s: s.mode == "moving")
         on["stall"] = True
@@ -230,7 +232,7 @@ async def test_a_stalled_host_never_stops_the_sim_arm(
         store = await store_serving(bus, task_file, tmp_path / "store", cell)
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
-        settings = sim_settings(task_file, overrun_limit=RUN, cycles=1, initial_k=2)
+        settings = sim_settings(task_file, overrun_limit=RUN, cycles=1, initial_k=2, servo="thread")
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         report = await next_of(cycles, timeout=60)
         await ex.close()
@@ -277,7 +279,13 @@ async def test_the_sim_resumes_by_itself_only_when_configured_and_with_a_back_of
         events = aiter(bus.subscribe(bus.key("robot/event"), RobotEvent, maxsize=1000))
         cycles = aiter(bus.subscribe(bus.key("robot/cycle"), CycleReport))
         settings = sim_settings(
-            task_file, overrun_limit=RUN, cycles=0, initial_k=2, resume_policy="auto", auto_resume_s=0.5
+            task_file,
+            overrun_limit=RUN,
+            cycles=0,
+            initial_k=2,
+            resume_policy="auto",
+            auto_resume_s=0.5,
+            servo="thread",
         )
         ex = cell.service("executor", executor_main, settings, tmp_path / "ex", speed=SPEED)
         on["stall"] = True
@@ -414,6 +422,7 @@ async def test_with_a_ur_controller_an_overrun_stop_and_a_bump_hold_until_resume
                 host=emu.host,
                 fifo_priority=0,
                 realtime="optional",
+                servo="thread",
                 overrun_limit=RUN,
                 wait_for_signals=False,
                 start_selection="initial",
