@@ -227,6 +227,8 @@ class Mailbox:
         self._call = threading.Lock()  # one call in flight
         self._numbers = itertools.count(1)
         self.renewals, self.stop = 0, 0.0
+        # the state a dead servo process left, at rest, until a new one says its own (a restart)
+        self.frozen: NDArray[np.float64] | None = None
 
     def number(self) -> int:
         return next(self._numbers)
@@ -274,6 +276,8 @@ class Mailbox:
             return self.answer(n, within_s, f"'{args[0] if args else kind}'")
 
     def values(self) -> NDArray[np.float64] | None:
+        if self.frozen is not None:
+            return self.frozen
         got = self.ch.state.read()
         return None if got is None else got[0]
 
@@ -331,7 +335,9 @@ class ServoProcess:
         self.mail.renewals = 0
         config = Config(self.settings, self.speed, self.core, self.fifo_priority,
                         None if q0 is None else tuple(float(x) for x in q0))  # fmt: skip
-        cmd = [sys.executable, "-m", "services.executor.servo_process", str(self.fd), str(self.wake_w)]
+        # its Python stack in the executor's log, should it crash
+        module = "services.executor.servo_process"
+        cmd = [sys.executable, "-X", "faulthandler", "-m", module, str(self.fd), str(self.wake_w)]
         proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(self.fd, self.wake_w),
                                 env={**os.environ, **QUIET}, start_new_session=True)  # fmt: skip
         assert proc.stdin is not None
@@ -339,6 +345,7 @@ class ServoProcess:
         proc.stdin.close()
         self.proc = proc
         ready = self.mail.answer(0, START_S, "to start")
+        self.mail.frozen = None  # its first state came before its word
         self.info, self.warnings = ready, list(ready["warnings"])
 
     def start(self) -> None:
@@ -373,7 +380,11 @@ class ServoProcess:
         self.died, self.deaths = why, self.deaths + 1
         log.error("%s: the arm is stopped; resume after checking the cell", why)
         values = self.mail.values()
-        q0 = None if values is None else values[Channel.AT["q"] : Channel.AT["q"] + 6]
+        q0 = None if values is None else values[Channel.AT["q"] : Channel.AT["q"] + 6].copy()
+        if values is not None:  # what the executor says of the arm until the new one runs: still, there
+            at = Channel.AT["qd"]
+            values[at : at + 6] = 0.0
+            self.mail.frozen = values
         in_flight = bool(self._runs)
         for run_id, (fut, pb) in list(self._runs.items()):
             self._runs.pop(run_id)
@@ -391,7 +402,7 @@ class ServoProcess:
     def _restart(self, q0: Sequence[float] | None) -> None:
         try:
             self._spawn(q0)
-            self.call("connect")
+            self.mail.call("call", "connect", ())
         except Exception as exc:  # said; the next resume tries the robot again
             log.error("the servo process could not be restarted: %s", exc)
             return

@@ -314,8 +314,9 @@ def main(argv: list[str]) -> int:
         len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else threading.active_count()
     )
     server.publish(slow=True)
+    heavy = [m for m in ("zenoh", "scipy") if m in sys.modules]  # imported for nothing a tick does
     server.reply((0, True, {"warnings": loop.warnings, "name": backend.name, "realtime": backend.realtime,
-                            "threads": threads, "pid": os.getpid()}))  # fmt: skip
+                            "threads": threads, "pid": os.getpid(), "heavy": heavy}))  # fmt: skip
     try:
         server.run()
     finally:
