@@ -235,7 +235,11 @@ def cmd_bench_plant(args: argparse.Namespace) -> int:
     description="Runs the executor's servo loop (pinned, SCHED_FIFO when permitted) on a backend for "
     "SECONDS, servoing the longest path of TASK forward and back while the state is read at 50 Hz, and "
     "prints the tick error percentiles (|tick time - deadline|), the overruns and prepare_ms (h to "
-    "validated 500 Hz samples for the slowest trajectory of that path). The last line is JSON.",
+    "validated 500 Hz samples for the slowest trajectory of that path). The last line is JSON. With "
+    "--load: the executor itself, as a cell runs it (its servo in a process of its own, the sim arm), kept "
+    "busy (5,000 messages every 50 ms to decode, two busy loops, a sensor at 20 Hz whose readings' adoption "
+    "it measures), beside cyclictest on the servo's core in the same window; the servo's period error and "
+    "overruns are printed beside cyclictest's, and the adoption.",
 )
 @arg("--backend", choices=("sim", "ur_rtde"), default="sim")
 @arg("--seconds", type=float, default=20.0, help="how long to servo (default 20)")
@@ -243,11 +247,15 @@ def cmd_bench_plant(args: argparse.Namespace) -> int:
 @arg("--core", type=int, default=None, help="core for the servo thread (default: the last)")
 @arg("--fifo-priority", type=int, default=80, help="SCHED_FIFO priority; 0 for none")
 @arg("--task", default=None, metavar="TASK.toml", help="default: box_filling")
+@arg("--load", action="store_true", help="the whole executor under load, beside cyclictest (sim only)")
+@arg("--busy", type=int, default=2, help="--load: busy loops beside it (default 2)")
 @arg("--json", action="store_true", help="print only the JSON line")
 def cmd_bench_executor(args: argparse.Namespace) -> int:
     from cadence.bench.servo_loop import bench_executor
     from services.executor import RobotUnavailable
 
+    if args.load:
+        return bench_executor_load(args)
     if not args.json:
         out.print(f"[dim]servo loop on the {args.backend} backend for {args.seconds:g} s …[/dim]")
     try:
@@ -273,4 +281,40 @@ def cmd_bench_executor(args: argparse.Namespace) -> int:
     if r.aborted:
         print(f"cadence bench executor: {r.aborted}", file=sys.stderr)
         return 1
+    return 0
+
+
+def bench_executor_load(args: argparse.Namespace) -> int:
+    from cadence.bench.executor_load import bench_executor_load
+
+    if args.backend != "sim":
+        print("cadence bench executor: --load runs on the sim backend only", file=sys.stderr)
+        return 2
+    if not args.json:
+        out.print(f"[dim]the executor under load for {args.seconds:g} s, beside cyclictest …[/dim]")
+    r = bench_executor_load(args.seconds, args.busy)
+    if not args.json:
+        for w in r.warnings:
+            out.print(f"[yellow]warning:[/yellow] {w}")
+        s, ct, a = r.servo, r.cyclictest, r.adoption
+        table = Table(title=f"period error on the servo's core, {args.busy} busy loops, load {r.load[0]:.1f}")
+        for col in ("", "ticks", "late", "longest run", "p50", "p99", "p99.9", "max"):
+            table.add_column(col, justify="right")
+
+        def us(x: object) -> str:
+            return "—" if x is None else f"{x:g} µs"
+
+        table.add_row("servo process", str(s["ticks"]), str(s["overruns"]), str(s["longest_overrun_run"]),
+                      *(us(s[k]) for k in ("p50_us", "p99_us", "p99_9_us", "max_us")))  # fmt: skip
+        if "error" in ct:
+            table.add_row("cyclictest", ct["error"], *([""] * 6))
+        else:
+            table.add_row("cyclictest", str(ct["ticks"]), str(ct["late"]), "",
+                          *(us(ct[k]) for k in ("p50_us", "p99_us", "p99_9_us", "max_us")))  # fmt: skip
+        out.print(table)
+        out.print(f"adoption of {a['n']} of {a['readings']} readings (refused: {a['refused'] or 'none'}; "
+                  "arrival → the servo playing their scale): p50 "
+                  f"{a['p50_ms']} ms, p99.9 {a['p99_9_ms']} ms, max {a['max_ms']} ms, late {a['late']}; "
+                  f"the flood: {r.flood}")  # fmt: skip
+    print(json.dumps(r.as_json()))
     return 0

@@ -22,6 +22,7 @@ import sys
 from typing import Any
 
 from common.runtime.bus import Request
+from common.runtime.clock import monotonic
 from common.runtime.config import CommonSettings
 from common.runtime.errors import ConfigError
 from common.runtime.lifetime import name_this_thread
@@ -130,6 +131,7 @@ class Executor(Node):
         self.telemetry = Telemetry(kit, self.backend, task, self.snapshot)
         self.cycles.load()
         self.connected = False
+        self.timed_at = monotonic()
 
     def servo_died(self, why: str) -> None:
         """The servo process died between motions: a protective stop, latched (one in motion ends the
@@ -187,7 +189,20 @@ class Executor(Node):
 
     @every
     async def state(self) -> Out:
+        common = self.ctx.common  # the servo's timing (percentiles of its ring) once a status period
+        if not common.clock.driven and monotonic() - self.timed_at >= common.status_period_s:
+            await self.time_servo()
         return self.telemetry.sample() if self.connected else []
+
+    async def time_servo(self) -> None:
+        """The servo's tick timing in the status (`cadence top`, `cadence bench executor --load`)."""
+        self.timed_at = monotonic()
+        t = await asyncio.to_thread(self.loop.summary)
+        c = self.ctx.counters
+        c["servo_ticks"], c["overruns"] = t.ticks, t.overruns
+        c["servo_longest_overrun_run"] = t.longest_overrun_run
+        c["servo_p50_us"], c["servo_p99_us"] = round(t.p50_err_us), round(t.p99_err_us)
+        c["servo_p99.9_us"], c["servo_max_us"] = round(t.p999_err_us), round(t.max_err_us)
 
     async def work(self) -> None:
         if not await self.safety.connect():

@@ -250,7 +250,7 @@ class Reactions:
         """The adoption's figures in the status (ms), at most every 5 s: a quantile of 10⁵ delays is not
         free."""
         c, a, now = self.kit.counters, self.adoption, monotonic()
-        c["adoption_late"] = a.times_late
+        c["adoption_late"], c["adoption_n"] = a.times_late, len(a.delays)
         if now - self._counted_at < 5.0:
             return
         self._counted_at = now

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from common.trajectory.scaling import DT, Curve, Ramp
 from services.executor.backends import RobotUnavailable
 from services.executor.playback import InForce, Offer, Owned, Switch
-from services.executor.servo import MotionResult, Source
+from services.executor.servo import PERIOD_NS, MotionResult, Source
 from services.executor.servo_process import Channel, Config, Ref
 from services.executor.settings import Settings
 from services.executor.timing import TickSummary, summarise
@@ -269,7 +269,7 @@ class Mailbox:
             raise value
 
     def call(self, kind: str, *args: object, within_s: float = CALL_S) -> Any:
-        """``kind`` "summary", or a call into the backend (``("call", name, *args)``), answered."""
+        """A command of ``kind``, numbered, its answer awaited (a call into the backend: "call")."""
         with self._call:
             n = self.number()
             self.put((kind, n, *args))
@@ -512,10 +512,10 @@ class ServoProcess:
         return fut
 
     def summary(self) -> TickSummary:
-        try:
-            return cast(TickSummary, self.mail.call("summary", within_s=5.0))
-        except RobotUnavailable:
-            return summarise(np.zeros(0, dtype=np.int64), self.ticks, self.overruns, 2_000_000)
+        """Taken here, from the ring it writes: percentiles of 10⁵ ticks are not a tick's work."""
+        m = self.mail
+        period = int(self.info.get("period_ns", PERIOD_NS))
+        return summarise(self.ch.errors_ns.copy(), self.ticks, self.overruns, period, int(m.value("longest")))
 
 
 class RemoteBackend:

@@ -173,9 +173,11 @@ class ServoLoop:
         overrun_limit: int = 5,
         realtime: bool = True,
         between: Callable[[], None] | None = None,
+        errors_ns: NDArray[np.int64] | None = None,
     ) -> None:
         """``between``: called once a tick after its steps were sent (a servo process serves its mailbox
-        there: services/executor/servo_process.py)."""
+        there: services/executor/servo_process.py); ``errors_ns``: the ring of tick errors, where it is
+        not this process's to read (shared memory: its executor takes the percentiles, not a tick)."""
         if speed <= 1.0:
             self.steps, self.period_ns = 1, round(PERIOD_NS / speed)
         else:
@@ -187,9 +189,10 @@ class ServoLoop:
         self.overrun_limit = overrun_limit
         self.realtime = realtime
         self.between = between
-        self.errors_ns = np.zeros(ring, dtype=np.int64)  # |late| per tick, ns: a ring
+        self.errors_ns = np.zeros(ring, dtype=np.int64) if errors_ns is None else errors_ns  # |late|, ns
         self.ticks = 0  # since the last reset
         self.overruns = 0
+        self.longest_run = 0  # of consecutive overruns, ever
         self.index = -1  # the sample being sent: read by the state publisher, written only here
         self.warnings: list[str] = []  # what the set-up could not get (FIFO, mlock), for the service to log
         self._stop = False
@@ -227,7 +230,7 @@ class ServoLoop:
             self._thread.join(timeout=5.0)
 
     def summary(self) -> TickSummary:
-        return summarise(self.errors_ns, self.ticks, self.overruns, self.period_ns)
+        return summarise(self.errors_ns, self.ticks, self.overruns, self.period_ns, self.longest_run)
 
     # --- the thread -------------------------------------------------------------------------------
 
@@ -235,9 +238,6 @@ class ServoLoop:
         self.setup()
         self._ready.set()
         while (job := self._jobs.get()) is not None:
-            gc.collect()
-            gc.freeze()
-            gc.disable()
             try:
                 result = self.play(job.source, job.settle_ticks)
             except BaseException as exc:  # the future carries it to the service
@@ -247,10 +247,6 @@ class ServoLoop:
                 # a waiter that was cancelled meanwhile (the service ending) wants no result
                 if job.future.set_running_or_notify_cancel():
                     job.future.set_result(result)
-            finally:
-                gc.enable()
-                gc.unfreeze()
-                self.index = -1
 
     def setup(self) -> None:
         """The calling thread becomes the servo's: its name, core, priority and locked memory (the loop's
@@ -278,7 +274,19 @@ class ServoLoop:
             )
 
     def play(self, source: Source, settle_ticks: int) -> MotionResult:
-        """One motion, in the calling thread (the servo's: after ``setup``)."""
+        """One motion, in the calling thread (the servo's: after ``setup``), with the garbage collector
+        frozen and off: a collection inside a tick cost milliseconds."""
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        try:
+            return self._play(source, settle_ticks)
+        finally:
+            gc.enable()
+            gc.unfreeze()
+            self.index = -1
+
+    def _play(self, source: Source, settle_ticks: int) -> MotionResult:
         errors, ring = self.errors_ns, self.errors_ns.size
         between = self.between
         motion = _Motion(self, source, settle_ticks)
@@ -296,7 +304,8 @@ class ServoLoop:
             now = clock()
             while now < deadline:
                 now = clock()
-            errors[(self.ticks + tick) % ring] = now - deadline
+            errors[self.ticks % ring] = now - deadline
+            self.ticks += 1  # live: a servo process's state says them while a motion lasts
             tick += 1
             if self._stop and not braking:
                 braking, outcome = True, "stopped"
@@ -310,15 +319,16 @@ class ServoLoop:
                 between()
             if clock() > deadline + period:
                 overruns += 1
+                self.overruns += 1
                 run_of_overruns += 1
+                if run_of_overruns > self.longest_run:
+                    self.longest_run = run_of_overruns
                 if run_of_overruns >= limit and self.realtime and not braking:
                     braking, outcome = True, "overruns"
             else:
                 run_of_overruns = 0
             if not braking and motion.settled():
                 break
-        self.ticks += tick
-        self.overruns += overruns
         return MotionResult(outcome, motion.sent, tick, overruns)
 
 

@@ -53,16 +53,15 @@ class Channel:
     """The shared memory's layout, the same on both sides: ``ctrl`` (the executor's: stop, lease until,
     renewals), ``state`` (the servo's, rewritten every tick), and three rings."""
 
-    CTRL, STATE, FAULT_BYTES = 3, 32, 1024
+    CTRL, STATE, FAULT_BYTES, ERRORS = 3, 32, 1024, 1 << 17
     RINGS: ClassVar[dict[str, int]] = {"cmd": 4 << 20, "events": 1 << 20, "replies": 1 << 20}
     # state's values by name (``q``, ``qd``, ``tcp`` are 6 wide)
     AT: ClassVar[dict[str, int]] = {"run": 0, "index": 1, "ticks": 2, "overruns": 3, "t": 4, "s": 5,
                                     "sigma": 6, "inputs": 7, "lost": 8, "beat": 9, "moving": 10, "q": 11,
-                                    "qd": 17, "tcp": 23}  # fmt: skip
+                                    "qd": 17, "tcp": 23, "longest": 29}  # fmt: skip
     # the blocks and rings, each rounded up to 8 bytes, in whole pages
-    SIZE = (
-        (Latest.nbytes(CTRL) + Latest.nbytes(STATE, FAULT_BYTES) + sum(RINGS.values()) + 8192) // 4096 * 4096
-    )
+    SIZE = (Latest.nbytes(CTRL) + Latest.nbytes(STATE, FAULT_BYTES) + sum(RINGS.values()) + 8 * ERRORS
+            + 8192) // 4096 * 4096  # fmt: skip
 
     def __init__(self, buf: memoryview) -> None:
         at = 0
@@ -75,6 +74,7 @@ class Channel:
         self.ctrl = Latest(take(Latest.nbytes(self.CTRL)), self.CTRL)
         self.state = Latest(take(Latest.nbytes(self.STATE, self.FAULT_BYTES)), self.STATE, self.FAULT_BYTES)
         self.cmd, self.events, self.replies = (Ring(take(n)) for n in self.RINGS.values())
+        self.errors_ns = np.frombuffer(take(8 * self.ERRORS), dtype=np.int64)  # the loop's tick errors
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,8 +157,6 @@ class Server:
             except Exception as exc:  # the executor raises it where it called
                 answer = (n, False, exc)
             self.reply(answer)
-        elif kind == "summary":
-            self.reply((m[1], True, self.loop.summary()))
         elif kind == "run":
             self.begin(*m[1:])
         elif kind == "offer" and self.pb is not None:
@@ -233,6 +231,7 @@ class Server:
         st, at, b, loop = self.ch.state, Channel.AT, self.backend, self.loop
         v = st.view
         v[at["run"]], v[at["index"]], v[at["ticks"]] = self.run_id, loop.index, loop.ticks
+        v[at["longest"]] = loop.longest_run
         v[at["overruns"]], v[at["beat"]], v[at["moving"]] = (
             loop.overruns,
             time.monotonic(),
@@ -289,7 +288,6 @@ class Server:
                 self.crash = f"the servo process: {exc!r}"
             self.changed()  # the playback's last word: where it ended
             self.pb = None
-            self.loop.index = -1
             self.ch.events.put(("result", run_id, result))
             self._wake()
 
@@ -306,7 +304,7 @@ def main(argv: list[str]) -> int:
     backend = backend_for(s, load_task(s.task), config.speed, config.q0)
     loop = ServoLoop(backend, core=config.core, fifo_priority=config.fifo_priority, lock_memory=s.lock_memory,
                      speed=config.speed, spin_us=s.spin_us, overrun_limit=s.overrun_limit,
-                     realtime=backend.realtime)  # fmt: skip
+                     realtime=backend.realtime, errors_ns=ch.errors_ns)  # fmt: skip
     server = Server(ch, backend, loop, wake)
     loop.between = server.serve
     loop.setup()
@@ -316,7 +314,8 @@ def main(argv: list[str]) -> int:
     server.publish(slow=True)
     heavy = [m for m in ("zenoh", "scipy") if m in sys.modules]  # imported for nothing a tick does
     server.reply((0, True, {"warnings": loop.warnings, "name": backend.name, "realtime": backend.realtime,
-                            "threads": threads, "pid": os.getpid(), "heavy": heavy}))  # fmt: skip
+                            "threads": threads, "pid": os.getpid(), "heavy": heavy,
+                            "period_ns": loop.period_ns}))  # fmt: skip
     try:
         server.run()
     finally:

@@ -19,6 +19,7 @@ class TickSummary:
     p999_err_us: float
     max_err_us: float
     overruns: int
+    longest_overrun_run: int = 0  # the most consecutive overruns: what the overrun stop counts
 
     def as_dict(self) -> dict[str, float | int]:
         return asdict(self)
@@ -28,11 +29,13 @@ class TickSummary:
                 f"{self.overruns} overruns")  # fmt: skip
 
 
-def summarise(errors_ns: NDArray[np.int64], ticks: int, overruns: int, period_ns: int) -> TickSummary:
+def summarise(
+    errors_ns: NDArray[np.int64], ticks: int, overruns: int, period_ns: int, longest_run: int = 0
+) -> TickSummary:
     """Percentiles of |tick time − deadline| over the ticks the ring still holds (the last len(ring))."""
     held = np.abs(errors_ns[: min(ticks, errors_ns.size)]).astype(float) / 1e3
     if held.size == 0:
-        return TickSummary(round(period_ns / 1e3), 0, 0.0, 0.0, 0.0, 0.0, overruns)
+        return TickSummary(round(period_ns / 1e3), 0, 0.0, 0.0, 0.0, 0.0, overruns, longest_run)
     p50, p99, p999 = np.percentile(held, [50.0, 99.0, 99.9])
     return TickSummary(
         round(period_ns / 1e3),
@@ -42,4 +45,5 @@ def summarise(errors_ns: NDArray[np.int64], ticks: int, overruns: int, period_ns
         round(float(p999), 1),
         round(float(held.max()), 1),
         overruns,
+        longest_run,
     )
