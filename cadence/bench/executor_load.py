@@ -198,7 +198,7 @@ async def measure(bus: Bus, health: Any, procs: list[subprocess.Popen[bytes]], e
     async with asyncio.timeout(30):  # a status whose timing was taken after the window
         while time.monotonic() - ended < 2.5 or not counters:
             counters = dict((await health.receive(30))[1].counters)
-    c, refused = counters, f"rejected/operator/separation/{source_chunk(SENSOR)}/"
+    c, why = counters, f"rejected/operator/separation/{source_chunk(SENSOR)}/"
     servo = {"ticks": c.get("servo_ticks", 0), "overruns": c.get("overruns", 0),
              "longest_overrun_run": c.get("servo_longest_overrun_run", 0), "p50_us": c.get("servo_p50_us"),
              "p99_us": c.get("servo_p99_us"), "p99_9_us": c.get("servo_p99.9_us"),
@@ -206,7 +206,7 @@ async def measure(bus: Bus, health: Any, procs: list[subprocess.Popen[bytes]], e
     adoption = {"n": c.get("adoption_n", 0), "p50_ms": c.get("adoption_p50_ms"),
                 "p99_9_ms": c.get("adoption_p99.9_ms"), "max_ms": c.get("adoption_max_ms"),
                 "late": c.get("adoption_late", 0), "readings": sent,
-                "refused": {k.rsplit("/", 1)[1]: v for k, v in c.items() if k.startswith(refused)}}  # fmt: skip
+                "refused": {k.rsplit("/", 1)[1]: v for k, v in c.items() if k.startswith(why)}}  # fmt: skip
     return LoadBench(seconds, servo, yardstick, adoption, flooded, load, warnings)
 
 
