@@ -13,7 +13,6 @@ gives any real-time thread there, the yardstick the servo is judged against.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import os
 import shutil
@@ -34,12 +33,12 @@ from common.trajectory.shipped import shipped_or_planned
 from common.trajectory.task import load_task
 from schemas import Separation, ServiceStatus
 from schemas.topology import encode, source_chunk
+from services.registry import EXECUTOR
 
 CELL = "bench"
 SENSOR = "sensor"
 NEAR_M, FAR_M, WALK_M_S, RATE_HZ = 1.5, 6.0, 1.6, 20.0
 PERIOD_US = 2000
-EXECUTOR_NICE = -10
 
 
 @dataclass
@@ -108,12 +107,6 @@ def read_histogram(text: str) -> dict[str, Any]:
             "max_us": float(lat[-1]) if not overflow else float("inf")}  # fmt: skip
 
 
-def as_unit() -> None:
-    """The executor's unit's priority (services/registry.py: ``Nice=``), where this user may give it."""
-    with contextlib.suppress(OSError):
-        os.nice(EXECUTOR_NICE)
-
-
 def executor_env(endpoint: str, data: Path) -> dict[str, str]:
     source = f'[{{ name = "{SENSOR}", detects = "body", to_robot = true }}]'
     return {**os.environ, "CADENCE_BUS_CONNECT": f"['{endpoint}']", "CADENCE_DATA_DIR": str(data),
@@ -139,7 +132,7 @@ async def run(seconds: float, busy: int = 2) -> LoadBench:
             run = [sys.executable, "-m", "services.executor"]
             env = executor_env(endpoint, data)
             executor = subprocess.Popen(
-                run, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=as_unit
+                run, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=EXECUTOR.start_as_unit
             )
             procs: list[subprocess.Popen[bytes]] = [executor]
             try:

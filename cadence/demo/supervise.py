@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from common.runtime.lifetime import PARENT_ENV
+from services.registry import BY_NAME
 
 RESTART_DELAY_S = 0.5
 
@@ -46,6 +47,7 @@ class Supervised:
                     stdout=log,
                     stderr=log,
                     start_new_session=True,
+                    preexec_fn=BY_NAME[self.name].start_as_unit,  # its unit's priority
                 )
                 if stopping.is_set():  # the stop came while it started: it passed this process by
                     await self.stop()

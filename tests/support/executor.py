@@ -27,6 +27,7 @@ from services.executor.__main__ import Settings
 from services.executor.settings import SourceSettings
 from services.pareto_store.__main__ import Settings as StoreSettings
 from services.pareto_store.__main__ import main as store_main
+from services.registry import BY_NAME
 from tests.support.cell import CELL, Cell, InProcessService, free_port
 from tests.support.paths import planned_once
 
@@ -212,7 +213,10 @@ async def executor_processes(
             for name, e in zip(SERVICES, (env, executor), strict=True):
                 log = (tmp_path / f"{name}.log").open("wb")
                 run = [sys.executable, "-X", "faulthandler", "-m", f"services.{name}"]  # stacks at SIGABRT
-                procs.append(subprocess.Popen(run, env=e, stdout=log, stderr=subprocess.STDOUT))
+                unit = BY_NAME[name].start_as_unit  # the unit's priority (the executor's Nice=)
+                procs.append(
+                    subprocess.Popen(run, env=e, stdout=log, stderr=subprocess.STDOUT, preexec_fn=unit)
+                )
             yield Processes(bus, endpoint, tuple(procs))
     except BaseException:
         failed = True
