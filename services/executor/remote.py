@@ -330,7 +330,7 @@ class ServoProcess:
 
     # --- the process ----------------------------------------------------------------------------------
 
-    def _spawn(self, q0: Sequence[float] | None) -> None:
+    def _spawn(self, q0: Array | None) -> None:
         self.mm[:] = bytes(Channel.SIZE)  # a fresh mailbox: nothing of the last one's
         self.mail.renewals = 0
         config = Config(self.settings, self.speed, self.core, self.fifo_priority,
@@ -379,8 +379,7 @@ class ServoProcess:
         why = f"the servo process died ({said(proc.wait())})"
         self.died, self.deaths = why, self.deaths + 1
         log.error("%s: the arm is stopped; resume after checking the cell", why)
-        values = self.mail.values()
-        q0 = None if values is None else values[Channel.AT["q"] : Channel.AT["q"] + 6].copy()
+        q0, values = self.where(), self.mail.values()
         if values is not None:  # what the executor says of the arm until the new one runs: still, there
             at = Channel.AT["qd"]
             values[at : at + 6] = 0.0
@@ -394,12 +393,10 @@ class ServoProcess:
                 fut.set_result(MotionResult("fault", 0, 0, 0))
         if not in_flight:
             self.on_death(why)
-        self.restarting = threading.Thread(
-            target=self._restart, args=(q0,), name="servo-restart", daemon=True
-        )
+        self.restarting = threading.Thread(target=self.restart, args=(q0,), name="servo-restart", daemon=True)
         self.restarting.start()
 
-    def _restart(self, q0: Sequence[float] | None) -> None:
+    def restart(self, q0: Array | None) -> None:
         try:
             self._spawn(q0)
             self.mail.call("call", "connect", ())
@@ -424,6 +421,11 @@ class ServoProcess:
             self._loop.remove_reader(self.wake_r)
         for fd in (self.wake_r, self.wake_w):
             os.close(fd)
+
+    def where(self) -> Array | None:
+        """The joints it last said."""
+        v = self.mail.values()
+        return None if v is None else v[Channel.AT["q"] : Channel.AT["q"] + 6].copy()
 
     def ended(self) -> str | None:
         proc = self.proc
@@ -568,11 +570,17 @@ class RemoteBackend:
         self.proc.call("reconnect")
 
     def reset_fault(self) -> None:
-        """A person's resume: also of a dead servo process's stop, once the new one runs."""
-        self.proc.call("reset_fault")
-        self.proc.died = ""
+        """A person's resume: also of a dead servo process's stop, once the new one runs (started again
+        here should its restart have failed)."""
+        proc = self.proc
+        if proc.died and proc.ended() is not None and not (proc.restarting and proc.restarting.is_alive()):
+            proc.restart(proc.where())
+        proc.call("reset_fault")
+        proc.died = ""
 
     def prepare(self, q: Array) -> Sequence[object]:
+        if self.proc.died:  # the motion after it ends as a fault at once: nothing to arm
+            return []
         return cast(Sequence[object], self.proc.call("prepare", q))
 
     def motion_ended(self) -> None:
