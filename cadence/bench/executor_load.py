@@ -121,15 +121,15 @@ async def run(seconds: float, busy: int = 2) -> LoadBench:
     task = load_task(EXAMPLE_TASK)
     with tempfile.TemporaryDirectory(prefix="cadence-bench-") as tmp:
         data = Path(tmp) / "data"
-        cache = data / "executor"
+        cache = data / EXECUTOR.name
         cache.mkdir(parents=True)
         for path in task.paths.values():  # the sets a store would serve, in the executor's cache
             (cache / f"{path.id}.msgpack").write_bytes(encode(shipped_or_planned(path, task)))
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         async with await Bus.open(BusConfig(mode="router", listen=[endpoint]), CELL) as bus:
-            health = bus.subscribe(bus.key("health/executor"), ServiceStatus, maxsize=1000)
-            log = (Path(tmp) / "executor.log").open("wb")
-            run = [sys.executable, "-m", "services.executor"]
+            health = bus.subscribe(bus.key(f"health/{EXECUTOR.name}"), ServiceStatus, maxsize=1000)
+            log = (Path(tmp) / f"{EXECUTOR.name}.log").open("wb")
+            run = [sys.executable, "-m", f"services.{EXECUTOR.name}"]
             env = executor_env(endpoint, data)
             executor = subprocess.Popen(
                 run, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=EXECUTOR.start_as_unit
@@ -139,7 +139,7 @@ async def run(seconds: float, busy: int = 2) -> LoadBench:
                 return await measure(bus, health, procs, endpoint, seconds, busy, Path(tmp))
             except BaseException:
                 log.flush()
-                print((Path(tmp) / "executor.log").read_text()[-4000:], file=sys.stderr)
+                print((Path(tmp) / f"{EXECUTOR.name}.log").read_text()[-4000:], file=sys.stderr)
                 raise
             finally:
                 for p in procs:

@@ -47,7 +47,7 @@ class Supervised:
                     stdout=log,
                     stderr=log,
                     start_new_session=True,
-                    preexec_fn=BY_NAME[self.name].start_as_unit,  # its unit's priority
+                    preexec_fn=unit.start_as_unit if (unit := BY_NAME.get(self.name)) else None,  # its Nice=
                 )
                 if stopping.is_set():  # the stop came while it started: it passed this process by
                     await self.stop()

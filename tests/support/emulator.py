@@ -112,6 +112,7 @@ EXPECTED = {
     "p99_err_us",
     "p999_err_us",
     "max_err_us",
+    "longest_overrun_run",
     "overruns",
     "prepare_ms",
 }
