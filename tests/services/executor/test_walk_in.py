@@ -62,7 +62,7 @@ from tests.support.paths import EXAMPLE_TASK
 
 V_H = 1.6  # ISO 13855's walking speed
 FAR, NEAR, HEIGHT = 6.0, 1.0, 1.0  # the walk along the cell's x axis, the tracker's point at chest height
-STAND_S, OUT_S, WALKS = 2.0, 3.0, 4
+STAND_S, OUT_S, WALKS = 2.0, 3.0, 3
 # the executor's process stopped once the arm runs a path this fast, until the person walking in is this near
 STALL_FAST_M_S, STALL_UNTIL_X = 0.5, 1.6
 STALL_TRIES = 3  # a stall that met an arm the watchdog had just stopped is tried again, walk and all
