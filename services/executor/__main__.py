@@ -87,16 +87,18 @@ class Executor(Node):
         self.loop: Servo
         if s.servo == "process" and not driven:  # the loop, its path and the robot: a process of their own
             self.claim, fifo, warnings = claim_for(s)
-            proc = ServoProcess(s, speed, self.claim.core, fifo, self.servo_died)
-            self.loop, self.backend = proc, RemoteBackend(proc)
-            proc.warnings = warnings
             try:
+                proc = ServoProcess(s, speed, self.claim.core, fifo, self.servo_died)
                 proc.start()
+            except OSError as exc:  # no memfd, no pidfd: a kernel before 5.3, a seccomp filter
+                self.claim.release()
+                why = f"[executor] the servo process cannot be started ({exc}); "
+                raise ConfigError(why + 'servo = "thread" runs the loop in the executor\'s process') from None
             except Exception:
                 self.claim.release()
                 raise
             proc.warnings = warnings + proc.warnings
-            self.backend = RemoteBackend(proc)  # its name and clock as the process found them
+            self.loop, self.backend = proc, RemoteBackend(proc)  # its name and clock as it found them
         else:  # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
             self.backend = backend_for(s, task, math.inf if driven else speed)
             self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)

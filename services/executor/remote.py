@@ -14,6 +14,7 @@ new process is started, stopped, where the arm stands.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import mmap
@@ -220,9 +221,10 @@ class Mailbox:
     """The executor's end of the shared memory (servo_process.py ``Channel``): commands put, the stop and
     the lease written, the state read, and the answer to a call awaited (the one wait, a worker's)."""
 
-    def __init__(self, ch: Channel, ended: Callable[[], str | None]) -> None:
-        """``ended``: None while the servo process runs, else how it ended."""
-        self.ch, self.ended = ch, ended
+    def __init__(self, ch: Channel, ended: Callable[[], str | None], bell: int) -> None:
+        """``ended``: None while the servo process runs, else how it ended; ``bell``: a pipe whose byte
+        wakes it at rest."""
+        self.ch, self.ended, self.bell = ch, ended, bell
         self._put = threading.Lock()  # one writer at a time
         self._call = threading.Lock()  # one call in flight
         self._numbers = itertools.count(1)
@@ -236,6 +238,8 @@ class Mailbox:
     def put(self, m: tuple[Any, ...]) -> None:
         with self._put:
             ok = self.ch.cmd.put(m)
+        with contextlib.suppress(BlockingIOError, BrokenPipeError):  # rung already, or nobody to wake
+            os.write(self.bell, b"\0")
         if not ok:
             raise RobotUnavailable(
                 f"the servo process reads no commands ({self.ended() or 'its mailbox is full'})"
@@ -313,9 +317,10 @@ class ServoProcess:
         os.ftruncate(self.fd, Channel.SIZE)
         self.mm = mmap.mmap(self.fd, Channel.SIZE)
         self.ch = Channel(memoryview(self.mm))
-        self.wake_r, self.wake_w = os.pipe()
-        os.set_blocking(self.wake_r, False)
-        os.set_blocking(self.wake_w, False)
+        self.wake_r, self.wake_w = os.pipe()  # the servo's word: wakes the executor's loop
+        self.bell_r, self.bell_w = os.pipe()  # a command: wakes the servo at rest
+        for fd in (self.wake_r, self.wake_w, self.bell_r, self.bell_w):
+            os.set_blocking(fd, False)
         self.proc: subprocess.Popen[bytes] | None = None
         self.pidfd: int | None = None
         self.info: dict[str, Any] = {}
@@ -323,7 +328,7 @@ class ServoProcess:
         self.died = ""  # why the last one ended unasked: a latched fault until a person's resume
         self.deaths = 0
         self.restarting: threading.Thread | None = None
-        self.mail = Mailbox(self.ch, self.ended)
+        self.mail = Mailbox(self.ch, self.ended, self.bell_w)
         self._runs: dict[int, tuple[Future[MotionResult], RemotePlayback | None]] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closing = False
@@ -337,8 +342,9 @@ class ServoProcess:
                         None if q0 is None else tuple(float(x) for x in q0))  # fmt: skip
         # its Python stack in the executor's log, should it crash
         module = "services.executor.servo_process"
-        cmd = [sys.executable, "-X", "faulthandler", "-m", module, str(self.fd), str(self.wake_w)]
-        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(self.fd, self.wake_w),
+        fds = (self.fd, self.wake_w, self.bell_r)
+        cmd = [sys.executable, "-X", "faulthandler", "-m", module, *map(str, fds)]
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=fds,
                                 env={**os.environ, **QUIET}, start_new_session=True)  # fmt: skip
         assert proc.stdin is not None
         proc.stdin.write(pickle.dumps(config))
@@ -419,7 +425,7 @@ class ServoProcess:
                 proc.wait()
         if self._loop is not None and not self._loop.is_closed():
             self._loop.remove_reader(self.wake_r)
-        for fd in (self.wake_r, self.wake_w):
+        for fd in (self.wake_r, self.wake_w, self.bell_r, self.bell_w):
             os.close(fd)
 
     def where(self) -> Array | None:

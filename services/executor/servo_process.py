@@ -15,8 +15,9 @@ dead executor, a starved event loop), the playback takes the stop kept ready by 
 The executor supervises it (services/executor/remote.py): a death here is a latched protective stop.
 
 It imports what a tick needs: no Zenoh, no scipy, and no thread of numpy's (OPENBLAS_NUM_THREADS=1).
-Started as ``python -m services.executor.servo_process FD WAKE`` with its configuration pickled on stdin:
-FD a memfd of ``Channel.SIZE`` bytes, WAKE a pipe's write end (a byte there wakes the executor's loop).
+Started as ``python -m services.executor.servo_process FD WAKE BELL`` with its configuration pickled on
+stdin: FD a memfd of ``Channel.SIZE`` bytes, WAKE a pipe's write end (a byte there wakes the executor's
+loop), BELL a pipe's read end (a byte there wakes it at rest: a command came).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import contextlib
 import mmap
 import os
 import pickle
+import select
 import signal
 import sys
 import threading
@@ -41,7 +43,7 @@ from services.executor.playback import InForce, Offer, Playback, Samples, Switch
 from services.executor.servo import MotionResult, ServoLoop, Source, playback_on
 from services.executor.settings import Settings
 
-IDLE_S = 0.001  # between motions the mailbox is read this often
+IDLE_S = 0.05  # at rest, the arm's state is rewritten this often; a command rings the bell meanwhile
 SLOW_EVERY = 25  # ticks: the fault, the inputs and the tool's pose are read at 20 Hz during a motion
 # what the executor may call on the backend through the mailbox (the rest is state, or the loop's own)
 CALLS = frozenset(
@@ -95,8 +97,8 @@ class Server:
     """Serves the executor between ticks and while idle: its commands in, the arm's state and the
     playback's changes out."""
 
-    def __init__(self, ch: Channel, backend: Backend, loop: ServoLoop, wake: int) -> None:
-        self.ch, self.backend, self.loop, self.wake = ch, backend, loop, wake
+    def __init__(self, ch: Channel, backend: Backend, loop: ServoLoop, wake: int, bell: int) -> None:
+        self.ch, self.backend, self.loop, self.wake, self.bell = ch, backend, loop, wake, bell
         self.parent = os.getppid()
         self.objs: dict[int, Any] = {}  # tag → the executor's curve, ramp or switch
         self.tags: dict[int, int] = {}  # id(object) → its tag
@@ -253,7 +255,8 @@ class Server:
     # --- the loop -------------------------------------------------------------------------------------
 
     def serve(self) -> None:
-        """Between two ticks (``ServoLoop.between``), and while idle."""
+        """Between two ticks (``ServoLoop.between``), and while idle (``idle``): the stop and the lease,
+        a few commands, and whether the executor is still there."""
         self.ticks += 1
         ctrl = self.ch.ctrl.read()
         if ctrl is not None:
@@ -277,7 +280,10 @@ class Server:
         while not self.exiting:
             self.serve()
             if self.next_run is None:
-                time.sleep(IDLE_S)
+                if not self.ch.cmd.pending():  # at rest until the executor rings, or the state is due
+                    select.select([self.bell], [], [], IDLE_S)
+                with contextlib.suppress(BlockingIOError):
+                    os.read(self.bell, 4096)
                 continue
             run_id, source, settle = self.next_run
             self.next_run = None
@@ -297,7 +303,8 @@ def main(argv: list[str]) -> int:
     # the arm through here, and then ends this process
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    fd, wake = int(argv[1]), int(argv[2])
+    fd, wake, bell = int(argv[1]), int(argv[2]), int(argv[3])
+    os.set_blocking(bell, False)
     config: Config = pickle.loads(sys.stdin.buffer.read())
     ch = Channel(memoryview(mmap.mmap(fd, Channel.SIZE)))
     s = config.settings
@@ -305,7 +312,7 @@ def main(argv: list[str]) -> int:
     loop = ServoLoop(backend, core=config.core, fifo_priority=config.fifo_priority, lock_memory=s.lock_memory,
                      speed=config.speed, spin_us=s.spin_us, overrun_limit=s.overrun_limit,
                      realtime=backend.realtime, errors_ns=ch.errors_ns)  # fmt: skip
-    server = Server(ch, backend, loop, wake)
+    server = Server(ch, backend, loop, wake, bell)
     loop.between = server.serve
     loop.setup()
     threads = (
