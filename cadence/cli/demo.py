@@ -98,7 +98,7 @@ async def ended_by_sigterm(main: Coroutine[Any, Any, T]) -> T:
     "scale; docs/decision.md, Decisions on real people)",
 )
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cadence.demo.folder import claim
+    from cadence.demo.folder import claim, keep_previous
     from cadence.demo.options import ORDER, DemoOptions, twin_table
     from cadence.demo.processes import run_demo
     from cadence.demo.summary import NothingRan, summary_table
@@ -152,6 +152,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
 
     lock = claim(opts.out, args.force)
+    if (kept := keep_previous(opts.out)) is not None:
+        out.print(f"the last run's report and logs in {opts.out} are kept in {kept}", soft_wrap=True)
     before = signal.getsignal(signal.SIGTERM)
     try:
         if opts.processes:

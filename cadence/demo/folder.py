@@ -4,6 +4,7 @@ stopped)."""
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 from typing import IO
 
@@ -51,3 +52,32 @@ def fresh_start(data: Path) -> None:
     executor = ExecutorStore(data / EXECUTOR.name)
     executor.load()
     executor.forget_stop()  # an unchanged record is not written
+
+
+PREVIOUS = "previous"
+STAYS = ("data", LOCK_FILE, PREVIOUS)  # the services' data, the lock, the runs kept: the rest is a run's own
+
+
+def keep_previous(folder: Path) -> Path | None:
+    """A finished run's summary, report, figures and logs in ``folder`` moved aside, into
+    ``previous/<when it ended>``, so that the new run overwrites nothing of it (a second demo into one
+    folder replaced the first's report without a word). The services' data stays: the next run starts
+    from it afresh (``fresh_start``). Where they went, or None when there was no finished run."""
+    summary = folder / "summary.json"
+    if not summary.is_file():
+        return None
+    ended = time.strftime("%Y%m%d-%H%M%S", time.localtime(summary.stat().st_mtime))
+    aside = folder / PREVIOUS / ended
+    n = 1
+    while aside.exists():  # two runs ended within a second
+        n += 1
+        aside = folder / PREVIOUS / f"{ended}-{n}"
+    try:
+        aside.mkdir(parents=True)
+        for entry in sorted(folder.iterdir()):
+            if entry.name not in STAYS:
+                entry.rename(aside / entry.name)
+    except OSError as exc:
+        raise InputError(f"{folder}: the last run's report cannot be kept in {aside}: {exc.strerror or exc}; "
+                         "give another --out") from None  # fmt: skip
+    return aside
