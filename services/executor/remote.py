@@ -423,10 +423,27 @@ class ServoProcess:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-        if self._loop is not None and not self._loop.is_closed():
-            self._loop.remove_reader(self.wake_r)
-        for fd in (self.wake_r, self.wake_w, self.bell_r, self.bell_w):
-            os.close(fd)
+        loop = self._loop
+        try:
+            here = asyncio.get_running_loop()
+        except RuntimeError:  # a worker thread's call (the node's close)
+            here = None
+        if loop is not None and loop is not here and not loop.is_closed():
+            loop.call_soon_threadsafe(self._forget)  # its readers are the loop's to remove
+        else:
+            self._forget()
+
+    def _forget(self) -> None:
+        """Its readers off the executor's loop, and its descriptors closed."""
+        loop = self._loop
+        for fd in (self.wake_r, self.pidfd):
+            if loop is not None and not loop.is_closed() and fd is not None:
+                loop.remove_reader(fd)
+        for fd in (self.wake_r, self.wake_w, self.bell_r, self.bell_w, self.pidfd, self.fd):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self.pidfd = None
 
     def where(self) -> Array | None:
         """The joints it last said."""

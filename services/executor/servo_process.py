@@ -294,6 +294,7 @@ class Server:
                 self.crash = f"the servo process: {exc!r}"
             self.changed()  # the playback's last word: where it ended
             self.pb = None
+            self.publish(slow=True)  # the arm and its fault as the motion left them, before its result
             self.ch.events.put(("result", run_id, result))
             self._wake()
 
