@@ -24,7 +24,7 @@ from common.runtime.resources import SHIPPED_SETS
 from common.trajectory.shipped import read_shipped
 from tests.support.cell import CELL, free_port
 
-SPEED = "24"
+SPEED = "16"
 
 
 def lines_of(proc: subprocess.Popen[str]) -> queue.Queue[str]:
@@ -108,8 +108,8 @@ def walk_through() -> list[str]:
 
 def test_the_guides_walk_through_runs_as_written_and_measures_something(tmp_path: Path) -> None:
     """docs/study.md's walk-through, command by command as written, in a fresh folder: the demo cell (at
-    24x, not its default 8x, and with the twin publishing no distance: at 24x a loaded host cannot take a
-    reading within the executor's 100 ms of data time, 4 ms of wall, and the arm rightly holds; the
+    16x, not its default 8x, and with the twin publishing no distance: at 16x a loaded host cannot take a
+    reading within the executor's 100 ms of data time, 6 ms of wall, and the arm rightly holds; the
     session, not that timing, is what this tests: tests/services/executor/test_walk_in.py), the plan,
     S01's three sessions (the first trains and calibrates at rest, the second takes a TLX), the
     experimenter's marks and a part by hand from a second terminal during the third, then the analysis (issue
