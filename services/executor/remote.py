@@ -79,7 +79,6 @@ class RemotePlayback:
         self._stop_s = 1.0
         self.began: tuple[Ramp, float] | None = None
         self.lapses = self.unchecked = 0
-        self.lapsed = False
         self.finished = False
         self._last = (0.0, 0.0, float(ramp.c[0]))  # t, s, σ the servo last said, for a playback not live
         self._held: list[tuple[Any, ...]] = []  # commands before it runs: sent after its start
@@ -149,10 +148,6 @@ class RemotePlayback:
         return self.now.curve
 
     @property
-    def ramp(self) -> Ramp:
-        return self.now.ramp
-
-    @property
     def fallback(self) -> Offer | None:
         return self._fallback
 
@@ -187,7 +182,6 @@ class RemotePlayback:
         return True
 
     def renew(self, until: float) -> None:
-        self.lapsed = False
         self.proc.renew(until)
 
     def settled(self, offer: Offer | None = None) -> bool:
@@ -201,13 +195,13 @@ class RemotePlayback:
 
     def apply(self, e: tuple[Any, ...]) -> None:
         (_, _, version, ramp, curve, pending_ramp, pending_switch, seen, began, finished, lapses, unchecked,
-         lapsed, t, s, sigma) = e  # fmt: skip
+         t, s, sigma) = e  # fmt: skip
         parts = (self.obj(ramp), self.obj(curve), self.obj(pending_ramp), self.obj(pending_switch))
         if version != self.version:
             self.now, self.version = InForce(*parts), version
         self._seen_seq = seen
         self.began = None if began is None else (self.obj(began[0]), began[1])
-        self.finished, self.lapses, self.unchecked, self.lapsed = finished, lapses, unchecked, lapsed
+        self.finished, self.lapses, self.unchecked = finished, lapses, unchecked
         self._last = (t, s, sigma)
         self.notify()
 
@@ -326,7 +320,6 @@ class ServoProcess:
         self.info: dict[str, Any] = {}
         self.warnings: list[str] = []
         self.died = ""  # why the last one ended unasked: a latched fault until a person's resume
-        self.deaths = 0
         self.restarting: threading.Thread | None = None
         self.mail = Mailbox(self.ch, self.ended, self.bell_w)
         self._runs: dict[int, tuple[Future[MotionResult], RemotePlayback | None]] = {}
@@ -383,7 +376,7 @@ class ServoProcess:
             return
         self._drain()
         why = f"the servo process died ({said(proc.wait())})"
-        self.died, self.deaths = why, self.deaths + 1
+        self.died = why
         log.error("%s: the arm is stopped; resume after checking the cell", why)
         q0, values = self.where(), self.mail.values()
         if values is not None:  # what the executor says of the arm until the new one runs: still, there

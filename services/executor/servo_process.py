@@ -226,7 +226,7 @@ class Server:
         self.ch.events.put(("state", self.run_id, self.version, self.ref(now.ramp), self.ref(now.curve),
                             self.ref(now.pending_ramp), self.ref(now.pending_switch), self.seen_seq,
                             None if began is None else (self.ref(began[0]), began[1]), pb.finished,
-                            pb.lapses, pb.unchecked, pb.lapsed, pb.t, pb.s, pb.sigma))  # fmt: skip
+                            pb.lapses, pb.unchecked, pb.t, pb.s, pb.sigma))  # fmt: skip
         self._wake()
 
     def publish(self, slow: bool) -> None:
