@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-_U64 = struct.Struct("<Q")
 _LEN = struct.Struct("<I")
 RING_HEADER = 16  # head (the producer's), tail (the consumer's): bytes written and read, ever
 
@@ -38,12 +37,17 @@ class Ring:
         self.size = len(buf) - RING_HEADER
         if self.size <= _LEN.size:
             raise ValueError(f"a ring needs more than {RING_HEADER + _LEN.size} bytes, got {len(buf)}")
+        # head and tail through numpy: one aligned 8-byte load or store each (``struct`` moves a ``Q`` a
+        # byte at a time, and a reader that saw half a tail overwrote messages not yet read)
+        self._ends: NDArray[np.uint64] = np.frombuffer(buf, dtype=np.uint64, count=2)
+        if not self._ends.flags.aligned:
+            raise ValueError("a ring's buffer must start on an 8-byte boundary")
 
     def _head(self) -> int:
-        return int(_U64.unpack_from(self.buf, 0)[0])
+        return int(self._ends[0])
 
     def _tail(self) -> int:
-        return int(_U64.unpack_from(self.buf, 8)[0])
+        return int(self._ends[1])
 
     def _copy_in(self, at: int, data: bytes) -> None:
         i = RING_HEADER + at % self.size
@@ -68,7 +72,7 @@ class Ring:
             return False
         self._copy_in(head, _LEN.pack(len(data)))
         self._copy_in(head + _LEN.size, data)
-        _U64.pack_into(self.buf, 0, head + _LEN.size + len(data))  # the commit
+        self._ends[0] = head + _LEN.size + len(data)  # the commit
         return True
 
     def get(self) -> Any:
@@ -78,7 +82,7 @@ class Ring:
             return None
         (n,) = _LEN.unpack(self._copy_out(tail, _LEN.size))
         message = pickle.loads(self._copy_out(tail + _LEN.size, n))
-        _U64.pack_into(self.buf, 8, tail + _LEN.size + n)
+        self._ends[1] = tail + _LEN.size + n
         return message
 
     def pending(self) -> bool:

@@ -266,6 +266,11 @@ class Mailbox:
                 return value
             raise value
 
+    def hello(self) -> Any:
+        """A new servo process's first word (its set-up), read as a call's answer is: one reader."""
+        with self._call:
+            return self.answer(0, START_S, "to start")
+
     def call(self, kind: str, *args: object, within_s: float = CALL_S) -> Any:
         """A command of ``kind``, numbered, its answer awaited (a call into the backend: "call")."""
         with self._call:
@@ -343,7 +348,7 @@ class ServoProcess:
         proc.stdin.write(pickle.dumps(config))
         proc.stdin.close()
         self.proc = proc
-        ready = self.mail.answer(0, START_S, "to start")
+        ready = self.mail.hello()
         self.mail.frozen = None  # its first state came before its word
         self.info, self.warnings = ready, list(ready["warnings"])
 
@@ -359,7 +364,7 @@ class ServoProcess:
 
     def _watch(self) -> None:
         loop, proc = self._loop, self.proc
-        if loop is None or proc is None:
+        if loop is None or proc is None or self._closing:
             return
         loop.add_reader(self.wake_r, self._drain)
         self.pidfd = os.pidfd_open(proc.pid)
@@ -396,6 +401,8 @@ class ServoProcess:
         self.restarting.start()
 
     def restart(self, q0: Array | None) -> None:
+        if self._closing:
+            return
         try:
             self._spawn(q0)
             self.mail.call("call", "connect", ())
@@ -408,6 +415,9 @@ class ServoProcess:
     def close(self) -> None:
         """Ends it after the motion in flight (``request_stop`` first for a stop of it)."""
         self._closing = True
+        restarting = self.restarting
+        if restarting is not None and restarting is not threading.current_thread():
+            restarting.join(START_S)  # a new one half-started: ended below, its descriptors still open
         proc = self.proc
         if proc is not None and proc.poll() is None:
             self.put(("exit",))
