@@ -52,3 +52,12 @@ class TrajectoryRejected(CadenceError):
         self.path_id = path_id
         self.problems = problems
         super().__init__(f"path '{path_id}': trajectory refused: " + "; ".join(problems))
+
+
+class Rejected(Exception):
+    """Raised by an input handler for a message that decoded but must not be acted on (the rules of
+    common/runtime/admission.py): counted and logged by the bus under ``code``, like a malformed one."""
+
+    def __init__(self, code: str, detail: str = "") -> None:
+        super().__init__(detail or code)
+        self.code, self.detail = code, detail

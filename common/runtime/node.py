@@ -27,6 +27,7 @@ import msgspec
 from common.runtime.admission import Verdict
 from common.runtime.bus import Request
 from common.runtime.errors import BusError
+from common.runtime.errors import Rejected as Rejected  # where handlers have always found it
 from common.runtime.service import ServiceContext
 from schemas.base import Message
 from schemas.topology import ROLE, Topic
@@ -92,15 +93,6 @@ def every(fn: F) -> F:
     which holds its period): run at start and then every period."""
     setattr(fn, _TIMER, fn.__name__)
     return fn
-
-
-class Rejected(Exception):
-    """Raised by an input handler for a message that decoded but must not be acted on (the rules of
-    common/runtime/admission.py): counted and logged by the bus under ``code``, like a malformed one."""
-
-    def __init__(self, code: str, detail: str = "") -> None:
-        super().__init__(detail or code)
-        self.code, self.detail = code, detail
 
 
 def admitted(verdict: Verdict | None) -> Verdict | None:

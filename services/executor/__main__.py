@@ -28,6 +28,7 @@ from common.runtime.errors import ConfigError
 from common.runtime.lifetime import name_this_thread
 from common.runtime.node import Node, Out, Rejected, answers, every, node_main, on
 from common.runtime.service import service_main
+from common.runtime.transport import ZenohTransport
 from common.safety.states import Event
 from common.trajectory.task import load_task
 from schemas.decision import Selection
@@ -45,6 +46,7 @@ from schemas.topology import (
 from services.executor.backends import Backend, backend_for
 from services.executor.cycles import Cycles
 from services.executor.figures import CurveFigures
+from services.executor.guard import GuardProcess
 from services.executor.kit import Kit
 from services.executor.motions import Motions
 from services.executor.persist import ExecutorStore
@@ -80,6 +82,7 @@ class Executor(Node):
         def set_state(state: str) -> None:
             ctx.state = state
 
+        self.guard: GuardProcess | None = None  # the separation guard beside a servo process
         kit = Kit(common.clock, speed, common.clock_skew_s, ctx.counters, ctx.stop, self.publish, ctx.note,
                   set_state, self.start_soon)  # fmt: skip
         task = load_task(s.task)
@@ -99,6 +102,13 @@ class Executor(Node):
                 raise
             proc.warnings = warnings + proc.warnings
             self.loop, self.backend = proc, RemoteBackend(proc)  # its name and clock as it found them
+            if s.separation and isinstance(
+                ctx.bus.transport, ZenohTransport
+            ):  # readings the loop can't delay
+                self.guard = GuardProcess.beside(proc.fd, proc.ch, s, ctx.bus.cfg, common.cell, common.clock,
+                                                 common.clock_skew_s, fifo)  # fmt: skip
+                if self.guard is not None:
+                    self.guard.start()
         else:  # the sim arm's slow moves wait on the wall between steps, except in a lockstep cell
             self.backend = backend_for(s, task, math.inf if driven else speed)
             self.loop, self.claim = servo_for(self.backend, s, speed, self.backend.realtime, lockstep=driven)
@@ -205,6 +215,11 @@ class Executor(Node):
         c["servo_longest_overrun_run"] = t.longest_overrun_run
         c["servo_p50_us"], c["servo_p99_us"] = round(t.p50_err_us), round(t.p99_err_us)
         c["servo_p99.9_us"], c["servo_max_us"] = round(t.p999_err_us), round(t.max_err_us)
+        if self.guard is not None:
+            if (why := self.guard.check()) is not None:
+                c["guard_deaths"] += 1
+                self.safety.event("info", why, self.safety.path_id)
+            c.update(self.guard.figures())
 
     async def work(self) -> None:
         if not await self.safety.connect():
@@ -237,6 +252,8 @@ class Executor(Node):
         self.loop.request_stop()
 
     async def close(self) -> None:
+        if self.guard is not None:
+            self.guard.close()
         self.loop.request_stop()
         await asyncio.to_thread(self.loop.close)
         await asyncio.to_thread(self.backend.close)

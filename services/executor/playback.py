@@ -127,6 +127,7 @@ class Owned(Protocol):
     mailbox: Offer | None
     fallback: Offer | None
     stop_s: float
+    figures: Figures | None  # what σ is chosen for: a separation guard beside the servo reads them
     began: tuple[Ramp, float] | None
     lapses: int
     unchecked: int
@@ -188,6 +189,7 @@ class Playback:
         self.lease: float | None = None
         self.fallback: Offer | None = None  # the stop to take when the lease runs out (the owner's)
         self.stop_s = 1.0  # an unchecked stop's length, when no fallback fits the state (the path's T_s)
+        self.figures: Figures | None = None  # its owner's: a guard's (servo_process.py), unused in a thread
         self.lapsed = False  # the lease ran out and the loop took its stop; a renewal clears it
         self.lapses = 0  # how often
         self.unchecked = 0  # of which with no fallback that fitted
@@ -273,6 +275,23 @@ class Playback:
             stop = Ramp.between(t0, s0, (sig, sd, sdd), 0.0, max(self.stop_s, DT))
         self.now = replace(now, pending_ramp=stop, pending_switch=None)
         self.notify()
+
+    def cut(self, sigma: float) -> bool:
+        """The separation guard's word (services/executor/guard_process.py): σ down to ``sigma`` from the
+        next step, over ``stop_s``, unchecked like the lease's own stop, when its owner's ramp did not come
+        within the guard's grace. False when the scale in force or pending is that low already."""
+        now = self.now
+        if now.ramp.target <= sigma + SIGMA_EPS or (
+            now.pending_ramp is not None and now.pending_ramp.target <= sigma + SIGMA_EPS
+        ):
+            return False
+        t0 = self.tick * DT + DT
+        s0, sig, sd, sdd = (float(x[0]) for x in now.ramp.state(np.array([t0])))
+        down = Ramp.between(t0, s0, (sig, sd, sdd), sigma, max(self.stop_s, DT))
+        self.now = replace(now, pending_ramp=down)
+        self.unchecked += 1
+        self.notify()
+        return True
 
     def next(self) -> object | None:
         self._read_mailbox()
@@ -363,9 +382,10 @@ class PathRun:
         ``arm``: the robot and its tool, whose fastest point a switched curve's figures take; ``hold``:
         where the arm stands (joints), held there until the path advances (``Playback``); ``make``: the
         servo's playback of it (``Servo.playback``: in its thread, or a mirror of one in its process)."""
-        self.path, self.k, self.figures, self.limits, self.speed = path, k, figures, limits, speed
+        self.path, self.k, self.limits, self.speed = path, k, limits, speed
         self.arm = arm
-        self.pending_figures: Figures | None = None  # of a switched curve not yet taken
+        self._figures = figures
+        self._pending_figures: Figures | None = None  # of a switched curve not yet taken
         self.changed = asyncio.Event()
         self.ended = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -375,11 +395,30 @@ class PathRun:
                 loop.call_soon_threadsafe(self.changed.set)
 
         self.playback: Owned = make(curve, start, notify, loop.time, hold)
+        self.playback.figures = self.guard
         self.lock = asyncio.Lock()
         self.ramps = self.ramps_refused = 0
         self.lapses_counted = 0  # of the playback's lapses, those in the executor's counters already
         self.switched_at = 0.0  # the path time of the last switch taken
         self.plan_s = 0.2  # how long planning a switch takes (wall s, smoothed): the switch point's lead
+
+    @property
+    def figures(self) -> Figures:
+        return self._figures
+
+    @figures.setter
+    def figures(self, figures: Figures) -> None:
+        self._figures = figures
+        self.playback.figures = self.guard
+
+    @property
+    def pending_figures(self) -> Figures | None:
+        return self._pending_figures
+
+    @pending_figures.setter
+    def pending_figures(self, figures: Figures | None) -> None:
+        self._pending_figures = figures
+        self.playback.figures = self.guard
 
     @property
     def guard(self) -> Figures:

@@ -16,9 +16,9 @@ import numpy as np
 
 from common.robot.ur16e import JointLimits
 from common.runtime.clock import monotonic
-from common.runtime.node import Rejected
-from common.safety.geometry import Body, Pose, Sensor, intrusion_iso13855, separation
-from common.safety.separation import Adoption, Figures, Nearest, Sources, Ssm
+from common.safety.geometry import Sensor
+from common.safety.separation import Adoption, Figures, Nearest
+from common.safety.watch import Watch
 from common.trajectory.scaling import Ramp
 from common.trajectory.task import PathPlan
 from schemas.operator import Separation
@@ -29,7 +29,6 @@ from services.executor.settings import Settings
 log = logging.getLogger("cadence.executor")
 RAISE_BY = 0.1  # a higher σ is taken only when it is this much higher (or 1): no ramp per centimetre
 SAY_EVERY_S = 1.0  # a zone is said at most this often (two sources flapping made 20–40 events a second)
-UNDECLARED_C = intrusion_iso13855("legs")  # 1.2 m: the largest C of ISO 13855, for a source nobody placed
 
 
 class Zones:
@@ -65,14 +64,11 @@ class Reactions:
         self.kit, self.safety, self.limits, self.joints = kit, safety, limits, joints
         self.clock, self.on = kit.clock, s.separation
         self.reaction_parts = s.reaction_parts(kit.clock_skew_s)
+        self.watch = Watch(s.rules(kit.clock_skew_s))
         # C is each source's own: a reading is kept as S − C, the room a person has before S_p's other terms
-        self.ssm = Ssm(s.human_speed_m_s, sum(self.reaction_parts.values()), s.stop_time_s, 0.0,
-                       s.uncertainty_m, s.separation_max_age_s)  # fmt: skip
-        self.arm, self.sensors = s.arm(), s.sensors()
-        self.refuse_undeclared = s.separation_undeclared == "refuse"
-        self.sources = Sources(s.separation_max_age_s, kit.clock_skew_s, tuple(self.sensors),
-                               max_rate_hz=s.separation_max_rate_hz)  # fmt: skip
-        self._body: tuple[bytes, Body] | None = None  # the arm's body at the joints it was last found for
+        rules = self.watch.rules
+        self.ssm, self.arm, self.sensors = rules.ssm, rules.arm, rules.sensors
+        self.sources = self.watch.sources
         self.adoption = Adoption(s.adoption_budget_s)
         self.offered_on: PathRun | None = None  # the path the ramp the adoption waits for was offered on
         self._counted_at = -math.inf
@@ -85,52 +81,16 @@ class Reactions:
     # --- the distance -------------------------------------------------------------------------------
 
     def receive(self, sep: Separation, own_key: bool = True) -> None:
-        """A reading as it arrives, judged on this executor's clock before its content is looked at:
-        ``own_key``: it came on its source's own key (``operator/separation/<source>``), which on an
-        installed cell only that source's account may put. Refused (``Rejected``, counted) on an installed
-        cell (``separation_undeclared = "refuse"``) when its source is not declared or it came on the
-        shared key, where any sensor's account may say anything; everywhere when past its source's rate
-        (judged before its age: a flood that saturates this loop arrives stale, and must still be seen as a
-        flood), stamped ahead of it by more than the skew bound, or already too old; else S, the person's
-        distance to the arm and tool at the joints now (common/safety/geometry.py), kept less the
-        source's C."""
-        if self.refuse_undeclared and sep.source not in self.sensors:
-            raise Rejected("undeclared", f"'{sep.source}' is no source of this cell (separation_sources), "
-                           'and separation_undeclared = "refuse"')  # fmt: skip
-        if self.refuse_undeclared and not own_key:
-            raise Rejected("shared_key", f"'{sep.source}' on operator/separation: an installed cell takes "
-                           "a source's readings on its own key only")  # fmt: skip
+        """A reading as it arrives, judged on this executor's clock before its content is looked at
+        (common/safety/watch.py: refused, ``Rejected`` and counted, or kept as the person's room at the
+        joints now), and its arrival noted for the adoption's measure."""
         stamp_age = self.clock.loop_s((self.clock.now_ns() - sep.t_ns) / 1e9)
         now = monotonic()
-        why = self.sources.judge(sep.source, stamp_age, sep.age_s, now)
-        if why == "ahead":
-            raise Rejected("ahead", f"'{sep.source}' stamped {-stamp_age:.3f} s ahead of the executor's "
-                           f"clock (the cell's skew bound is {self.sources.skew_s:g} s)")  # fmt: skip
-        if why == "stale":
-            old = max(stamp_age, 0.0) + sep.age_s
-            raise Rejected("stale", f"'{sep.source}' {old:.3f} s old on arrival (at most "
-                           f"{self.sources.max_age_s:g} s is used)")  # fmt: skip
-        if why == "flood":
-            raise Rejected("flood", f"'{sep.source}' sends over {self.sources.max_rate_hz:g} readings a "
-                           "second: the arm holds until it sends at its rate again")  # fmt: skip
-        sensor = self.sensor(sep.source)
-        points = np.asarray(sep.points, dtype=float) if sep.points else None
-        s = separation(self.body(), sensor, sep.distance_m, points, sep.to_robot, sep.placed)
-        self.sources.take(sep.source, s - sensor.intrusion_m, stamp_age, sep.age_s, now)
+        self.watch.receive(sep, own_key, stamp_age, now, self.joints())
         self.adoption.arrived(now)
 
     def sensor(self, name: str) -> Sensor:
-        """A declared source, or one nobody declared: in the cell frame, with the largest C a scanner can
-        have (legs at the floor), its plain distances ranges from the cell's origin."""
-        return self.sensors.get(name) or Sensor(name, Pose(), UNDECLARED_C)
-
-    def body(self) -> Body:
-        """The arm and tool at the joints now, found again only when the joints moved."""
-        q = np.asarray(self.joints(), dtype=float)
-        key = q.tobytes()
-        if self._body is None or self._body[0] != key:
-            self._body = (key, self.arm.body(q))
-        return self._body[1]
+        return self.watch.sensor(name)
 
     def shown_m(self) -> float | None:
         """S of the nearest reading, as a person reads it (the distance, not the room past C)."""
@@ -146,7 +106,7 @@ class Reactions:
         the executor answers readings later than T_r allows it (``Adoption``)."""
         if not self.on:
             return 1.0
-        return 0.0 if self.adoption.late else figures.scale(self.ssm, self.nearest.distance_m)
+        return 0.0 if self.adoption.late else self.watch.allowed(figures, self.nearest)
 
     # --- the scale ----------------------------------------------------------------------------------
 

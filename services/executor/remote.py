@@ -20,7 +20,6 @@ import logging
 import mmap
 import os
 import pickle
-import signal
 import subprocess
 import sys
 import threading
@@ -32,11 +31,13 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from common.safety.separation import Figures
 from common.trajectory.scaling import DT, Curve, Ramp
 from services.executor.backends import RobotUnavailable
+from services.executor.channel import QUIET, Channel, said
 from services.executor.playback import InForce, Offer, Owned, Switch
 from services.executor.servo import PERIOD_NS, MotionResult, Source
-from services.executor.servo_process import Channel, Config, Ref
+from services.executor.servo_process import Config, Ref
 from services.executor.settings import Settings
 from services.executor.timing import TickSummary, summarise
 
@@ -45,18 +46,6 @@ log = logging.getLogger("cadence.executor")
 START_S = 60.0  # a servo process's start (numpy's import on a loaded host, a robot's library)
 CALL_S = 60.0  # a call into the backend (a controller's connect, a benchmark's moveJ)
 POLL_S = 0.0005  # how often a call's waiter looks for its answer
-# numpy and its BLAS start no threads of their own in the servo process
-QUIET = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def said(returncode: int) -> str:
-    if returncode < 0:
-        try:
-            name = signal.Signals(-returncode).name
-        except ValueError:
-            name = f"signal {-returncode}"
-        return f"killed by {name}"
-    return f"exit status {returncode}"
 
 
 class RemotePlayback:
@@ -77,6 +66,7 @@ class RemotePlayback:
         self._mail_seq = self._seen_seq = 0
         self._fallback: Offer | None = None
         self._stop_s = 1.0
+        self._figures: Figures | None = None
         self.began: tuple[Ramp, float] | None = None
         self.lapses = self.unchecked = 0
         self.finished = False
@@ -157,6 +147,16 @@ class RemotePlayback:
         if offer is not None and offer.ramp is not None:
             version = self.version if offer.base is self.now else -1
             self.send(("fallback", version, self.ref(offer.ramp)))
+
+    @property
+    def figures(self) -> Figures | None:
+        return self._figures
+
+    @figures.setter
+    def figures(self, figures: Figures | None) -> None:
+        if figures is not None and figures != self._figures:
+            self.send(("figures", (figures.speed_m_s, figures.stop_time_s, figures.stop_travel_s)))
+        self._figures = figures
 
     @property
     def stop_s(self) -> float:

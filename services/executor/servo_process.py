@@ -32,51 +32,27 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
-from common.runtime.mailbox import Latest, Ring
 from common.trajectory.task import load_task
 from services.executor.backends import Backend, backend_for
-from services.executor.playback import InForce, Offer, Playback, Samples, Switch
+from services.executor.channel import Channel
+from services.executor.playback import SIGMA_EPS, InForce, Offer, Playback, Samples, Switch
 from services.executor.servo import MotionResult, ServoLoop, Source, playback_on
 from services.executor.settings import Settings
 
+# the share of the adoption budget the executor's own ramp has before the guard's σ is taken here: the
+# rest is the guard's hop (a reading → its σ, a few ms) and the step that plays it
+GUARD_GRACE = 0.4
+GUARD_SILENT_S = 0.05  # a guard not heard for this long is not heard at all (the executor alone scales)
 IDLE_S = 0.05  # at rest, the arm's state is rewritten this often; a command rings the bell meanwhile
 SLOW_EVERY = 25  # ticks: the fault, the inputs and the tool's pose are read at 20 Hz during a motion
 # what the executor may call on the backend through the mailbox (the rest is state, or the loop's own)
 CALLS = frozenset(
     {"connect", "close", "reconnect", "reset_fault", "prepare", "motion_ended", "move_j", "set_gripper"}
 )
-
-
-class Channel:
-    """The shared memory's layout, the same on both sides: ``ctrl`` (the executor's: stop, lease until,
-    renewals), ``state`` (the servo's, rewritten every tick), and three rings."""
-
-    CTRL, STATE, FAULT_BYTES, ERRORS = 3, 32, 1024, 1 << 17
-    RINGS: ClassVar[dict[str, int]] = {"cmd": 4 << 20, "events": 1 << 20, "replies": 1 << 20}
-    # state's values by name (``q``, ``qd``, ``tcp`` are 6 wide)
-    AT: ClassVar[dict[str, int]] = {"run": 0, "index": 1, "ticks": 2, "overruns": 3, "t": 4, "s": 5,
-                                    "sigma": 6, "inputs": 7, "lost": 8, "beat": 9, "moving": 10, "q": 11,
-                                    "qd": 17, "tcp": 23, "longest": 29}  # fmt: skip
-    # the blocks and rings, each rounded up to 8 bytes, in whole pages
-    SIZE = (Latest.nbytes(CTRL) + Latest.nbytes(STATE, FAULT_BYTES) + sum(RINGS.values()) + 8 * ERRORS
-            + 8192) // 4096 * 4096  # fmt: skip
-
-    def __init__(self, buf: memoryview) -> None:
-        at = 0
-
-        def take(n: int) -> memoryview:
-            nonlocal at
-            part, at = buf[at : at + n], (at + n + 7) // 8 * 8
-            return part
-
-        self.ctrl = Latest(take(Latest.nbytes(self.CTRL)), self.CTRL)
-        self.state = Latest(take(Latest.nbytes(self.STATE, self.FAULT_BYTES)), self.STATE, self.FAULT_BYTES)
-        self.cmd, self.events, self.replies = (Ring(take(n)) for n in self.RINGS.values())
-        self.errors_ns = np.frombuffer(take(8 * self.ERRORS), dtype=np.int64)  # the loop's tick errors
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +89,12 @@ class Server:
         self.next_run: tuple[int, Source, int] | None = None
         self.ticks = 0
         self.exiting = False
+        # the separation guard's: the figures of the curve played (v_r, T_s, B / v_r), the oldest fall of
+        # its σ not yet in force (the guard's clock, s), and what it cost
+        self.figures: tuple[float, float, float] | None = None
+        self.demand: float | None = None
+        self.cuts = self.adopted = 0
+        self.grace_s: float | None = None  # None: no guard (separation off)
         self._fault = ""
         self.crash = ""  # what the backend raised inside a tick: the fault from then on
 
@@ -170,6 +152,8 @@ class Server:
             self.pb.fallback = Offer(self.base(version), ramp=self.obj(ramp))
         elif kind == "stop_s" and self.pb is not None:
             self.pb.stop_s = m[1]
+        elif kind == "figures":
+            self.figures = m[1]
         elif kind == "exit":
             self.exiting = True
 
@@ -192,6 +176,7 @@ class Server:
         self.objs.clear()
         self.tags.clear()
         self.run_id, self.version, self.offer, self.seen_seq = run_id, 0, None, 0
+        self.figures = self.demand = None
         source: Source
         if spec[0] == "path":
             _, curve, ramp, hold = spec
@@ -242,6 +227,8 @@ class Server:
         pb = self.pb
         if pb is not None:
             v[at["t"]], v[at["s"]], v[at["sigma"]] = pb.t, pb.s, pb.sigma
+        v[at["v_r"] : at["v_r"] + 3] = self.figures or (np.nan, np.nan, np.nan)
+        v[at["cuts"]], v[at["adopted"]] = self.cuts, self.adopted
         v[at["q"] : at["q"] + 6] = b.actual_q()
         v[at["qd"] : at["qd"] + 6] = b.actual_qd()
         text = None
@@ -271,10 +258,41 @@ class Server:
             if m is None:
                 break
             self.handle(m)
+        self.guarded()
         if self.ticks % 50 == 0 and os.getppid() != self.parent:  # the executor is gone: stop, then end
             self.loop.request_stop()
             self.exiting = True
         self.publish(slow=self.pb is None or self.ticks % SLOW_EVERY == 0)
+
+    def guarded(self) -> None:
+        """The guard's σ against the scale in force, each step of a path: timed from the guard's fall (the
+        adoption of the reading that caused it), and past its grace taken here, by the playback itself
+        (``Playback.cut``); a silent guard, or one that judged another run, is not heard."""
+        pb, grace = self.pb, self.grace_s
+        if pb is None or grace is None:
+            return
+        got = self.ch.guard.read(tries=3)
+        if got is None:
+            return
+        g, at, now = got[0], Channel.GUARD_AT, time.monotonic()
+        sigma = float(g[at["sigma"]])
+        if int(g[at["run"]]) != self.run_id or not now - g[at["beat"]] < GUARD_SILENT_S or sigma != sigma:
+            self.demand = None
+            return
+        now_ = pb.now
+        if now_.ramp.target <= sigma + SIGMA_EPS:  # in force
+            if self.demand is not None:
+                self.ch.adoptions[self.adopted % Channel.ADOPTIONS] = now - self.demand
+                self.adopted += 1
+                self.demand = None
+            return
+        if self.demand is None:
+            self.demand = float(g[at["since"]])
+        pending = now_.pending_ramp
+        if pending is not None and pending.target <= sigma + SIGMA_EPS:
+            return  # its owner's ramp, or a cut, begins at its step
+        if now - self.demand >= grace and pb.cut(sigma):
+            self.cuts += 1
 
     def run(self) -> None:
         while not self.exiting:
@@ -314,6 +332,8 @@ def main(argv: list[str]) -> int:
                      speed=config.speed, spin_us=s.spin_us, overrun_limit=s.overrun_limit,
                      realtime=backend.realtime, errors_ns=ch.errors_ns)  # fmt: skip
     server = Server(ch, backend, loop, wake, bell)
+    if s.separation:
+        server.grace_s = s.adoption_budget_s * GUARD_GRACE
     loop.between = server.serve
     loop.setup()
     threads = (

@@ -10,6 +10,8 @@ import msgspec
 from common.runtime.errors import ConfigError
 from common.runtime.resources import EXAMPLE_TASK
 from common.safety.geometry import NO_TOOL, Arm, Detects, Pose, Sensor, Tool, intrusion_iso13855
+from common.safety.separation import Ssm
+from common.safety.watch import Rules
 from schemas.decision import MAX_N
 
 
@@ -200,6 +202,14 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
             "executor's adoption": self.adoption_budget_s,  # the ramp's lead is inside it
             "servoJ lookahead": self.lookahead_s if self.backend == "ur_rtde" else 0.0,
         }
+
+    def rules(self, clock_skew_s: float) -> Rules:
+        """How readings are judged and what S_p counts, for the executor's looks and its guard alike."""
+        parts = self.reaction_parts(clock_skew_s)
+        ssm = Ssm(self.human_speed_m_s, sum(parts.values()), self.stop_time_s, 0.0, self.uncertainty_m,
+                  self.separation_max_age_s)  # fmt: skip
+        return Rules(self.arm(), self.sensors(), ssm, self.separation_max_age_s, clock_skew_s,
+                     self.separation_max_rate_hz, self.separation_undeclared == "refuse")  # fmt: skip
 
     def arm(self) -> Arm:
         """The robot as separation monitoring sees it: its base in the cell, its tool."""
