@@ -5,7 +5,8 @@ The load is the one that starved the servo when it was a thread of the executor 
 messages every 50 ms that the executor must decode on arrival, on a key that does not hold the arm
 (signal_flood.py); two busy loops; and an honest sensor at 20 Hz on its own key, a person walking between
 1.5 and 6 m of the arm at 1.6 m/s, so that the scale ramps all the time and each reading's adoption (its
-arrival at the executor → the first servo sample that plays its scale) is measured by the executor itself.
+arrival at the separation guard → the first servo sample that plays its scale, by the executor's ramp or the
+servo's own) is measured, with the executor's own looks beside it.
 ``cyclictest`` (rt-tests) runs on the same core at the same priority in the same window: what this host
 gives any real-time thread there, the yardstick the servo is judged against.
 """
@@ -196,10 +197,17 @@ async def measure(bus: Bus, health: Any, procs: list[subprocess.Popen[bytes]], e
              "longest_overrun_run": c.get("servo_longest_overrun_run", 0), "p50_us": c.get("servo_p50_us"),
              "p99_us": c.get("servo_p99_us"), "p99_9_us": c.get("servo_p99.9_us"),
              "max_us": c.get("servo_max_us")}  # fmt: skip
-    adoption = {"n": c.get("adoption_n", 0), "p50_ms": c.get("adoption_p50_ms"),
-                "p99_9_ms": c.get("adoption_p99.9_ms"), "max_ms": c.get("adoption_max_ms"),
-                "late": c.get("adoption_late", 0), "readings": sent,
-                "refused": {k.rsplit("/", 1)[1]: v for k, v in c.items() if k.startswith(why)}}  # fmt: skip
+    # the reaction: each fall of the guard's σ (a reading's arrival there) → the servo step playing it, by
+    # the executor's ramp or the servo's own (services/executor/guard_process.py); beside it, the executor's
+    # looks alone, from its own arrival (after the flood it decodes first)
+    looks = {"n": c.get("adoption_n", 0), "p50_ms": c.get("adoption_p50_ms"),
+             "p99_9_ms": c.get("adoption_p99.9_ms"), "max_ms": c.get("adoption_max_ms"),
+             "late": c.get("adoption_late", 0)}  # fmt: skip
+    adoption = {"n": c.get("guard_n", 0), "p50_ms": c.get("guard_p50_ms"),
+                "p99_9_ms": c.get("guard_p99.9_ms"), "max_ms": c.get("guard_max_ms"),
+                "cuts": c.get("guard_cuts", 0), "readings": sent,
+                "refused": {k.rsplit("/", 1)[1]: v for k, v in c.items() if k.startswith(why)},
+                "looks": looks, "lease_lapses": c.get("lease_lapses", 0)}  # fmt: skip
     return LoadBench(seconds, servo, yardstick, adoption, flooded, load, warnings)
 
 

@@ -312,9 +312,12 @@ def bench_executor_load(args: argparse.Namespace) -> int:
             table.add_row("cyclictest", str(ct["ticks"]), str(ct["late"]), "",
                           *(us(ct[k]) for k in ("p50_us", "p99_us", "p99_9_us", "max_us")))  # fmt: skip
         out.print(table)
-        out.print(f"adoption of {a['n']} of {a['readings']} readings (refused: {a['refused'] or 'none'}; "
-                  "arrival → the servo playing their scale): p50 "
-                  f"{a['p50_ms']} ms, p99.9 {a['p99_9_ms']} ms, max {a['max_ms']} ms, late {a['late']}; "
-                  f"the flood: {r.flood}")  # fmt: skip
+        lk = a["looks"]
+        out.print(f"{a['readings']} readings sent (refused by the executor: {a['refused'] or 'none'}). The "
+                  f"reaction, a fall of the guard's σ → the servo playing it, {a['n']} times: p50 "
+                  f"{a['p50_ms']} ms, p99.9 {a['p99_9_ms']} ms, max {a['max_ms']} ms ({a['cuts']} taken by "
+                  f"the servo itself). The executor's looks alone: p50 {lk['p50_ms']} ms, p99.9 "
+                  f"{lk['p99_9_ms']} ms, max {lk['max_ms']} ms, late {lk['late']}. Lease lapses "
+                  f"{a['lease_lapses']}; the flood: {r.flood}")  # fmt: skip
     print(json.dumps(r.as_json()))
     return 0

@@ -127,7 +127,9 @@ class Executor(Node):
         folder = common.data_path / NAME
         # each part gets the kit and the parts it calls, never this node (services/executor/kit.py)
         self.safety = Supervisor(kit, s, self.backend)
-        self.reactions = Reactions(kit, s, self.safety, task.limits, self.backend.actual_q)
+        guard = self.guard
+        nearest = guard.nearest if guard is not None else lambda: None
+        self.reactions = Reactions(kit, s, self.safety, task.limits, self.backend.actual_q, nearest)
         self.sets = SetCache(ctx.bus, folder, task)
         self.figures = CurveFigures(task.limits, s.arm(), s.separation)
         records = Records(kit, ExecutorStore(folder), self.safety)
@@ -219,7 +221,8 @@ class Executor(Node):
             if (why := self.guard.check()) is not None:
                 c["guard_deaths"] += 1
                 self.safety.event("info", why, self.safety.path_id)
-            c.update(self.guard.figures())
+            for name, value in self.guard.figures().items():  # figures, not counts: Counter.update adds
+                c[name] = value
 
     async def work(self) -> None:
         if not await self.safety.connect():

@@ -36,10 +36,12 @@ class Channel:
                                     "sigma": 6, "inputs": 7, "lost": 8, "beat": 9, "moving": 10, "q": 11,
                                     "qd": 17, "tcp": 23, "longest": 29, "v_r": 30, "t_s": 31, "b_s": 32,
                                     "cuts": 33, "adopted": 34}  # fmt: skip
-    # the guard's values by name: the run it judged, σ allowed, since when (its last fall), its beat, S
+    NAME_BYTES = 256  # the guard's text: the nearest's source (or why none), for what the executor says
+    # the guard's values by name: the run it judged, σ allowed, since when (its last fall), its beat, the
+    # nearest room S − C (NaN: none, a hold)
     GUARD_AT: ClassVar[dict[str, int]] = {"run": 0, "sigma": 1, "since": 2, "beat": 3, "distance": 4}
     # the blocks and rings, each rounded up to 8 bytes, in whole pages
-    SIZE = (Latest.nbytes(CTRL) + Latest.nbytes(STATE, FAULT_BYTES) + Latest.nbytes(GUARD)
+    SIZE = (Latest.nbytes(CTRL) + Latest.nbytes(STATE, FAULT_BYTES) + Latest.nbytes(GUARD, NAME_BYTES)
             + sum(RINGS.values()) + 8 * (ERRORS + ADOPTIONS) + 8192) // 4096 * 4096  # fmt: skip
 
     def __init__(self, buf: memoryview) -> None:
@@ -52,7 +54,7 @@ class Channel:
 
         self.ctrl = Latest(take(Latest.nbytes(self.CTRL)), self.CTRL)
         self.state = Latest(take(Latest.nbytes(self.STATE, self.FAULT_BYTES)), self.STATE, self.FAULT_BYTES)
-        self.guard = Latest(take(Latest.nbytes(self.GUARD)), self.GUARD)
+        self.guard = Latest(take(Latest.nbytes(self.GUARD, self.NAME_BYTES)), self.GUARD, self.NAME_BYTES)
         self.cmd, self.events, self.replies = (Ring(take(n)) for n in self.RINGS.values())
         self.errors_ns = np.frombuffer(take(8 * self.ERRORS), dtype=np.int64)  # the loop's tick errors
         # the guard's adoptions (s): its word that σ must fall → the step that plays it, ``adopted`` counts

@@ -16,13 +16,15 @@ import msgspec
 import numpy as np
 
 from common.runtime.bus import BusConfig
-from common.runtime.clock import Clock
+from common.runtime.clock import Clock, wall_monotonic
+from common.safety.separation import Nearest
 from services.executor.channel import QUIET, Channel, said
 from services.executor.guard_process import GuardConfig
 from services.executor.settings import Settings
 
 log = logging.getLogger("cadence.executor")
 BELOW_SERVO = 10  # the guard's FIFO priority, this far under the servo's
+LIVE_S = 0.1  # a guard that wrote nothing for this long is not counted on
 
 
 def guard_bus(cfg: BusConfig) -> BusConfig | None:
@@ -79,6 +81,19 @@ class GuardProcess:
         log.error("%s; meanwhile the executor's looks alone scale the arm", why)
         self.start()
         return why
+
+    def nearest(self) -> Nearest | None:
+        """Its nearest room while it runs and wrote lately, else None: read, not sent, so the executor's
+        looks take it as it is, whatever their loop has still to decode (services/executor/reaction.py)."""
+        got = self.ch.guard.read()
+        if self.proc is None or self.proc.poll() is not None or got is None:
+            return None
+        v, at = got[0], Channel.GUARD_AT
+        if not wall_monotonic() - float(v[at["beat"]]) < LIVE_S:
+            return None
+        source, _, why = got[1].partition("\n")
+        distance = float(v[at["distance"]])
+        return Nearest(None if distance != distance else distance, source, why)
 
     def figures(self) -> dict[str, int]:
         """The status's guard figures: cuts, and the adoptions' quantiles (ms) over the ring it keeps."""

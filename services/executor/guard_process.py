@@ -63,6 +63,7 @@ class Guard:
         self.ch, self.watch, self.clock = ch, watch, clock
         self.run, self.sigma, self.since = -1, np.inf, 0.0
         self.q = np.zeros(6)
+        self.said: tuple[str, str] = ("", "")
 
     def reading(self, sep: Separation, own_key: bool) -> None:
         now = wall_monotonic()
@@ -94,7 +95,9 @@ class Guard:
         g.view[ga["run"]], g.view[ga["sigma"]], g.view[ga["since"]] = run, sigma, self.since
         g.view[ga["beat"]] = now
         g.view[ga["distance"]] = np.nan if nearest.distance_m is None else nearest.distance_m
-        g.write()
+        said = (nearest.source, nearest.why)
+        g.write(None if said == self.said else "\n".join(said).encode())
+        self.said = said
 
 
 async def guard(ch: Channel, cfg: GuardConfig) -> None:

@@ -279,10 +279,12 @@ class Playback:
     def cut(self, sigma: float) -> bool:
         """The separation guard's word (services/executor/guard_process.py): σ down to ``sigma`` from the
         next step, over ``stop_s``, unchecked like the lease's own stop, when its owner's ramp did not come
-        within the guard's grace. False when the scale in force or pending is that low already."""
-        now = self.now
+        within the guard's grace. False when the scale in force is that low already, or a ramp to it
+        begins at the next step."""
+        now, t = self.now, self.tick * DT
+        pending = now.pending_ramp
         if now.ramp.target <= sigma + SIGMA_EPS or (
-            now.pending_ramp is not None and now.pending_ramp.target <= sigma + SIGMA_EPS
+            pending is not None and pending.target <= sigma + SIGMA_EPS and pending.t0 <= t + 1.5 * DT
         ):
             return False
         t0 = self.tick * DT + DT

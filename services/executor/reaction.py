@@ -58,10 +58,20 @@ class Reactions:
     said. The figures of the curves it scales are figures.py's."""
 
     def __init__(
-        self, kit: Kit, s: Settings, safety: Safety, limits: JointLimits, joints: Callable[[], np.ndarray]
+        self,
+        kit: Kit,
+        s: Settings,
+        safety: Safety,
+        limits: JointLimits,
+        joints: Callable[[], np.ndarray],
+        guard: Callable[[], Nearest | None] = lambda: None,
     ) -> None:
-        """``joints``: the arm's joints now (the backend's), where a reading's points are measured to."""
-        self.kit, self.safety, self.limits, self.joints = kit, safety, limits, joints
+        """``joints``: the arm's joints now (the backend's), where a reading's points are measured to;
+        ``guard``: the nearest as the separation guard beside the servo judged it, while it runs
+        (guard_process.py): the same readings by the same rules, read as they came, whatever this loop has
+        still to decode; its word is in force within its grace, so these looks being late holds nothing."""
+        self.kit, self.safety, self.limits, self.joints, self.guard = kit, safety, limits, joints, guard
+        self.guarded = False  # the last look took the guard's nearest
         self.clock, self.on = kit.clock, s.separation
         self.reaction_parts = s.reaction_parts(kit.clock_skew_s)
         self.watch = Watch(s.rules(kit.clock_skew_s))
@@ -98,7 +108,19 @@ class Reactions:
         return None if n.distance_m is None else n.distance_m + self.sensor(n.source).intrusion_m
 
     def look_distance(self) -> Nearest:
-        self.nearest = self.sources.nearest(monotonic())
+        """The nearest now: this loop's own, or, while a guard runs, the nearer of the two (a distance this
+        loop has and the guard has not yet seen counts); a flood this loop saw holds the arm whatever the
+        guard says. Only where this loop has no fresh distance at all does the guard's alone count: this
+        loop being late (a flood on another key it must decode) is not a silent sensor, and the guard, which
+        reads the separation keys alone, sees a sensor that is."""
+        own, guard = self.sources.nearest(monotonic()), self.guard()
+        self.guarded = guard is not None
+        if guard is None or self.sources.flooding:
+            self.nearest = own
+        elif own.distance_m is None or guard.distance_m is None:  # the guard's hold, or its distance alone
+            self.nearest = guard
+        else:
+            self.nearest = own if own.distance_m < guard.distance_m else guard
         return self.nearest
 
     def allowed(self, figures: Figures) -> float:
@@ -106,7 +128,8 @@ class Reactions:
         the executor answers readings later than T_r allows it (``Adoption``)."""
         if not self.on:
             return 1.0
-        return 0.0 if self.adoption.late else self.watch.allowed(figures, self.nearest)
+        late = self.adoption.late and not self.guarded
+        return 0.0 if late else self.watch.allowed(figures, self.nearest)
 
     # --- the scale ----------------------------------------------------------------------------------
 
@@ -218,7 +241,7 @@ class Reactions:
             c[f"adoption_{name}_ms"] = round(value * 1000)
 
     def say_zone(self, sigma: float, nearest: Nearest) -> None:
-        if self.on and self.adoption.late:
+        if self.on and self.adoption.late and not self.guarded:
             budget = self.adoption.budget_s * 1000
             zone, text = (
                 "late",

@@ -45,7 +45,7 @@ from services.executor.settings import Settings
 
 # the share of the adoption budget the executor's own ramp has before the guard's σ is taken here: the
 # rest is the guard's hop (a reading → its σ, a few ms) and the step that plays it
-GUARD_GRACE = 0.4
+GUARD_GRACE = 0.25
 GUARD_SILENT_S = 0.05  # a guard not heard for this long is not heard at all (the executor alone scales)
 IDLE_S = 0.05  # at rest, the arm's state is rewritten this often; a command rings the bell meanwhile
 SLOW_EVERY = 25  # ticks: the fault, the inputs and the tool's pose are read at 20 Hz during a motion
@@ -89,12 +89,8 @@ class Server:
         self.next_run: tuple[int, Source, int] | None = None
         self.ticks = 0
         self.exiting = False
-        # the separation guard's: the figures of the curve played (v_r, T_s, B / v_r), the oldest fall of
-        # its σ not yet in force (the guard's clock, s), and what it cost
-        self.figures: tuple[float, float, float] | None = None
-        self.demand: float | None = None
-        self.cuts = self.adopted = 0
-        self.grace_s: float | None = None  # None: no guard (separation off)
+        self.figures: tuple[float, float, float] | None = None  # the curve's: v_r, T_s, B / v_r (the guard's)
+        self.heed: Heed | None = None  # the separation guard's word (None: separation off)
         self._fault = ""
         self.crash = ""  # what the backend raised inside a tick: the fault from then on
 
@@ -176,7 +172,9 @@ class Server:
         self.objs.clear()
         self.tags.clear()
         self.run_id, self.version, self.offer, self.seen_seq = run_id, 0, None, 0
-        self.figures = self.demand = None
+        self.figures = None
+        if self.heed is not None:
+            self.heed.begin(run_id)
         source: Source
         if spec[0] == "path":
             _, curve, ramp, hold = spec
@@ -228,7 +226,8 @@ class Server:
         if pb is not None:
             v[at["t"]], v[at["s"]], v[at["sigma"]] = pb.t, pb.s, pb.sigma
         v[at["v_r"] : at["v_r"] + 3] = self.figures or (np.nan, np.nan, np.nan)
-        v[at["cuts"]], v[at["adopted"]] = self.cuts, self.adopted
+        if self.heed is not None:
+            v[at["cuts"]], v[at["adopted"]] = self.heed.cuts, self.heed.adopted
         v[at["q"] : at["q"] + 6] = b.actual_q()
         v[at["qd"] : at["qd"] + 6] = b.actual_qd()
         text = None
@@ -258,41 +257,12 @@ class Server:
             if m is None:
                 break
             self.handle(m)
-        self.guarded()
+        if self.heed is not None and self.pb is not None:
+            self.heed.step(self.pb)
         if self.ticks % 50 == 0 and os.getppid() != self.parent:  # the executor is gone: stop, then end
             self.loop.request_stop()
             self.exiting = True
         self.publish(slow=self.pb is None or self.ticks % SLOW_EVERY == 0)
-
-    def guarded(self) -> None:
-        """The guard's σ against the scale in force, each step of a path: timed from the guard's fall (the
-        adoption of the reading that caused it), and past its grace taken here, by the playback itself
-        (``Playback.cut``); a silent guard, or one that judged another run, is not heard."""
-        pb, grace = self.pb, self.grace_s
-        if pb is None or grace is None:
-            return
-        got = self.ch.guard.read(tries=3)
-        if got is None:
-            return
-        g, at, now = got[0], Channel.GUARD_AT, time.monotonic()
-        sigma = float(g[at["sigma"]])
-        if int(g[at["run"]]) != self.run_id or not now - g[at["beat"]] < GUARD_SILENT_S or sigma != sigma:
-            self.demand = None
-            return
-        now_ = pb.now
-        if now_.ramp.target <= sigma + SIGMA_EPS:  # in force
-            if self.demand is not None:
-                self.ch.adoptions[self.adopted % Channel.ADOPTIONS] = now - self.demand
-                self.adopted += 1
-                self.demand = None
-            return
-        if self.demand is None:
-            self.demand = float(g[at["since"]])
-        pending = now_.pending_ramp
-        if pending is not None and pending.target <= sigma + SIGMA_EPS:
-            return  # its owner's ramp, or a cut, begins at its step
-        if now - self.demand >= grace and pb.cut(sigma):
-            self.cuts += 1
 
     def run(self) -> None:
         while not self.exiting:
@@ -317,6 +287,65 @@ class Server:
             self._wake()
 
 
+class Heed:
+    """The separation guard's word (services/executor/guard_process.py), heard each step of a path: the
+    oldest fall of its σ not yet in force (the guard's clock, s), and what heeding it cost."""
+
+    def __init__(self, ch: Channel, grace_s: float) -> None:
+        self.ch, self.grace_s = ch, grace_s
+        self.run_id = 0
+        self.demand: float | None = None
+        self.kept_at = -np.inf  # the last step the scale in force was within the guard's
+        self.cuts = self.adopted = 0
+
+    def begin(self, run_id: int) -> None:
+        self.run_id, self.demand, self.kept_at = run_id, None, -np.inf
+
+    def step(self, pb: Playback) -> None:
+        """The guard's σ against the scale in force, each step of a path: timed from the guard's fall (the
+        adoption of the reading that caused it), and past its grace taken here, by the playback itself
+        (``Playback.cut``); a scale it allows renews the lease (its word confirms the scale as a look of
+        the executor's does: an executor's loop starved by a flood then stops nothing the readings allow).
+        A silent guard, or one that judged another run, is not heard: the executor's lease alone holds."""
+        grace = self.grace_s
+        got = self.ch.guard.read(tries=3)
+        if got is None:
+            return
+        g, at, now = got[0], Channel.GUARD_AT, time.monotonic()
+        sigma = float(g[at["sigma"]])
+        if int(g[at["run"]]) != self.run_id or not now - g[at["beat"]] < GUARD_SILENT_S or sigma != sigma:
+            self.demand = None
+            return
+        now_ = pb.now
+        if now_.ramp.target <= sigma + SIGMA_EPS:  # in force
+            if self.demand is not None:
+                self.ch.adoptions[self.adopted % Channel.ADOPTIONS] = now - self.demand
+                self.adopted += 1
+                self.demand = None
+            self.kept_at = now
+            self.confirm(pb, now + grace)
+            return
+        since = float(g[at["since"]])
+        if since <= self.kept_at:  # a word that stood while the scale rose past it: no grace, and no reading
+            self.demand = None  # waits on this (the executor's ramp up read an older one)
+            if pb.cut(sigma):
+                self.cuts += 1
+        else:
+            if self.demand is None:  # a fall: its reading's adoption is timed from it
+                self.demand = since
+            if now - self.demand >= grace and pb.cut(sigma):  # the owner's ramp, if any, begins too late
+                self.cuts += 1
+        self.confirm(pb, now + grace)  # the cut to σ is taken in time: no lease need stop the arm for it
+
+    @staticmethod
+    def confirm(pb: Playback, until: float) -> None:
+        """The guard's word as a renewal of the executor's lease (never a lease where there is none): while
+        the guard is heard, the arm runs at what it allows, or heads there within its grace; a stop for a
+        late look of the executor's (its loop starved by a flood) would stop what the readings allow."""
+        if pb.lease is not None:
+            pb.renew(max(pb.lease, until))
+
+
 def main(argv: list[str]) -> int:
     # a terminal's Ctrl-C or systemd's SIGTERM to the unit's group is the executor's to answer: it stops
     # the arm through here, and then ends this process
@@ -333,7 +362,7 @@ def main(argv: list[str]) -> int:
                      realtime=backend.realtime, errors_ns=ch.errors_ns)  # fmt: skip
     server = Server(ch, backend, loop, wake, bell)
     if s.separation:
-        server.grace_s = s.adoption_budget_s * GUARD_GRACE
+        server.heed = Heed(ch, s.adoption_budget_s * GUARD_GRACE)
     loop.between = server.serve
     loop.setup()
     threads = (

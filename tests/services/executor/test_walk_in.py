@@ -34,6 +34,7 @@ asks the system to react once S falls below S_p, not to have foreseen it), and i
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
 import re
@@ -114,15 +115,30 @@ def row(arm: Arm, t: float, s: RobotState, walks: int) -> str:
     )
 
 
+def guards_of(pid: int) -> list[int]:
+    """The executor's separation guard (services/executor/guard_process.py), a child of any of its threads."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            with contextlib.suppress(FileNotFoundError):
+                if b"guard_process" in Path(f"/proc/{child}/cmdline").read_bytes():
+                    out.append(int(child))
+    return out
+
+
 async def starve(pid: int, until: float) -> float:
-    """The host starving the executor's process, all its threads, from now ``until`` (wall s). When it
-    was stopped (wall s)."""
-    os.kill(pid, signal.SIGSTOP)
+    """The host starving the executor's process, all its threads, and its separation guard (the two the
+    servo hears from), from now ``until`` (wall s): the servo alone, on its lease. When it was stopped."""
+    pids = [pid, *guards_of(pid)]
+    assert len(pids) == 2, "the executor runs a separation guard beside its servo"
+    for p in pids:
+        os.kill(p, signal.SIGSTOP)
     try:
         stopped = time.time()
         await asyncio.sleep(max(0.0, until - stopped))
     finally:
-        os.kill(pid, signal.SIGCONT)
+        for p in pids:
+            os.kill(p, signal.SIGCONT)
     return stopped
 
 
@@ -266,7 +282,11 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
           f"{held_near} samples")  # fmt: skip
     adoption = {k: v for k, v in counters.items() if k.startswith("adoption")}
     lease = {k: counters.get(k, 0) for k in ("lease_lapses", "unchecked_stops", "ramps_refused", "late")}
-    print(f"the executor's adoption with {busy} busy loops (ms): {adoption}; the lease: {lease}")
+    guard = {k: v for k, v in counters.items() if k.startswith("guard")}
+    print(
+        f"the executor's adoption with {busy} busy loops (ms): {adoption}; the lease: {lease}; the "
+        f"separation guard's (a fall of its σ → the servo playing it, ms; the servo's own cuts): {guard}"
+    )
     worst_i = at[int(np.argmin(margins))]
     gaps = np.diff([x - start for x in told if x >= start])
     print(
