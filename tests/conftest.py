@@ -16,7 +16,7 @@ from tests.support.paths import (
     planned_once,
 )
 
-# Each test file goes to one of the two xdist workers, whole (``--dist loadfile``, pyproject); the files
+# Each test file goes to one of the xdist workers, whole (``--dist loadfile``, pyproject); the files
 # that run a demo cell at 16x (the demo, the lab, the wheel's demo) share one worker, one at a time: two
 # such cells on a 2-core machine, with other work running, starved each other's simulated operator. (The
 # systemd cells run at real time, beside them.)
