@@ -358,7 +358,12 @@ class UrRtdeBackend:
     def fault(self) -> str:
         with self._using() as ifaces:
             if self._lost or ifaces is None or not ifaces[0].isConnected():
-                return self._lost or f"no connection to the controller at {self.host}"
+                # a motion armed (its watchdog) that finds no controller lost it, whichever interface
+                # said so first: servoJ refusing, or the receive interface's EOF
+                during = f"connection to the controller at {self.host} lost during motion"
+                return self._lost or (
+                    during if self._watchdog else f"no connection to the controller at {self.host}"
+                )
             c, r = ifaces
             if r.isProtectiveStopped():
                 return "protective stop"
