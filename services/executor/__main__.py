@@ -102,9 +102,8 @@ class Executor(Node):
                 raise
             proc.warnings = warnings + proc.warnings
             self.loop, self.backend = proc, RemoteBackend(proc)  # its name and clock as it found them
-            if s.separation and isinstance(
-                ctx.bus.transport, ZenohTransport
-            ):  # readings the loop can't delay
+            zenoh = isinstance(ctx.bus.transport, ZenohTransport)
+            if s.separation and s.separation_guard and zenoh:  # readings no flood on another key delays
                 self.guard = GuardProcess.beside(proc.fd, proc.ch, s, ctx.bus.cfg, common.cell, common.clock,
                                                  common.clock_skew_s, fifo)  # fmt: skip
                 if self.guard is not None:

@@ -169,6 +169,9 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # at the floor (the largest C) and gives ranges from itself. Monitoring on with none is refused.
     separation_sources: list[SourceName | SourceSettings] = []
     separation_max_rate_hz: Annotated[float, _range(1.0, 100_000.0)] = 1000.0  # per source; past it: a hold
+    # the separation guard beside a servo process (services/executor/guard_process.py): readings judged in a
+    # process of their own, whatever the executor's loop must decode; off, the executor's looks alone
+    separation_guard: bool = True
     # a reading from a source not declared above: "use" it (the nearest still wins: a simulated cell, a
     # sensor being tried), or "refuse" it, counted (an installed cell: `cadence install` writes it, so that
     # only the declared scanners, each on its own account, say where people are)
