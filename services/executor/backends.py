@@ -237,6 +237,12 @@ class Dashboard:
             return False
 
 
+def gone(host: str, armed: bool) -> str:
+    """A controller not reached: during an armed motion (its watchdog) it was lost, whichever of the
+    client's interfaces said so first (servoJ refusing, or the receive interface's EOF)."""
+    return f"the controller at {host}: {'lost during motion' if armed else 'not connected'}"
+
+
 class UrRtdeBackend:
     """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
     every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
@@ -358,12 +364,7 @@ class UrRtdeBackend:
     def fault(self) -> str:
         with self._using() as ifaces:
             if self._lost or ifaces is None or not ifaces[0].isConnected():
-                # a motion armed (its watchdog) that finds no controller lost it, whichever interface
-                # said so first: servoJ refusing, or the receive interface's EOF
-                during = f"connection to the controller at {self.host} lost during motion"
-                return self._lost or (
-                    during if self._watchdog else f"no connection to the controller at {self.host}"
-                )
+                return self._lost or gone(self.host, self._watchdog)
             c, r = ifaces
             if r.isProtectiveStopped():
                 return "protective stop"

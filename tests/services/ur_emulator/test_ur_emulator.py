@@ -299,7 +299,7 @@ async def test_a_lost_controller_mid_motion_is_a_latched_stop_the_executor_recon
             await ex.close()
             await store.close()
             emu.stop()
-    lost = ("lost", "no connection")  # the receive interface or the control interface saw it first
+    lost = ("lost", "not connected")  # the receive interface or the control interface saw it first
     assert stop.path_id == "b1_to_b2"
     assert any(w in stop.message for w in lost)
     assert host in down.message
