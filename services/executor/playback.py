@@ -290,8 +290,7 @@ class Playback:
         t0 = self.tick * DT + DT
         s0, sig, sd, sdd = (float(x[0]) for x in now.ramp.state(np.array([t0])))
         down = Ramp.between(t0, s0, (sig, sd, sdd), sigma, max(self.stop_s, DT))
-        self.now = replace(now, pending_ramp=down)
-        self.unchecked += 1
+        self.now = replace(now, pending_ramp=down)  # counted by the guard's figures (guard_cuts), no stop
         self.notify()
         return True
 
