@@ -126,11 +126,13 @@ def guards_of(pid: int) -> list[int]:
     return out
 
 
-async def starve(pid: int, until: float) -> float:
-    """The host starving the executor's process, all its threads, and its separation guard (the two the
-    servo hears from), from now ``until`` (wall s): the servo alone, on its lease. When it was stopped."""
-    pids = [pid, *guards_of(pid)]
-    assert len(pids) == 2, "the executor runs a separation guard beside its servo"
+async def starve(pid: int, until: float, guard: bool) -> float:
+    """The host starving the executor's process, all its threads, from now ``until`` (wall s), and with
+    ``guard`` its separation guard too (the servo then hears from nobody: its lease alone). When it was
+    stopped."""
+    guards = guards_of(pid)
+    assert len(guards) == 1, "the executor runs a separation guard beside its servo"
+    pids = [pid, *guards] if guard else [pid]
     for p in pids:
         os.kill(p, signal.SIGSTOP)
     try:
@@ -147,17 +149,20 @@ async def test_a_person_walking_in_on_the_wall_clock_beside_two_busy_loops_never
     tmp_path: Path, example_sets: Path
 ) -> None:
     busy = int(os.environ.get("CADENCE_WALK_BUSY_LOOPS", "2"))  # 0: the same walks on an idle host
-    await walk_in(tmp_path, example_sets, busy, WALKS, stall=False)
+    await walk_in(tmp_path, example_sets, busy, WALKS, stall=None)
 
 
 @pytest.mark.asyncio
+@pytest.mark.parametrize("stall", ["unit", "loop"])
 async def test_the_executors_whole_process_stalled_as_the_person_walks_in_is_a_stop_of_the_arm(
-    tmp_path: Path, example_sets: Path
+    tmp_path: Path, example_sets: Path, stall: str
 ) -> None:
     """SIGSTOP of the executor as the arm runs a path fast, the person far, until they have walked in to
-    within reach: the servo process's lease stops the arm during the silence, and no sample after shows
-    it moving beside the person. No busy loops: the stall is the test's own."""
-    await walk_in(tmp_path, example_sets, 0, 1, stall=True)
+    within reach, and no sample after shows the arm moving beside the person. "unit": its separation
+    guard stopped too, the servo process's lease stops the arm during the silence; "loop": the guard
+    runs on, its word keeps the lease and slows the arm to a stop by itself as the person comes. No busy
+    loops: the stall is the test's own."""
+    await walk_in(tmp_path, example_sets, 0, 1, stall=stall)
 
 
 def silences(walk: list[tuple[float, RobotState]]) -> dict[str, tuple[float, float]]:
@@ -185,7 +190,7 @@ def in_a_path(s: RobotState) -> bool:
     return s.state == "moving" and "slowly" not in s.reason
 
 
-async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, stall: bool) -> None:
+async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, stall: str | None) -> None:
     """``walks`` walks in, beside ``busy`` busy loops; with ``stall``, the executor stopped as they begin."""
     worst, each = figures_at_top_k(example_sets)
     settings = ExecutorSettings()
@@ -234,7 +239,11 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
                 tracker.cancel()
                 start = time.time()
                 resumed = (FAR - STALL_UNTIL_X) / V_H  # when the stall ends: the person at STALL_UNTIL_X
-                starving = asyncio.create_task(starve(cell.executor.pid, start + resumed)) if stall else None
+                starving = (
+                    asyncio.create_task(starve(cell.executor.pid, start + resumed, stall == "unit"))
+                    if stall
+                    else None
+                )
                 tracker = asyncio.create_task(track(start))
                 walk: list[tuple[float, RobotState]] = []
                 async with asyncio.timeout(walks * ONE_S + 60):
@@ -306,8 +315,11 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
             if stalled_at - 0.1 <= t <= resumed + 0.5:
                 print(row(arm, t, s, walks))
     assert held_near > 0  # the person stood inside the arm's reach: the arm held
-    if stall:  # the servo process stopped the arm by itself, on its lease, while its executor stood still
+    if stall:  # the servo process stopped the arm by itself while its executor stood still
         assert back and back[0] < 1e-3, f"the arm at {back[:1]} m/s as the executor came back"
-        assert lease["lease_lapses"] >= 1
+        if stall == "unit":  # on its lease: nobody confirmed the scale
+            assert lease["lease_lapses"] >= 1
+        else:  # on its guard's word, which kept the lease
+            assert guard.get("guard_cuts", 0) >= 1 and lease["lease_lapses"] == 0, (guard, lease)
     assert min(reach) > 0.0  # the moving arm never within the person's reach
     assert least >= 0.0
