@@ -271,15 +271,12 @@ class UrRtdeBackend:
     ) -> None:
         if not 0.03 <= lookahead <= 0.2 or not 100 <= gain <= 2000:
             raise ValueError(f"servoJ takes lookahead 0.03–0.2 s and gain 100–2000, got {lookahead}, {gain}")
-        self.host = host
-        self.lookahead, self.gain = lookahead, gain
+        self.host, self.lookahead, self.gain = host, lookahead, gain
         self.stop_deceleration, self.settle_tol = stop_deceleration, settle_tol
-        self.watchdog_hz = watchdog_hz
-        self.gripper_output = gripper_output
+        self.watchdog_hz, self.gripper_output = watchdog_hz, gripper_output
         self._c: Any = None  # ur_rtde ships no type information
         self._r: Any = None
-        self._lost = ""
-        self._watchdog = False
+        self._lost, self._watchdog = "", False
         self._last = {"q": np.zeros(6), "qd": np.zeros(6), "tcp": np.zeros(6)}
         self._inputs = 0
         self._io = threading.Condition()
@@ -456,10 +453,12 @@ class UrRtdeBackend:
         return float(np.max(np.abs(np.asarray(target) - self.actual_q()))) <= self.settle_tol
 
     def motion_ended(self) -> None:
-        """Disarms the watchdog: between motions (gripper, waits) nothing kicks it, and the robot
-        is at rest. ``prepare`` arms it again before the next motion."""
+        """Disarms the watchdog: between motions (gripper, waits) nothing kicks it, and the robot is at
+        rest; ``prepare`` arms it again. A controller gone now was lost by the motion: kept so."""
         with self._using() as ifaces:
-            if self._watchdog and not self._lost and ifaces is not None:
+            if self._watchdog and not self._lost and (ifaces is None or not ifaces[0].isConnected()):
+                self._lost = gone(self.host, True)
+            elif self._watchdog and not self._lost and ifaces is not None:
                 with contextlib.suppress(RuntimeError):
                     ifaces[0].setWatchdog(0.0)
         self._watchdog = False

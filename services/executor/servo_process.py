@@ -136,6 +136,7 @@ class Server:
                 answer: tuple[Any, ...] = (n, True, getattr(self.backend, name)(*args))
             except Exception as exc:  # the executor raises it where it called
                 answer = (n, False, exc)
+            self.publish(slow=True)  # what the call changed (a fault, the inputs), before its answer
             self.reply(answer)
         elif kind == "run":
             self.begin(*m[1:])
