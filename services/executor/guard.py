@@ -1,7 +1,8 @@
 """The executor's side of its separation guard (services/executor/guard_process.py): started beside the
 servo process on the same shared memory, watched, started again should it die, and its figures read for
 the status: how often the servo took the guard's σ itself (``guard_cuts``), and how soon the scale a
-reading allowed was in force by any hand (``guard_adoption_*``: the guard's fall → the step that plays it).
+reading allowed was in force by any hand (``guard_p50_ms`` … ``guard_max_ms``: the guard's fall → the step
+that plays it).
 """
 
 from __future__ import annotations
@@ -41,7 +42,6 @@ class GuardProcess:
     def __init__(self, fd: int, ch: Channel, config: GuardConfig) -> None:
         self.fd, self.ch, self.config = fd, ch, config
         self.proc: subprocess.Popen[bytes] | None = None
-        self.deaths = 0
 
     @classmethod
     def beside(
@@ -76,7 +76,6 @@ class GuardProcess:
         proc = self.proc
         if proc is None or proc.poll() is None:
             return None
-        self.deaths += 1
         why = f"the separation guard ended ({said(proc.returncode)}): started again"
         log.error("%s; meanwhile the executor's looks alone scale the arm", why)
         self.start()
