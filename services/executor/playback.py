@@ -265,16 +265,20 @@ class Playback:
         if now.target <= 0.0 and (now.pending_ramp is None or now.pending_ramp.target <= 0.0):
             return  # stopping or stopped already
         self.lapses += 1
-        fb, t = self.fallback, self.tick * DT
+        fb = self.fallback
         if fb is not None and fb.ramp is not None and fb.base is now and self._in_time(fb.ramp, None):
             stop = fb.ramp
         else:
             self.unchecked += 1
-            t0 = t + DT
-            s0, sig, sd, sdd = (float(x[0]) for x in now.ramp.state(np.array([t0])))
-            stop = Ramp.between(t0, s0, (sig, sd, sdd), 0.0, max(self.stop_s, DT))
+            stop = self._unchecked_to(0.0)
         self.now = replace(now, pending_ramp=stop, pending_switch=None)
         self.notify()
+
+    def _unchecked_to(self, sigma: float) -> Ramp:
+        """σ from its state at the next step to ``sigma`` over ``stop_s``: a ramp no planner checked."""
+        t0 = self.tick * DT + DT
+        s0, sig, sd, sdd = (float(x[0]) for x in self.now.ramp.state(np.array([t0])))
+        return Ramp.between(t0, s0, (sig, sd, sdd), sigma, max(self.stop_s, DT))
 
     def cut(self, sigma: float) -> bool:
         """The separation guard's word (services/executor/guard_process.py): σ down to ``sigma`` from the
@@ -287,10 +291,8 @@ class Playback:
             pending is not None and pending.target <= sigma + SIGMA_EPS and pending.t0 <= t + 1.5 * DT
         ):
             return False
-        t0 = self.tick * DT + DT
-        s0, sig, sd, sdd = (float(x[0]) for x in now.ramp.state(np.array([t0])))
-        down = Ramp.between(t0, s0, (sig, sd, sdd), sigma, max(self.stop_s, DT))
-        self.now = replace(now, pending_ramp=down)  # counted by the guard's figures (guard_cuts), no stop
+        # counted by the guard's figures (guard_cuts), not as a stop
+        self.now = replace(now, pending_ramp=self._unchecked_to(sigma))
         self.notify()
         return True
 

@@ -73,12 +73,9 @@ class Reactions:
         self.kit, self.safety, self.limits, self.joints, self.guard = kit, safety, limits, joints, guard
         self.guarded = False  # the last look took the guard's nearest
         self.clock, self.on = kit.clock, s.separation
-        self.reaction_parts = s.reaction_parts(kit.clock_skew_s)
         self.watch = Watch(s.rules(kit.clock_skew_s))
         # C is each source's own: a reading is kept as S − C, the room a person has before S_p's other terms
-        rules = self.watch.rules
-        self.ssm, self.arm, self.sensors = rules.ssm, rules.arm, rules.sensors
-        self.sources = self.watch.sources
+        self.ssm, self.arm, self.sources = self.watch.rules.ssm, self.watch.rules.arm, self.watch.sources
         self.adoption = Adoption(s.adoption_budget_s)
         self.offered_on: PathRun | None = None  # the path the ramp the adoption waits for was offered on
         self._counted_at = -math.inf
