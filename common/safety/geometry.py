@@ -14,9 +14,19 @@ origins, with a radius that encloses the real link: the offset plus the tube's r
 (``LINK_RADII_M``). The tool and its payload are spheres in the flange frame. The distance from a
 person's point to the arm is its least distance to any capsule or sphere surface (0 inside).
 
-The arm's speed is the top speed of the same things: every DH origin and every sphere's centre, and for
-each sphere six points on its surface (± its radius on the flange's axes), so a wrist-3 spin moves a
-gripper's tip though the flange's centre stays put.
+The arm's speed is the top speed of any point of the same capsules and spheres, exactly. A capsule rides
+one link (the segment from DH origin i to i+1 lies on link i+1: origin i is on joint i+1's axis), so a
+point p of it moves at v(p) = v_a + ω × (p − a). Over a ball of radius r about a centre moving at v, the
+fastest point moves at √(|v∥|² + (|v⊥| + |ω| r)²) (v split along ω and across it: ω × r n sweeps a disc
+across ω); that is convex in v, and along the segment v is affine, so the fastest point of a capsule lies
+on one of its end caps. A wrist-3 spin therefore moves a gripper's tip though the flange's centre stays
+put, and a housing's rim moves faster than the DH line it surrounds (issue 74: over random states the
+fastest surface point was up to 1.86× the DH origins' top speed).
+
+The radii (``LINK_RADII_M``) enclose the UR16e's housings: its joints are drums of about 0.09 m radius,
+whose rims at the shoulder and the elbow stood 17 mm outside a 0.25 m upper-arm capsule and at the wrists
+10 mm outside 0.075 m ones (issue 74's review, from UR's published dimensions); each radius here is the
+rim's distance rounded up to 5 mm.
 
 What a reading says (``Reading``): the person's nearest points in the sensor's frame (placed by its
 pose), a distance the sensor measured to the robot already, or a plain range from the sensor (the
@@ -44,6 +54,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from common.robot.stopping import NO_STOPS, RobotStops
 from common.robot.ur16e import frames
 
 Array = NDArray[np.float64]
@@ -51,8 +62,7 @@ Detects = Literal["hand", "arm", "body", "legs", "beam"]
 
 # the capsule around each segment between DH origins: base → shoulder (the column), shoulder → elbow (the
 # upper arm, offset by the shoulder offset), elbow → wrist 1 (the forearm), then the wrists
-LINK_RADII_M = np.array([0.09, 0.25, 0.10, 0.075, 0.075, 0.075])
-SURFACE = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float)
+LINK_RADII_M = np.array([0.09, 0.27, 0.10, 0.085, 0.085, 0.085])
 
 
 def intrusion_iso13855(detects: Detects, resolution_mm: float | None = None, height_m: float = 0.0) -> float:
@@ -124,15 +134,6 @@ class Tool:
             raise ValueError("a tool sphere is x, y, z, r with r ≥ 0 (metres, flange frame)")
         return cls(a)
 
-    def speed_points(self) -> Array:
-        """The points whose speed bounds the tool's (flange frame, (n, 3)): each centre, and ± r on each
-        of the flange's axes around it."""
-        if not len(self.spheres):
-            return np.zeros((0, 3))
-        c, r = self.spheres[:, :3], self.spheres[:, 3]
-        shell = c[:, None, :] + r[:, None, None] * SURFACE[None, :, :]
-        return np.concatenate([c, shell.reshape(-1, 3)])
-
 
 NO_TOOL = Tool(np.zeros((0, 4)))
 
@@ -168,10 +169,11 @@ class Body:
 
 @dataclass(frozen=True, slots=True)
 class Arm:
-    """The robot in the cell: its base's pose and its tool."""
+    """The robot in the cell: its base's pose, its tool, and its own stops (common/robot/stopping.py)."""
 
     base: Pose = Pose()
     tool: Tool = NO_TOOL
+    stops: RobotStops = NO_STOPS
 
     def body(self, q: Array) -> Body:
         """The arm and tool at joints q (6,) as capsules, in the cell frame (a sphere is a capsule of no
@@ -185,23 +187,46 @@ class Arm:
             a, b, r = np.vstack([a, c]), np.vstack([b, c]), np.concatenate([r, self.tool.spheres[:, 3]])
         return Body(a @ base[:3, :3].T + base[:3, 3], b @ base[:3, :3].T + base[:3, 3], r)
 
-    def speed_points(self, q: Array) -> Array:
-        """For joint rows q (m, 6): (m, P, 3), the DH origins 1–6 and the tool's speed points, in the base
-        frame (a speed does not depend on where the base stands)."""
+    def speeds(self, q: Array, qd: Array) -> Array:
+        """For joint rows q (m, 6) moving at qd (m, 6): (m,), the speed of the fastest point of arm and
+        tool (module docstring; a speed does not depend on where the base stands)."""
         f = frames(q)
-        origins = f[:, :, :3, 3]
-        local = self.tool.speed_points()
-        if not len(local):
-            return origins
-        tool = np.einsum("mij,pj->mpi", f[:, 5, :3, :3], local) + f[:, 5, None, :3, 3]
-        return np.concatenate([origins, tool], axis=1)
+        m = len(f)
+        origins = np.concatenate([np.zeros((m, 1, 3)), f[:, :, :3, 3]], axis=1)  # base, DH origins 1–6
+        axes = np.concatenate([np.broadcast_to([0.0, 0.0, 1.0], (m, 1, 3)), f[:, :5, :3, 2]], axis=1)
+        turns = np.asarray(qd, dtype=float)[:, :, None] * axes  # joint j's contribution to ω, (m, 6, 3)
+        omega = np.cumsum(turns, axis=1)  # link j+1's angular velocity
+        v = np.zeros_like(origins)  # each origin's velocity: the joints before it turning it about theirs
+        for i in range(1, 7):
+            v[:, i] = np.cross(turns[:, :i], origins[:, i, None] - origins[:, :i]).sum(axis=1)
+        w = np.linalg.norm(omega, axis=2)  # (m, 6)
+        link = np.maximum(_ball(v[:, :-1], omega, w * LINK_RADII_M), _ball(v[:, 1:], omega, w * LINK_RADII_M))
+        top = link.max(axis=1)
+        if len(self.tool.spheres):
+            r6 = f[:, 5, :3, :3]
+            arm = np.einsum("mij,sj->msi", r6, self.tool.spheres[:, :3])  # flange to each centre, cell frame
+            w6 = omega[:, 5]
+            vc = v[:, 6, None] + np.cross(w6[:, None], arm)
+            top = np.maximum(top, _ball(vc, w6[:, None], w[:, 5, None] * self.tool.spheres[:, 3]).max(axis=1))
+        return top
 
     def top_speed(self, q: Array, dt: float) -> float:
-        """The top Cartesian speed of any point of arm and tool along joint rows q taken every ``dt`` s."""
+        """The top speed of any point of arm and tool along joint rows q taken every ``dt`` s (each step's
+        joint speeds at its middle)."""
+        q = np.asarray(q, dtype=float)
         if len(q) < 2:
             return 0.0
-        p = self.speed_points(q)
-        return float(np.linalg.norm(np.diff(p, axis=0), axis=2).max() / dt)
+        return float(self.speeds((q[1:] + q[:-1]) / 2, np.diff(q, axis=0) / dt).max())
+
+
+def _ball(v: Array, omega: Array, spin: Array) -> Array:
+    """The speed of the fastest point of balls whose centres move at v (..., 3), turning at omega (..., 3),
+    with ``spin`` = |ω| r (...): √(|v∥|² + (|v⊥| + |ω| r)²) (module docstring)."""
+    w = np.linalg.norm(omega, axis=-1, keepdims=True)
+    axis = np.divide(omega, w, out=np.zeros_like(omega), where=w > 0)
+    along = (v * axis).sum(axis=-1)
+    across = np.linalg.norm(v - along[..., None] * axis, axis=-1)
+    return np.sqrt(along**2 + (across + spin) ** 2)
 
 
 @dataclass(frozen=True, slots=True)

@@ -14,7 +14,7 @@ Solved for the largest v_r whose S_p fits the measured separation S:
 
     v_r ≤ (S − v_h (T_r + T_s) − C − Z_d − Z_r) / (T_r + T_s / 2)
 
-v_r is the speed of the fastest point of the arm; the path's own top speed at σ = 1 (``path_speed``) turns
+v_r is the speed of the fastest point of the arm; the path's own top speed at σ = 1 (``Figures``) turns
 it into σ. Unknown separation (none yet, or older than ``max_age_s``) is read as a person at the robot:
 σ = 0, the arm holds its place on the path until a fresh distance frees it.
 
@@ -87,21 +87,33 @@ class Ssm:
         return (self.human_speed_m_s * (tr + ts) + robot_speed_m_s * (tr + self.travel_s)
                 + self.intrusion_m + self.uncertainty_m)  # fmt: skip
 
-    def allowed_speed(self, separation_m: float) -> float:
-        """The largest robot speed whose S_p fits ``separation_m`` (0: too close even for a robot at rest)."""
+    def allowed_speed(self, separation_m: float, in_force_m_s: float = 0.0) -> float:
+        """The largest robot speed whose S_p fits ``separation_m`` (0: too close even for a robot at rest),
+        for an arm running at ``in_force_m_s`` now. The arm keeps that speed through T_r before any new
+        one acts, so S_r is v_in_force T_r (ISO/TS 15066: the speed in force over T_r), not the new
+        speed's: a slower speed is the one whose own stop still fits after a reaction at the old one."""
         room = separation_m - self.protective_distance(0.0)
         per = self.reaction_s + self.travel_s
         if per <= 0.0:  # no reaction time and no stop: any speed, or none
             return math.inf if room >= 0.0 else 0.0
-        return max(0.0, room / per)
+        same = room / per  # a speed kept through T_r and the stop
+        if in_force_m_s <= same:
+            return max(0.0, same)
+        if self.travel_s <= 0.0:
+            return 0.0
+        return max(0.0, (room - in_force_m_s * self.reaction_s) / self.travel_s)
 
-    def scale(self, separation_m: float | None, age_s: float, path_speed_m_s: float) -> float:
-        """σ in [0, 1] for the path whose top speed at σ = 1 is ``path_speed_m_s``."""
+    def scale(
+        self, separation_m: float | None, age_s: float, path_speed_m_s: float, in_force: float = 0.0
+    ) -> float:
+        """σ in [0, 1] for the path whose top speed at σ = 1 is ``path_speed_m_s``, played at σ =
+        ``in_force`` now."""
         if separation_m is None or not math.isfinite(separation_m) or age_s > self.max_age_s:
             return 0.0
         if path_speed_m_s <= 0.0:
             return 1.0
-        return min(1.0, self.allowed_speed(separation_m) / path_speed_m_s)
+        v = self.allowed_speed(separation_m, in_force * path_speed_m_s)
+        return min(1.0, v / path_speed_m_s)
 
 
 def stepped(sigma: float) -> float:
@@ -109,44 +121,47 @@ def stepped(sigma: float) -> float:
     return 1.0 if sigma >= 1.0 else math.floor(sigma / QUANTUM + 1e-9) * QUANTUM
 
 
-def path_speed(q: Array, dt: float, arm: Arm = BARE) -> float:
-    """The top Cartesian speed of any point of the arm and its tool along joint samples q (m, 6) taken
-    every ``dt`` s (common/safety/geometry.py: the DH origins, the tool's spheres and their surfaces)."""
-    return arm.top_speed(q, dt)
-
-
 @dataclass(frozen=True, slots=True)
 class Figures:
     """What S_p needs of the curve being played, from path time ``s_from`` on: its top link speed at σ = 1
-    (v_r / σ), its longest stop (T_s) and the path time that stop covers (B / v_r)."""
+    (v_r / σ), its longest stop (T_s) and the path time that stop covers (B / v_r): the longer of the
+    executor's own ramp and the robot's own stops (common/robot/stopping.py), ``stop_by`` saying which."""
 
     speed_m_s: float
     stop_time_s: float
     stop_travel_s: float = 0.0
+    stop_by: str = ""
 
     @classmethod
     def of(
         cls, curve: Curve, limits: JointLimits, s_from: float = 0.0, dt: float = 0.002, arm: Arm = BARE
     ) -> Figures:
         """Before the curve is played (a path's, or a joined one before a switch is accepted): in a worker
-        thread, some tenths of a second for a long path. ``arm``: its tool's points count too."""
+        thread, some tenths of a second for a long path. ``arm``: its tool's points and its stops count
+        too."""
         s = np.append(np.arange(s_from, curve.t_f, dt), curve.t_f)
-        stop = stop_time(curve, limits, s_from)
-        return cls(path_speed(curve.at(s, order=0)[0], dt, arm), stop.time_s, stop.travel_s)
+        own = stop_time(curve, limits, s_from)
+        q, qd = curve.at(s, order=1)
+        robot = arm.stops.worst(np.abs(qd).max(axis=0), limits.velocity)
+        time_s, travel_s = max(own.time_s, robot.time_s), max(own.travel_s, robot.travel_s)
+        by = "the executor's ramp" if own.time_s >= robot.time_s else robot.by
+        return cls(float(arm.speeds(q, qd).max()), time_s, travel_s, by)
 
     def worst(self, other: Figures) -> Figures:
         """The conservative reading of two (a switch pending: either curve may be played)."""
+        by = self.stop_by if self.stop_time_s >= other.stop_time_s else other.stop_by
         return Figures(max(self.speed_m_s, other.speed_m_s), max(self.stop_time_s, other.stop_time_s),
-                       max(self.stop_travel_s, other.stop_travel_s))  # fmt: skip
+                       max(self.stop_travel_s, other.stop_travel_s), by)  # fmt: skip
 
     def ssm(self, base: Ssm) -> Ssm:
         """``base`` with this curve's stop (never below base's own T_s, a floor from the settings)."""
         time_s, travel_s = max(self.stop_time_s, base.stop_time_s), max(self.stop_travel_s, base.travel_s)
         return replace(base, stop_time_s=time_s, stop_travel_s=travel_s)
 
-    def scale(self, base: Ssm, distance_m: float | None) -> float:
-        """σ, stepped, for a person at ``distance_m`` (None: unknown, a hold)."""
-        return stepped(self.ssm(base).scale(distance_m, 0.0, self.speed_m_s))
+    def scale(self, base: Ssm, distance_m: float | None, in_force: float = 0.0) -> float:
+        """σ, stepped, for a person at ``distance_m`` (None: unknown, a hold), the curve played at σ =
+        ``in_force`` now."""
+        return stepped(self.ssm(base).scale(distance_m, 0.0, self.speed_m_s, in_force))
 
 
 OTHERS = "(others)"  # where readings of sources past ``max_sources`` are kept, together

@@ -87,6 +87,7 @@ class Watch:
     def nearest(self, now: float) -> Nearest:
         return self.sources.nearest(now)
 
-    def allowed(self, figures: Figures, nearest: Nearest) -> float:
-        """σ, stepped, for that distance on a curve of these figures (None: a hold)."""
-        return figures.scale(self.rules.ssm, nearest.distance_m)
+    def allowed(self, figures: Figures, nearest: Nearest, in_force: float) -> float:
+        """σ, stepped, for that distance on a curve of these figures (None: a hold), played at σ =
+        ``in_force`` now (the arm keeps it through T_r: S_r is its)."""
+        return figures.scale(self.rules.ssm, nearest.distance_m, in_force)

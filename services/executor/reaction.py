@@ -122,11 +122,14 @@ class Reactions:
 
     def allowed(self, figures: Figures) -> float:
         """σ, stepped, for the nearest fresh distance now, on a curve of these figures (1 when off); 0 while
-        the executor answers readings later than T_r allows it (``Adoption``)."""
+        the executor answers readings later than T_r allows it (``Adoption``). The arm runs on at the
+        scale in force (or the one it heads for, if higher) through T_r: S_r counts that one."""
         if not self.on:
             return 1.0
         late = self.adoption.late and not self.guarded
-        return 0.0 if late else self.watch.allowed(figures, self.nearest)
+        r = self.run
+        in_force = max(r.playback.sigma, r.playback.now.target) if r is not None else 0.0
+        return 0.0 if late else self.watch.allowed(figures, self.nearest, in_force)
 
     # --- the scale ----------------------------------------------------------------------------------
 

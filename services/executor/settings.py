@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from common.robot.stopping import UR16E_SOURCE, UR16E_STOPS, RobotStops, StopRow
 from common.runtime.errors import ConfigError
 from common.runtime.resources import EXAMPLE_TASK
 from common.safety.geometry import NO_TOOL, Arm, Detects, Pose, Sensor, Tool, intrusion_iso13855
@@ -189,6 +190,12 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     adoption_budget_s: Annotated[float, _range(0.03, 1.0)] = 0.1
     human_speed_m_s: Annotated[float, _range(0.0, 5.0)] = 1.6  # v_h (ISO 13855)
     stop_time_s: Annotated[float, _range(0.0, 5.0)] = 0.0  # T_s at least this (each path's own is found)
+    # the robot's own stops, which S_p budgets beside the executor's ramp (common/robot/stopping.py): the
+    # figures measured on the installed robot (ISO 10218-1 Annex B), or its safety configuration's Stopping
+    # Time limit, a row each; none: the backend's own (ur_rtde: a stated conservative 0.75 s for every
+    # stop; sim: its brake alone). The brake (stop_deceleration) and the watchdog are budgeted always.
+    robot_stops: list[StopRow] = []
+    robot_stops_source: str = "measured on the installed robot"
     uncertainty_m: Annotated[float, _range(0.0, 2.0)] = 0.1  # Z_d + Z_r
     scale_period_s: Annotated[float, _range(0.005, 1.0)] = 0.02  # how often the scale is reconsidered
 
@@ -215,9 +222,23 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
                      self.separation_max_rate_hz, self.separation_undeclared == "refuse")  # fmt: skip
 
     def arm(self) -> Arm:
-        """The robot as separation monitoring sees it: its base in the cell, its tool."""
+        """The robot as separation monitoring sees it: its base in the cell, its tool, its own stops."""
         x, y, z, yaw = self.robot_base
-        return Arm(Pose(x, y, z, yaw), Tool.of([list(t) for t in self.tool]) if self.tool else NO_TOOL)
+        tool = Tool.of([list(t) for t in self.tool]) if self.tool else NO_TOOL
+        return Arm(Pose(x, y, z, yaw), tool, self.stops())
+
+    def stops(self) -> RobotStops:
+        """The robot's stops S_p budgets; ``ConfigError`` for a table that does not reach full speed."""
+        if self.robot_stops:
+            rows, source = tuple(self.robot_stops), self.robot_stops_source
+        elif self.backend == "ur_rtde":
+            rows, source = UR16E_STOPS, UR16E_SOURCE
+        else:
+            rows, source = (), "the simulated controller brakes, and has no stop of its own"
+        try:
+            return RobotStops(rows, source, self.stop_deceleration, 1.0 / self.watchdog_hz)
+        except ValueError as exc:
+            raise ConfigError(f"[executor] {exc}") from None
 
     def sensors(self) -> dict[str, Sensor]:
         """The declared sources by name, each with its C by ISO 13855; ``ConfigError`` in one line naming

@@ -118,9 +118,10 @@ def test_the_personal_modes_examples_are_what_cadence_decide_gives() -> None:
 
 
 def test_the_ssm_table_is_what_the_executor_computes_for_the_shipped_sets() -> None:
-    """docs/robot.md's S_p table: for each listed path and k of the example task's shipped sets, T_s, the
-    top speed of arm and tool, S_p at rest and at full speed, as the executor computes them with its
-    default settings on the sim (T_r 0.55 s, the default tool) for a sensor that sees the body (C 0.85 m)."""
+    """docs/robot.md's S_p table: for each robot, listed path and k of the example task's shipped sets, T_s
+    and the stop that bounds it, the top speed of arm and tool, S_p at rest and at full speed, as the
+    executor computes them with its default settings for that backend (the sim: T_r 0.55 s; a UR16e:
+    0.65 s, its stops the stated model), the default tool, a sensor that sees the body (C 0.85 m)."""
     import re
 
     import numpy as np
@@ -132,22 +133,25 @@ def test_the_ssm_table_is_what_the_executor_computes_for_the_shipped_sets() -> N
     from common.trajectory.task import load_task
     from services.executor.settings import Settings
 
-    task, s = load_task(EXAMPLE_TASK), Settings()
+    task = load_task(EXAMPLE_TASK)
     sets = {p.path_id: p for p in read_shipped(SHIPPED_SETS / "box_filling.json").sets}
-    reaction = sum(s.reaction_parts(0.05).values())
-    assert reaction == pytest.approx(0.55)
     text = (DOCS / "robot.md").read_text()
-    row = r"^\s*\| (\w+) \| (\d+) \| ([0-9.]+) s \| ([0-9.]+) m/s \| ([0-9.]+) m \| ([0-9.]+) m \|"
+    cell = r" ([0-9.]+) (?:s|m/s|m) \|"
+    row = rf"^\s*\| (sim|UR16e) \| (\w+) \| (\d+) \|{cell} ([^|]+) \|{cell}{cell}{cell}"
     rows = re.findall(row, text, flags=re.MULTILINE)
-    assert len(rows) == 5, rows
-    for path_id, k, *shown in rows:
+    assert len(rows) == 10, rows
+    backends = {"sim": Settings(), "UR16e": Settings(backend="ur_rtde")}
+    reactions = {name: sum(s.reaction_parts(0.05).values()) for name, s in backends.items()}
+    assert reactions == {"sim": pytest.approx(0.55), "UR16e": pytest.approx(0.65)}
+    for robot, path_id, k, *shown in rows:
+        s = backends[robot]
         h = np.array(sets[path_id].solutions[int(k) - 1].h)
-        path = task.paths[path_id]
-        figures = Figures.of(Curve.of(h, path), task.limits, arm=s.arm())
-        ssm = figures.ssm(Ssm(s.human_speed_m_s, reaction, s.stop_time_s, 0.85, s.uncertainty_m))
-        got = [f"{ssm.stop_time_s:.3f}", f"{figures.speed_m_s:.2f}", f"{ssm.protective_distance(0.0):.2f}",
-               f"{ssm.protective_distance(figures.speed_m_s):.2f}"]  # fmt: skip
-        assert got == shown, (path_id, k, got, shown)
+        figures = Figures.of(Curve.of(h, task.paths[path_id]), task.limits, arm=s.arm())
+        ssm = figures.ssm(Ssm(s.human_speed_m_s, reactions[robot], s.stop_time_s, 0.85, s.uncertainty_m))
+        full = ssm.protective_distance(figures.speed_m_s)
+        got = [f"{ssm.stop_time_s:.3f}", figures.stop_by, f"{figures.speed_m_s:.2f}",
+               f"{ssm.protective_distance(0.0):.2f}", f"{full:.2f}"]  # fmt: skip
+        assert got == [x.strip() for x in shown], (robot, path_id, k, got, shown)
 
 
 SECONDS = {"h": 3600.0, "min": 60.0, "s": 1.0, "ms": 1e-3, "µs": 1e-6}
@@ -218,8 +222,10 @@ def test_the_robot_guides_geometry_and_reaction_time_are_the_codes() -> None:
     assert f": {upper:.2f} m; the forearm {fore:.2f} m; the wrists {wrist.max():.3f} m)" in said
     assert wrist.min() == wrist.max()
     w = wrist_speeds()
-    spin = f"reads {w['spin_flange']:.0f} m/s at the flange and {w['spin_tip']:.2f} m/s at a gripper tip"
-    turn = f"a wrist-1 turn {w['turn_flange']:.2f} m/s at the flange and {w['turn_tip']:.2f} m/s at the tip"
+    spin = (
+        f"reads {w['spin_flange']:.2f} m/s on the bare arm (the wrist's housing) and {w['spin_tip']:.2f} m/s"
+    )
+    turn = f"a wrist-1 turn {w['turn_flange']:.2f} m/s on the bare arm and {w['turn_tip']:.2f} m/s at the tip"
     assert spin in said and f"{turn} of a 0.2 m tool" in said
     skew = setting_defaults()["clock_skew_s"].pop()
     sim = sum(Settings().reaction_parts(skew).values())

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from common.robot.ur16e import forward_kinematics, link_points
-from common.safety.separation import Ssm, path_speed, stepped
+from common.safety.geometry import Arm
+from common.safety.separation import Ssm, stepped
 from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.scaling import (
     DT,
@@ -98,8 +99,9 @@ def test_link_points_end_at_the_tcp_and_path_speed_is_the_fastest_point() -> Non
     t = np.arange(0, 1.0, 0.001)
     spin = np.tile(np.radians([0.0, -90, 90, -90, -90, 0]), (len(t), 1))
     spin[:, 0] = t  # 1 rad/s
-    radius = np.hypot(*link_points(spin[:1])[0, :, :2].T).max()
-    assert path_speed(spin, 0.001) == pytest.approx(radius, rel=1e-3)
+    body = Arm().body(spin[0])  # the farthest point of its capsules from the base's axis
+    radius = max((np.hypot(*body.a[:, :2].T) + body.r).max(), (np.hypot(*body.b[:, :2].T) + body.r).max())
+    assert Arm().top_speed(spin, 0.001) == pytest.approx(radius, rel=1e-3)
 
 
 def test_a_ramp_joins_the_scale_state_in_force_continuously() -> None:
@@ -125,7 +127,7 @@ def test_separation_below_and_above_the_thresholds_during_a_path_keeps_every_sam
 ) -> None:
     path, result = planned
     curve = Curve.of(result.solutions[-1].h, path)  # k = N: on the limits somewhere
-    top = path_speed(curve.at(np.arange(0, curve.t_f, 0.01), order=0)[0], 0.01)
+    top = Arm().top_speed(curve.at(np.arange(0, curve.t_f, 0.01), order=0)[0], 0.01)
     stop = stop_time(curve, LIMITS)
     ssm = Ssm(stop_time_s=stop.time_s, stop_travel_s=stop.travel_s)
     near, middle, far = 0.9, ssm.protective_distance(0.45 * top), 4.0
