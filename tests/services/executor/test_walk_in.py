@@ -29,7 +29,20 @@ itself, so that the executor, back, finds the arm at rest and counts the lapse.
 
 The least of each is printed, and S − S_p at the sample too, with T_r: what a reading must show when it
 is taken. That one goes negative by design while the arm answers a reading up to T_r old (ISO/TS 15066
-asks the system to react once S falls below S_p, not to have foreseen it), and is not asserted."""
+asks the system to react once S falls below S_p, not to have foreseen it). What ISO asks of it is printed
+per walk (issue 74), not yet asserted: (a) how long each spell of moving samples with S < S_p(v) lasts,
+until the arm is at rest or S ≥ S_p again, against T_r + T_s; (b) how soon the arm answers it (a sample
+with a lower scale, or at rest). Judged with the whole path's figures they run up to and past the bound
+(1.73–1.86 s against 1.81–1.83 s on this host beside two busy loops), for the arm follows the person
+down to rest rather than stopping at once; but the executor scales by the figures of what is left of the
+path (a shorter stop, a lower top speed), which robot/state does not carry, so a spell judged here can be
+one the executor rightly does not see (σ = 1 while a path's last, slower part runs). The margins past the
+person's reach (c) and past a stop begun at the sample are asserted.
+
+The walks are ISO's cases, one after another (``WALKS``): straight in at 1.6 m/s; at 2.0 m/s (ISO 13855's
+speed near the hazard); standing at 3 m for 2 s, then walking in; from the tool's side of the cell; and
+at 1.6 m/s with a tracker whose readings are 50 ms late and 30 mm off (Gaussian, each axis). Each one's
+least margins are printed."""
 
 from __future__ import annotations
 
@@ -42,12 +55,13 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from common.robot.ur16e import UR16E
+from common.robot.ur16e import UR16E, forward_kinematics
 from common.safety.geometry import Arm
 from common.safety.separation import Figures, Ssm
 from common.trajectory.planner import content_hash
@@ -62,8 +76,8 @@ from tests.support.executor import executor_processes
 from tests.support.paths import EXAMPLE_TASK
 
 V_H = 1.6  # ISO 13855's walking speed
-FAR, NEAR, HEIGHT = 6.0, 1.0, 1.0  # the walk along the cell's x axis, the tracker's point at chest height
-STAND_S, OUT_S, WALKS = 2.0, 3.0, 3
+FAR, NEAR, HEIGHT = 6.0, 1.0, 1.0  # the walk toward the base, the tracker's point at chest height
+STAND_S, OUT_S, PAUSE_S = 2.0, 3.0, 2.0
 # the executor's process stopped once the arm runs a path this fast, until the person walking in is this near
 STALL_FAST_M_S, STALL_UNTIL_X = 0.5, 1.6
 STALL_TRIES = 3  # a stall that met an arm the watchdog had just stopped is tried again, walk and all
@@ -72,23 +86,78 @@ SOURCE = '[{ name = "tracker", detects = "body" }]'  # it sees the body: C = 0.8
 WATCHED = {"CADENCE_EXECUTOR_SEPARATION": "true", "CADENCE_EXECUTOR_SEPARATION_SOURCES": SOURCE}
 
 
-ONE_S = 2 * (FAR - NEAR) / V_H + STAND_S + OUT_S  # one walk: in, standing, out, far
+@dataclass(frozen=True)
+class Walk:
+    """One walk in: from ``FAR`` to ``NEAR`` of the base along ``side`` (a unit vector in the floor's plane:
+    where the person comes from), at ``speed``, standing at ``pause_at`` for ``PAUSE_S`` on the way if
+    given; standing at ``NEAR`` for ``STAND_S``, out at the same speed, and far for ``OUT_S``. The tracker
+    sees them ``latency_s`` late and ``noise_m`` off."""
 
+    name: str
+    speed: float = V_H
+    side: tuple[float, float] = (1.0, 0.0)
+    pause_at: float | None = None
+    latency_s: float = 0.0
+    noise_m: float = 0.0
 
-def person_x(t: float, walks: int = WALKS) -> float:
-    """Where the person is on the x axis, t s after the first walk begins (walks, then far for good)."""
-    walk_s = (FAR - NEAR) / V_H
-    one = ONE_S
-    if t < 0 or t >= walks * one:
+    @property
+    def in_s(self) -> float:
+        return (FAR - NEAR) / self.speed + (PAUSE_S if self.pause_at is not None else 0.0)
+
+    @property
+    def length_s(self) -> float:
+        return 2 * self.in_s + STAND_S + OUT_S - (PAUSE_S if self.pause_at is not None else 0.0)
+
+    def distance(self, u: float) -> float:
+        """How far from the base the person is, u s into this walk."""
+        if u < 0 or u >= self.length_s:
+            return FAR
+        pause = PAUSE_S if self.pause_at is not None else 0.0
+        to_pause = (FAR - self.pause_at) / self.speed if self.pause_at is not None else math.inf
+        if u < min(to_pause, self.in_s):
+            return FAR - self.speed * u
+        if self.pause_at is not None and u < to_pause + pause:
+            return self.pause_at
+        if u < self.in_s:
+            return FAR - self.speed * (u - pause)
+        if u < self.in_s + STAND_S:
+            return NEAR
+        out = self.in_s + STAND_S
+        if u < out + (FAR - NEAR) / self.speed:
+            return NEAR + self.speed * (u - out)
         return FAR
-    u = t % one
-    if u < walk_s:
-        return FAR - V_H * u
-    if u < walk_s + STAND_S:
-        return NEAR
-    if u < 2 * walk_s + STAND_S:
-        return NEAR + V_H * (u - walk_s - STAND_S)
-    return FAR
+
+    def at(self, u: float) -> np.ndarray:
+        r = self.distance(u)
+        return np.array([self.side[0] * r, self.side[1] * r, HEIGHT])
+
+
+def tool_side() -> tuple[float, float]:
+    """Where the tool works, seen from the base: the mean of the example task's waypoints' TCPs."""
+    task = load_task(EXAMPLE_TASK)
+    tcp = np.mean(
+        [forward_kinematics(np.asarray(w))[:2] for p in task.paths.values() for w in p.waypoints], axis=0
+    )
+    x, y = tcp / np.linalg.norm(tcp)
+    return float(x), float(y)
+
+
+WALKS = (
+    Walk("straight in at 1.6 m/s"),
+    Walk("at 2.0 m/s", speed=2.0),
+    Walk("standing at 3 m, then walking in", pause_at=3.0),
+    Walk("from the tool's side", side=tool_side()),
+    Walk("a tracker 50 ms late and 30 mm off", latency_s=0.05, noise_m=0.03),
+)
+
+
+def person(t: float, walks: tuple[Walk, ...]) -> tuple[Walk, np.ndarray]:
+    """The walk under way t s after the first begins, and where the person truly is (far, after the last)."""
+    for w in walks:
+        if t < w.length_s:
+            return w, w.at(t)
+        t -= w.length_s
+    return walks[-1], walks[-1].at(walks[-1].length_s)
 
 
 def figures_at_top_k(db: Path) -> tuple[Figures, dict[str, Figures]]:
@@ -109,10 +178,10 @@ def figures_at_top_k(db: Path) -> tuple[Figures, dict[str, Figures]]:
     return worst, each
 
 
-def row(arm: Arm, t: float, s: RobotState, walks: int) -> str:
-    return (
-        f"  {t:8.3f} {person_x(t, walks):5.2f} {speed(arm, s):5.2f} {s.scale:5.2f} {s.separation_m} {s.state}"
-    )
+def row(arm: Arm, t: float, s: RobotState, walks: tuple[Walk, ...]) -> str:
+    r = float(np.hypot(*person(t, walks)[1][:2]))
+    v = speed(arm, s)
+    return f"  {t:8.3f} {r:5.2f} {v:5.2f} {s.scale:5.2f} {s.separation_m} {s.state} {s.path_id} {s.k}"
 
 
 def guards_of(pid: int) -> list[int]:
@@ -162,7 +231,7 @@ async def test_the_executors_whole_process_stalled_as_the_person_walks_in_is_a_s
     guard stopped too, the servo process's lease stops the arm during the silence; "loop": the guard
     runs on, its word keeps the lease and slows the arm to a stop by itself as the person comes. No busy
     loops: the stall is the test's own."""
-    await walk_in(tmp_path, example_sets, 0, 1, stall=stall)
+    await walk_in(tmp_path, example_sets, 0, WALKS[:1], stall=stall)
 
 
 def silences(walk: list[tuple[float, RobotState]]) -> dict[str, tuple[float, float]]:
@@ -190,8 +259,10 @@ def in_a_path(s: RobotState) -> bool:
     return s.state == "moving" and "slowly" not in s.reason
 
 
-async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, stall: str | None) -> None:
-    """``walks`` walks in, beside ``busy`` busy loops; with ``stall``, the executor stopped as they begin."""
+async def walk_in(
+    tmp_path: Path, example_sets: Path, busy: int, walks: tuple[Walk, ...], stall: str | None
+) -> None:
+    """The ``walks``, beside ``busy`` busy loops; with ``stall``, the executor stopped as they begin."""
     worst, each = figures_at_top_k(example_sets)
     settings = ExecutorSettings()
     arm, tr = settings.arm(), sum(settings.reaction_parts(0.05).values())
@@ -207,15 +278,24 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
             key = bus.key("operator/separation")
             await bus.until_subscribed(key, 120)
 
-            def tell(x: float) -> None:
+            rng = np.random.default_rng(74)
+            total = sum(w.length_s for w in walks)
+
+            def tell(p: np.ndarray) -> None:
                 told.append(time.time())
-                sep = Separation(t_ns=time.time_ns(), seq=0, distance_m=min(100.0, math.hypot(x, HEIGHT)),
-                                 source="tracker", points=((x, 0.0, HEIGHT),), placed=True)  # fmt: skip
+                x, y, z = map(float, p)
+                sep = Separation(t_ns=time.time_ns(), seq=0, distance_m=min(100.0, math.hypot(x, y, z)),
+                                 source="tracker", points=((x, y, z),), placed=True)  # fmt: skip
                 bus.put_raw(key, encode(sep))
 
             async def track(start: float | None) -> None:
                 while True:
-                    tell(person_x(time.time() - start) if start is not None else FAR)
+                    if start is None:
+                        tell(walks[0].at(-1.0))
+                    else:  # what the tracker sees: where the person was its latency ago, and its noise
+                        w, _ = person(time.time() - start, walks)
+                        seen = person(time.time() - start - w.latency_s, walks)[1]
+                        tell(seen + rng.normal(0.0, w.noise_m, 3) if w.noise_m else seen)
                     await asyncio.sleep(PERIOD_S)
 
             # far, until the arm runs at full speed (with ``stall``: fast, in a path, and then the executor
@@ -246,8 +326,8 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
                 )
                 tracker = asyncio.create_task(track(start))
                 walk: list[tuple[float, RobotState]] = []
-                async with asyncio.timeout(walks * ONE_S + 60):
-                    while time.time() < start + walks * ONE_S:
+                async with asyncio.timeout(total + 60):
+                    while time.time() < start + total:
                         _, s = await sub.receive(30)
                         walk.append((s.t_ns / 1e9 - start, s))
                         resume_after(s)
@@ -269,26 +349,65 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
             p.kill()
             p.wait()
     margins, literal, reach, held_near, at = [], [], [], 0, []
+    cases: dict[str, dict[str, float]] = {w.name: {} for w in walks}
+    spell: tuple[float, float, float, float] | None = None  # its start, scale, T_r + T_s, reaction
+    spells: list[tuple[str, float, float, float, float]] = []  # walk, start, length, bound, reaction
+
+    def least(case: dict[str, float], name: str, value: float) -> None:
+        case[name] = min(case.get(name, math.inf), value)
+
     for i, (t, s) in enumerate(states):
         q, v = np.array(s.q), speed(arm, s)
-        person = np.array([[person_x(t, walks), 0.0, HEIGHT]])
-        sep = arm.body(q).distance(person)
-        if v < 1e-3:
-            held_near += person_x(t, walks) <= NEAR + 1e-9
-            continue
+        w, p = person(t, walks)
+        sep = arm.body(q).distance(p[None])
         f = each.get(s.path_id or "", worst)
+        ssm = f.ssm(Ssm(V_H, tr, 0.0, c, z))
+        inside = v >= 1e-3 and sep < ssm.protective_distance(v)
+        if spell is not None and math.isinf(spell[3]) and (v < 1e-3 or s.scale < spell[1] - 1e-9):
+            spell = (*spell[:3], t - spell[0])  # answered: a lower scale played, or the arm at rest
+        if spell is not None and not inside:
+            spells.append((w.name, spell[0], t - spell[0], spell[2], spell[3]))
+            spell = None
+        elif spell is None and inside:
+            spell = (t, s.scale, tr + f.stop_time_s, math.inf)
+        if v < 1e-3:
+            held_near += float(np.hypot(*p[:2])) <= NEAR + 1e-9
+            continue
+        vh = max(V_H, w.speed)  # a person walking faster than ISO's 1.6 m/s walks on at their own speed
         left = math.sqrt(min(1.0, v / f.speed_m_s))  # the stop from the speed left (scaling.ramp_duration)
-        margins.append(sep - (V_H * f.stop_time_s * left + v * f.stop_travel_s * left + c + z))
+        margins.append(sep - (vh * f.stop_time_s * left + v * f.stop_travel_s * left + c + z))
         at.append(i)
         reach.append(sep - (c + z))
-        ssm = f.ssm(Ssm(V_H, tr, 0.0, c, z))
         literal.append(sep - ssm.protective_distance(v))
-    least = min(margins)
-    print(f"\n{len(states)} robot/state samples in {walks} walks, {len(margins)} moving; least margin "
-          f"{least:+.3f} m (a stop begun at the sample), {min(reach):+.3f} m past the person's reach C + Z; "
+        least(cases[w.name], "stop margin m", margins[-1])
+        least(cases[w.name], "reach margin m", reach[-1])
+    if spell is not None:  # the samples ended inside one
+        spells.append(
+            (person(spell[0], walks)[0].name, spell[0], states[-1][0] - spell[0], spell[2], spell[3])
+        )
+    for name, _, length, bound, reaction in spells:
+        case = cases[name]
+        case["spells"] = case.get("spells", 0) + 1
+        case["longest spell s"] = max(case.get("longest spell s", 0.0), length)
+        case["its bound T_r + T_s s"] = bound
+        case["slowest reaction s"] = max(case.get("slowest reaction s", 0.0), reaction)
+    least_all = min(margins)
+    print(f"\n{len(states)} robot/state samples in {len(walks)} walks, {len(margins)} moving; least margin "
+          f"{least_all:+.3f} m (a stop begun at the sample), {min(reach):+.3f} m past the person's reach "
+          "C + Z; "
           f"S - S_p at the sample: least {min(literal):+.3f} m, negative in {sum(m < 0 for m in literal)} "
           f"(the arm answering a reading up to T_r = {tr:.2f} s old); still with the person at {NEAR} m: "
-          f"{held_near} samples")  # fmt: skip
+          f"{held_near} samples; spells with S < S_p(v): {len(spells)}")  # fmt: skip
+    if spells:
+        name, start, length, _, _ = max(spells, key=lambda x: x[2])
+        print(f"the longest spell ({name}, {length:.3f} s), every fourth sample:")
+        for t, s in [(t, s) for t, s in states if start - 0.1 <= t <= start + length + 0.05][::4]:
+            print(row(arm, t, s, walks))
+    for name, case in cases.items():
+        print(
+            f"  {name}: "
+            + ", ".join(f"{k} {v:+.3f}" if "margin" in k else f"{k} {v:.3f}" for k, v in case.items())
+        )
     adoption = {k: v for k, v in counters.items() if k.startswith("adoption")}
     lease = {k: counters.get(k, 0) for k in ("lease_lapses", "unchecked_stops", "ramps_refused", "late")}
     guard = {k: v for k, v in counters.items() if k.startswith("guard")}
@@ -300,7 +419,7 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
     gaps = np.diff([x - start for x in told if x >= start])
     print(
         f"the tracker's longest silence {gaps.max():.3f} s; the samples before the least margin "
-        "(t s, person x m, arm speed m/s, scale, S shown m, state):"
+        "(t s, person's distance to the base m, arm speed m/s, scale, S shown m, state, path, k):"
     )
     for t, s in states[max(0, worst_i - 12) : worst_i + 2]:
         print(row(arm, t, s, walks))
@@ -321,5 +440,5 @@ async def walk_in(tmp_path: Path, example_sets: Path, busy: int, walks: int, sta
             assert lease["lease_lapses"] >= 1
         else:  # on its guard's word, which kept the lease
             assert guard.get("guard_cuts", 0) >= 1 and lease["lease_lapses"] == 0, (guard, lease)
-    assert min(reach) > 0.0  # the moving arm never within the person's reach
-    assert least >= 0.0
+    assert min(reach) > 0.0  # (c) the moving arm never within the person's reach
+    assert least_all >= 0.0
