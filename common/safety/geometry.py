@@ -208,7 +208,8 @@ class Arm:
             w6 = omega[:, 5]
             vc = v[:, 6, None] + np.cross(w6[:, None], arm)
             top = np.maximum(top, _ball(vc, w6[:, None], w[:, 5, None] * self.tool.spheres[:, 3]).max(axis=1))
-        return top
+        out: Array = top
+        return out
 
     def top_speed(self, q: Array, dt: float) -> float:
         """The top speed of any point of arm and tool along joint rows q taken every ``dt`` s (each step's
@@ -226,7 +227,8 @@ def _ball(v: Array, omega: Array, spin: Array) -> Array:
     axis = np.divide(omega, w, out=np.zeros_like(omega), where=w > 0)
     along = (v * axis).sum(axis=-1)
     across = np.linalg.norm(v - along[..., None] * axis, axis=-1)
-    return np.sqrt(along**2 + (across + spin) ** 2)
+    out: Array = np.sqrt(along**2 + (across + spin) ** 2)
+    return out
 
 
 @dataclass(frozen=True, slots=True)

@@ -87,7 +87,8 @@ class Guard:
         nearest = self.watch.nearest(now)
         sigma = np.nan
         if v[at["moving"]] and np.all(np.isfinite(figures)):
-            sigma = self.watch.allowed(Figures(*map(float, figures)), nearest, float(v[at["sigma"]]))
+            speed, stop, travel = map(float, figures)
+            sigma = self.watch.allowed(Figures(speed, stop, travel), nearest, float(v[at["sigma"]]))
             if run != self.run or sigma < self.sigma:
                 self.since = now
             self.run, self.sigma = run, sigma
