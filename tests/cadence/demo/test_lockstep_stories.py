@@ -15,6 +15,7 @@ from pathlib import Path
 from services.executor.persist import ExecutorStore
 
 HEAVY = (150.0, 300.0)  # data time: the twin carries heavier parts
+RELIEF_FROM_S = 240.0  # the personal mode's story: its heavier parts end here, and the heart recovers
 
 
 def test_the_personal_mode_steps_both_ways_in_the_twin_demo(tmp_path: Path) -> None:
@@ -22,14 +23,21 @@ def test_the_personal_mode_steps_both_ways_in_the_twin_demo(tmp_path: Path) -> N
     initial pace stresses the twin and k steps down, relief brings it up again, k stays within 1 … N. In
     lockstep (`--speed max`), with the twin's walks: at 16x they were turned off, as a loaded host kept
     the twin below stress (issue 39). Its folder holds a stop an earlier demo latched: a demo's arm is a
-    new simulated one, and starts unlatched (a real executor's restart keeps the latch)."""
+    new simulated one, and starts unlatched (a real executor's restart keeps the latch).
+
+    The relief is the end of a load, not the luck of the noise: the default twin settles at k 3 with its
+    exposure at its tolerance (0.81–0.92 against 0.8) and stays stressed (0.33–0.40), and the one step
+    back up it showed came at the last of 14 decisions, by chance (issue 74's larger S_p moved it out of
+    the run). So the twin carries heavier parts for a stretch, with no accelerometer: the effort is read
+    as more load (k down to 1), and its end as relief (k up again, two windows or more before the end)."""
     out = tmp_path / "demo"
     earlier = ExecutorStore(out / "data" / "executor")
     earlier.latch("overruns, in an earlier demo")
     earlier.moving("b1_to_b2")  # and killed during a path
     r = subprocess.run(
         [sys.executable, "-m", "cadence", "demo", "--duration", "420", "--speed", "max", "--out", str(out),
-         "--no-live", "--decide", "personal"],
+         "--no-live", "--decide", "personal", "--twin", f"heavy_from_s={HEAVY[0]}",
+         "--twin", f"heavy_until_s={RELIEF_FROM_S}", "--twin", "accelerometer=false"],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert r.returncode == 0, r.stdout + r.stderr
