@@ -64,10 +64,10 @@ UR16E_SOURCE = ("a stated conservative model (0.75 s, every stop, joint and spee
 
 @dataclass(frozen=True, slots=True)
 class Stop:
-    """What S_p budgets for a stop: its time and its travel (B / v_r, path time at the speed in force)."""
+    """What S_p budgets for a robot's stop: its time, which is its travel too (B / v_r: no credit for
+    deceleration, module docstring)."""
 
     time_s: float
-    travel_s: float
     by: str  # which stop it is
 
 
@@ -110,11 +110,10 @@ class RobotStops:
         fraction = np.asarray(peak_rad_s, dtype=float) / np.asarray(top_rad_s, dtype=float)
         brake = float(np.max(peak_rad_s, initial=0.0)) / self.deceleration
         protective, emergency = self.category(1, fraction), self.category(0, fraction)
-        stops = [Stop(brake, brake, "the brake"), Stop(protective, protective, "the protective stop"),
-                 Stop(emergency, emergency, "the emergency stop")]  # fmt: skip
+        stops = [Stop(brake, "the brake"), Stop(protective, "the protective stop"),
+                 Stop(emergency, "the emergency stop")]  # fmt: skip
         if self.watchdog_s > 0.0:
-            t = self.watchdog_s + max(brake, protective)
-            stops.append(Stop(t, t, "the watchdog's stop"))
+            stops.append(Stop(self.watchdog_s + max(brake, protective), "the watchdog's stop"))
         return max(stops, key=lambda s: s.time_s)
 
 

@@ -143,7 +143,7 @@ class Figures:
         own = stop_time(curve, limits, s_from)
         q, qd = curve.at(s, order=1)
         robot = arm.stops.worst(np.abs(qd).max(axis=0), limits.velocity)
-        time_s, travel_s = max(own.time_s, robot.time_s), max(own.travel_s, robot.travel_s)
+        time_s, travel_s = max(own.time_s, robot.time_s), max(own.travel_s, robot.time_s)
         by = "the executor's ramp" if own.time_s >= robot.time_s else robot.by
         return cls(float(arm.speeds(q, qd).max()), time_s, travel_s, by)
 

@@ -236,10 +236,13 @@ class Executor(Node):
         if not self.ctx.settings.separation:
             self.safety.event("info", "separation monitoring is off ([executor] separation = false): the arm "
                               "runs at the planned speed whoever is near")  # fmt: skip
-        elif self.ctx.settings.backend == "ur_rtde":  # a software ramp is not safety-rated (ISO 13849)
-            self.safety.event("info", "separation monitoring slows the arm as a second layer, not a safety "
-                              "function: the scanners' safety outputs must be wired to the controller's "
-                              "safeguard or reduced-speed inputs")  # fmt: skip
+        else:
+            self.safety.event("info", "S_p budgets the robot's own stops beside the executor's ramp: "
+                              f"{self.ctx.settings.stops().source}")  # fmt: skip
+            if self.ctx.settings.backend == "ur_rtde":  # a software ramp is not safety-rated (ISO 13849)
+                self.safety.event("info", "separation monitoring slows the arm as a second layer, not a "
+                                  "safety function: the scanners' safety outputs must be wired to the "
+                                  "controller's safeguard or reduced-speed inputs")  # fmt: skip
         try:
             await self.cycles.start()
             await self.cycles.run()
@@ -269,6 +272,7 @@ main = node_main(Executor)
 def prepare(settings: Settings, common: CommonSettings) -> None:
     backend_for(settings, load_task(settings.task), common.speed)  # a bad task file: one line, exit 2
     settings.sensors()  # monitoring with no source, or a C below ISO 13855's: one line, exit 2
+    settings.arm()  # a stopping table that does not reach full speed: one line, exit 2
     if settings.resume_policy == "auto" and settings.backend != "sim":
         raise ConfigError(
             f'[{NAME}] resume_policy: "auto" is for the sim backend only; a real robot\'s stop needs a person'
