@@ -151,8 +151,10 @@ async def test_the_guard_reads_the_bus_by_the_executors_rules_and_the_servo_stop
                     bus.put_raw(key, reading(0.3))
                     await asyncio.sleep(0.02)
             assert servo_state(proc.ch, "cuts") == 1
-            figures = guard.figures()
-            assert figures["guard_cuts"] == 1 and figures["guard_n"] >= 1
+            async with asyncio.timeout(10):  # the cut's ramp begins at the step after it: adopted then
+                while guard.figures().get("guard_n", 0) < 1:
+                    await asyncio.sleep(0.01)
+            assert guard.figures()["guard_cuts"] == 1
             proc.request_stop()
             await asyncio.wait_for(motion, 30)
         finally:
