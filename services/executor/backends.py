@@ -56,6 +56,9 @@ class Backend(Protocol):
     def motion_ended(self) -> None: ...  # after a servo motion, whatever its outcome
     def set_gripper(self, on: bool) -> None: ...
     def digital_inputs(self) -> int: ...  # the standard digital inputs 0–7 as bits (the cell's buttons)
+    # False where the state read is not the arm as it is now (remote.py: a servo process starved past its
+    # controller's watchdog, the arm last seen moving); read in the process that steps it, always True
+    def measured(self) -> bool: ...
 
 
 class SimBackend:
@@ -192,6 +195,9 @@ class SimBackend:
     def digital_inputs(self) -> int:
         return self.arm.digital_in
 
+    def measured(self) -> bool:
+        return True
+
     def set_gripper(self, on: bool) -> None:
         bit = 1 << self.gripper_output
         self.arm.digital_out = (self.arm.digital_out | bit) if on else (self.arm.digital_out & ~bit)
@@ -244,12 +250,10 @@ def gone(host: str, armed: bool) -> str:
 
 
 class UrRtdeBackend:
-    """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz with the watchdog kicked
-    every tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the
-    benchmark (the executor moves to a path's start on the servo loop), a standard digital output for
-    the gripper (see ``set_gripper``).
-
-    Three threads call into the client: the servo loop, the service's worker threads (a reconnect, the
+    """A UR e-Series controller through ``ur-rtde==1.6.5``: servoJ at 500 Hz, the watchdog kicked every
+    tick (the controller stops the arm if the executor stalls), servoStop to brake, moveJ for the bench
+    (the executor moves to a path's start on the servo loop), a digital output for the gripper. Three
+    threads call into the client: the servo loop, the service's worker threads (a reconnect, the
     watchdog's arming) and its event loop (the state, the fault). ur-rtde does not guard an interface
     against its own ``disconnect``: a servoJ in flight while another thread disconnects crashed the whole
     process (SIGSEGV, in CI). So every call goes through ``_using``, and ``close`` tears the interfaces
@@ -470,6 +474,9 @@ class UrRtdeBackend:
             return ifaces is not None and bool(
                 ifaces[0].moveJ(np.asarray(q, float).tolist(), speed, acceleration)
             )
+
+    def measured(self) -> bool:
+        return True
 
     def digital_inputs(self) -> int:
         with self._using() as ifaces, contextlib.suppress(RuntimeError):

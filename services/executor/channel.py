@@ -35,7 +35,7 @@ class Channel:
     AT: ClassVar[dict[str, int]] = {"run": 0, "index": 1, "ticks": 2, "overruns": 3, "t": 4, "s": 5,
                                     "sigma": 6, "inputs": 7, "lost": 8, "beat": 9, "moving": 10, "q": 11,
                                     "qd": 17, "tcp": 23, "longest": 29, "v_r": 30, "t_s": 31, "b_s": 32,
-                                    "cuts": 33, "adopted": 34}  # fmt: skip
+                                    "cuts": 33, "adopted": 34, "unheard": 35}  # fmt: skip
     NAME_BYTES = 256  # the guard's text: the nearest's source (or why none), for what the executor says
     # the guard's values by name: the run it judged, σ allowed, since when (its last fall), its beat, the
     # nearest room S − C (NaN: none, a hold)

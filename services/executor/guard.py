@@ -101,7 +101,11 @@ class GuardProcess:
             return {}
         at = Channel.AT
         adopted = int(v[0][at["adopted"]])
-        out = {"guard_cuts": int(v[0][at["cuts"]]), "guard_n": adopted}
+        out = {
+            "guard_cuts": int(v[0][at["cuts"]]),
+            "guard_n": adopted,
+            "guard_unheard": int(v[0][at["unheard"]]),
+        }
         held = self.ch.adoptions[: min(adopted, Channel.ADOPTIONS)].copy() * 1000
         if held.size:
             p50, p999 = np.percentile(held, [50.0, 99.9])

@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from common.safety.separation import Figures
 from common.trajectory.scaling import DT, Curve, Ramp
-from services.executor.backends import RobotUnavailable
+from services.executor.backends import AT_REST, RobotUnavailable
 from services.executor.channel import QUIET, Channel, said
 from services.executor.playback import InForce, Offer, Owned, Switch
 from services.executor.servo import PERIOD_NS, MotionResult, Source
@@ -569,6 +569,18 @@ class RemoteBackend:
 
     def tcp_pose(self) -> Array:
         return self._six("tcp")
+
+    def measured(self) -> bool:
+        """False while the servo process has written nothing for longer than its controller's watchdog
+        waits, the arm last seen moving: the controller has stopped it meanwhile, where and how only the
+        servo will say once it runs again, so the speed read is not the arm's (a walk-in on a loaded host
+        read a starved servo's 0.11 m/s for 1.4 s beside a person while the arm stood)."""
+        watchdog, v = self.proc.info.get("watchdog_s"), self.proc.mail.values()
+        if watchdog is None or v is None:
+            return True
+        at = Channel.AT
+        silent = time.monotonic() - float(v[at["beat"]])
+        return not (silent > watchdog and float(np.abs(v[at["qd"] : at["qd"] + 6]).max()) > AT_REST)
 
     def fault(self) -> str:
         if self.proc.died:

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from common.trajectory.task import load_task
-from services.executor.backends import Backend, backend_for
+from services.executor.backends import Backend, SimBackend, UrRtdeBackend, backend_for
 from services.executor.channel import Channel
 from services.executor.playback import SIGMA_EPS, InForce, Offer, Playback, Samples, Switch
 from services.executor.servo import MotionResult, ServoLoop, Source, playback_on
@@ -228,7 +228,11 @@ class Server:
             v[at["t"]], v[at["s"]], v[at["sigma"]] = pb.t, pb.s, pb.sigma
         v[at["v_r"] : at["v_r"] + 3] = self.figures or (np.nan, np.nan, np.nan)
         if self.heed is not None:
-            v[at["cuts"]], v[at["adopted"]] = self.heed.cuts, self.heed.adopted
+            v[at["cuts"]], v[at["adopted"]], v[at["unheard"]] = (
+                self.heed.cuts,
+                self.heed.adopted,
+                self.heed.unheard,
+            )
         v[at["q"] : at["q"] + 6] = b.actual_q()
         v[at["qd"] : at["qd"] + 6] = b.actual_qd()
         text = None
@@ -298,9 +302,12 @@ class Heed:
         self.demand: float | None = None
         self.kept_at = -np.inf  # the last step the scale in force was within the guard's
         self.cuts = self.adopted = 0
+        # how often a guard heard during a run fell silent (its process starved past GUARD_SILENT_S): the
+        # only way the lease of a stalled executor runs out while the guard runs (a stop, and the safe one)
+        self.unheard, self.heard = 0, False
 
     def begin(self, run_id: int) -> None:
-        self.run_id, self.demand, self.kept_at = run_id, None, -np.inf
+        self.run_id, self.demand, self.kept_at, self.heard = run_id, None, -np.inf, False
 
     def step(self, pb: Playback) -> None:
         """The guard's σ against the scale in force, each step of a path: timed from the guard's fall (the
@@ -310,13 +317,17 @@ class Heed:
         A silent guard, or one that judged another run, is not heard: the executor's lease alone holds."""
         grace = self.grace_s
         got = self.ch.guard.read(tries=3)
-        if got is None:
+        now = time.monotonic()
+        if got is None or not now - got[0][Channel.GUARD_AT["beat"]] < GUARD_SILENT_S:
+            self.unheard += self.heard
+            self.demand, self.heard = None, False
             return
-        g, at, now = got[0], Channel.GUARD_AT, time.monotonic()
+        g, at = got[0], Channel.GUARD_AT
         sigma = float(g[at["sigma"]])
-        if int(g[at["run"]]) != self.run_id or not now - g[at["beat"]] < GUARD_SILENT_S or sigma != sigma:
+        if int(g[at["run"]]) != self.run_id or sigma != sigma:
             self.demand = None
             return
+        self.heard = True
         now_ = pb.now
         if now_.ramp.target <= sigma + SIGMA_EPS:  # in force
             if self.demand is not None:
@@ -347,6 +358,15 @@ class Heed:
             pb.renew(max(pb.lease, until))
 
 
+def watchdog_of(backend: Backend) -> float | None:
+    """How long the controller waits for a target before it stops the arm (None: no watchdog)."""
+    if isinstance(backend, SimBackend):
+        return backend.watchdog_s
+    if isinstance(backend, UrRtdeBackend):
+        return 1.0 / backend.watchdog_hz
+    return None
+
+
 def main(argv: list[str]) -> int:
     # a terminal's Ctrl-C or systemd's SIGTERM to the unit's group is the executor's to answer: it stops
     # the arm through here, and then ends this process
@@ -373,7 +393,7 @@ def main(argv: list[str]) -> int:
     heavy = [m for m in ("zenoh", "scipy") if m in sys.modules]  # imported for nothing a tick does
     server.reply((0, True, {"warnings": loop.warnings, "name": backend.name, "realtime": backend.realtime,
                             "threads": threads, "pid": os.getpid(), "heavy": heavy,
-                            "period_ns": loop.period_ns}))  # fmt: skip
+                            "period_ns": loop.period_ns, "watchdog_s": watchdog_of(backend)}))  # fmt: skip
     try:
         server.run()
     finally:

@@ -54,6 +54,9 @@ class Telemetry:
         t_ns = self.kit.clock.now_ns()
         pressed = self.pressed(t_ns)
         b, now = self.backend, self.snapshot()
+        if not b.measured():  # no measure of the arm now: no state (a stale speed is not the arm's)
+            self.kit.counters["states_unmeasured"] += 1
+            return list(pressed)
         m, near = now.motion, now.separation_m
         state = RobotState(
             t_ns=t_ns,

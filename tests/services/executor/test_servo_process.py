@@ -8,8 +8,10 @@ import asyncio
 import contextlib
 import os
 import signal
+import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -94,6 +96,44 @@ async def test_a_servo_process_that_dies_mid_motion_is_a_latched_fault_until_a_r
     finally:
         if proc.restarting is not None:
             await asyncio.to_thread(proc.restarting.join, 60)
+        proc.close()
+
+
+async def test_a_starved_servo_process_past_its_watchdog_shows_no_speed_the_arm_no_longer_has(
+    settings: Settings,
+) -> None:
+    """SIGSTOP of the servo process mid-motion with the controller's watchdog armed (a person watched):
+    the speed it last wrote stays in the block, but past the watchdog's period the state is not the arm's
+    (``measured`` False: the executor sends no robot/state), and once the process runs again the arm is
+    at rest where the watchdog's stop left it, its fault saying so."""
+    watched = msgspec.structs.replace(settings, separation=True)
+    proc = ServoProcess(watched, 1.0, None, 0)
+    proc.start()
+    stopped = False
+    try:
+        assert proc.info["watchdog_s"] == pytest.approx(1.0 / watched.watchdog_hz)
+        arm = RemoteBackend(proc)
+        motion = asyncio.wrap_future(proc.run(slow_move(arm.actual_q(), 5.0)))
+        async with asyncio.timeout(30):
+            while proc.index < 250:  # half a second in
+                await asyncio.sleep(0.01)
+        assert arm.measured()
+        os.kill(proc.info["pid"], signal.SIGSTOP)
+        stopped, at = True, time.monotonic()
+        async with asyncio.timeout(30):
+            while arm.measured():
+                await asyncio.sleep(0.005)
+        assert time.monotonic() - at >= proc.info["watchdog_s"] - 0.01  # not before the watchdog's period
+        assert np.abs(arm.actual_qd()).max() > 0.01  # what the block still says: the speed before the stall
+        os.kill(proc.info["pid"], signal.SIGCONT)
+        stopped = False
+        result = await asyncio.wait_for(motion, 30)
+        assert result.outcome == "fault"
+        assert "watchdog" in arm.fault()
+        assert arm.measured() and np.abs(arm.actual_qd()).max() == 0.0
+    finally:
+        if stopped:
+            os.kill(proc.info["pid"], signal.SIGCONT)
         proc.close()
 
 

@@ -25,7 +25,10 @@ person at the cell would, and counts it. A second test, with no busy loops, stop
 process (SIGSTOP) while it runs a path, until the person has walked in to ``STALL_UNTIL_X``: a starvation
 the host gives now and then under load (8 s once, in a loaded run). Its looks and its states stand still;
 the servo process runs on, and its lease on the scale runs out: it must take the stop kept ready by
-itself, so that the executor, back, finds the arm at rest and counts the lapse.
+itself, so that the executor, back, finds the arm at rest and counts the lapse. With the guard running
+on, its word keeps the lease while it is heard; a host that starves the guard too past its silence
+(``guard_unheard``: in a CI run, beside the other tests) makes the lapse a stop, the safe one, and that
+attempt is tried again.
 
 The least of each is printed, and S − S_p at the sample too, with T_r: what a reading must show when it
 is taken. That one goes negative by design while the arm answers a reading up to T_r old (ISO/TS 15066
@@ -61,17 +64,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.robot.ur16e import UR16E, forward_kinematics
+from common.robot.ur16e import forward_kinematics
 from common.safety.geometry import Arm
-from common.safety.separation import Figures, Ssm
-from common.trajectory.planner import content_hash
-from common.trajectory.scaling import Curve
+from common.safety.separation import Ssm
 from common.trajectory.task import load_task
 from schemas import RobotEvent, RobotState, Separation, ServiceStatus
 from schemas.topology import encode
 from services.executor.settings import Settings as ExecutorSettings
-from services.pareto_store.store import SetStore
-from tests.support.arm import speed
+from tests.support.arm import figures_at_top_k, speed
 from tests.support.executor import executor_processes
 from tests.support.paths import EXAMPLE_TASK
 
@@ -158,24 +158,6 @@ def person(t: float, walks: tuple[Walk, ...]) -> tuple[Walk, np.ndarray]:
             return w, w.at(t)
         t -= w.length_s
     return walks[-1], walks[-1].at(walks[-1].length_s)
-
-
-def figures_at_top_k(db: Path) -> tuple[Figures, dict[str, Figures]]:
-    """The worst figures of the example task's paths at k = n (the executor's start here), and each's,
-    with the executor's own arm and tool."""
-    task = load_task(EXAMPLE_TASK)
-    arm = ExecutorSettings().arm()
-    store, _ = SetStore.open(db)
-    each = {}
-    for pid, path in task.paths.items():
-        s = store.load(pid, content_hash(path, task.limits, task.planner))
-        assert s is not None
-        each[pid] = Figures.of(Curve.of(np.array(s.solutions[-1].h), path), UR16E, arm=arm)
-    store.close()
-    worst = Figures(0.0, 0.0)
-    for f in each.values():
-        worst = worst.worst(f)
-    return worst, each
 
 
 def row(arm: Arm, t: float, s: RobotState, walks: tuple[Walk, ...]) -> str:
@@ -307,6 +289,8 @@ async def walk_in(
                     resumes.append(asyncio.create_task(bus.get(f"{bus.key('robot/resume')}?by=walk-in",
                                                                RobotEvent, timeout=20)))  # fmt: skip
 
+            counters: dict[str, int] = {}
+            lapses = unheard = 0  # the last attempt's
             for attempt in range(STALL_TRIES if stall else 1):
                 tracker = asyncio.create_task(track(None))
                 async with asyncio.timeout(180):
@@ -335,15 +319,22 @@ async def walk_in(
                 stalled_at = (await starving if starving is not None else math.nan) - start
                 states += walk
                 trips = silences(walk)
+                before = counters
+                while health.pending:
+                    counters = (await health.receive(1))[1].counters
+                lapses, unheard = (
+                    counters.get(k, 0) - before.get(k, 0) for k in ("lease_lapses", "guard_unheard")
+                )
+                if stall == "loop" and lapses and unheard:
+                    print(f"attempt {attempt + 1}: the host starved the guard too, past its silence "
+                          f"({unheard} times): the lease ran out ({lapses}), a stop; again")  # fmt: skip
+                    continue
                 if not stall or stalled_for(trips, stalled_at, resumed) or not at_rest_at(trips, stalled_at):
                     break
                 print(
                     f"attempt {attempt + 1}: the watchdog had stopped the arm for a short silence just "
                     f"before the stall at {stalled_at:.3f} s ({trips}): it met an arm at rest; again"
                 )
-            counters = {}
-            while health.pending:
-                counters = (await health.receive(1))[1].counters
     finally:
         for p in load:
             p.kill()
@@ -438,7 +429,7 @@ async def walk_in(
         assert back and back[0] < 1e-3, f"the arm at {back[:1]} m/s as the executor came back"
         if stall == "unit":  # on its lease: nobody confirmed the scale
             assert lease["lease_lapses"] >= 1
-        else:  # on its guard's word, which kept the lease
-            assert guard.get("guard_cuts", 0) >= 1 and lease["lease_lapses"] == 0, (guard, lease)
+        else:  # on its guard's word, which kept the lease while the guard was heard
+            assert guard.get("guard_cuts", 0) >= 1 and (lapses == 0 or unheard > 0), (guard, lease)
     assert min(reach) > 0.0  # (c) the moving arm never within the person's reach
     assert least_all >= 0.0
