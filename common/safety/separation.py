@@ -201,6 +201,36 @@ class Nearest:
     distance_m: float | None  # None: hold the arm
     source: str  # whose reading it is, or what holds the arm
     why: str = ""  # when None: why, in words; with a distance: why it is one assumed, not read
+    taken_s: float = -math.inf  # when the reading was taken, on the receiver's clock (its age counted)
+
+
+@dataclass(slots=True)
+class Spell:
+    """ISO/TS 15066's bound on a spell of S < S_p(v), v the speed in force (issue 74): it must end, the
+    arm at rest or S ≥ S_p(v) again, within T_r + T_s of its start. Slowing down ends one only where the
+    person stops coming (S_p shrinks with v); one who walks on keeps it open while the arm follows them
+    down, which took up to 0.25 s past the bound. So a spell starts when the reading that shows it was
+    taken, slowing may end it for T_r less ``lead_s`` (the adoption of a ramp), and past that the arm
+    stops, whatever a lower speed would allow, until the spell ends: a stop begun then ends within T_s,
+    the stop S_p budgets, so within the bound."""
+
+    lead_s: float
+    began_s: float | None = None
+    stopping: bool = False
+
+    def sigma(
+        self, wanted: float, ssm: Ssm, speed_m_s: float, nearest: Nearest, in_force: float, now: float
+    ) -> float:
+        """``wanted``, or 0 where this spell can no longer end in time by slowing; ``ssm`` with the curve's
+        stop, ``speed_m_s`` its top speed at σ = 1, played at σ = ``in_force``."""
+        v, d = in_force * speed_m_s, nearest.distance_m
+        if d is None or v <= 0.0 or d >= ssm.protective_distance(v):  # no spell: a hold, at rest, or room
+            self.began_s, self.stopping = None, False
+            return wanted
+        if self.began_s is None:
+            self.began_s = min(now, nearest.taken_s) if math.isfinite(nearest.taken_s) else now
+        self.stopping = self.stopping or now - self.began_s >= ssm.reaction_s - self.lead_s
+        return 0.0 if self.stopping else wanted
 
 
 class Sources:
@@ -301,7 +331,7 @@ class Sources:
         for name, readings in self.readings.items():
             d = readings.nearest(now)
             if d is not None:
-                fresh.append(Nearest(d, name))
+                fresh.append(Nearest(d, name, taken_s=readings.kept[0][0] - self.max_age_s))
             elif name in self.declared:
                 silent.append(name)
             elif readings.last is not None:

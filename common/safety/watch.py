@@ -12,7 +12,7 @@ import numpy as np
 
 from common.runtime.errors import Rejected
 from common.safety.geometry import Arm, Body, Pose, Sensor, intrusion_iso13855, separation
-from common.safety.separation import Figures, Nearest, Sources, Ssm
+from common.safety.separation import Figures, Nearest, Sources, Spell, Ssm
 from schemas.operator import Separation
 
 UNDECLARED_C = intrusion_iso13855("legs")  # 1.2 m: the largest C of ISO 13855, for a source nobody placed
@@ -29,6 +29,7 @@ class Rules:
     skew_s: float
     max_rate_hz: float
     refuse_undeclared: bool
+    adoption_s: float = 0.1  # T_r's part for the arm's answer: a ramp's lead (separation.Spell)
 
 
 class Watch:
@@ -42,6 +43,7 @@ class Watch:
             rules.max_age_s, rules.skew_s, tuple(rules.sensors), max_rate_hz=rules.max_rate_hz
         )
         self._body: tuple[bytes, Body] | None = None  # the arm's body at the joints it was last found for
+        self.spell = Spell(rules.adoption_s)
 
     def receive(self, sep: Separation, own_key: bool, stamp_age_s: float, now: float, q: np.ndarray) -> None:
         """Take one reading, or refuse it (``Rejected``, with the reason a counter keeps): ``own_key``, it
@@ -87,7 +89,11 @@ class Watch:
     def nearest(self, now: float) -> Nearest:
         return self.sources.nearest(now)
 
-    def allowed(self, figures: Figures, nearest: Nearest, in_force: float) -> float:
+    def allowed(self, figures: Figures, nearest: Nearest, in_force: float, now: float) -> float:
         """σ, stepped, for that distance on a curve of these figures (None: a hold), played at σ =
-        ``in_force`` now (the arm keeps it through T_r: S_r is its)."""
-        return figures.scale(self.rules.ssm, nearest.distance_m, in_force)
+        ``in_force`` now (the arm keeps it through T_r: S_r is its); 0 once a spell of S < S_p can no
+        longer end in time by slowing (``Spell``)."""
+        wanted = figures.scale(self.rules.ssm, nearest.distance_m, in_force)
+        return self.spell.sigma(
+            wanted, figures.ssm(self.rules.ssm), figures.speed_m_s, nearest, in_force, now
+        )

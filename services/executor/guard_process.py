@@ -88,7 +88,7 @@ class Guard:
         sigma = np.nan
         if v[at["moving"]] and np.all(np.isfinite(figures)):
             speed, stop, travel = map(float, figures)
-            sigma = self.watch.allowed(Figures(speed, stop, travel), nearest, float(v[at["sigma"]]))
+            sigma = self.watch.allowed(Figures(speed, stop, travel), nearest, float(v[at["sigma"]]), now)
             if run != self.run or sigma < self.sigma:
                 self.since = now
             self.run, self.sigma = run, sigma

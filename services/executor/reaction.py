@@ -129,7 +129,7 @@ class Reactions:
         late = self.adoption.late and not self.guarded
         r = self.run
         in_force = max(r.playback.sigma, r.playback.now.target) if r is not None else 0.0
-        return 0.0 if late else self.watch.allowed(figures, self.nearest, in_force)
+        return 0.0 if late else self.watch.allowed(figures, self.nearest, in_force, monotonic())
 
     # --- the scale ----------------------------------------------------------------------------------
 

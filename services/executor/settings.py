@@ -219,7 +219,8 @@ class Settings(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         ssm = Ssm(self.human_speed_m_s, sum(parts.values()), self.stop_time_s, 0.0, self.uncertainty_m,
                   self.separation_max_age_s)  # fmt: skip
         return Rules(self.arm(), self.sensors(), ssm, self.separation_max_age_s, clock_skew_s,
-                     self.separation_max_rate_hz, self.separation_undeclared == "refuse")  # fmt: skip
+                     self.separation_max_rate_hz, self.separation_undeclared == "refuse",
+                     self.adoption_budget_s)  # fmt: skip
 
     def arm(self) -> Arm:
         """The robot as separation monitoring sees it: its base in the cell, its tool, its own stops."""

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.robot.ur16e import link_points
-from common.safety.separation import OTHERS, Figures, Sources, Ssm, stepped
+from common.safety.separation import OTHERS, Figures, Nearest, Sources, Spell, Ssm, stepped
 from common.trajectory.planner import ParetoResult, plan_path
 from common.trajectory.scaling import DT, Curve, Ramp, plan_ramp, stop_time, switch_curve
 from common.trajectory.task import PathPlan, load_task
@@ -304,3 +304,33 @@ def test_a_ramp_replaced_before_it_played_ends_the_wait_and_a_reading_in_time_fr
     a.began(stop, 1.25, 1.33, None)
     a.answered(a.take(), 1.33)  # the next look: the stop in force answers a fresh reading in time
     assert not a.late and a.waiting is None
+
+
+def test_a_spell_inside_s_p_may_end_by_slowing_for_t_r_less_the_lead_and_is_then_a_stop_until_it_ends() -> (
+    None
+):
+    """ISO/TS 15066's bound (issue 74): a spell of S < S_p(v) ends within T_r + T_s of the reading that
+    showed it. Slowing is what the distance allows for T_r less the ramp's lead; then the arm stops, and
+    stays stopping while the spell lasts, however far a lower speed would let it go."""
+    ssm = Ssm(1.6, 0.55, 1.0, 0.0, 0.1, 0.3, 0.5)
+    inside = ssm.protective_distance(1.0) - 0.01  # the arm at 1 m/s, the person just inside its S_p
+    spell = Spell(lead_s=0.1)
+    seen = Nearest(inside, "tracker", taken_s=-0.05)
+    assert spell.sigma(0.6, ssm, 1.0, seen, 1.0, 0.0) == 0.6  # slowing may end it
+    assert spell.sigma(0.6, ssm, 1.0, seen, 1.0, 0.399) == 0.6  # 0.449 s after the reading was taken
+    assert spell.sigma(0.6, ssm, 1.0, seen, 1.0, 0.401) == 0.0  # T_r − lead: a stop, begun in time for T_s
+    nearer = Nearest(inside - 0.5, "tracker", taken_s=0.43)
+    assert spell.sigma(0.4, ssm, 1.0, nearer, 0.6, 0.45) == 0.0  # stopping while the spell lasts
+    assert spell.sigma(0.3, ssm, 1.0, nearer, 0.0, 0.9) == 0.3  # at rest: over, and the distance rules
+    # a spell ends by room too, and one shown by a reading already T_r − lead old is a stop at once
+    assert spell.sigma(0.6, ssm, 1.0, Nearest(inside, "tracker", taken_s=0.98), 1.0, 1.0) == 0.6
+    room = Nearest(ssm.protective_distance(1.0), "tracker", taken_s=1.01)
+    assert spell.sigma(1.0, ssm, 1.0, room, 1.0, 1.05) == 1.0 and spell.began_s is None
+    assert Spell(0.1).sigma(0.6, ssm, 1.0, Nearest(inside, "tracker", taken_s=0.5), 1.0, 0.96) == 0.0
+    assert Spell(0.1).sigma(0.0, ssm, 1.0, Nearest(None, "tracker", "silent"), 1.0, 0.0) == 0.0
+
+
+def test_the_nearest_says_when_its_reading_was_taken_its_age_counted() -> None:
+    sources = Sources(0.3, 0.05)
+    assert sources.receive("tracker", 2.0, 0.02, 0.03, now=10.0) == ""
+    assert sources.nearest(10.1).taken_s == pytest.approx(10.0 - 0.05)
