@@ -275,10 +275,21 @@ class Playback:
         self.notify()
 
     def _unchecked_to(self, sigma: float) -> Ramp:
-        """σ from its state at the next step to ``sigma`` over ``stop_s``: a ramp no planner checked."""
+        """σ from its state at the next step to ``sigma`` over ``stop_s``: a ramp no planner checked, that
+        never leaves the span between the two. A quintic joined to the state's σ̈ is not: cut at the end of
+        a ramp down (σ̈ of 15-25 /s²) it rose from 0.51 to past 1 before it fell (a walk-in, issue 74). So
+        it keeps σ's rate only where that heads for ``sigma``, drops σ̈ (a jerk: the stop is unchecked
+        anyway), and where even that leaves the span, starts from rest (a smoothstep, monotone)."""
         t0 = self.tick * DT + DT
-        s0, sig, sd, sdd = (float(x[0]) for x in self.now.ramp.state(np.array([t0])))
-        return Ramp.between(t0, s0, (sig, sd, sdd), sigma, max(self.stop_s, DT))
+        s0, sig, sd, _ = (float(x[0]) for x in self.now.ramp.state(np.array([t0])))
+        duration = max(self.stop_s, DT)
+        toward = sd if (sigma - sig) * sd > 0.0 else 0.0
+        ramp = Ramp.between(t0, s0, (sig, toward, 0.0), sigma, duration)
+        lo, hi = min(sig, sigma) - 1e-9, max(sig, sigma) + 1e-9
+        sigmas = ramp.state(t0 + np.linspace(0.0, duration, 33))[1]
+        if toward and not (lo <= sigmas.min() and sigmas.max() <= hi):
+            ramp = Ramp.between(t0, s0, (sig, 0.0, 0.0), sigma, duration)
+        return ramp
 
     def cut(self, sigma: float) -> bool:
         """The separation guard's word (services/executor/guard_process.py): σ down to ``sigma`` from the

@@ -3,6 +3,8 @@ driven through the servo loop's playback one controller step at a time, every co
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -349,6 +351,40 @@ def test_a_lease_that_runs_out_makes_the_loop_take_the_planned_stop_itself_insid
             assert (finite_difference_ratios(np.array(sent)) <= 1.0 + 1e-6).all()
         pb.renew(clock[0] + 1.0)
         assert not pb.lapsed
+
+
+def test_a_guards_cut_at_the_end_of_a_ramp_down_never_raises_the_scale_nor_sends_it_below_its_word(
+    planned: tuple[PathPlan, ParetoResult],
+) -> None:
+    """The guard's cut (``Playback.cut``) joins the σ-state in force: at the end of a ramp down σ̈ is large
+    and positive, and a quintic joined to it over the path's T_s rose from 0.51 past 1 before it fell
+    (issue 74's walk-in). Cut at every few steps of a ramp down and of a ramp up, σ stays between where it
+    was and the guard's word, and ends at the word."""
+    path, result = planned
+    curve = Curve.of(result.solutions[-1].h, path)
+    stop_s = stop_time(curve, LIMITS).time_s
+    cuts = 0
+    for first, target, word in ((1.0, 0.5, 0.3), (0.2, 0.9, 0.6)):
+        ramp = plan_ramp(curve, Ramp.hold(0.0, 0.0, first), 0.01, target, LIMITS)
+        assert ramp is not None
+        for cut_at in range(6, round(ramp.end / DT) + 6, 5):
+            pb = Playback(curve, Ramp.hold(0.0, 0.0, first), lambda q: q.copy())
+            pb.stop_s, pb.now = stop_s, replace(pb.now, pending_ramp=ramp)
+            sigmas, at = [], None
+            for i in range(cut_at + round(stop_s / DT) + 5):
+                if i == cut_at:
+                    at = pb.sigma
+                    assert pb.cut(word)
+                    cuts += 1
+                assert pb.next() is not None
+                if at is not None:
+                    sigmas.append(pb.sigma)
+            assert at is not None
+            begun = sigmas[1:]  # the cut acts from the step after the one it came in
+            lo, hi = min(begun[0], word), max(begun[0], word)
+            assert lo - 1e-9 <= min(begun) and max(begun) <= hi + 1e-9, (first, cut_at, begun[0])
+            assert sigmas[-1] == pytest.approx(word, abs=1e-9)
+    assert cuts > 20
 
 
 def test_an_arm_held_at_a_paths_start_is_sent_where_it_stands_until_the_path_advances(
