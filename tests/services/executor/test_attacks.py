@@ -91,7 +91,7 @@ def test_silence_never_frees_the_arm_a_near_person_unheard_stays_where_last_seen
         assert table.nearest(now).source == "camera:side"
     assert table.nearest(4.9).why == "where last seen: no fresh reading from 'camera:side' for 4.6 s"
     table.receive("camera:side", 4.0, 0.0, 0.0, 5.0)  # the same source, fresh: the person walked off
-    assert table.nearest(5.0) == Nearest(4.0, "camera:side")
+    assert table.nearest(5.0) == Nearest(4.0, "camera:side", taken_s=5.0)
     table.receive("twin", 6.0, 0.0, 0.0, 5.2)
     assert table.nearest(5.4) == Nearest(4.0, "camera:side", table.nearest(5.4).why)  # where last seen
     table.receive("twin", 6.0, 0.0, 0.0, 5.4)
