@@ -21,6 +21,11 @@ from tests.support.paths import (
 # such cells on a 2-core machine, with other work running, starved each other's simulated operator. (The
 # systemd cells run at real time, beside them.)
 CELL_FILES = frozenset({"test_demo.py", "test_lab.py", "test_packaging.py", "test_walk_in.py"})
+# then the files that take a minute or more, longest first (a full run's --durations=0): xdist's own
+# order, by the number of tests in a file (pyproject: --no-loadscope-reorder turns it off), left these
+# one- and two-test files to the end, and the run waited 80 s on its last worker
+SLOW_FILES = ("test_systemd.py", "test_lockstep_stories.py", "test_other_machines.py", "test_ur_emulator.py",
+              "test_study.py", "test_executor_safety.py")  # fmt: skip
 BENCH_TIMEOUT_S = 3600  # s: the pyproject's 1,200 s is for a test
 
 
@@ -39,9 +44,11 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The cell files first: the worker that takes them is busy with them alone for minutes, while the
-    other works through the rest. A benchmark may take longer than a test's ``timeout`` (pyproject): the
-    whole HRV cross-validation takes minutes on its own, so a benchmark's limit is an hour."""
-    items.sort(key=lambda item: item.path.name not in CELL_FILES)
+    others work through the rest, the slow files first. A benchmark may take longer than a test's
+    ``timeout`` (pyproject): the whole HRV cross-validation takes minutes on its own, so a benchmark's
+    limit is an hour."""
+    order = {name: i for i, name in enumerate(SLOW_FILES, start=1)} | dict.fromkeys(CELL_FILES, 0)
+    items.sort(key=lambda item: order.get(item.path.name, len(order)))
     for item in items:
         if item.get_closest_marker("bench") is not None and item.get_closest_marker("timeout") is None:
             item.add_marker(pytest.mark.timeout(BENCH_TIMEOUT_S))

@@ -141,11 +141,19 @@ async def test_the_guard_reads_the_bus_by_the_executors_rules_and_the_servo_stop
                     bus.put_raw(key, reading(8.0))
                     await asyncio.sleep(0.02)
             impostor = bus.key("operator/separation/scanner_other")
+            seen: list[float | None] = []  # the guard's nearest room as it judged each round
+            put_at = [wall_monotonic()]
             for _ in range(10):
                 bus.put_raw(impostor, reading(0.3))  # under SOURCE's name on another key: not SOURCE's
                 bus.put_raw(key, reading(8.0))
+                put_at.append(wall_monotonic())
                 await asyncio.sleep(0.02)
-            assert servo_state(proc.ch, "cuts") == 0 and pb.now.target == 1.0
+                near = guard.nearest()
+                seen.append(None if near is None else near.distance_m)
+            assert all(d is None or d > 5.0 for d in seen), seen  # never the impostor's 0.3 m
+            # and no cut, unless this loop, starved by a loaded host, let the far reading go stale (a hold)
+            stale = max(np.diff(put_at)) >= settings.separation_max_age_s - 0.05
+            assert servo_state(proc.ch, "cuts") == 0 or stale, (seen, np.diff(put_at))
             async with asyncio.timeout(60):
                 while pb.now.ramp.target > 0.0:
                     bus.put_raw(key, reading(0.3))
