@@ -6,8 +6,10 @@ import asyncio
 import contextlib
 import json
 import math
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,10 +45,19 @@ def test_every_command_has_help(argv: list[str]) -> None:
 def test_plan_writes_the_json_contract_and_a_png_per_path(tmp_path: Path) -> None:
     task_file = tmp_path / "t.toml"
     task_file.write_text(GOOD)
+    began = time.perf_counter()
     proc = run_cli(
         "plan", str(task_file), "--out", str(tmp_path / "o"), "--generations", "15", "--n", "6", "--seed", "4"
     )
+    took = time.perf_counter() - began
     assert proc.returncode == 0, proc.stderr
+    # the times it prints are true: the planning within the whole, the whole within what the run took
+    said = re.search(
+        r"([\d.]+) s planning on \d+ process(?:es)?, ([\d.]+) s in all", " ".join(proc.stdout.split())
+    )
+    assert said is not None, proc.stdout
+    planning, whole = map(float, said.groups())
+    assert 0.0 < planning <= whole <= took
     task = load_task(task_file)
     for pid, path in task.paths.items():
         data = json.loads((tmp_path / "o" / f"{pid}.json").read_text())
