@@ -8,13 +8,14 @@ import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from msgspec import structs
 from numpy.typing import NDArray
 
 from cadence.bench.naive import evaluate_naive
+from cadence.bench.protocol import Side, interleaved, protocol
 from common.robot.ur16e import JointLimits
 from common.trajectory.planner import (
     TrajectoryProblem,
@@ -139,7 +140,9 @@ def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBe
 
 @dataclass(frozen=True, slots=True)
 class Replanning:
-    """Today's planner (pymoo's loop, one path after the other) beside the fast one, in the same run.
+    """Today's planner (pymoo's loop, one path after the other) beside the fast one, in the same run, under
+    the timing protocol (cadence/bench/protocol.py): equal tries, interleaved, CPU of the process tree and
+    wall, medians; the whole task on one process on both sides, and the fast one's parallel figure apart.
 
     Hypervolumes are shares of a long reference run's (``reference_generations``, another seed) under its
     normalisation, per path; the edit moves the middle waypoint of every path by ``edit_deg`` on every
@@ -147,25 +150,34 @@ class Replanning:
     """
 
     path_id: str
-    workers: int
+    workers: int  # the fast engine's parallel run only (``task_parallel_s``)
     reference_generations: int
-    path_s: float  # the longest path, fast engine
-    pymoo_path_s: float
-    task_s: float  # every path, fast engine, ``workers`` forked processes, pool start-up included
-    pymoo_task_s: float  # every path, one after the other, pymoo's loop
+    tries: int
+    one_path: dict[str, Side]  # the longest path: "cadence" and "pymoo"
+    whole_task: dict[str, Side]  # every path on one process: "cadence" and "pymoo"
+    task_parallel_s: float  # every path, fast engine, ``workers`` forked processes, pool start-up included
     warm_s: float  # every edited path, warm, in the pool
     hv: dict[str, float]  # path → share, fast engine, cold
     pymoo_hv: dict[str, float]
     warm_hv: dict[str, float]
     edit_deg: float
+    protocol: dict[str, Any]
 
     @property
     def path_ratio(self) -> float:
-        return self.pymoo_path_s / self.path_s
+        """pymoo's CPU over the fast engine's, one path."""
+        return self.one_path["pymoo"].cpu / self.one_path["cadence"].cpu
 
     @property
     def task_ratio(self) -> float:
-        return self.pymoo_task_s / self.task_s
+        """The same, the whole task on one process each."""
+        return self.whole_task["pymoo"].cpu / self.whole_task["cadence"].cpu
+
+    def to_json(self) -> dict[str, Any]:
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["one_path"] = {name: side.to_json() for name, side in self.one_path.items()}
+        out["whole_task"] = {name: side.to_json() for name, side in self.whole_task.items()}
+        return out
 
 
 def _edited(path: PathPlan, deg: float) -> PathPlan:
@@ -183,12 +195,16 @@ def bench_replanning(
 
     paths = list(task.paths.values())
     longest = longest_path(task)
-    path_s, _ = _best_time(lambda: plan_path(longest, task.limits, settings), repeat)
-    pymoo_path_s, _ = _best_time(lambda: plan_path(longest, task.limits, settings, engine="pymoo"), repeat)
-    task_s, fast = _best_time(lambda: plan_paths(paths, task.limits, settings, workers), repeat)
-    pymoo_task_s, slow = _best_time(
-        lambda: {p.id: plan_path(p, task.limits, settings, engine="pymoo") for p in paths}, 1
-    )
+    one_path, _ = interleaved({"cadence": lambda: plan_path(longest, task.limits, settings),
+                               "pymoo": lambda: plan_path(longest, task.limits, settings, engine="pymoo")},
+                              repeat)  # fmt: skip
+    whole_task, last = interleaved(
+        {"cadence": lambda: plan_paths(paths, task.limits, settings, 1),
+         "pymoo": lambda: {p.id: plan_path(p, task.limits, settings, engine="pymoo") for p in paths}},
+        repeat,
+    )  # fmt: skip
+    fast, slow = last["cadence"], last["pymoo"]
+    parallel, _ = interleaved({"cadence": lambda: plan_paths(paths, task.limits, settings, workers)}, repeat)
     edited = [_edited(p, edit_deg) for p in paths]
     warm = {p.id: [s.h for s in fast[p.id].solutions] for p in paths}
     warm_s, warmed = _best_time(lambda: plan_paths(edited, task.limits, settings, workers, warm), repeat)
@@ -204,15 +220,16 @@ def bench_replanning(
         path_id=longest.id,
         workers=workers,
         reference_generations=reference_generations,
-        path_s=path_s,
-        pymoo_path_s=pymoo_path_s,
-        task_s=task_s,
-        pymoo_task_s=pymoo_task_s,
+        tries=repeat,
+        one_path=one_path,
+        whole_task=whole_task,
+        task_parallel_s=parallel["cadence"].wall,
         warm_s=warm_s,
         hv={p.id: share(fast[p.id].front, ref[p.id].front) for p in paths},
         pymoo_hv={p.id: share(slow[p.id].front, ref[p.id].front) for p in paths},
         warm_hv={p.id: share(warmed[p.id].front, ref_edit[p.id].front) for p in paths},
         edit_deg=edit_deg,
+        protocol=protocol(repeat, 1),
     )
 
 

@@ -43,11 +43,16 @@ def test_bench_replanning_prints_today_beside_the_fast_engine() -> None:
     task = load_task(EXAMPLE_TASK)
     r = bench_replanning(task, task.planner, workers=2, reference_generations=300 if BENCH_QUICK else 600,
                          repeat=1 if BENCH_QUICK else 2)  # fmt: skip
-    print(
-        f"\none path {r.path_id}: {r.path_s:.3f} s, today {r.pymoo_path_s:.3f} s, ratio {r.path_ratio:.1f}x\n"
-        f"whole task ({r.workers} processes): {r.task_s:.3f} s, today {r.pymoo_task_s:.3f} s, "
-        f"ratio {r.task_ratio:.1f}x\nwarm after a {r.edit_deg:g} deg edit: {r.warm_s:.3f} s"
-    )
+    for name, sides, ratio in (("one path " + r.path_id, r.one_path, r.path_ratio),
+                               ("whole task, one process each", r.whole_task, r.task_ratio)):  # fmt: skip
+        fast, today = sides["cadence"], sides["pymoo"]
+        print(f"\n{name}: CPU {fast.cpu:.3f} s (wall {fast.wall:.3f}), today {today.cpu:.3f} s "
+              f"(wall {today.wall:.3f}), ratio {ratio:.1f}x; tries {r.tries}, interleaved")  # fmt: skip
+        assert len(fast.cpu_s) == len(today.cpu_s) == r.tries  # equal tries on both sides
+    print(f"whole task on {r.workers} processes (the fast engine): {r.task_parallel_s:.3f} s wall; "
+          f"warm after a {r.edit_deg:g} deg edit: {r.warm_s:.3f} s; protocol {r.protocol}")  # fmt: skip
+    assert set(r.protocol) == {"tries", "interleaved", "workers", "load"}
+    assert set(r.to_json()["one_path"]["cadence"]) >= {"cpu_s", "wall_s", "cpu_spread"}
     for pid in r.hv:
         print(f"hypervolume {pid}: {r.hv[pid]:.4f} (today {r.pymoo_hv[pid]:.4f}, warm {r.warm_hv[pid]:.4f})")
     assert min(r.hv.values()) >= 0.99
