@@ -5,8 +5,6 @@ front's convergence over generations."""
 from __future__ import annotations
 
 import dataclasses
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -68,32 +66,39 @@ def ruckig_stop_at_every_waypoint(path: PathPlan, limits: JointLimits) -> float 
     return total
 
 
-def _best_time(fn: Callable[[], T], repeat: int) -> tuple[float, T]:
-    t0 = time.perf_counter()
-    out = fn()
-    best = time.perf_counter() - t0
-    for _ in range(repeat - 1):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
-
-
 @dataclass(frozen=True, slots=True)
 class PlanBench:
+    """The longest path planned by the array engine beside the straightforward evaluation, in the same run
+    under the timing protocol (cadence/bench/protocol.py): medians of CPU seconds, equal tries."""
+
     path_id: str
     n_waypoints: int
     generations: int
     population: int
-    plan_s: float
-    naive_plan_s: float
-    eval_ms: float
-    naive_eval_ms: float
+    plan: dict[str, Side]  # "fast" and "naive": a whole plan
+    evaluation: dict[str, Side]  # "fast" and "naive": one generation's evaluation
     hv: float
     naive_hv: float
     tf_exact: float
     tf_hull: float
     tf_ruckig: float | None
+    protocol: dict[str, Any]
+
+    @property
+    def plan_s(self) -> float:
+        return self.plan["fast"].cpu
+
+    @property
+    def naive_plan_s(self) -> float:
+        return self.plan["naive"].cpu
+
+    @property
+    def eval_ms(self) -> float:
+        return self.evaluation["fast"].cpu * 1e3
+
+    @property
+    def naive_eval_ms(self) -> float:
+        return self.evaluation["naive"].cpu * 1e3
 
     @property
     def plan_ratio(self) -> float:
@@ -104,20 +109,26 @@ class PlanBench:
         return self.naive_eval_ms / self.eval_ms
 
 
+EVAL_TRIES = 5  # one generation's evaluation takes milliseconds: this many tries of each per plan's try
+
+
 def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBench:
     """Planning time of the longest path against the straightforward evaluation, in the same run."""
     path = longest_path(task)
     exact = structs.replace(settings, constraints="exact")
-    plan_s, fast = _best_time(lambda: plan_path(path, task.limits, exact), repeat)
-    naive_s, slow = _best_time(lambda: plan_path(path, task.limits, exact, evaluator=evaluate_naive), 1)
+    plan, last = interleaved({"fast": lambda: plan_path(path, task.limits, exact),
+                              "naive": lambda: plan_path(path, task.limits, exact, evaluator=evaluate_naive)},
+                             repeat)  # fmt: skip
+    fast, slow = last["fast"], last["naive"]
     hull = plan_path(path, task.limits, structs.replace(settings, constraints="hull"))
 
     # One generation's evaluation, both ways, on the same population.
     problem = TrajectoryProblem(path, task.limits, "exact", settings.kappa)
     rng = np.random.default_rng(settings.seed)
     pop = np.exp(rng.uniform(np.log(problem.lb), np.log(problem.ub), (settings.population, len(problem.lb))))
-    eval_s, _ = _best_time(lambda: evaluate(pop, path, task.limits, "exact"), 20)
-    naive_eval_s, _ = _best_time(lambda: evaluate_naive(pop, path, task.limits, "exact"), 3)
+    evaluation, _ = interleaved({"fast": lambda: evaluate(pop, path, task.limits, "exact"),
+                                 "naive": lambda: evaluate_naive(pop, path, task.limits, "exact")},
+                                repeat * EVAL_TRIES)  # fmt: skip
 
     both = np.concatenate([fast.front, slow.front])
     ideal, nadir = both.min(axis=0), both.max(axis=0)
@@ -126,15 +137,14 @@ def bench_plan(task: Task, settings: PlannerSettings, repeat: int = 3) -> PlanBe
         n_waypoints=len(path.waypoints),
         generations=fast.generations,
         population=settings.population,
-        plan_s=plan_s,
-        naive_plan_s=naive_s,
-        eval_ms=eval_s * 1e3,
-        naive_eval_ms=naive_eval_s * 1e3,
+        plan=plan,
+        evaluation=evaluation,
         hv=hypervolume(fast.front, ideal, nadir),
         naive_hv=hypervolume(slow.front, ideal, nadir),
         tf_exact=fast.solutions[-1].t_f,
         tf_hull=hull.solutions[-1].t_f,
         tf_ruckig=ruckig_stop_at_every_waypoint(path, task.limits),
+        protocol=protocol(repeat, 1),
     )
 
 
@@ -207,7 +217,9 @@ def bench_replanning(
     parallel, _ = interleaved({"cadence": lambda: plan_paths(paths, task.limits, settings, workers)}, repeat)
     edited = [_edited(p, edit_deg) for p in paths]
     warm = {p.id: [s.h for s in fast[p.id].solutions] for p in paths}
-    warm_s, warmed = _best_time(lambda: plan_paths(edited, task.limits, settings, workers, warm), repeat)
+    warm_run = {"warm": lambda: plan_paths(edited, task.limits, settings, workers, warm)}
+    warmed_run, last_warm = interleaved(warm_run, repeat)
+    warm_s, warmed = warmed_run["warm"].wall, last_warm["warm"]
     long = structs.replace(settings, generations=reference_generations, seed=10_000)
     ref = plan_paths(paths, task.limits, long, workers)
     ref_edit = plan_paths(edited, task.limits, long, workers)
