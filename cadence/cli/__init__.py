@@ -16,12 +16,20 @@ from common.runtime.errors import BusError, CadenceError, InputError
 __all__ = ["SERVICES", "build_parser", "main"]
 
 
+class _Version(argparse.Action):
+    """``--version``, its version read only when asked for (``version()``: importlib.metadata's cost)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        sys.stdout.write(f"cadence {version()}\n")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cadence",
         description="Cadence: a cobot that keeps a pace its human co-worker can sustain.",
     )
-    parser.add_argument("--version", action="version", version=f"cadence {version()}")
+    parser.add_argument("--version", action=_Version, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     assert bench_people.cli is bench.cli  # its commands are of the bench family
     for family in (plan, bench, cell, operate, demo, lab, session, hrv, deploy):

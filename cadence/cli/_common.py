@@ -4,23 +4,26 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from msgspec import structs
 from rich.console import Console
 
-from common.runtime.bus import Bus, BusConfig
 from common.runtime.resources import EXAMPLE_TASK
-from common.trajectory.task import Task, load_task
 from schemas.topology import DEFAULT_CELL
 from services.registry import SERVICES as REGISTRY
 
 out = Console()
 err = Console(stderr=True)
+
+if TYPE_CHECKING:  # a command imports them when it runs: `cadence --version` needs none of them
+    import asyncio
+
+    from common.runtime.bus import Bus, BusConfig
+    from common.trajectory.task import Task
 
 # `cadence run NAME`: the services of the registry (those of the graph, and the UR emulator)
 SERVICES = {s.name: s.module_name for s in REGISTRY}
@@ -127,6 +130,8 @@ def positive_float(text: str) -> float:
 
 
 def task_with_overrides(args: argparse.Namespace) -> Task:
+    from common.trajectory.task import load_task
+
     task = load_task(args.task)
     overrides = {
         "seed": args.seed,
@@ -166,6 +171,7 @@ def add_bus_flags(p: argparse.ArgumentParser, timeout_s: float) -> None:
 def bus_config(args: argparse.Namespace, mode: Literal["peer", "client", "router"]) -> BusConfig:
     """The command's bus: its flags, over the ``CADENCE_BUS_*`` variables every service reads (a
     misspelled one is an error here as it is there, not ignored), over the defaults."""
+    from common.runtime.bus import BusConfig
     from common.runtime.config import section
 
     env = section({}, "bus", BusConfig)
@@ -191,8 +197,10 @@ async def reaching(cfg: BusConfig, cell: str, role: str, timeout_s: float, comma
     """The bus, once the router a client connects to answers, within ``timeout_s``: a lab that starts
     the cell and its first session together would otherwise get "unable to connect" before the router
     listens. Said once while it waits; any other error at once."""
+    import asyncio
     import time
 
+    from common.runtime.bus import Bus
     from common.runtime.errors import BusError
 
     give_up, said = time.monotonic() + timeout_s, False
@@ -212,6 +220,8 @@ async def reaching(cfg: BusConfig, cell: str, role: str, timeout_s: float, comma
 def say_when_alone(bus: Bus, command: str) -> None:
     """After a session's first moments, say on stderr if it reaches no router and no peer: Zenoh would
     leave the command waiting in silence."""
+    import asyncio
+
     from common.runtime.service import ISOLATED_SAY_S
 
     def say() -> None:
@@ -221,8 +231,9 @@ def say_when_alone(bus: Bus, command: str) -> None:
     asyncio.get_running_loop().call_later(ISOLATED_SAY_S, say)
 
 
-def stop_on_signals():
+def stop_on_signals() -> asyncio.Event:
     """An event set by SIGTERM or SIGINT (Ctrl-C), for the commands that run until stopped."""
+    import asyncio
 
     from common.runtime.service import on_stop_signals
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import contextlib
 import math
 import signal
@@ -29,6 +28,8 @@ async def ended_by_sigterm(main: Coroutine[Any, Any, T]) -> T:
     (asyncio's runner cancels the main task): what ran is kept. Whatever SIGINT's disposition: a background
     job of a non-interactive shell has SIGINT ignored, and a SIGTERM forwarded to that handler did nothing
     (the demo ran 72–156 s on to its end)."""
+    import asyncio  # here: `cadence --help` need not import it (issue 76's start-up)
+
     loop, task = asyncio.get_running_loop(), asyncio.current_task()
     assert task is not None
     loop.add_signal_handler(signal.SIGTERM, task.cancel)
@@ -157,6 +158,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     before = signal.getsignal(signal.SIGTERM)
     try:
         if opts.processes:
+            import asyncio
+
             summary = asyncio.run(ended_by_sigterm(run_demo(opts, out)))
         else:
             from cadence.demo.in_lockstep import run_lockstep

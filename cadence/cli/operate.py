@@ -11,7 +11,6 @@ from typing import TypeVar
 import msgspec
 
 from cadence.cli._common import Commands, add_bus_flags, arg, err, flags_from, joining, out
-from cadence.tools.say import cell_clock, checked, separation_line, tell
 from common.runtime.errors import InputError
 from schemas.base import Message
 from schemas.operator import OperatorError, OperatorSignal
@@ -69,6 +68,7 @@ def _tell_once(
     schema refuses is an input error before any bus is joined."""
     import asyncio
 
+    from cadence.tools.say import cell_clock, checked, tell
     from common.runtime.bus import Bus
 
     checked(make(time.time_ns()))
@@ -132,7 +132,7 @@ def cmd_separation(args: argparse.Namespace) -> int:
     import asyncio
     import sys
 
-    from cadence.tools.say import Form, parse_pose, relay_separations
+    from cadence.tools.say import Form, parse_pose, relay_separations, separation_line
     from common.runtime.bus import Bus
 
     if args.pose and not args.points:

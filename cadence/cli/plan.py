@@ -12,7 +12,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from cadence.cli._common import Commands, add_planner_flags, arg, err, flags_from, out, task_with_overrides
-from common.trajectory.task import continuity_gaps
 
 cli = Commands()
 
@@ -39,6 +38,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from common.trajectory.planner import content_hash
     from common.trajectory.pool import plan_paths
     from common.trajectory.shipped import as_message, write_shipped
+    from common.trajectory.task import continuity_gaps
 
     task = task_with_overrides(args)
     for gap in continuity_gaps(task):

@@ -4,7 +4,6 @@ and cadence/lab/live.py for the terminal)."""
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import sys
 from pathlib import Path
@@ -88,6 +87,8 @@ cli = Commands()
 @arg("--note", default="", help="free text kept in the file (e.g. the experimenter)")
 @flags_from(add_bus_flags, 120.0)
 def cmd_session(args: argparse.Namespace) -> int:
+    import asyncio
+
     from rich.live import Live
 
     from cadence.cli._common import joining, stop_on_signals
