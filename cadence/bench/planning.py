@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 from msgspec import structs
 from numpy.typing import NDArray
 
 from cadence.bench.naive import evaluate_naive
-from cadence.bench.protocol import Side, interleaved, protocol
+from cadence.bench.protocol import Side, interleaved, protocol, sides_json
 from common.robot.ur16e import JointLimits
 from common.trajectory.planner import (
     TrajectoryProblem,
@@ -22,8 +22,6 @@ from common.trajectory.planner import (
     plan_path,
 )
 from common.trajectory.task import PathPlan, PlannerSettings, Task
-
-T = TypeVar("T")
 
 
 def longest_path(task: Task) -> PathPlan:
@@ -185,8 +183,7 @@ class Replanning:
 
     def to_json(self) -> dict[str, Any]:
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["one_path"] = {name: side.to_json() for name, side in self.one_path.items()}
-        out["whole_task"] = {name: side.to_json() for name, side in self.whole_task.items()}
+        out["one_path"], out["whole_task"] = sides_json(self.one_path), sides_json(self.whole_task)
         return out
 
 

@@ -52,6 +52,10 @@ class Side:
                 "cpu_tries_s": list(self.cpu_s), "wall_tries_s": list(self.wall_s)}  # fmt: skip
 
 
+def sides_json(sides: Mapping[str, Side]) -> dict[str, dict[str, Any]]:
+    return {name: side.to_json() for name, side in sides.items()}
+
+
 def interleaved(sides: Mapping[str, Callable[[], T]], tries: int) -> tuple[dict[str, Side], dict[str, T]]:
     """Each side ``tries`` times, one try of each in turn; the last result of each."""
     if tries < 1:

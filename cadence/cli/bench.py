@@ -55,6 +55,7 @@ cli.group(
 @flags_from(add_planner_flags, task_option=True)
 def cmd_bench_plan(args: argparse.Namespace) -> int:
     from cadence.bench.planning import bench_plan, bench_replanning
+    from cadence.bench.protocol import sides_json
 
     task = task_with_overrides(args)
     with err.status("today's planner and the fast one, path by path and the whole task …"):
@@ -103,8 +104,8 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
         "eval_ms": r.eval_ms,
         "naive_eval_ms": r.naive_eval_ms,
         "eval_ratio": r.eval_ratio,
-        "plan": {name: side.to_json() for name, side in r.plan.items()},
-        "evaluation": {name: side.to_json() for name, side in r.evaluation.items()},
+        "plan": sides_json(r.plan),
+        "evaluation": sides_json(r.evaluation),
         "hv": r.hv,
         "naive_hv": r.naive_hv,
         "tf_hull": r.tf_hull,

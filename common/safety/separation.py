@@ -336,7 +336,8 @@ class Sources:
                 silent.append(name)
             elif readings.last is not None:
                 why = f"where last seen: no fresh reading from '{name}' for {now - readings.last[0]:.1f} s"
-                last_seen.append(Nearest(readings.last[1], name, why))
+                # taken when last seen: a spell it shows began then (Spell), not at this look
+                last_seen.append(Nearest(readings.last[1], name, why, readings.last[0] - self.max_age_s))
         if silent:
             return Nearest(None, silent[0], f"no fresh distance from {', '.join(silent)} (declared)")
         if not fresh:  # a person last seen far, alone, frees nothing: nothing fresh is a hold

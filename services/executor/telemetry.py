@@ -53,10 +53,11 @@ class Telemetry:
     def sample(self) -> Out:
         t_ns = self.kit.clock.now_ns()
         pressed = self.pressed(t_ns)
-        b, now = self.backend, self.snapshot()
+        b = self.backend
         if not b.measured():  # no measure of the arm now: no state (a stale speed is not the arm's)
             self.kit.counters["states_unmeasured"] += 1
             return list(pressed)
+        now = self.snapshot()
         m, near = now.motion, now.separation_m
         state = RobotState(
             t_ns=t_ns,

@@ -93,7 +93,8 @@ def test_silence_never_frees_the_arm_a_near_person_unheard_stays_where_last_seen
     table.receive("camera:side", 4.0, 0.0, 0.0, 5.0)  # the same source, fresh: the person walked off
     assert table.nearest(5.0) == Nearest(4.0, "camera:side", taken_s=5.0)
     table.receive("twin", 6.0, 0.0, 0.0, 5.2)
-    assert table.nearest(5.4) == Nearest(4.0, "camera:side", table.nearest(5.4).why)  # where last seen
+    seen = table.nearest(5.4)  # where last seen, taken when last seen
+    assert seen == Nearest(4.0, "camera:side", seen.why, taken_s=5.0)
     table.receive("twin", 6.0, 0.0, 0.0, 5.4)
     table.receive("camera:side", 3.0, 0.0, 0.0, 5.4)
     table.receive("scanner:rogue", 100.0, 0.0, 0.0, 5.4)  # a far one, of another name, frees nothing
